@@ -1,0 +1,137 @@
+"""SHAC / D.Va configuration: one dataclass, field docstrings become the CLI's ``--help`` (tyro).
+
+Fields left at ``None`` take the task's reference value (DESIGN section 5, notes/dva-reference.md) when the
+trainer is built; ``config.json`` of a run stores the resolved values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+__all__ = ["SHACConfig", "TASK_DEFAULTS", "MODES", "resolve_config"]
+
+MODES = ("full", "decoupled", "state")
+
+#: Per-task reference hyperparameters (D.Va / SHAC configs).
+TASK_DEFAULTS: dict[str, dict] = {
+    "cartpole": dict(critic_lr=2e-4, target_alpha=0.2, trunk_dim=64, actor_hidden=(64, 64),
+                     critic_hidden=(64, 64)),
+    "hopper": dict(critic_lr=2e-4, target_alpha=0.2, trunk_dim=128, actor_hidden=(128, 64, 32),
+                   critic_hidden=(64, 64)),
+    "ant": dict(critic_lr=2e-3, target_alpha=0.2, trunk_dim=128, actor_hidden=(128, 64, 32),
+                critic_hidden=(64, 64)),
+    "humanoid": dict(critic_lr=5e-4, target_alpha=0.995, trunk_dim=256, actor_hidden=(256, 128),
+                     critic_hidden=(128, 128)),
+}
+
+
+@dataclass
+class SHACConfig:
+    """SHAC with one switch between full APG through pixels and decoupled D.Va."""
+
+    task: str = "cartpole"
+    """Task: cartpole, hopper, ant or humanoid."""
+    mode: Literal["full", "decoupled", "state"] = "decoupled"
+    """full: gradients flow through the rendered images into the robot state; decoupled (D.Va): the image
+    stack is detached at the actor's input; state: the actor sees the state vector (upper bound)."""
+    iters: int = 500
+    """Training iterations (one iteration = num_envs x horizon env steps). Also the length of the linear
+    learning-rate decay."""
+    num_envs: int = 64
+    """Parallel environments."""
+    horizon: int = 32
+    """Steps per SHAC window (the backpropagation horizon)."""
+    seed: int = 0
+    """One seed for everything (networks, noise, resets). Same seed on the CPU gives identical metrics."""
+    gamma: float = 0.99
+    """Discount."""
+    lam: float = 0.95
+    """TD(lambda) for the critic targets."""
+    actor_lr: float = 2e-3
+    """Actor learning rate (decays linearly to 1e-5)."""
+    critic_lr: float | None = None
+    """Critic learning rate; None: the task's reference value (2e-4 cartpole/hopper, 2e-3 ant, 5e-4
+    humanoid)."""
+    betas: tuple[float, float] = (0.7, 0.95)
+    """Adam betas (actor and critic)."""
+    grad_clip: float = 1.0
+    """Gradient-norm clipping for actor and critic."""
+    critic_iterations: int = 16
+    """Critic passes over each window's data."""
+    critic_batches: int = 4
+    """Minibatches per critic pass."""
+    target_alpha: float | None = None
+    """Target critic Polyak factor (target = a*target + (1-a)*critic); None: 0.2, humanoid 0.995."""
+    trunk_dim: int | None = None
+    """Visual encoder trunk width; None: 64 cartpole, 128 hopper/ant, 256 humanoid."""
+    actor_hidden: tuple[int, ...] | None = None
+    """Actor MLP widths; None: task reference ([64,64], [128,64,32], [256,128])."""
+    critic_hidden: tuple[int, ...] | None = None
+    """Critic MLP widths; None: [64,64] ([128,128] humanoid)."""
+    image_size: int = 84
+    """Rendered image height and width in pixels."""
+    frames: int = 3
+    """Stacked frames at the actor's input."""
+    render_detail: int = 1
+    """Mesh tessellation level of the robot's primitives (higher: more vertices per mesh)."""
+    extra_meshes: int = 0
+    """Extra meshes attached to robot links (their vertices move with qpos): scene complexity for the
+    memory sweep."""
+    extra_mesh_verts: int = 64
+    """Vertices per extra mesh."""
+    sigma: float | None = None
+    """Soft-rasterizer edge softness in pixels; None: the renderer's default."""
+    render_gamma: float | None = None
+    """Soft-rasterizer depth-blend temperature; None: the renderer's default."""
+    episode_length: int | None = None
+    """Override the task's episode length (None: 240 cartpole, 1000 others)."""
+    cosine_every: int = 10
+    """Every K-th iteration, compute both gradients (full and decoupled) of the SAME rollout and log their
+    norms and cosine; 0 disables. Visual modes only."""
+    abort_grad_norm: float = 1e8
+    """Stop (as D.Va does) when the actor's pre-clip gradient norm exceeds this."""
+
+    def validate(self) -> None:
+        """Clear errors for bad values, before any work."""
+        from tasks import TASKS
+
+        if self.task not in TASKS:
+            raise ValueError(f"unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
+        if self.mode not in MODES:
+            raise ValueError(f"unknown mode {self.mode!r}; valid modes: {', '.join(MODES)}")
+        for name in ("iters", "num_envs", "horizon", "critic_iterations", "critic_batches", "image_size",
+                     "frames", "render_detail"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("extra_meshes", "cosine_every"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 0:
+                raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
+        if self.extra_meshes and self.extra_mesh_verts < 4:
+            raise ValueError(f"extra_mesh_verts must be >= 4, got {self.extra_mesh_verts}")
+        if not 0 < self.gamma <= 1 or not 0 <= self.lam <= 1:
+            raise ValueError(f"gamma must be in (0, 1] and lam in [0, 1], got {self.gamma}, {self.lam}")
+        if self.actor_lr <= 0 or (self.critic_lr is not None and self.critic_lr <= 0):
+            raise ValueError("learning rates must be positive")
+        if self.grad_clip <= 0:
+            raise ValueError(f"grad_clip must be positive, got {self.grad_clip}")
+        if self.critic_batches > self.num_envs * self.horizon:
+            raise ValueError("critic_batches cannot exceed num_envs * horizon")
+        if self.episode_length is not None and self.episode_length <= 0:
+            raise ValueError(f"episode_length must be positive, got {self.episode_length}")
+        if self.image_size < 16:
+            raise ValueError(f"image_size must be >= 16 pixels for the encoder, got {self.image_size}")
+
+
+def resolve_config(cfg: SHACConfig) -> SHACConfig:
+    """A copy with every None field replaced by the task's reference value (validated first)."""
+    cfg.validate()
+    defaults = TASK_DEFAULTS[cfg.task]
+    updates = {k: v for k, v in defaults.items() if getattr(cfg, k) is None}
+    out = dataclasses.replace(cfg, **updates)
+    out.actor_hidden = tuple(out.actor_hidden)
+    out.critic_hidden = tuple(out.critic_hidden)
+    return out
