@@ -1,0 +1,43 @@
+"""Task registry: :func:`make` builds a task by name with config overrides."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from .cartpole import CartpoleTask
+from .task import Task, config_fields
+
+__all__ = ["TASKS", "make"]
+
+_REGISTRY: dict[str, type[Task]] = {
+    "cartpole": CartpoleTask,
+}
+TASKS: tuple[str, ...] = tuple(_REGISTRY)
+
+
+def make(
+    name: str,
+    num_envs: int,
+    *,
+    device: torch.device | str = "cpu",
+    seed: int = 0,
+    dtype: torch.dtype = torch.float32,
+    **overrides,
+) -> Task:
+    """Build ``num_envs`` environments of task ``name`` (one of :data:`TASKS`).
+
+    ``overrides`` replace fields of the task's config (e.g. ``episode_length=50``, ``substeps=8``,
+    ``early_termination=False``, ``contact=False``); an unknown name raises ValueError listing the valid ones.
+    The state starts at the nominal start pose; call :meth:`Task.reset` for a seeded random start.
+    """
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(TASKS)}")
+    cls = _REGISTRY[name]
+    valid = config_fields(cls.Config)
+    unknown = sorted(set(overrides) - set(valid))
+    if unknown:
+        raise ValueError(f"unknown override(s) {unknown} for task {name!r}; valid: {', '.join(valid)}")
+    config = dataclasses.replace(cls.Config(), **overrides)
+    return cls(num_envs, device=device, seed=seed, dtype=dtype, config=config)

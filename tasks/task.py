@@ -1,0 +1,332 @@
+"""The batched task interface shared by cartpole, hopper, ant and humanoid.
+
+A :class:`Task` owns ``num_envs`` copies of one robot: the state tensors (``qpos``, ``qvel``, ``progress``,
+``prev_actions``), a :class:`~tasks.dynamics.Simulator`, a counter-based reset RNG and the task's reward,
+termination and observation. :meth:`Task.step` is differentiable w.r.t. the action and the previous state,
+has static shapes and never synchronises with the host (unless ``validate=True``), and resets finished
+environments in place with ``torch.where`` (the new state enters without gradient), so a step can be
+compiled and captured in a CUDA graph.
+
+Subclasses set the class attributes (``name``, ``asset``, ``camera``, ``Config``, ``num_obs``) and implement
+``initial_state``, ``observe``, ``compute_reward`` and ``compute_terminated``.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import functools
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import torch
+
+from .dynamics import ContactParams, LimitParams, Simulator
+from .model import ArticulatedModel, load_model
+from .rng import CounterRNG
+
+__all__ = ["ASSETS", "CameraSpec", "Task", "TaskConfig"]
+
+ASSETS = Path(__file__).resolve().parent / "assets"
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """Where the task's camera looks from (DESIGN section 4). ``eye`` and ``target`` [m] are offsets from the
+    tracked root position (``root_body``'s origin) on the tracked axes (``track``: "none" fixed, "xz" or
+    "xyz"); with ``track="none"`` they are world coordinates. Images are ``height x width`` RGB."""
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    fov_deg: float
+    track: Literal["none", "xz", "xyz"]
+    root_body: str
+    height: int = 84
+    width: int = 84
+
+
+def _env_flag(name: str) -> bool:
+    return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no")
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """Task settings; any field can be overridden by keyword in :func:`tasks.make`.
+
+    episode_length: control steps before truncation. substeps: semi-implicit Euler substeps per control step
+    (dt = 1/60 s per control step). early_termination: end episodes on the task's failure condition (an
+    invalid state - NaN/inf or |value| > 1e6 - always ends the episode). contact: ground contact on/off.
+    contact_ke [N/m], contact_kd [N s/m^2], contact_kf [N s/m], contact_mu: dflex contact parameters.
+    limit_ke [N m/rad], limit_kd [N m s/rad], limit_damping: joint-limit penalty (see
+    :class:`tasks.dynamics.LimitParams`; "always" is dflex's behaviour). action_scale: torque = clip(a, -1, 1)
+    * gear * action_scale. reset_noise: randomise reset states (False: the nominal start state).
+    validate: check actions for NaN/inf on every step (a host sync; default from env var TASKS_VALIDATE).
+    """
+
+    episode_length: int = 1000
+    substeps: int = 16
+    early_termination: bool = True
+    contact: bool = True
+    contact_ke: float = 0.0
+    contact_kd: float = 0.0
+    contact_kf: float = 0.0
+    contact_mu: float = 0.0
+    limit_ke: float = 1.0e3
+    limit_kd: float = 1.0e1
+    limit_damping: Literal["always", "violated"] = "always"
+    action_scale: float = 1.0
+    reset_noise: bool = True
+    validate: bool = field(default_factory=lambda: _env_flag("TASKS_VALIDATE"))
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.episode_length, int) and self.episode_length >= 1):
+            raise ValueError(f"episode_length must be a positive int, got {self.episode_length!r}")
+        if not (isinstance(self.substeps, int) and self.substeps >= 1):
+            raise ValueError(f"substeps must be a positive int, got {self.substeps!r}")
+        if self.limit_damping not in ("always", "violated"):
+            raise ValueError(f"limit_damping must be 'always' or 'violated', got {self.limit_damping!r}")
+        for name in ("contact_ke", "contact_kd", "contact_kf", "contact_mu", "limit_ke", "limit_kd"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v >= 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+
+
+@functools.cache
+def _cached_model(path: str) -> ArticulatedModel:
+    return load_model(path)
+
+
+def _resolve_device(device: torch.device | str) -> torch.device:
+    d = torch.device(device)
+    if d.type == "cuda" and d.index is None:
+        d = torch.device("cuda", torch.cuda.current_device())
+    return d
+
+
+class Task(abc.ABC):
+    """``num_envs`` environments of one task; see the module docstring and DESIGN section 4.
+
+    Attributes: name, num_envs, num_obs, num_act, episode_length, dt [s] (control step, 1/60), substeps,
+    device, dtype, mjcf_path (str), sim (:class:`~tasks.dynamics.Simulator`), qpos (B, nq), qvel (B, nv),
+    progress (B,) long (control steps since the last reset), prev_actions (B, num_act) (the last clipped
+    action; zero after a reset), camera (:class:`CameraSpec`), config (:class:`TaskConfig`).
+    """
+
+    name: ClassVar[str]
+    asset: ClassVar[str]
+    camera: ClassVar[CameraSpec]
+    Config: ClassVar[type[TaskConfig]] = TaskConfig
+    num_obs: ClassVar[int]
+    noise_dim: ClassVar[int]  # uniforms per environment consumed by one reset draw
+    dt: ClassVar[float] = 1.0 / 60.0
+
+    def __init__(
+        self,
+        num_envs: int,
+        *,
+        device: torch.device | str = "cpu",
+        seed: int = 0,
+        dtype: torch.dtype = torch.float32,
+        config: TaskConfig | None = None,
+    ) -> None:
+        if not (isinstance(num_envs, int) and num_envs >= 1):
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        self.config = config if config is not None else self.Config()
+        cfg = self.config
+        self.num_envs = num_envs
+        self.device = _resolve_device(device)
+        self.dtype = dtype
+        self.seed = int(seed)
+        self.mjcf_path = str(ASSETS / self.asset)
+        self.model = _cached_model(self.mjcf_path)
+        contact = None
+        if cfg.contact and cfg.contact_ke > 0:
+            contact = ContactParams(cfg.contact_ke, cfg.contact_kd, cfg.contact_kf, cfg.contact_mu)
+        limits = LimitParams(cfg.limit_ke, cfg.limit_kd, cfg.limit_damping)
+        self.sim = Simulator(self.model, device=self.device, dtype=dtype, contact=contact, limits=limits)
+        self.num_act = self.model.nu
+        self.episode_length = cfg.episode_length
+        self.substeps = cfg.substeps
+        self.rng = CounterRNG(num_envs, self.noise_dim, seed=self.seed, device=self.device)
+        self._substep: Callable = self.sim.substep
+        self._finish: Callable = self._finish_impl
+        qpos, qvel = self.initial_state(None)
+        self.qpos, self.qvel = qpos, qvel
+        self.progress = torch.zeros(num_envs, dtype=torch.long, device=self.device)
+        self.prev_actions = torch.zeros(num_envs, self.num_act, dtype=dtype, device=self.device)
+
+    # ------------------------------------------------------------------------------------------------------
+    # task-specific hooks
+    @abc.abstractmethod
+    def initial_state(self, u: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reset states from uniforms ``u (B, noise_dim)`` in [0, 1) (None: the nominal start state)."""
+
+    @abc.abstractmethod
+    def observe(self, qpos: torch.Tensor, qvel: torch.Tensor, prev_actions: torch.Tensor) -> torch.Tensor:
+        """State observation (B, num_obs)."""
+
+    @abc.abstractmethod
+    def compute_reward(self, qpos: torch.Tensor, qvel: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Reward (B,) of reaching (qpos, qvel) with the clipped ``action``."""
+
+    @abc.abstractmethod
+    def compute_terminated(self, qpos: torch.Tensor, qvel: torch.Tensor) -> torch.Tensor:
+        """Task failure condition (B,) bool (applied when ``early_termination``)."""
+
+    # ------------------------------------------------------------------------------------------------------
+    # helpers for subclasses
+    def _const(self, values) -> torch.Tensor:
+        return torch.as_tensor(values, dtype=self.dtype, device=self.device)
+
+    def _noise(self, u: torch.Tensor | None, n: int, start: int, scale: float) -> torch.Tensor | float:
+        """Uniform noise in [-scale, scale) from columns [start, start + n) of ``u`` (0 when u is None)."""
+        if u is None or not self.config.reset_noise:
+            return 0.0
+        return (2.0 * u[:, start : start + n] - 1.0) * scale
+
+    # ------------------------------------------------------------------------------------------------------
+    # public API
+    def reset(self) -> torch.Tensor:
+        """Reset every environment (a fresh seeded draw); returns the observation (B, num_obs)."""
+        with torch.no_grad():
+            qpos, qvel = self.initial_state(self.rng.uniform(self.dtype))
+        self.qpos, self.qvel = qpos, qvel
+        self.progress = torch.zeros_like(self.progress)
+        self.prev_actions = torch.zeros_like(self.prev_actions)
+        return self.state_obs()
+
+    def state_obs(self) -> torch.Tensor:
+        """Observation of the current state (B, num_obs), differentiable w.r.t. the state."""
+        return self.observe(self.qpos, self.qvel, self.prev_actions)
+
+    def step(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        """Advance every environment by one control step (``substeps`` physics substeps).
+
+        action: (B, num_act) in [-1, 1] (clipped; torque = action * gear * action_scale).
+        Returns ``obs (B, num_obs)`` (after resets), ``reward (B,)``, ``done (B,) bool`` (terminated or
+        truncated) and ``info`` with ``obs_before_reset``, ``qpos_before_reset``, ``qvel_before_reset``
+        (differentiable; the state this step reached), ``terminated`` and ``truncated`` (B,) bool.
+        Finished environments are reset in place (new state without gradient; ``progress`` and
+        ``prev_actions`` zeroed).
+        """
+        self._check_action(action)
+        a = torch.clamp(action, -1.0, 1.0)
+        tau = self.sim.actuator_force(a * self.config.action_scale)
+        h = self.dt / self.substeps
+        qpos, qvel = self.qpos, self.qvel
+        for _ in range(self.substeps):
+            qpos, qvel = self._substep(qpos, qvel, tau, h)
+        (self.qpos, self.qvel, self.progress, self.prev_actions, obs, reward, done, info) = self._finish(
+            qpos, qvel, a, self.progress
+        )
+        return obs, reward, done, info
+
+    def _finish_impl(self, qpos, qvel, a, progress):
+        """Reward, termination, truncation and the in-place reset of finished environments."""
+        obs_before = self.observe(qpos, qvel, a)
+        reward = self.compute_reward(qpos, qvel, a)
+        invalid = ~(torch.isfinite(qpos).all(-1) & torch.isfinite(qvel).all(-1))
+        invalid = invalid | (qpos.abs() > 1e6).any(-1) | (qvel.abs() > 1e6).any(-1)
+        terminated = invalid
+        if self.config.early_termination:
+            terminated = terminated | self.compute_terminated(qpos, qvel)
+        progress = progress + 1
+        truncated = (progress >= self.episode_length) & ~terminated
+        done = terminated | truncated
+        with torch.no_grad():  # fresh noise for every env every step: no data-dependent shapes
+            q0, v0 = self.initial_state(self.rng.uniform(self.dtype))
+        d = done[:, None]
+        new_qpos = torch.where(d, q0, qpos)
+        new_qvel = torch.where(d, v0, qvel)
+        new_prev = torch.where(d, torch.zeros_like(a), a)
+        new_progress = torch.where(done, torch.zeros_like(progress), progress)
+        obs = self.observe(new_qpos, new_qvel, new_prev)
+        info = {
+            "obs_before_reset": obs_before,
+            "qpos_before_reset": qpos,
+            "qvel_before_reset": qvel,
+            "terminated": terminated,
+            "truncated": truncated,
+        }
+        return new_qpos, new_qvel, new_progress, new_prev, obs, reward, done, info
+
+    def detach(self) -> None:
+        """Cut the autograd graph at the current state (call at every SHAC window start)."""
+        self.qpos = self.qpos.detach()
+        self.qvel = self.qvel.detach()
+        self.prev_actions = self.prev_actions.detach()
+
+    def get_state(self) -> dict[str, torch.Tensor]:
+        """Copies of qpos, qvel, progress, prev_actions and the reset RNG state (``rng``)."""
+        return {
+            "qpos": self.qpos.detach().clone(),
+            "qvel": self.qvel.detach().clone(),
+            "progress": self.progress.clone(),
+            "prev_actions": self.prev_actions.detach().clone(),
+            "rng": self.rng.get_state(),
+        }
+
+    def set_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore a :meth:`get_state` dict (tensors are copied to this task's device and dtype)."""
+        expected = {
+            "qpos": (self.num_envs, self.model.nq),
+            "qvel": (self.num_envs, self.model.nv),
+            "progress": (self.num_envs,),
+            "prev_actions": (self.num_envs, self.num_act),
+            "rng": (2,),
+        }
+        missing = set(expected) - set(state)
+        if missing:
+            raise KeyError(f"set_state: missing keys {sorted(missing)}")
+        for k, shape in expected.items():
+            if tuple(state[k].shape) != shape:
+                raise ValueError(f"set_state: {k} has shape {tuple(state[k].shape)}, expected {shape}")
+        self.qpos = state["qpos"].to(self.device, self.dtype).clone()
+        self.qvel = state["qvel"].to(self.device, self.dtype).clone()
+        self.progress = state["progress"].to(self.device, torch.long).clone()
+        self.prev_actions = state["prev_actions"].to(self.device, self.dtype).clone()
+        self.rng.set_state(state["rng"])
+
+    def compile(self, **compile_kwargs: Any) -> Task:
+        """Compile the physics substep and the per-step reward/reset with ``torch.compile`` (static shapes).
+
+        Keyword arguments go to ``torch.compile`` (default ``dynamic=False``). The substep is compiled on
+        its own (not the whole control step) so compile time does not grow with ``substeps``. Returns self.
+        """
+        kw = {"dynamic": False, **compile_kwargs}
+        self._substep = torch.compile(self.sim.substep, **kw)
+        self._finish = torch.compile(self._finish_impl, **kw)
+        return self
+
+    def _check_action(self, action: torch.Tensor) -> None:
+        if not isinstance(action, torch.Tensor):
+            raise TypeError(f"{self.name}: action must be a torch.Tensor, got {type(action).__name__}")
+        if tuple(action.shape) != (self.num_envs, self.num_act):
+            raise ValueError(
+                f"{self.name}: action has shape {tuple(action.shape)}, expected (num_envs, num_act) = "
+                f"({self.num_envs}, {self.num_act})"
+            )
+        if action.dtype != self.dtype:
+            raise TypeError(f"{self.name}: action dtype is {action.dtype}, the task runs in {self.dtype}")
+        if action.device != self.device:
+            raise ValueError(f"{self.name}: action is on {action.device}, the task is on {self.device}")
+        if self.config.validate and not bool(torch.isfinite(action).all()):
+            bad = (~torch.isfinite(action)).any(-1).nonzero().flatten().tolist()
+            raise ValueError(f"{self.name}: action has NaN/inf in environments {bad[:10]}")
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(name={self.name!r}, num_envs={self.num_envs}, device={self.device}, "
+            f"dtype={self.dtype}, num_obs={self.num_obs}, num_act={self.num_act})"
+        )
+
+
+def config_fields(cls: type[TaskConfig]) -> tuple[str, ...]:
+    """Names of the overridable fields of a config class."""
+    return tuple(f.name for f in dataclasses.fields(cls))

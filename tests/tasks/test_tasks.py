@@ -1,0 +1,228 @@
+"""The public task API: construction, layouts, determinism, resets, state round trips and bad inputs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+import tasks
+
+DIMS = {"cartpole": (5, 1), "hopper": (11, 3), "ant": (37, 8), "humanoid": (76, 21)}
+
+
+def test_registry_lists_the_four_tasks():
+    assert set(tasks.TASKS) == set(DIMS) or set(tasks.TASKS) <= set(DIMS)
+
+
+def test_unknown_task_lists_known_names():
+    with pytest.raises(ValueError, match=r"known tasks: .*cartpole"):
+        tasks.make("walker", 2)
+
+
+def test_unknown_override_lists_valid_fields():
+    with pytest.raises(ValueError, match=r"unknown override.*'episode_lenght'.*valid:.*episode_length"):
+        tasks.make("cartpole", 2, episode_lenght=5)
+
+
+def test_bad_override_values():
+    with pytest.raises(ValueError, match=r"substeps"):
+        tasks.make("cartpole", 2, substeps=0)
+    with pytest.raises(ValueError, match=r"limit_damping"):
+        tasks.make("cartpole", 2, limit_damping="sometimes")
+    with pytest.raises(ValueError, match=r"num_envs"):
+        tasks.make("cartpole", 0)
+
+
+@pytest.mark.parametrize("name", tasks.TASKS)
+def test_dims_and_attributes(name):
+    env = tasks.make(name, 3)
+    n_obs, n_act = DIMS[name]
+    assert (env.num_obs, env.num_act) == (n_obs, n_act)
+    assert env.reset().shape == (3, n_obs)
+    assert env.state_obs().shape == (3, n_obs)
+    obs, r, done, info = env.step(torch.zeros(3, n_act))
+    assert obs.shape == (3, n_obs) and r.shape == (3,) and done.shape == (3,) and done.dtype == torch.bool
+    assert info["obs_before_reset"].shape == (3, n_obs)
+    assert info["qpos_before_reset"].shape == env.qpos.shape and info["qvel_before_reset"].shape == env.qvel.shape
+    assert info["terminated"].dtype == torch.bool and info["truncated"].dtype == torch.bool
+    assert env.dt == pytest.approx(1 / 60)
+    assert Path(env.mjcf_path).is_file() and env.mjcf_path.endswith(f"{name}.xml")
+    assert env.progress.dtype == torch.long and env.prev_actions.shape == (3, n_act)
+    assert env.camera.height == 84 and env.camera.width == 84
+
+
+def test_cameras():
+    cams = {n: tasks.make(n, 1).camera for n in tasks.TASKS}
+    expected = {
+        "cartpole": ((0, -2.8, 1.2), (0, 0, 1.2), 90, "none"),
+        "hopper": ((0, -2.8, 1.35), (0, 0, 1.25), 45, "xz"),
+        "ant": ((0.5, -2, 1), (0, 0, 1), 90, "xyz"),
+        "humanoid": ((-3, 0, 1), (0, 0, 0), 45, "xyz"),
+    }
+    for n, cam in cams.items():
+        eye, target, fov, track = expected[n]
+        assert cam.eye == pytest.approx(eye) and cam.target == pytest.approx(target)
+        assert cam.fov_deg == fov and cam.track == track
+        with pytest.raises(AttributeError):
+            cam.fov_deg = 10  # frozen
+
+
+def test_cartpole_reward_and_obs_on_hand_made_states():
+    env = tasks.make("cartpole", 3, dtype=torch.float64)
+    qpos = torch.tensor([[0.0, 0.0], [1.0, 0.5], [-2.0, 2 * math.pi - 0.5]], dtype=torch.float64)
+    qvel = torch.tensor([[0.0, 0.0], [2.0, -3.0], [0.5, 1.0]], dtype=torch.float64)
+    a = torch.zeros(3, 1, dtype=torch.float64)
+    r = env.compute_reward(qpos, qvel, a)
+    expected = [10.0, 10 - 0.25 - 0.1 * 9 - 0.05 * 1 - 0.1 * 4, 10 - 0.25 - 0.1 - 0.05 * 4 - 0.1 * 0.25]
+    assert torch.allclose(r, torch.tensor(expected, dtype=torch.float64))
+    obs = env.observe(qpos, qvel, a)
+    assert torch.allclose(obs[1], torch.tensor([1.0, 2.0, math.sin(0.5), math.cos(0.5), -3.0], dtype=torch.float64))
+    term = env.compute_terminated(torch.tensor([[2.4, 0.0], [-2.6, 0.0], [2.6, 0.0]]), qvel.float())
+    assert term.tolist() == [False, True, True]
+
+
+def test_cartpole_reset_distribution():
+    env = tasks.make("cartpole", 4096, seed=3)
+    env.reset()
+    x, th = env.qpos[:, 0], env.qpos[:, 1]
+    assert x.abs().max() <= math.pi / 12 and (th + math.pi).abs().max() <= math.pi / 12
+    assert env.qvel.abs().max() <= 0.05
+    assert x.std() > 0.1 and env.qvel.std() > 0.02  # spread over the whole interval, not a constant
+    assert abs(x.mean().item()) < 0.01
+
+
+@pytest.mark.parametrize("name", tasks.TASKS)
+def test_seeded_determinism(name):
+    def run(seed):
+        env = tasks.make(name, 4, seed=seed)
+        out = [env.reset()]
+        gen = torch.Generator().manual_seed(0)
+        for _ in range(5):
+            out.append(env.step(torch.rand(4, env.num_act, generator=gen) * 2 - 1)[0])
+        return torch.stack(out)
+
+    a, b, c = run(7), run(7), run(8)
+    assert torch.equal(a, b)
+    assert not torch.equal(a[0], c[0])
+
+
+def test_reset_by_where_and_gradient_cut():
+    """A terminating env is reset (progress 0, prev_actions 0, fresh start state, no gradient to the old
+    trajectory); the others continue untouched."""
+    env = tasks.make("cartpole", 3, dtype=torch.float64, seed=5)
+    env.reset()
+    q = env.qpos.detach().clone()
+    q[0, 0] = 2.6  # beyond |x| = 2.5: terminates on this step
+    q = q.requires_grad_(True)
+    env.qpos = q
+    env.progress = torch.tensor([10, 10, 10])
+    a = torch.full((3, 1), 0.5, dtype=torch.float64, requires_grad=True)
+    obs, _r, done, info = env.step(a)
+    assert done.tolist() == [True, False, False] and info["terminated"].tolist() == [True, False, False]
+    assert env.progress.tolist() == [0, 11, 11]
+    assert env.prev_actions[0].abs().sum() == 0 and torch.equal(env.prev_actions[1:], a[1:].detach())
+    assert abs(env.qpos[0, 1].item() + math.pi) <= math.pi / 12 + 1e-12  # hanging again
+    assert torch.equal(env.qpos[1:], info["qpos_before_reset"][1:])
+    assert torch.equal(obs[1:], info["obs_before_reset"][1:])
+    assert torch.equal(obs[0], env.observe(env.qpos, env.qvel, env.prev_actions)[0])
+    # the reset env's new state carries no gradient; the old trajectory (obs_before_reset) still does
+    g_q, g_a = torch.autograd.grad(env.qpos[0].sum() + env.qvel[0].sum(), (q, a), allow_unused=True, retain_graph=True)
+    assert (g_q is None or g_q.abs().sum() == 0) and (g_a is None or g_a.abs().sum() == 0)
+    g_before = torch.autograd.grad(info["obs_before_reset"][0].sum(), a, retain_graph=True)[0]
+    assert g_before[0].abs().sum() > 0
+    g_cont = torch.autograd.grad(env.qvel[1].sum(), a)[0]
+    assert g_cont[1].abs().sum() > 0 and g_cont[0].abs().sum() == 0
+
+
+def test_truncation_at_episode_length():
+    env = tasks.make("cartpole", 2, episode_length=3)
+    env.reset()
+    dones = [env.step(torch.zeros(2, 1))[2] for _ in range(4)]
+    assert [d.tolist() for d in dones] == [[False, False], [False, False], [True, True], [False, False]]
+
+
+def test_early_termination_off():
+    env = tasks.make("cartpole", 1, early_termination=False)
+    env.reset()
+    env.qpos = torch.tensor([[3.0, 0.0]])
+    _, _, done, info = env.step(torch.zeros(1, 1))
+    assert not done.item() and not info["terminated"].item()
+
+
+def test_invalid_state_always_terminates():
+    env = tasks.make("cartpole", 2, early_termination=False)
+    env.reset()
+    env.qvel = torch.tensor([[float("nan"), 0.0], [0.0, 0.0]])
+    _, _, done, _info = env.step(torch.zeros(2, 1))
+    assert done.tolist() == [True, False] and torch.isfinite(env.qpos).all() and torch.isfinite(env.qvel).all()
+
+
+@pytest.mark.parametrize("name", tasks.TASKS)
+def test_get_set_state_resumes_bit_identically(name):
+    env = tasks.make(name, 4, seed=11, episode_length=7)  # short episodes: resets (and RNG draws) happen
+    env.reset()
+    gen = torch.Generator().manual_seed(1)
+    acts = torch.rand(20, 4, env.num_act, generator=gen) * 2 - 1
+    for a in acts[:5]:
+        env.step(a)
+    snap = env.get_state()
+    first = [env.step(a)[0] for a in acts[5:]]
+    env.set_state(snap)
+    second = [env.step(a)[0] for a in acts[5:]]
+    assert all(torch.equal(x, y) for x, y in zip(first, second))
+
+
+def test_detach_cuts_the_graph():
+    env = tasks.make("cartpole", 2)
+    env.reset()
+    a = torch.zeros(2, 1, requires_grad=True)
+    env.step(a)
+    assert env.qpos.requires_grad
+    env.detach()
+    assert not env.qpos.requires_grad and not env.qvel.requires_grad and not env.prev_actions.requires_grad
+
+
+def test_bad_actions_raise_clear_errors():
+    env = tasks.make("cartpole", 2)
+    env.reset()
+    with pytest.raises(ValueError, match=r"shape \(2,\).*\(2, 1\)"):
+        env.step(torch.zeros(2))
+    with pytest.raises(TypeError, match=r"float64.*float32"):
+        env.step(torch.zeros(2, 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"meta.*cpu"):
+        env.step(torch.zeros(2, 1, device="meta"))
+    with pytest.raises(TypeError, match=r"torch.Tensor"):
+        env.step([[0.0], [0.0]])
+    nan = torch.tensor([[0.0], [float("nan")]])
+    env.step(nan)  # validation off: no host sync, no error
+    checked = tasks.make("cartpole", 2, validate=True)
+    checked.reset()
+    with pytest.raises(ValueError, match=r"NaN/inf in environments \[1\]"):
+        checked.step(nan)
+
+
+def test_validate_from_environment(monkeypatch):
+    monkeypatch.setenv("TASKS_VALIDATE", "1")
+    assert tasks.make("cartpole", 1).config.validate
+    monkeypatch.setenv("TASKS_VALIDATE", "0")
+    assert not tasks.make("cartpole", 1).config.validate
+
+
+def test_actions_are_clipped():
+    env = tasks.make("cartpole", 1, dtype=torch.float64)
+    env.reset()
+    s = env.get_state()
+    big = env.step(torch.tensor([[5.0]], dtype=torch.float64))[0]
+    env.set_state(s)
+    one = env.step(torch.tensor([[1.0]], dtype=torch.float64))[0]
+    assert torch.equal(big, one)
+
+
+def test_float64_task_runs_in_float64():
+    env = tasks.make("cartpole", 2, dtype=torch.float64)
+    obs = env.reset()
+    assert obs.dtype == torch.float64 and env.qpos.dtype == torch.float64
+    assert env.step(torch.zeros(2, 1, dtype=torch.float64))[1].dtype == torch.float64
