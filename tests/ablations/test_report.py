@@ -1,0 +1,141 @@
+"""ablate-report: Table 1 with our numbers and the paper's, "not run" gaps, figures, sweep, provenance."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from ablations.memory import COLUMNS, _csv_text
+from ablations.report import PAPER_TABLE1_MS, ReportConfig, build_report, load_benchmark
+from tests.ablations.conftest import write_run
+
+
+def table_row(text: str, task: str) -> list[str]:
+    line = next(ln for ln in text.splitlines() if ln.startswith(f"| {task} |"))
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def write_sweep(folder: Path) -> Path:
+    folder.mkdir(parents=True)
+    rows = []
+    for mode in ("full", "decoupled"):
+        for m, v in ((0, 0), (2, 64)):
+            rows.append({**{k: None for k in COLUMNS}, "task": "cartpole", "mode": mode, "meshes": m,
+                         "verts_per_mesh": v, "status": "ok", "scene_faces": 100 + 2 * m * v, "bwd_ms": 5.0 + m,
+                         "fwd_ms": 4.0, "saved_mb": 10.0 + m * v, "num_envs": 2, "horizon": 4, "image_size": 16,
+                         "warmup_iters": 1, "iters": 2, "device": "cpu", "seed": 0})
+    rows.append({**rows[-1], "mode": "full", "meshes": 8, "status": "oom", "bwd_ms": None,
+                 "error": "OutOfMemoryError: CUDA out of memory"})
+    (folder / "memory.csv").write_text(_csv_text(rows))
+    (folder / "memory.json").write_text(json.dumps({
+        "started": "2026-01-01T10:00:00+00:00", "updated": "2026-01-01T11:00:00+00:00",
+        "environment": {"device": "cpu", "torch": "2.13.0+cpu", "python": "3.11.7"},
+        "commands": [{"argv": ["ablate-memory", "--task", "cartpole"], "started": "2026-01-01T10:00:00+00:00"}]}))
+    return folder
+
+
+@pytest.fixture
+def inputs(tmp_path):
+    runs = tmp_path / "runs"
+    for seed, (dec, full) in enumerate(((10.0, 30.0), (12.0, 34.0))):
+        write_run(runs, task="cartpole", mode="decoupled", seed=seed, bwd_ms=dec)
+        write_run(runs, task="cartpole", mode="full", seed=seed, bwd_ms=full)
+    # hopper: only decoupled ran, and without summary.json (killed): recomputed from metrics.jsonl.
+    write_run(runs, task="hopper", mode="decoupled", seed=0, bwd_ms=20.0, summary=False)
+    return runs, write_sweep(tmp_path / "sweep")
+
+
+def test_report_has_our_table_the_papers_and_not_run(inputs, tmp_path):
+    runs, sweep = inputs
+    out = build_report(ReportConfig(runs=(runs,), memory=(sweep,), out=tmp_path / "rep" / "report.md"))
+    text = out.read_text()
+
+    cart = table_row(text, "cartpole")
+    assert cart[1:4] == ["11.0", "32.0", "2.91x"]  # medians over 2 seeds; ratio full / decoupled
+    assert cart[5:8] == ["110", "360", "3.27x"]  # the paper's, in ms
+    hopper = table_row(text, "hopper")
+    # Warm-up (+1000 ms) and probe iterations (+1000 ms) excluded when recomputing from metrics.jsonl.
+    assert hopper[1:4] == ["20.0", "not run", "not run"]
+    for task in ("ant", "humanoid"):
+        row = table_row(text, task)
+        assert row[1:5] == ["not run"] * 4
+        assert row[5:7] == [f"{PAPER_TABLE1_MS[task][0]:.0f}", f"{PAPER_TABLE1_MS[task][1]:.0f}"]
+    assert "paper (RTX 4080): D.Va [ms]" in text and "quoted for comparison and not measured here" in text
+
+    # Figures: relative links that resolve.
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert any(link.endswith("return_vs_env_steps.png") for link in links)
+    assert any(link.endswith("memory_bwd.png") for link in links)
+    for link in links:
+        assert not Path(link).is_absolute() and (out.parent / link).read_bytes()[:4] == b"\x89PNG"
+
+    # Memory sweep table and provenance.
+    assert "| full | 8 | 64 |" in text and "oom: OutOfMemoryError" in text
+    assert "`ablate-memory --task cartpole`" in text
+    assert "`ablate --task cartpole --mode full --seed 1`" in text
+    assert "torch 2.13.0+cpu" in text and "0123456789ab" in text
+
+
+def test_benchmark_json_wins_and_differing_settings_give_no_ratio(inputs, tmp_path):
+    runs, _ = inputs
+    bench = tmp_path / "bench.json"
+    bench.write_text(json.dumps({"date": "2026-02-02", "gpu": "NVIDIA H100", "command": "python -m benchmarks.bwd",
+                                 "results": [{"task": "ant", "mode": "decoupled", "bwd_ms": 50.0, "num_envs": 64,
+                                              "horizon": 32, "image_size": 84},
+                                             {"task": "ant", "mode": "full", "bwd_ms": 150.0, "num_envs": 64,
+                                              "horizon": 32, "image_size": 84},
+                                             {"task": "cartpole", "mode": "full", "median_bwd_ms": 99.0,
+                                              "num_envs": 64, "horizon": 32, "image_size": 84}]}))
+    text = build_report(ReportConfig(runs=(runs,), benchmark=(bench,), out=tmp_path / "r.md")).read_text()
+    ant = table_row(text, "ant")
+    assert ant[1:4] == ["50.0", "150", "3.00x"] and "benchmark bench.json" in ant[4] and "NVIDIA H100" in ant[4]
+    cart = table_row(text, "cartpole")
+    # full from the benchmark (64x32), decoupled from the runs (4x8): not comparable, so no ratio.
+    assert cart[1:4] == ["11.0", "99.0", "n/a (settings differ)"]
+    assert "No memory sweep was given" in text and "python -m benchmarks.bwd" in text
+
+
+def test_report_from_a_benchmark_alone(tmp_path):
+    bench = tmp_path / "b.json"
+    bench.write_text(json.dumps([{"task": "humanoid", "mode": "full", "bwd_ms": 1234.0}]))
+    text = build_report(ReportConfig(benchmark=(bench,), out=tmp_path / "r.md")).read_text()
+    assert table_row(text, "humanoid")[1:3] == ["not run", "1234"]
+    assert "No training runs were given." in text
+
+
+def test_bad_input_errors(tmp_path, capsys):
+    from ablations.cli import report_main
+
+    with pytest.raises(ValueError, match="nothing to report"):
+        build_report(ReportConfig(out=tmp_path / "r.md"))
+    (tmp_path / "notarun").mkdir()
+    with pytest.raises(ValueError, match=r"no config\.json"):
+        build_report(ReportConfig(runs=(tmp_path / "notarun",), out=tmp_path / "r.md"))
+    with pytest.raises(ValueError, match=r"no memory\.csv"):
+        build_report(ReportConfig(memory=(tmp_path / "notarun",), out=tmp_path / "r.md"))
+    (tmp_path / "b.json").write_text(json.dumps({"results": [{"task": "ant"}]}))
+    with pytest.raises(ValueError, match="needs task, mode and a numeric bwd_ms"):
+        load_benchmark(tmp_path / "b.json")
+    with pytest.raises(ValueError, match="no such file"):
+        load_benchmark(tmp_path / "none.json")
+    run = write_run(tmp_path / "runs", task="ant", mode="full", seed=0)
+    with pytest.raises(ValueError, match=r"ending in \.md"):
+        build_report(ReportConfig(runs=(run,), out=tmp_path / "report.txt"))
+    assert not (tmp_path / "r.md").exists()
+
+    with pytest.raises(SystemExit) as e:
+        report_main(["--out", str(tmp_path / "r.md")])
+    assert e.value.code == 2 and "nothing to report" in capsys.readouterr().err
+
+
+def test_cli_builds_the_report(inputs, tmp_path, capsys):
+    from ablations.cli import report_main
+
+    runs, sweep = inputs
+    out = tmp_path / "cli" / "report.md"
+    report_main([str(runs), "--memory", str(sweep), "--out", str(out)])
+    assert capsys.readouterr().out.strip() == str(out)
+    assert out.read_text().startswith("# Policy gradients through pixels")
