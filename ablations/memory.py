@@ -287,6 +287,25 @@ def _resolve(spec: str) -> Callable:
     return getattr(importlib.import_module(module), name)
 
 
+def _die_with_parent(period_s: float = 1.0) -> None:
+    """End this worker (and its process group) when the sweep that started it is gone.
+
+    The worker runs in its own session, so a sweep killed with SIGKILL cannot take it down; without this it
+    would go on holding the GPU. Polling the parent id is portable, where prctl(PR_SET_PDEATHSIG) is not.
+    """
+    import threading
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(period_s)
+            if os.getppid() != parent:
+                os.killpg(os.getpgrp(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
 def _worker_main(argv: list[str] | None = None) -> int:
     """The per-point process: measure, classify failures, write the result file. Internal; see the module doc."""
     parser = argparse.ArgumentParser(prog="python -m ablations.memory",
@@ -297,6 +316,8 @@ def _worker_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     point = json.loads(args.point)
     known: dict = {"status": "running"}
+    if argv is None:  # a real worker process (not a test calling this function in-process)
+        _die_with_parent()
 
     def progress(update: dict) -> None:
         # Written at once, so a process the kernel kills later still leaves its scene size behind.

@@ -97,8 +97,10 @@ def load_run(path: str | os.PathLike) -> Run:
     from ablations.runs import read_metrics
 
     path = Path(path)
-    if not path.is_dir():
+    if not path.exists():
         raise ValueError(f"{path}: no such folder")
+    if not path.is_dir():
+        raise ValueError(f"{path} is a file, not a run folder (give the folder that holds config.json)")
     cfg_path = path / "config.json"
     if not cfg_path.exists():
         raise ValueError(f"{path} is not a run folder: it has no config.json (expected config.json, "

@@ -165,8 +165,14 @@ def test_killed_sweep_leaves_a_whole_csv_and_resumes(tmp_path, fake_env):
         time.sleep(0.1)
     proc.kill()
     proc.wait()
+    # The worker (in its own session, so the kill did not reach it) notices its sweep is gone and ends itself.
     hung = next(c["pid"] for c in calls(log) if c["point"] == "full_m2_v8")
-    os.kill(hung, signal.SIGKILL)  # the worker has its own session: the test cleans up what it hung
+    deadline = time.time() + 15
+    while _alive(hung) and time.time() < deadline:
+        time.sleep(0.1)
+    if _alive(hung):
+        os.kill(hung, signal.SIGKILL)
+        pytest.fail("the worker outlived its sweep")
 
     rows = read_csv(out / "memory.csv")
     assert sorted(by_point(rows)) == ["decoupled_m0_v0", "full_m0_v0"]
@@ -176,6 +182,19 @@ def test_killed_sweep_leaves_a_whole_csv_and_resumes(tmp_path, fake_env):
     rows = sweep(cfg_for(out), measure=FAKE)
     assert [c["point"] for c in calls(log)][3:] == ["full_m2_v8", "decoupled_m2_v8"]
     assert all(r["status"] == "ok" for r in rows) and len(rows) == 4
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie (dead, not yet reaped by init) counts as gone.
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def test_worker_classifies_exceptions_in_process(tmp_path, monkeypatch):

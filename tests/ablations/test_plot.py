@@ -97,6 +97,9 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys):
         find_runs([tmp_path / "empty"])
     with pytest.raises(ValueError, match="no such folder"):
         load_run(tmp_path / "missing")
+    (tmp_path / "file.txt").write_text("x")
+    with pytest.raises(ValueError, match="is a file, not a run folder"):
+        load_run(tmp_path / "file.txt")
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "config.json").write_text("{\"lr\": 1}")
     with pytest.raises(ValueError, match="no 'config' object"):
