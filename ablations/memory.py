@@ -88,7 +88,8 @@ class MemoryConfig:
     meshes: tuple[int, ...] = (0, 4, 16, 64)
     """Numbers of extra meshes attached to robot links (0: the robot alone, measured once per mode)."""
     verts: tuple[int, ...] = (64, 256, 1024)
-    """Vertices per extra mesh (each >= 4)."""
+    """Vertices per extra mesh (each >= 6). The renderer builds the latitude-longitude sphere closest to it
+    (V = 2r(r-1)+2: 6, 14, 26, 42, ...); the CSV's scene_verts and scene_faces are the exact counts."""
     num_envs: int = 64
     """Parallel environments per point."""
     horizon: int = 32
@@ -123,8 +124,9 @@ class MemoryConfig:
                 raise ValueError(f"mode {m!r} cannot be swept (no rendering cost); use full and/or decoupled")
         if not self.meshes or any(not isinstance(m, int) or m < 0 for m in self.meshes):
             raise ValueError(f"--meshes must be non-negative integers, got {self.meshes!r}")
-        if not self.verts or any(not isinstance(v, int) or v < 4 for v in self.verts):
-            raise ValueError(f"--verts must be integers >= 4 (a tetrahedron at least), got {self.verts!r}")
+        # diffrender's sweep spheres (latlong_sphere_mesh) need 6 vertices at least: refuse here, not per point.
+        if not self.verts or any(not isinstance(v, int) or v < 6 for v in self.verts):
+            raise ValueError(f"--verts must be integers >= 6 (the smallest sweep sphere), got {self.verts!r}")
         for name in ("num_envs", "horizon", "iters"):
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0:
@@ -556,6 +558,12 @@ def _x_of(rows: list[dict]) -> tuple[str, Callable[[dict], float | None], bool]:
     return "extra mesh vertices (meshes x vertices per mesh)", lambda r: r["meshes"] * r["verts_per_mesh"], False
 
 
+def _spans_decade(values) -> bool:
+    """True when the positive values cover a factor of 10 or more (a log axis is then worth it)."""
+    v = [x for x in values if isinstance(x, (int, float)) and x > 0]
+    return bool(v) and max(v) >= 10 * min(v)
+
+
 def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
     """memory_peak.png and memory_bwd.png from sweep rows; returns the files written (none without ok rows).
 
@@ -623,8 +631,13 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
         if unknown:
             ax.text(0.01, 0.01, "oom/timeout, size unknown: " + ", ".join(unknown), transform=ax.transAxes,
                     fontsize=7, va="bottom")
-        ax.set_xscale("log" if logx else "symlog")
-        if drawn:
+        # Log axes where the data span a decade or more (scene sizes usually do); on a narrow span a log axis
+        # only makes the tick labels unreadable.
+        if logx and _spans_decade([xf(r) for r in ok]):
+            ax.set_xscale("log")
+        elif not logx:
+            ax.set_xscale("symlog")
+        if drawn and _spans_decade([r.get(key) for r in ok]):
             ax.set_yscale("log")  # only with data on it: an empty log axis cannot place its ticks
         ax.set_xlabel(xlabel)
         ax.grid(True, which="both", alpha=0.3)

@@ -36,8 +36,8 @@ FIGURES = {
     "cosine_hist.png": "Cosine between the full and the decoupled gradient of the same rollout (probe "
                        "iterations, all seeds pooled).",
     "cosine_vs_iter.png": "Cosine(full, decoupled) over training.",
-    "timing.png": "Forward (rollout + render + loss) and backward time per iteration (log scale; probe "
-                  "iterations, which compute both gradients, left out).",
+    "timing.png": "Forward (rollout + render + loss) and backward time per iteration (geometric mean across "
+                  "seeds; probe iterations, which compute both gradients, left out).",
     "memory.png": "Peak memory per iteration (CUDA: peak allocated; CPU: bytes saved for backward; probe "
                   "iterations left out).",
 }
@@ -308,6 +308,7 @@ def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
     for row, (key, name) in enumerate((("fwd_ms", "forward"), ("bwd_ms", "backward"))):
         for col, task in enumerate(tasks):
             ax = axes[row][col]
+            spans: list[float] = []
             for (t, mode), rs in groups.items():
                 if t != task:
                     continue
@@ -315,11 +316,13 @@ def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
                 if agg is None:
                     continue
                 gx, c, lo, hi = agg
+                spans += [float(c.min()), float(c.max())]
                 ax.plot(gx, c, color=MODE_COLORS.get(mode), label=label(mode, rs), lw=1.2)
                 if len(rs) > 1:
                     ax.fill_between(gx, lo, hi, color=MODE_COLORS.get(mode), alpha=0.2, lw=0)
                 drawn = True
-            ax.set_yscale("log")
+            if spans and min(spans) > 0 and max(spans) >= 10 * min(spans):
+                ax.set_yscale("log")  # warm-up and full vs decoupled often differ by decades; else linear
             ax.set_title(f"{task}: {name}")
             ax.set_xlabel("iteration")
             ax.grid(True, which="both", alpha=0.3)

@@ -215,7 +215,7 @@ def test_points_and_validation(tmp_path):
     pts = [(p["mode"], p["meshes"], p["verts_per_mesh"]) for p in cfg.points("cpu")]
     assert pts == [("full", 0, 0), ("decoupled", 0, 0), ("full", 4, 8), ("decoupled", 4, 8), ("full", 4, 16),
                    ("decoupled", 4, 16)]
-    for bad, match in ((dict(task="walker"), "unknown task"), (dict(verts=(2,)), "verts"),
+    for bad, match in ((dict(task="walker"), "unknown task"), (dict(verts=(5,)), "verts"),
                        (dict(meshes=(-1,)), "meshes"), (dict(modes=()), "modes"), (dict(modes=("state",)),
                                                                                     "cannot be swept"),
                        (dict(num_envs=0), "num-envs"), (dict(image_size=8), "image-size"),
@@ -230,7 +230,7 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         memory_main(["--verts", "2", "--out", str(tmp_path / "x"), "--device", "cpu"])
     assert e.value.code == 2
-    assert "error: --verts must be integers >= 4" in capsys.readouterr().err
+    assert "error: --verts must be integers >= 6" in capsys.readouterr().err
     assert not (tmp_path / "x").exists(), "bad input fails before any work"
 
 
