@@ -1,0 +1,19 @@
+"""Soft rasterization: a shared per-pair kernel, a dense reference backend and the tiled backend."""
+
+from .binning import Bins, bin_faces
+from .dense import rasterize_dense
+from .kernel import Static, face_validity, project, render_pairs, vertex_normals
+from .tiled import rasterize_tiled, tiled_static
+
+__all__ = [
+    "Bins",
+    "Static",
+    "bin_faces",
+    "face_validity",
+    "project",
+    "rasterize_dense",
+    "rasterize_tiled",
+    "render_pairs",
+    "tiled_static",
+    "vertex_normals",
+]

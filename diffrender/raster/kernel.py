@@ -1,0 +1,254 @@
+"""The per-chunk soft-rasterization kernel shared by the dense and tiled backends.
+
+Both backends call :func:`render_pairs` with a list of (face, tile) pairs per environment; the kernel
+evaluates every pair at every pixel of its tile and blends. The dense backend passes every face once with a
+single tile covering the whole image; the tiled backend passes binned pairs over small tiles. Given the same
+pair semantics (a pixel-face pair counts iff the face is valid and ``sd > -cutoff_radius``) both compute the
+same image, bit for bit up to summation order.
+
+Everything here is plain batched tensor code with static shapes (no data-dependent Python control flow,
+no host synchronisation) so ``torch.compile`` can fuse it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..floor import floor_candidate
+from ..settings import FloorSettings, RasterSettings
+from ..shading import lambert_from_dots, unit_light
+
+__all__ = ["Static", "face_validity", "project", "render_pairs", "vertex_normals"]
+
+_AREA_EPS = 1e-9  # [px^2] faces with a smaller projected area are dropped (their barycentrics are undefined)
+_BBOX_MARGIN = 1e-3  # [px] extra binning radius: binning never misses a pair the kernel would keep
+
+
+@dataclass(frozen=True)
+class Static:
+    """Everything the kernel needs that is not a tensor (hashable: part of compiled-kernel guards)."""
+
+    height: int
+    width: int
+    tile_h: int
+    tile_w: int
+    focal: float
+    cx: float
+    cy: float
+    sigma: float
+    gamma: float
+    znear: float
+    zfar: float
+    cutoff_radius: float
+    background: tuple[float, float, float]
+    floor: FloorSettings | None
+    light: tuple[float, float, float]
+    ambient: float
+    diffuse: float
+    cull_backfaces: bool
+
+    @property
+    def tiles_x(self) -> int:
+        return -(-self.width // self.tile_w)
+
+    @property
+    def tiles_y(self) -> int:
+        return -(-self.height // self.tile_h)
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+    @property
+    def tile_pixels(self) -> int:
+        return self.tile_h * self.tile_w
+
+    @classmethod
+    def make(cls, settings: RasterSettings, *, focal: float, height: int, width: int,
+             tile_h: int, tile_w: int) -> Static:
+        return cls(height=height, width=width, tile_h=tile_h, tile_w=tile_w, focal=float(focal),
+                   cx=0.5 * width, cy=0.5 * height, sigma=float(settings.sigma), gamma=float(settings.gamma),
+                   znear=float(settings.znear), zfar=float(settings.zfar),
+                   cutoff_radius=float(settings.cutoff_radius),
+                   background=tuple(float(c) for c in settings.background), floor=settings.floor,
+                   light=unit_light(settings.light_dir), ambient=float(settings.ambient),
+                   diffuse=float(settings.diffuse), cull_backfaces=bool(settings.cull_backfaces))
+
+
+def project(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, st: Static) -> torch.Tensor:
+    """World vertices (B, V, 3) [m] -> (B, V, 3) ``(u [px], v [px], z [m])``.
+
+    Depths are clamped to ``znear`` before the division so that vertices behind the camera give finite
+    (meaningless) pixel coordinates; every face using such a vertex is dropped by :func:`face_validity`,
+    and the clamp has zero gradient there, so no NaN or inf reaches the backward pass.
+    """
+    cam = torch.einsum("bij,bnj->bni", rotation, verts - eye[:, None, :])
+    z = cam[..., 2]
+    zs = z.clamp(min=st.znear)
+    return torch.stack([st.focal * cam[..., 0] / zs + st.cx, st.focal * cam[..., 1] / zs + st.cy, z], dim=-1)
+
+
+def face_validity(face_uvz: torch.Tensor, st: Static) -> torch.Tensor:
+    """(B, F, 3, 3) per-face ``(u, v, z)`` -> (B, F) bool: in front of znear, non-degenerate and, with
+    back-face culling, front-facing (negative signed area in y-down pixel coordinates)."""
+    u, v, z = face_uvz.unbind(-1)
+    area2 = (u[..., 1] - u[..., 0]) * (v[..., 2] - v[..., 0]) - (v[..., 1] - v[..., 0]) * (u[..., 2] - u[..., 0])
+    ok = (z > st.znear).all(-1) & torch.isfinite(area2)
+    if st.cull_backfaces:
+        return ok & (area2 < -_AREA_EPS)
+    return ok & (area2.abs() > _AREA_EPS)
+
+
+def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Area-weighted unit vertex normals of a mesh: verts (B, V, 3), faces (F, 3) -> (B, V, 3)."""
+    fv = verts[:, faces]  # (B, F, 3, 3)
+    fn = torch.linalg.cross(fv[:, :, 1] - fv[:, :, 0], fv[:, :, 2] - fv[:, :, 0])  # |fn| = 2 area
+    acc = verts.new_zeros(verts.shape).index_add_(1, faces.reshape(-1), fn.repeat_interleave(3, dim=1))
+    return acc * torch.rsqrt((acc * acc).sum(-1, keepdim=True) + 1e-30)
+
+
+def _tile_pixel_centres(tile: torch.Tensor, st: Static, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel centres of tiles: tile (...,) long -> px, py (..., tile_h * tile_w)."""
+    k = torch.arange(st.tile_pixels, device=tile.device)
+    lx = (k % st.tile_w).to(dtype) + 0.5
+    ly = (k // st.tile_w).to(dtype) + 0.5
+    x0 = ((tile % st.tiles_x) * st.tile_w).to(dtype)[..., None]
+    y0 = ((tile // st.tiles_x) * st.tile_h).to(dtype)[..., None]
+    return x0 + lx, y0 + ly
+
+
+def render_pairs(
+    verts: torch.Tensor,
+    normals: torch.Tensor | None,
+    colors: torch.Tensor,
+    rotation: torch.Tensor,
+    eye: torch.Tensor,
+    faces: torch.Tensor,
+    pair_face: torch.Tensor,
+    pair_tile: torch.Tensor,
+    pair_valid: torch.Tensor,
+    st: Static,
+) -> torch.Tensor:
+    """Render B environments from their (face, tile) pair lists.
+
+    Args:
+        verts: (B, V, 3) [m] world vertices.
+        normals: (B, V, 3) unit world vertex normals, or None to use area-weighted mesh normals.
+        colors: (V, 3) or (B, V, 3) albedo in [0, 1].
+        rotation: (B, 3, 3), eye: (B, 3) [m]: camera extrinsics (see :class:`diffrender.Camera`).
+        faces: (F, 3) long.
+        pair_face, pair_tile: (B, P) long; pair_valid: (B, P) bool (invalid slots are padding).
+        st: static settings.
+    Returns:
+        (B, 3, H, W) image.
+    """
+    b, nv, _ = verts.shape
+    npair = pair_face.shape[1]
+    n = b * npair
+    dt = verts.dtype
+    uvz = project(verts, rotation, eye, st)
+    if normals is None:
+        normals = vertex_normals(verts, faces)
+    if colors.ndim == 2:
+        colors = colors.expand(b, nv, 3)
+    light = verts.new_tensor(st.light)
+    n_dot_l = (normals * light).sum(-1, keepdim=True)
+    # one gather of everything a face needs: (u, v, z, n.l, n (3), albedo (3)) per corner
+    vdata = torch.cat([uvz, n_dot_l, normals, colors], dim=-1)  # (B, V, 10)
+    vidx = faces[pair_face] + (torch.arange(b, device=verts.device) * nv)[:, None, None]  # (B, P, 3)
+    fd = vdata.reshape(b * nv, 10).index_select(0, vidx.reshape(-1)).view(n, 3, 10)
+    valid = pair_valid.reshape(n)
+    # padding slots get a harmless unit triangle so no inf/NaN is ever formed (their weight is zero)
+    dummy = verts.new_tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
+    dummy = torch.cat([dummy, verts.new_zeros(3, 7)], dim=1)
+    fd = torch.where(valid[:, None, None], fd, dummy)
+
+    # ---- per-pair constants, shape (N, 1)
+    u = [fd[:, k, 0:1] for k in range(3)]
+    v = [fd[:, k, 1:2] for k in range(3)]
+    iz = [1.0 / fd[:, k, 2:3] for k in range(3)]
+    ndl = [fd[:, k, 3:4] for k in range(3)]
+    nrm = [fd[:, k, 4:7] for k in range(3)]
+    alb = [fd[:, k, 7:10] for k in range(3)]
+    ndn = ((nrm[1] * nrm[2]).sum(-1, keepdim=True), (nrm[2] * nrm[0]).sum(-1, keepdim=True),
+           (nrm[0] * nrm[1]).sum(-1, keepdim=True))
+    area2 = (u[1] - u[0]) * (v[2] - v[0]) - (v[1] - v[0]) * (u[2] - u[0])
+    area2 = torch.where(area2 == 0, torch.ones_like(area2), area2)
+    inv_area = 1.0 / area2
+    orient = torch.sign(area2)
+
+    # ---- per pixel of the pair's tile, shape (N, T)
+    tile = pair_tile.reshape(n)
+    px, py = _tile_pixel_centres(tile, st, dt)
+    lam, dline, dseg2 = [], [], []
+    for k in range(3):
+        a, c = (k + 1) % 3, (k + 2) % 3  # edge opposite vertex k, from a to c
+        ex, ey = u[c] - u[a], v[c] - v[a]
+        inv_len2 = 1.0 / (ex * ex + ey * ey)
+        wx, wy = px - u[a], py - v[a]
+        cross = ex * wy - ey * wx
+        lam.append(cross * inv_area)  # screen-space barycentric of vertex k
+        dline.append(cross * (orient * torch.sqrt(inv_len2)))  # signed distance to the edge's line
+        t = ((wx * ex + wy * ey) * inv_len2).clamp(0.0, 1.0)
+        qx, qy = wx - t * ex, wy - t * ey
+        dseg2.append(qx * qx + qy * qy)  # squared distance to the edge segment
+    inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+    # exact signed Euclidean distance to the triangle (linear in the pixel offset at an edge):
+    # inside, the nearest edge line; outside, the nearest point of the boundary
+    sd = torch.where(inside, torch.minimum(torch.minimum(dline[0], dline[1]), dline[2]),
+                     -torch.sqrt(torch.minimum(torch.minimum(dseg2[0], dseg2[1]), dseg2[2]) + 1e-20))
+    # perspective-correct barycentrics from clamped screen barycentrics (1/z is affine in screen space)
+    lc = [x.clamp(min=0.0) for x in lam]
+    q = [lc[k] * iz[k] for k in range(3)]
+    qsum = q[0] + q[1] + q[2]
+    depth = (lc[0] + lc[1] + lc[2]) / qsum
+    bary = (q[0] / qsum, q[1] / qsum, q[2] / qsum)
+    z_n = (st.zfar - depth) / (st.zfar - st.znear)
+    shade = lambert_from_dots(bary, ndl, ndn, ambient=st.ambient, diffuse=st.diffuse)
+    albedo = bary[0][..., None] * alb[0][:, None] + bary[1][..., None] * alb[1][:, None] \
+        + bary[2][..., None] * alb[2][:, None]
+    color = albedo * shade[..., None]  # (N, T, 3)
+    keep = valid[:, None] & (sd > -st.cutoff_radius)
+
+    # ---- blend. Per-pixel buffers are laid out (B * tiles, T): a pair's pixels are one contiguous row.
+    ntile = st.num_tiles
+    rows = (torch.arange(b, device=verts.device)[:, None] * ntile + pair_tile).reshape(n)
+    all_tiles = torch.arange(ntile, device=verts.device)
+    fpx, fpy = _tile_pixel_centres(all_tiles, st, dt)  # (tiles, T)
+    bg_zn = 0.0
+    if st.floor is not None:
+        light_factor = st.ambient + st.diffuse * max(0.0, st.light[2])
+        f_zn, f_col, f_hit = floor_candidate(rotation, eye, fpx, fpy, focal=st.focal, cx=st.cx, cy=st.cy,
+                                             znear=st.znear, zfar=st.zfar, gamma=st.gamma, floor=st.floor,
+                                             light_factor=light_factor)
+        f_zn = f_zn.reshape(b * ntile, -1)
+        f_col = f_col.reshape(b * ntile, -1, 3)
+        f_hit = f_hit.reshape(b * ntile, -1)
+        m0 = torch.where(f_hit, f_zn.detach(), torch.full_like(f_zn, bg_zn))
+    else:
+        m0 = verts.new_full((b * ntile, st.tile_pixels), bg_zn)
+    # detached per-pixel max of the candidates' normalised depth: it cancels in the blend and only keeps
+    # exp() <= 1; it must include every kept face so no weight overflows
+    with torch.no_grad():
+        cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
+        m = m0.scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand, reduce="amax", include_self=True)
+    coverage = torch.sigmoid(sd / st.sigma)
+    expo = torch.where(keep, (z_n - m[rows]) / st.gamma, torch.full_like(z_n, -math.inf))
+    w = coverage * torch.exp(expo)  # exactly 0 for dropped pairs (also in the backward)
+    src = torch.cat([color * w[..., None], w[..., None]], dim=-1)  # (N, T, 4)
+    acc = verts.new_zeros(b * ntile, st.tile_pixels, 4).index_add(0, rows, src)
+    w_bg = torch.exp((bg_zn - m) / st.gamma)
+    num = acc[..., :3] + w_bg[..., None] * verts.new_tensor(st.background)
+    den = acc[..., 3] + w_bg
+    if st.floor is not None:
+        # no-hit pixels carry a stand-in depth; mask before exp so no inf is formed (inf * 0 = NaN in backward)
+        w_floor = torch.exp(torch.where(f_hit, (f_zn - m) / st.gamma, torch.full_like(f_zn, -math.inf)))
+        num = num + w_floor[..., None] * f_col
+        den = den + w_floor
+    out = num / den[..., None]  # (B * tiles, T, 3)
+    img = out.view(b, st.tiles_y, st.tiles_x, st.tile_h, st.tile_w, 3).permute(0, 5, 1, 3, 2, 4)
+    img = img.reshape(b, 3, st.tiles_y * st.tile_h, st.tiles_x * st.tile_w)
+    return img[:, :, : st.height, : st.width]

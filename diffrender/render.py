@@ -1,0 +1,162 @@
+"""``diffrender.render``: input validation and backend dispatch."""
+
+from __future__ import annotations
+
+import torch
+
+from .camera import Camera
+from .raster.binning import bin_faces
+from .raster.dense import rasterize_dense
+from .raster.tiled import rasterize_tiled, tiled_static
+from .settings import RasterSettings
+
+__all__ = ["render"]
+
+# Faces tensors already checked for out-of-range indices, keyed by identity and version: the index check
+# needs a host sync, and the faces of a robot never change, so it runs once per faces tensor.
+_checked_faces: dict[tuple, bool] = {}
+
+
+def _check_float(name: str, x, shape_desc: str) -> None:
+    if not isinstance(x, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor of shape {shape_desc}, got {type(x).__name__}")
+    if x.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
+
+
+def _can_sync(device: torch.device) -> bool:
+    if torch.compiler.is_compiling():
+        return False
+    return not (device.type == "cuda" and torch.cuda.is_current_stream_capturing())
+
+
+def render(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    colors: torch.Tensor,
+    camera: Camera,
+    settings: RasterSettings | None = None,
+    *,
+    normals: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Soft-rasterize triangle meshes over the analytic floor.
+
+    Args:
+        verts: (B, V, 3) [m] world-frame vertices, float32 or float64.
+        faces: (F, 3) long (or int32) vertex indices, shared by all environments; winding counter-clockwise
+            seen from outside (needed for back-face culling).
+        colors: (V, 3) or (B, V, 3) albedo in [0, 1], same dtype as ``verts``.
+        camera: :class:`~diffrender.Camera` with B (or 1, broadcast) cameras, same dtype/device.
+        settings: :class:`~diffrender.RasterSettings` (defaults if None).
+        normals: optional (B, V, 3) unit world-frame vertex normals (e.g. ``RobotModel.world_normals``);
+            None computes area-weighted normals from the mesh inside the renderer (no extra saved memory).
+    Returns:
+        (B, 3, H, W) image in [0, 1], differentiable w.r.t. ``verts``, ``normals``, ``colors`` and the
+        camera's rotation and eye (hence the look-at eye and target).
+
+    Raises:
+        ValueError: wrong types, shapes, dtypes (e.g. float32 mixed with float64) or devices, naming the
+            argument; non-finite vertices/normals/colours/camera; face indices out of range.
+        RuntimeError: the tiled backend's bins overflowed (the message gives the environment, the counts,
+            the capacity and how to raise it).
+
+    Host synchronisation: with ``settings.sync_checks`` (default) one sync at the end of the call reads the
+    overflow and finiteness flags (plus one the first time a faces tensor is seen, to range-check it).
+    With ``sync_checks=False``, or inside CUDA-graph capture / ``torch.compile``, nothing syncs and an
+    overflowing environment renders as NaN.
+    """
+    settings = RasterSettings() if settings is None else settings
+    if not isinstance(settings, RasterSettings):
+        raise ValueError(f"settings must be a RasterSettings, got {type(settings).__name__}")
+    _check_float("verts", verts, "(B, V, 3)")
+    if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] == 0:
+        raise ValueError(f"verts must have shape (B, V, 3) with B >= 1, got {tuple(verts.shape)}")
+    b, nv = verts.shape[:2]
+    dtype, device = verts.dtype, verts.device
+    if not isinstance(faces, torch.Tensor) or faces.dtype not in (torch.int64, torch.int32):
+        raise ValueError(f"faces must be an int64/int32 tensor of shape (F, 3), got "
+                         f"{getattr(faces, 'dtype', type(faces).__name__)}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces must have shape (F, 3), got {tuple(faces.shape)}")
+    if faces.device != device:
+        raise ValueError(f"faces is on {faces.device} but verts is on {device}")
+    faces = faces.long()
+    _check_float("colors", colors, "(V, 3) or (B, V, 3)")
+    if colors.shape not in ((nv, 3), (b, nv, 3)):
+        raise ValueError(f"colors must have shape ({nv}, 3) or ({b}, {nv}, 3), got {tuple(colors.shape)}")
+    for name, x in (("colors", colors), ("normals", normals)):
+        if x is None:
+            continue
+        _check_float(name, x, "(B, V, 3)")
+        if x.dtype != dtype:
+            raise ValueError(f"{name} is {x.dtype} but verts is {dtype}; use one dtype for all inputs")
+        if x.device != device:
+            raise ValueError(f"{name} is on {x.device} but verts is on {device}")
+    if normals is not None and normals.shape != verts.shape:
+        raise ValueError(f"normals must have the shape of verts {tuple(verts.shape)}, got {tuple(normals.shape)}")
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a diffrender.Camera, got {type(camera).__name__}")
+    if camera.dtype != dtype:
+        raise ValueError(f"camera is {camera.dtype} but verts is {dtype}; build the camera from tensors of "
+                         "the same dtype")
+    if camera.device != device:
+        raise ValueError(f"camera is on {camera.device} but verts is on {device}")
+    if camera.batch_size not in (1, b):
+        raise ValueError(f"camera has {camera.batch_size} views but verts has {b} environments")
+    camera = camera.expand(b)
+
+    sync = settings.sync_checks and _can_sync(device)
+    if sync and faces.numel():
+        key = (faces.data_ptr(), faces._version, tuple(faces.shape), faces.device, nv)
+        if key not in _checked_faces:
+            lo, hi = torch.aminmax(faces)
+            lo, hi = int(lo), int(hi)
+            if lo < 0 or hi >= nv:
+                raise ValueError(f"faces index vertices {lo}..{hi} but there are {nv} vertices")
+            if len(_checked_faces) > 64:
+                _checked_faces.clear()
+            _checked_faces[key] = True
+
+    named = [("verts", verts), ("colors", colors), ("normals", normals),
+             ("camera.eye", camera.eye), ("camera.rotation", camera.rotation)]
+    if sync:
+        nonfinite = torch.stack([(~torch.isfinite(x)).any() for _, x in named if x is not None])
+
+    backend = "tiled" if settings.backend == "auto" else settings.backend
+    if backend == "dense":
+        img = rasterize_dense(verts, normals, colors, camera, faces, settings)
+        count, capacity = None, None
+    else:
+        img, count, capacity = rasterize_tiled(verts, normals, colors, camera, faces, settings)
+
+    if sync:
+        flags = nonfinite.long()
+        if count is not None:
+            flags = torch.cat([flags, count.max().reshape(1)])
+        flags = flags.tolist()  # the one host synchronisation of the call
+        bad = [name for (name, x), f in zip([nx for nx in named if nx[1] is not None], flags) if f]
+        if bad:
+            raise ValueError(f"{', '.join(bad)} contain(s) NaN or inf values; the image would be meaningless")
+        if count is not None and flags[-1] > capacity:
+            raise RuntimeError(_overflow_message(verts, camera, faces, settings, count, capacity))
+    return img
+
+
+def _overflow_message(verts, camera, faces, settings, count, capacity) -> str:
+    env = int(torch.argmax(count))
+    need = int(count[env])
+    st = tiled_static(settings, camera)
+    bins = bin_faces(verts[env:env + 1].detach(), camera.rotation[env:env + 1].detach(),
+                     camera.eye[env:env + 1].detach(), faces, st, need)
+    per_tile = torch.bincount(bins.tile[bins.valid], minlength=st.num_tiles)
+    tile = int(torch.argmax(per_tile))
+    suggest = 1 << (int(need * 1.5) - 1).bit_length()
+    n_over = int((count > capacity).sum())
+    return (
+        f"tiled rasterizer bin overflow: environment {env} needs {need} (tile, face) pairs but bin_capacity "
+        f"is {capacity} ({n_over} of {count.numel()} environments overflow; {faces.shape[0]} faces, "
+        f"{st.num_tiles} tiles of {st.tile_h}x{st.tile_w} px). The busiest tile, {tile} (tile row "
+        f"{tile // st.tiles_x}, column {tile % st.tiles_x}), holds {int(per_tile[tile])} faces. Raise "
+        f"RasterSettings(bin_capacity=...) to at least {need} (e.g. {suggest} for headroom) or use a larger "
+        f"tile_size (fewer tiles per face). No image was returned because it would be incomplete."
+    )

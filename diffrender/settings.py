@@ -1,0 +1,139 @@
+"""Renderer settings (frozen, keyword-only dataclasses: hashable, so they can key compiled kernels)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+__all__ = ["FloorSettings", "RasterSettings"]
+
+_RGB = tuple[float, float, float]
+
+
+def _check_rgb(name: str, c) -> None:
+    if len(c) != 3 or not all(0.0 <= float(x) <= 1.0 for x in c):
+        raise ValueError(f"{name} must be three floats in [0, 1], got {c!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FloorSettings:
+    """The analytic floor: the plane z = 0 with a smooth checker texture.
+
+    The checker is ``mix(color_a, color_b, 0.5 + 0.5 tanh(k sin(pi x / s) sin(pi y / s)))`` with the
+    sharpness ``k`` chosen per pixel so an edge between squares spans about ``edge_px`` pixels; far away,
+    where squares shrink below a pixel, ``k`` falls and the texture fades smoothly to the mean colour
+    instead of aliasing. The texture is what makes a tracking camera's image depend on the camera position
+    (an untextured floor gives exactly zero gradient w.r.t. the base position).
+
+    Attributes:
+        square_size: side of one checker square [m].
+        color_a, color_b: the two square colours (albedo, lit like the robot with normal +z).
+        edge_px: edge softness [px].
+    """
+
+    square_size: float = 0.5
+    color_a: _RGB = (0.82, 0.82, 0.78)
+    color_b: _RGB = (0.42, 0.45, 0.48)
+    edge_px: float = 0.75
+
+    def __post_init__(self) -> None:
+        if not self.square_size > 0:
+            raise ValueError(f"square_size must be > 0, got {self.square_size}")
+        if not self.edge_px > 0:
+            raise ValueError(f"edge_px must be > 0, got {self.edge_px}")
+        _check_rgb("color_a", self.color_a)
+        _check_rgb("color_b", self.color_b)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RasterSettings:
+    """Soft-rasterizer settings.
+
+    Image model (per pixel): every face within the coverage cut-off is a candidate with coverage
+    ``D = sigmoid(sd / sigma)`` (``sd``: signed Euclidean distance [px] from the pixel centre to the
+    triangle, positive inside) and normalised depth ``z_n = (zfar - z) / (zfar - znear)`` (``z`` from
+    perspective-correct barycentrics). Candidates are blended with weights ``D exp((z_n - m) / gamma)``
+    (``m``: the pixel's largest candidate ``z_n``, detached; it cancels in the blend and only prevents
+    overflow). The floor is one more candidate with ``D = 1``; the background has weight
+    ``exp((eps - m) / gamma)`` with ``eps = 0`` (the far plane). Colours are Lambert-shaded,
+    ``albedo (ambient + diffuse max(0, n . l))`` with interpolated vertex normals. As sigma, gamma -> 0
+    the image becomes a hard z-buffer.
+
+    Attributes:
+        sigma: coverage softness [px].
+        gamma: depth-blend temperature in units of ``z_n`` (``gamma * (zfar - znear)`` metres of depth
+            separate two surfaces by a factor e in weight).
+        znear, zfar: clipping depths [m]. Faces with a vertex closer than ``znear`` are dropped (no
+            clipping); the floor is kept beyond ``zfar`` (so it reaches the horizon), faces are not.
+        background: colour where no ray hits the floor or a face.
+        floor: :class:`FloorSettings`, or None for no floor.
+        light_dir: direction towards a directional light, world frame (normalised internally).
+        ambient, diffuse: Lambert coefficients, ``ambient + diffuse <= 1`` keeps colours in [0, 1].
+        cull_backfaces: drop faces whose projected winding shows their back. Halves the work on closed
+            meshes; when a face turns edge-on its (hidden) soft tail appears/disappears.
+        coverage_cutoff: pairs with ``D`` below this are dropped exactly (binning radius
+            ``sigma * ln(1 / cutoff - 1)``); both backends drop the same pairs.
+        backend: ``"tiled"`` (binned, memory-bounded custom backward), ``"dense"`` (every face at every
+            pixel, plain autograd; tiny scenes and tests only) or ``"auto"`` (= tiled).
+        tile_size: tile side [px] for binning.
+        bin_capacity: (tile, face) pairs per environment the tiled backend can hold; None picks
+            ``max(4096, 4 F)``. Overflow is an error with the numbers (never an incomplete image).
+        chunk_elems: pixel-face evaluations per chunk (bounds transient memory); environments are
+            processed ``max(1, chunk_elems // (bin_capacity * tile_size**2))`` at a time.
+        compile: run the per-chunk kernel through ``torch.compile`` (first call compiles).
+        sync_checks: check bin overflow, face indices and finiteness with one host synchronisation per
+            render and raise errors. When False (needed inside CUDA-graph capture) nothing syncs and an
+            environment whose bins overflow renders as NaN instead, which downstream NaN guards catch.
+    """
+
+    sigma: float = 0.2
+    gamma: float = 2e-4
+    znear: float = 0.05
+    zfar: float = 25.0
+    background: _RGB = (0.62, 0.74, 0.86)
+    floor: FloorSettings | None = field(default_factory=FloorSettings)
+    light_dir: tuple[float, float, float] = (0.35, -0.5, 1.0)
+    ambient: float = 0.4
+    diffuse: float = 0.6
+    cull_backfaces: bool = True
+    coverage_cutoff: float = 1e-4
+    backend: str = "auto"
+    tile_size: int = 8
+    bin_capacity: int | None = None
+    chunk_elems: int = 1 << 22
+    compile: bool = False
+    sync_checks: bool = True
+
+    def __post_init__(self) -> None:
+        if not (self.sigma > 0 and math.isfinite(self.sigma)):
+            raise ValueError(f"sigma must be > 0 [px], got {self.sigma}")
+        if not (self.gamma > 0 and math.isfinite(self.gamma)):
+            raise ValueError(f"gamma must be > 0, got {self.gamma}")
+        if not 0 < self.znear < self.zfar < math.inf:
+            raise ValueError(f"need 0 < znear < zfar < inf, got znear={self.znear}, zfar={self.zfar}")
+        _check_rgb("background", self.background)
+        if self.floor is not None and not isinstance(self.floor, FloorSettings):
+            raise ValueError(f"floor must be a FloorSettings or None, got {type(self.floor).__name__}")
+        if len(self.light_dir) != 3 or math.hypot(*self.light_dir) == 0:
+            raise ValueError(f"light_dir must be a non-zero 3-vector, got {self.light_dir!r}")
+        if self.ambient < 0 or self.diffuse < 0:
+            raise ValueError(f"ambient and diffuse must be >= 0, got {self.ambient}, {self.diffuse}")
+        if not 0 < self.coverage_cutoff < 0.5:
+            raise ValueError(f"coverage_cutoff must be in (0, 0.5), got {self.coverage_cutoff}")
+        if self.backend not in ("auto", "dense", "tiled"):
+            raise ValueError(f"backend must be 'auto', 'dense' or 'tiled', got {self.backend!r}")
+        if not (isinstance(self.tile_size, int) and 1 <= self.tile_size <= 64):
+            raise ValueError(f"tile_size must be an int in [1, 64], got {self.tile_size!r}")
+        if self.bin_capacity is not None and not (isinstance(self.bin_capacity, int) and self.bin_capacity > 0):
+            raise ValueError(f"bin_capacity must be a positive int or None, got {self.bin_capacity!r}")
+        if not (isinstance(self.chunk_elems, int) and self.chunk_elems > 0):
+            raise ValueError(f"chunk_elems must be a positive int, got {self.chunk_elems!r}")
+
+    @property
+    def cutoff_radius(self) -> float:
+        """Distance [px] outside a triangle beyond which its coverage is below ``coverage_cutoff``."""
+        return self.sigma * math.log(1.0 / self.coverage_cutoff - 1.0)
+
+    def capacity_for(self, num_faces: int) -> int:
+        """The bin capacity used for a mesh of ``num_faces`` faces."""
+        return self.bin_capacity if self.bin_capacity is not None else max(4096, 4 * num_faces)
