@@ -1,1 +1,26 @@
-"""gradlab."""
+"""gradlab: the SHAC / D.Va trainer and the gradient probes.
+
+One switch (``SHACConfig.mode``) decides what the actor sees: ``full`` (images with their graph: analytic
+policy gradients through the renderer), ``decoupled`` (D.Va: the image detached at the actor's input) or
+``state``. Probes measure both gradients of one rollout, their norms and cosine, CUDA-synchronised times and
+peak memory; a NaN/inf stops the run naming the iteration, the horizon step and the tensor.
+"""
+
+from gradlab.config import MODES, TASK_DEFAULTS, SHACConfig, resolve_config
+from gradlab.probes import ImageGate, NonFiniteError, cosine, flat_grad
+from gradlab.seeding import resolve_device, seed_everything
+from gradlab.shac import SHAC
+
+__all__ = [
+    "MODES",
+    "SHAC",
+    "SHACConfig",
+    "TASK_DEFAULTS",
+    "ImageGate",
+    "NonFiniteError",
+    "cosine",
+    "flat_grad",
+    "resolve_device",
+    "resolve_config",
+    "seed_everything",
+]

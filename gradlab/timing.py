@@ -9,6 +9,7 @@ reports its own peak, allocated (tensors) and reserved (the caching allocator's 
 from __future__ import annotations
 
 import time
+import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -85,34 +86,47 @@ class MemoryProbe:
 
 
 class SavedTensorBytes:
-    """Bytes autograd saves for backward inside the region (device-independent; works on the CPU).
+    """Bytes autograd keeps for backward from the region (device-independent; works on the CPU).
 
-    Counts each saved tensor's storage once (views of one storage share it). This is the memory that a
-    32-step SHAC window keeps alive until ``backward``: the quantity that grows with mesh complexity in full mode.
+    Every tensor packed for backward inside the region is tracked by a weak reference; at exit, the storages
+    of those still alive (held by the graph) are summed, each storage once. Tensors saved by graph branches
+    that were dropped before the region ended are not counted (their memory is gone), and no address can be
+    counted twice. This is the memory a 32-step SHAC window keeps alive until ``backward``: the quantity
+    that grows with mesh complexity in full mode.
     """
 
     def __init__(self):
         self.bytes = 0
-        self._seen: set[int] = set()
+        self._refs: list[weakref.ref] = []
         self._ctx = None
 
     def _pack(self, t: torch.Tensor):
-        try:
-            key = t.untyped_storage().data_ptr()
-            if key not in self._seen:
-                self._seen.add(key)
-                self.bytes += t.untyped_storage().nbytes()
-        except (RuntimeError, NotImplementedError):  # tensors without storage (e.g. under functionalisation)
-            self.bytes += t.numel() * t.element_size()
-        return t
+        # A detached alias (same storage): returning ``t`` itself would tie a saved OUTPUT to its own grad_fn
+        # in a reference cycle, keeping dropped graphs alive until the garbage collector runs.
+        alias = t.detach()
+        self._refs.append(weakref.ref(alias))
+        return alias
 
     def __enter__(self) -> SavedTensorBytes:
+        self._refs.clear()
         self._ctx = torch.autograd.graph.saved_tensors_hooks(self._pack, lambda t: t)
         self._ctx.__enter__()
         return self
 
     def __exit__(self, *exc) -> None:
         self._ctx.__exit__(*exc)
+        seen: dict[int, int] = {}
+        for ref in self._refs:
+            t = ref()
+            if t is None:
+                continue
+            try:
+                storage = t.untyped_storage()
+                seen[storage.data_ptr()] = storage.nbytes()
+            except (RuntimeError, NotImplementedError):  # tensors without storage (e.g. functionalised)
+                seen[id(t)] = t.numel() * t.element_size()
+        self._refs.clear()
+        self.bytes = sum(seen.values())
 
     @property
     def mb(self) -> float:

@@ -26,7 +26,7 @@ def lambda_return_reference(r, v, d, gamma, lam):
                 e += 1
             N = e - t + 1
 
-            def G(n):
+            def G(n, t=t, b=b):
                 return sum(gamma**k * r[t + k, b] for k in range(n)) + gamma**n * v[t + n - 1, b]
 
             out[t, b] = (1 - lam) * sum(lam ** (n - 1) * G(n) for n in range(1, N)) + lam ** (N - 1) * G(N)
@@ -161,3 +161,20 @@ def test_atomic_checkpoint_roundtrip(tmp_path):
     atomic_write_json(tmp_path / "x.json", {"b": 1})
     assert json.loads((tmp_path / "x.json").read_text()) == {"b": 1}
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_saved_tensor_bytes_counts_live_saved_storage_once():
+    from gradlab.timing import SavedTensorBytes
+
+    x = torch.randn(1000, requires_grad=True)  # 4000 bytes
+    with SavedTensorBytes() as s:
+        y = x.exp()  # saves its result (4000 B)
+        z = (y * y).sum()  # saves y twice: one storage
+        w = x.sin().sum()  # saves x (another 4000 B)
+        with torch.no_grad():
+            x.cos()  # nothing saved
+    assert s.bytes == 8000
+    with SavedTensorBytes() as s2:
+        (x.exp() * 2).sum()  # graph dropped at once: nothing kept for backward
+    assert s2.bytes == 0
+    del z, w

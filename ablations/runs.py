@@ -1,0 +1,340 @@
+"""One training run as a folder a researcher can trust, resume and plot.
+
+A run folder holds:
+    config.json      the resolved configuration (every flag, task defaults filled in) + versions
+    git.txt          commit, branch, dirty status and diff stat of the code that ran (git.diff: the full diff)
+    metrics.jsonl    one JSON object per iteration (DESIGN section 6 keys, probe keys on probed iterations)
+    summary.json     written at the end (or when the run stops on an error): medians without warm-up, peaks
+    checkpoints/     ckpt_<iter>.pt (the last ``keep_checkpoints``), written atomically
+    videos/          iter_<iter>.mp4 evaluation rollouts of the deterministic policy
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gradlab.checkpoint import atomic_write_json, atomic_write_text, latest_checkpoint, load_checkpoint, save_checkpoint
+from gradlab.config import SHACConfig
+from gradlab.probes import NonFiniteError
+from gradlab.seeding import resolve_device
+from gradlab.timing import median
+
+__all__ = ["RunConfig", "run", "read_metrics", "git_info", "environment_info", "write_video"]
+
+#: Keys every metrics line has (DESIGN section 6).
+REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "critic_loss", "grad_norm",
+                 "grad_norm_clipped", "fwd_ms", "bwd_ms", "peak_alloc_mb", "peak_reserved_mb")
+#: Keys added on probed iterations.
+PROBE_KEYS = ("cos_full_decoupled", "grad_norm_full", "grad_norm_decoupled")
+#: Keys that depend on the clock, not on the computation (excluded when comparing runs for determinism).
+TIMING_KEYS = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb")
+
+
+@dataclass
+class RunConfig(SHACConfig):
+    """Train SHAC on a task with full, decoupled (D.Va) or state policy gradients, and measure them."""
+
+    device: str = "auto"
+    """auto (CUDA when present, else CPU), cpu, or cuda[:N]."""
+    out: Path = Path("runs")
+    """Parent folder of the run folder."""
+    name: str | None = None
+    """Run folder name; None: <task>_<mode>_seed<seed>_<date>-<time>."""
+    resume: Path | None = None
+    """Continue the run in this folder from its last checkpoint (its config.json wins over other flags)."""
+    checkpoint_every: int = 50
+    """Iterations between checkpoints (and always at the end)."""
+    keep_checkpoints: int = 2
+    """Checkpoints kept on disk (oldest deleted)."""
+    video_every: int = 100
+    """Iterations between evaluation videos (MP4 of the deterministic policy; also at the end); 0 disables."""
+    video_steps: int | None = None
+    """Steps per evaluation video (None: one episode)."""
+    warmup_iters: int = 2
+    """Iterations excluded from the timing medians in summary.json (allocator and kernel warm-up)."""
+    tensorboard: bool = False
+    """Also log the metrics to TensorBoard (needs the tensorboard package) in <run>/tb."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def validate(self) -> None:
+        """SHACConfig's checks plus the run options'."""
+        super().validate()
+        for name in ("checkpoint_every", "keep_checkpoints"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.video_every < 0 or self.warmup_iters < 0:
+            raise ValueError("video_every and warmup_iters must be >= 0")
+        if self.video_steps is not None and self.video_steps <= 0:
+            raise ValueError(f"video_steps must be positive, got {self.video_steps}")
+
+
+def shac_part(cfg: RunConfig) -> SHACConfig:
+    """The SHACConfig fields of a RunConfig."""
+    names = {f.name for f in dataclasses.fields(SHACConfig)}
+    return SHACConfig(**{k: v for k, v in dataclasses.asdict(cfg).items() if k in names})
+
+
+def git_info(repo: Path | None = None) -> tuple[str, str]:
+    """(git.txt text, full diff) of the source tree that runs; explains itself when git is unavailable."""
+    repo = repo or Path(__file__).resolve().parents[1]
+
+    def git(*args: str) -> str:
+        r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
+        if r.returncode != 0:
+            raise RuntimeError(r.stderr.strip())
+        return r.stdout
+
+    try:
+        commit = git("rev-parse", "HEAD").strip()
+        branch = git("rev-parse", "--abbrev-ref", "HEAD").strip()
+        status = git("status", "--porcelain")
+        stat = git("diff", "HEAD", "--stat")
+        diff = git("diff", "HEAD")
+    except (OSError, RuntimeError, subprocess.TimeoutExpired) as e:
+        return f"git information unavailable: {e}\n", ""
+    dirty = bool(status.strip())
+    status = status or "(clean)\n"
+    stat = stat or "(none)\n"
+    text = f"commit {commit}\nbranch {branch}\ndirty {dirty}\n\nstatus:\n{status}\ndiff --stat HEAD:\n{stat}"
+    return text, diff
+
+
+def environment_info(device: torch.device) -> dict:
+    info = {
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "platform": platform.platform(),
+        "device": str(device),
+        "hostname": platform.node(),
+    }
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+        info["cuda"] = torch.version.cuda
+    try:
+        import mujoco
+        import pytorch_kinematics
+
+        info["mujoco"] = mujoco.__version__
+        info["pytorch_kinematics"] = getattr(pytorch_kinematics, "__version__", "unknown")
+    except ImportError:  # pragma: no cover - both are dependencies
+        pass
+    return info
+
+
+def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
+    """Parsed metrics.jsonl lines; a torn last line (a run killed mid-write) is ignored."""
+    path = Path(run_dir) / "metrics.jsonl"
+    rows = []
+    if not path.exists():
+        return rows
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return rows
+
+
+def _truncate_metrics(run_dir: Path, upto_iter: int) -> None:
+    """Keep metrics lines with iter <= upto_iter (those after the checkpoint will be recomputed)."""
+    rows = [r for r in read_metrics(run_dir) if r["iter"] <= upto_iter]
+    atomic_write_text(run_dir / "metrics.jsonl", "".join(json.dumps(r) + "\n" for r in rows))
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: int = 60) -> None:
+    """Frames (H, W, 3) uint8 RGB -> MP4 (mp4v), written to a temp name and renamed."""
+    import cv2
+
+    if not frames:
+        return
+    h, w = frames[0].shape[:2]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.mp4")
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV could not open an MP4 writer for {path}")
+    for f in frames:
+        writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    writer.release()
+    os.replace(tmp, path)
+
+
+def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, started: float) -> dict:
+    timed = [r for r in rows if r["iter"] > cfg.warmup_iters]
+    plain = [r for r in timed if not r.get("probed")]
+    probed = [r for r in timed if r.get("probed")]
+
+    def med(key: str, rs: list[dict]) -> float | None:
+        vals = [r[key] for r in rs if r.get(key) is not None]
+        return median(vals) if vals else None
+
+    def peak(key: str) -> float | None:
+        vals = [r[key] for r in rows if r.get(key) is not None]
+        return max(vals) if vals else None
+
+    returns = [r["return_mean"] for r in rows if r.get("return_mean") is not None]
+    cos = [r["cos_full_decoupled"] for r in rows if r.get("cos_full_decoupled") is not None]
+    return {
+        "status": status,
+        "error": error,
+        "task": cfg.task,
+        "mode": cfg.mode,
+        "seed": cfg.seed,
+        "iterations": rows[-1]["iter"] if rows else 0,
+        "env_steps": rows[-1]["env_steps"] if rows else 0,
+        "wall_s": rows[-1]["wall_s"] if rows else 0.0,
+        "final_return": returns[-1] if returns else None,
+        "best_return": max(returns) if returns else None,
+        "median_fwd_ms": med("fwd_ms", plain),
+        "median_bwd_ms": med("bwd_ms", plain),
+        "median_critic_ms": med("critic_ms", plain),
+        "median_iter_ms": med("iter_ms", plain),
+        "median_iter_ms_probed": med("iter_ms", probed),
+        "median_grad_norm": med("grad_norm", rows),
+        "median_cos_full_decoupled": median(cos) if cos else None,
+        "peak_alloc_mb": peak("peak_alloc_mb"),
+        "peak_reserved_mb": peak("peak_reserved_mb"),
+        "median_saved_mb": med("saved_mb", plain),
+        "warmup_iters_excluded": cfg.warmup_iters,
+        "session_seconds": time.time() - started,
+    }
+
+
+def _check_writable(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / ".write-test"
+        probe.write_text("ok")
+        probe.unlink()
+    except OSError as e:
+        raise ValueError(f"output folder {folder} is not writable: {e}") from None
+
+
+def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device]:
+    """Validate everything and create/locate the run folder, before any expensive work."""
+    if cfg.resume is not None:
+        run_dir = Path(cfg.resume)
+        cfg_path = run_dir / "config.json"
+        if not cfg_path.exists():
+            raise ValueError(f"--resume {run_dir}: no config.json there (not a run folder)")
+        stored = json.loads(cfg_path.read_text())["config"]
+        fields = {f.name for f in dataclasses.fields(RunConfig)}
+        stored = {k: v for k, v in stored.items() if k in fields}
+        for k in ("actor_hidden", "critic_hidden", "betas"):
+            if stored.get(k) is not None:
+                stored[k] = tuple(stored[k])
+        stored["out"] = Path(stored["out"])
+        stored.update(resume=run_dir, progress=cfg.progress)
+        if cfg.device != "auto":
+            stored["device"] = cfg.device
+        cfg = RunConfig(**stored)
+        cfg.validate()
+        device = resolve_device(cfg.device)
+        if latest_checkpoint(run_dir / "checkpoints") is None:
+            raise ValueError(f"--resume {run_dir}: no checkpoint in {run_dir / 'checkpoints'}")
+        _check_writable(run_dir)
+        return cfg, run_dir, device
+    cfg.validate()
+    device = resolve_device(cfg.device)
+    name = cfg.name or f"{cfg.task}_{cfg.mode}_seed{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+    run_dir = Path(cfg.out) / name
+    _check_writable(Path(cfg.out))
+    if run_dir.exists() and any(run_dir.iterdir()):
+        raise ValueError(f"run folder {run_dir} exists and is not empty: pass --resume {run_dir} or another --name")
+    _check_writable(run_dir)
+    return cfg, run_dir, device
+
+
+def run(cfg: RunConfig) -> Path:
+    """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work."""
+    from gradlab.shac import SHAC
+
+    started = time.time()
+    cfg, run_dir, device = prepare(cfg)
+    trainer = SHAC(shac_part(cfg), device=device)
+    shac_fields = dataclasses.fields(SHACConfig)
+    resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
+    ckpt_dir = run_dir / "checkpoints"
+    if cfg.resume is not None:
+        ckpt = latest_checkpoint(ckpt_dir)
+        trainer.load_state_dict(load_checkpoint(ckpt, map_location=device))
+        _truncate_metrics(run_dir, trainer.iteration)
+    else:
+        atomic_write_json(run_dir / "config.json", {
+            "config": dataclasses.asdict(resolved),
+            "environment": environment_info(device),
+            "command": sys.argv,
+        })
+        text, diff = git_info()
+        atomic_write_text(run_dir / "git.txt", text)
+        if diff:
+            atomic_write_text(run_dir / "git.diff", diff)
+
+    writer = None
+    if cfg.tensorboard:
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError as e:
+            raise ValueError("--tensorboard needs the tensorboard package: pip install tensorboard") from e
+        writer = SummaryWriter(str(run_dir / "tb"))
+
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=f"{cfg.task}/{cfg.mode}",
+               unit="it", dynamic_ncols=True)
+    status, error = "running", None
+    metrics_path = run_dir / "metrics.jsonl"
+    try:
+        while trainer.iteration < cfg.iters:
+            m = trainer.train_iteration()
+            it = m["iter"]
+            last = it == cfg.iters
+            if cfg.video_every and (it % cfg.video_every == 0 or last):
+                eval_return, frames = trainer.evaluate(steps=cfg.video_steps, record=True)
+                m["eval_return"] = eval_return
+                write_video(run_dir / "videos" / f"iter_{it:06d}.mp4", frames)
+            with open(metrics_path, "a") as f:
+                f.write(json.dumps(m) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+            if writer is not None:
+                for k, v in m.items():
+                    if isinstance(v, (int, float)) and not isinstance(v, bool) and v is not None:
+                        writer.add_scalar(k, v, it)
+            if it % cfg.checkpoint_every == 0 or last:
+                save_checkpoint(ckpt_dir / f"ckpt_{it:06d}.pt", trainer.state_dict())
+                for old in sorted(ckpt_dir.glob("ckpt_*.pt"))[:-cfg.keep_checkpoints]:
+                    old.unlink()
+            ret = m["return_mean"]
+            bar.set_postfix(ret="-" if ret is None else f"{ret:.1f}", ms=f"{m['iter_ms']:.0f}",
+                            gn=f"{m['grad_norm']:.2g}")
+            bar.update(1)
+        status = "finished"
+    except NonFiniteError as e:
+        status, error = "nonfinite", str(e)
+        raise
+    except KeyboardInterrupt:
+        status, error = "interrupted", "KeyboardInterrupt"
+        raise
+    except torch.OutOfMemoryError as e:
+        status, error = "oom", str(e).splitlines()[0]
+        raise
+    finally:
+        bar.close()
+        if writer is not None:
+            writer.close()
+        atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started))
+    return run_dir

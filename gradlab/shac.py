@@ -1,0 +1,383 @@
+"""SHAC with one switch between full analytic policy gradients through pixels and decoupled D.Va.
+
+One iteration, top to bottom (DESIGN section 5):
+
+1. Cut the graph at the window start (task state, frame buffer).
+2. Roll out ``horizon`` steps: actor(images or state) -> tanh action -> differentiable simulator -> reward;
+   render the new state and push it into the 3-frame stack. The actor loss is SHAC's
+   ``-(sum_t gamma^t r_t + gamma^T V_target(s_T)) / (T*B)`` with episodes cut at resets and the terminal value
+   zero after an early termination.
+3. Backward. The mode decides only what the actor sees:
+     full       the image stack keeps its graph: gradients flow image -> vertices -> FK -> qpos -> actions;
+     decoupled  the image stack is detached at the actor input (rendered without grad);
+     state      the actor sees the normalised state vector.
+   On probe iterations (every ``cosine_every``) the images are rendered WITH grad behind an ``ImageGate`` and
+   the loss is differentiated twice over the same graph, gate open and closed: the full and the decoupled
+   gradient of the SAME rollout. The training mode's gradient is the one applied.
+4. Clip, Adam step with a linear LR decay; fit the critic on TD(lambda) targets; Polyak-update the target.
+
+Every iteration reports CUDA-synchronised forward / backward / critic times, peak allocated and reserved memory
+(CUDA), bytes saved for backward, pre- and post-clip gradient norms; a NaN/inf anywhere stops the run with the
+iteration, the horizon step and the tensor named.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+from collections import deque
+
+import numpy as np
+import torch
+from torch import nn
+
+import tasks
+from gradlab.config import SHACConfig, resolve_config
+from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
+from gradlab.networks import Critic, StateActor, VisualActor
+from gradlab.normalizer import RunningMeanStd
+from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad
+from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_state
+from gradlab.timing import MemoryProbe, RegionTimer, SavedTensorBytes
+from tasks.vision import FrameStack, TaskRenderer
+
+__all__ = ["SHAC", "NonFiniteError"]
+
+_FLAG_NAMES = ["state_obs", "reward", "terminal_value", "image", "action", "qpos", "qvel"]
+
+
+class SHAC:
+    """The SHAC / D.Va trainer.
+
+    Args:
+        cfg: the configuration; None fields are resolved to the task's reference values.
+        device: "auto" | "cpu" | "cuda[:N]".
+    """
+
+    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto"):
+        self.cfg = resolve_config(cfg)
+        cfg = self.cfg
+        self.device = device if isinstance(device, torch.device) else resolve_device(device)
+        seed_everything(cfg.seed)
+
+        overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
+        self.task = tasks.make(cfg.task, cfg.num_envs, device=self.device, seed=cfg.seed, **overrides)
+        self.visual = cfg.mode in ("full", "decoupled")
+        self.renderer = None
+        if self.visual:
+            self.renderer = TaskRenderer(
+                self.task, height=cfg.image_size, width=cfg.image_size, detail=cfg.render_detail,
+                extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts, sigma=cfg.sigma,
+                gamma=cfg.render_gamma)
+            self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
+                                     cfg.trunk_dim, cfg.actor_hidden)
+        else:
+            self.actor = StateActor(self.task.num_obs, self.task.num_act, cfg.actor_hidden)
+        self.critic = Critic(self.task.num_obs, cfg.critic_hidden)
+        self.actor.to(self.device)
+        self.critic.to(self.device)
+        self.target_critic = copy.deepcopy(self.critic)
+        for p in self.target_critic.parameters():
+            p.requires_grad_(False)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=cfg.betas)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, betas=cfg.betas)
+        self.obs_rms = RunningMeanStd(self.task.num_obs, device=self.device)
+
+        self.frames = FrameStack(cfg.frames)
+        self.gate = ImageGate()
+        self.flags = FiniteFlags(cfg.horizon, _FLAG_NAMES, self.device)
+        self.timer = RegionTimer(self.device)
+
+        self.iteration = 0
+        self.wall_s = 0.0
+        self.episode_return = torch.zeros(cfg.num_envs, device=self.device)
+        self.episode_length = torch.zeros(cfg.num_envs, device=self.device, dtype=torch.long)
+        self.recent_returns: deque[float] = deque(maxlen=100)
+        self.recent_lengths: deque[int] = deque(maxlen=100)
+        self._started = False
+
+    # ------------------------------------------------------------------ observation plumbing
+    def _render(self, *, grad: bool) -> torch.Tensor:
+        """Images of the task's current state: (B, 3, H, W) in [0, 1]; differentiable in qpos if ``grad``."""
+        if grad:
+            return self.renderer(self.task.qpos)
+        with torch.no_grad():
+            return self.renderer(self.task.qpos)
+
+    def _start(self) -> None:
+        """First reset: state, frame stack tiled with the first image, running stats seeded."""
+        obs = self.task.reset()
+        self.obs_rms.update(obs)
+        if self.visual:
+            self.frames.reset(self._render(grad=False))
+        self._started = True
+
+    # ------------------------------------------------------------------ the rollout and the actor loss
+    def _rollout(self, *, render_grad: bool) -> tuple[torch.Tensor, dict]:
+        """One SHAC window. Returns the actor loss (0-d, differentiable) and the window's buffers."""
+        cfg, task = self.cfg, self.task
+        T, B = cfg.horizon, cfg.num_envs
+        stats = self.obs_rms.snapshot()
+        task.detach()
+        self.frames.detach()
+        obs = task.state_obs().detach()
+
+        critic_obs = torch.empty(T, B, task.num_obs, device=self.device)
+        raw_obs = torch.empty(T, B, task.num_obs, device=self.device)
+        rewards = torch.empty(T, B, device=self.device)
+        next_values = torch.empty(T, B, device=self.device)
+        dones = torch.empty(T, B, device=self.device, dtype=torch.bool)
+        episode_ends = torch.empty(T, B, device=self.device, dtype=torch.bool)
+        ep_returns = torch.empty(T, B, device=self.device)
+        ep_lengths = torch.empty(T, B, device=self.device, dtype=torch.long)
+
+        rew_acc = torch.zeros(B, device=self.device)
+        discount = torch.ones(B, device=self.device)
+        loss = torch.zeros((), device=self.device)
+        self.flags.reset()
+        for t in range(T):
+            with torch.no_grad():
+                critic_obs[t] = RunningMeanStd.apply(obs, stats)
+            if self.visual:
+                images = self.frames.stacked()
+                if render_grad:
+                    images = self.gate(images)
+                    self.flags.watch_grad(t, "image", images)
+                actor_in = images
+            else:
+                actor_in = RunningMeanStd.apply(obs, stats)
+            action = self.actor(actor_in)
+            self.flags.watch_grad(t, "action", action)
+
+            obs, reward, done, info = task.step(action)
+            self.flags.watch_grad(t, "qpos", task.qpos)
+            self.flags.watch_grad(t, "qvel", task.qvel)
+            self.flags.check(t, "state_obs", info["obs_before_reset"])
+            self.flags.check(t, "reward", reward)
+
+            # Value of the state reached by this step (before any reset); zero after an early termination.
+            v_next = self.target_critic(RunningMeanStd.apply(info["obs_before_reset"], stats))
+            v_next = torch.where(info["terminated"], torch.zeros_like(v_next), v_next)
+            self.flags.check(t, "terminal_value", v_next)
+
+            rew_acc = rew_acc + discount * reward
+            ends = done if t < T - 1 else torch.ones_like(done)
+            loss = loss - torch.where(ends, rew_acc + cfg.gamma * discount * v_next, torch.zeros_like(v_next)).sum()
+            discount = torch.where(done, torch.ones_like(discount), discount * cfg.gamma)
+            rew_acc = torch.where(done, torch.zeros_like(rew_acc), rew_acc)
+
+            if self.visual:
+                self.frames.push(self._render(grad=render_grad), reset=done)
+
+            with torch.no_grad():
+                raw_obs[t] = obs
+                rewards[t] = reward
+                next_values[t] = v_next
+                dones[t] = ends
+                episode_ends[t] = done
+                self.episode_return += reward
+                self.episode_length += 1
+                ep_returns[t] = self.episode_return
+                ep_lengths[t] = self.episode_length
+                self.episode_return.masked_fill_(done, 0.0)
+                self.episode_length.masked_fill_(done, 0)
+        loss = loss / (T * B)
+        buffers = dict(critic_obs=critic_obs, raw_obs=raw_obs, rewards=rewards, next_values=next_values,
+                       dones=dones, episode_ends=episode_ends, ep_returns=ep_returns, ep_lengths=ep_lengths)
+        return loss, buffers
+
+    # ------------------------------------------------------------------ one training iteration
+    def _lr(self, base: float) -> float:
+        """Linear decay from ``base`` to 1e-5 over ``iters`` (the reference's schedule)."""
+        frac = min(self.iteration / self.cfg.iters, 1.0)
+        return base + (1e-5 - base) * frac
+
+    def _backward(self, loss: torch.Tensor, probe: bool) -> dict:
+        """Actor gradients into ``.grad`` for the training mode; on probes, both estimators of one rollout."""
+        params = [p for p in self.actor.parameters()]
+        self.actor_opt.zero_grad(set_to_none=True)
+        out: dict = {}
+        if probe:
+            # The mode we do NOT train with goes first (graph retained); the training mode's gradient is
+            # computed last, so it is what stays in .grad.
+            other_full = self.cfg.mode == "decoupled"
+            self.gate.open = other_full
+            loss.backward(retain_graph=True)
+            g_other = flat_grad(params)
+            self.actor_opt.zero_grad(set_to_none=True)
+            self.gate.open = not other_full
+            loss.backward()
+            g_train = flat_grad(params)
+            g_full, g_dec = (g_other, g_train) if other_full else (g_train, g_other)
+            out = {
+                "grad_norm_full": g_full.norm(),
+                "grad_norm_decoupled": g_dec.norm(),
+                "cos_full_decoupled": cosine(g_full, g_dec),
+                # The image path's contribution alone (the control-regularisation term of D.Va's eq. 5).
+                "grad_norm_render_term": (g_full - g_dec).norm(),
+            }
+        else:
+            self.gate.open = self.cfg.mode == "full"
+            loss.backward()
+        return out
+
+    def train_iteration(self) -> dict:
+        """Run one iteration; returns its metrics (Python scalars)."""
+        cfg = self.cfg
+        if not self._started:
+            self._start()
+        t_wall = time.perf_counter()
+        probe = self.visual and cfg.cosine_every > 0 and self.iteration % cfg.cosine_every == 0
+        render_grad = cfg.mode == "full" or probe
+        self.timer.reset()
+
+        for group in self.actor_opt.param_groups:
+            group["lr"] = self._lr(cfg.actor_lr)
+        for group in self.critic_opt.param_groups:
+            group["lr"] = self._lr(cfg.critic_lr)
+
+        # Actor: forward (rollout + render + loss) and backward, timed and memory-probed as one region.
+        with MemoryProbe(self.device) as mem:
+            with self.timer("fwd"), SavedTensorBytes() as saved:
+                loss, buf = self._rollout(render_grad=render_grad)
+            with self.timer("bwd"):
+                probe_out = self._backward(loss, probe)
+        params = list(self.actor.parameters())
+        gn = nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+        gn_clipped = flat_grad(params).norm()
+        self.flags.raise_if_bad(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": gn})
+        gn_value = float(gn)
+        if gn_value > cfg.abort_grad_norm:
+            raise NonFiniteError(
+                f"iteration {self.iteration}: actor gradient norm {gn_value:.3g} exceeds abort_grad_norm "
+                f"{cfg.abort_grad_norm:.3g} (the reference stops here too)")
+        self.actor_opt.step()
+
+        # Critic on TD(lambda) targets of the window, then the target network.
+        with self.timer("critic"):
+            targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma,
+                                        lam=cfg.lam)
+            critic_loss = fit_critic(self.critic, self.critic_opt, buf["critic_obs"].flatten(0, 1),
+                                     targets.flatten(), iterations=cfg.critic_iterations,
+                                     batches=cfg.critic_batches, grad_clip=cfg.grad_clip)
+            polyak_update(self.target_critic, self.critic, cfg.target_alpha)
+        self.obs_rms.update(buf["raw_obs"])
+
+        # Episode statistics: one host transfer per iteration.
+        ends = buf["episode_ends"].cpu().numpy()
+        if ends.any():
+            self.recent_returns.extend(buf["ep_returns"].cpu().numpy()[ends].tolist())
+            self.recent_lengths.extend(buf["ep_lengths"].cpu().numpy()[ends].tolist())
+
+        self.iteration += 1
+        iter_wall = time.perf_counter() - t_wall
+        self.wall_s += iter_wall
+        ms = self.timer.ms
+        metrics = {
+            "iter": self.iteration,
+            "env_steps": self.iteration * cfg.horizon * cfg.num_envs,
+            "wall_s": self.wall_s,
+            "return_mean": float(np.mean(self.recent_returns)) if self.recent_returns else None,
+            "episode_length_mean": float(np.mean(self.recent_lengths)) if self.recent_lengths else None,
+            "episodes": len(self.recent_returns),
+            "actor_loss": float(loss.detach()),
+            "critic_loss": float(critic_loss),
+            "grad_norm": gn_value,
+            "grad_norm_clipped": float(gn_clipped),
+            "fwd_ms": ms["fwd"],
+            "bwd_ms": ms["bwd"],
+            "critic_ms": ms["critic"],
+            "iter_ms": iter_wall * 1e3,
+            "peak_alloc_mb": mem.peak_alloc_mb,
+            "peak_reserved_mb": mem.peak_reserved_mb,
+            "saved_mb": saved.mb,
+            "actor_lr": self.actor_opt.param_groups[0]["lr"],
+            "probed": probe,
+        }
+        metrics.update({k: float(v) for k, v in probe_out.items()})
+        return metrics
+
+    # ------------------------------------------------------------------ evaluation and video
+    @torch.no_grad()
+    def evaluate(self, *, steps: int | None = None, num_envs: int = 4, video_size: int = 256,
+                 record: bool = False) -> tuple[float, list[np.ndarray]]:
+        """Deterministic policy on a separate task instance (the training state and RNG are untouched).
+
+        Returns the mean undiscounted return over ``num_envs`` episodes of up to ``steps`` steps, and, if
+        ``record``, RGB uint8 frames (H, W, 3) of env 0 from the task camera at ``video_size`` pixels.
+        """
+        cfg = self.cfg
+        steps = steps or self.task.episode_length
+        overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
+        task = tasks.make(cfg.task, num_envs, device=self.device, seed=cfg.seed + 10_007, **overrides)
+        obs = task.reset()
+        stats = self.obs_rms.snapshot()
+        renderer = video = None
+        frames = FrameStack(cfg.frames)
+        if self.visual:
+            renderer = TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, detail=cfg.render_detail,
+                                    extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts,
+                                    sigma=cfg.sigma, gamma=cfg.render_gamma)
+            frames.reset(renderer(task.qpos))
+        if record:
+            video = TaskRenderer(task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2),
+                                 sigma=None, gamma=None)
+        total = torch.zeros(num_envs, device=self.device)
+        alive = torch.ones(num_envs, device=self.device, dtype=torch.bool)
+        out_frames: list[np.ndarray] = []
+        for _ in range(steps):
+            if record:
+                img = video(task.qpos[:1])[0].clamp(0, 1).mul(255).byte().permute(1, 2, 0).cpu().numpy()
+                out_frames.append(img)
+            actor_in = frames.stacked() if self.visual else RunningMeanStd.apply(obs, stats)
+            action = self.actor(actor_in, deterministic=True)
+            obs, reward, done, _ = task.step(action)
+            total += reward * alive
+            alive &= ~done
+            if self.visual:
+                frames.push(renderer(task.qpos), reset=done)
+            if not bool(alive.any()):
+                break
+        return float(total.mean()), out_frames
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """Everything that determines the future of the run (resume == uninterrupted on the CPU)."""
+        return {
+            "config": dataclasses.asdict(self.cfg),
+            "iteration": self.iteration,
+            "wall_s": self.wall_s,
+            "started": self._started,
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "target_critic": self.target_critic.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "obs_rms": self.obs_rms.state_dict(),
+            "task": self.task.get_state(),
+            "frames": self.frames.state_dict(),
+            "episode_return": self.episode_return.clone(),
+            "episode_length": self.episode_length.clone(),
+            "recent_returns": list(self.recent_returns),
+            "recent_lengths": list(self.recent_lengths),
+            "rng": rng_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.iteration = state["iteration"]
+        self.wall_s = state["wall_s"]
+        self._started = state["started"]
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.target_critic.load_state_dict(state["target_critic"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.obs_rms.load_state_dict(state["obs_rms"])
+        self.task.set_state(state["task"])
+        self.frames.load_state_dict(state["frames"], device=self.device)
+        self.episode_return = state["episode_return"].to(self.device)
+        self.episode_length = state["episode_length"].to(self.device)
+        self.recent_returns = deque(state["recent_returns"], maxlen=100)
+        self.recent_lengths = deque(state["recent_lengths"], maxlen=100)
+        set_rng_state(state["rng"])

@@ -1,0 +1,118 @@
+"""What a visual policy sees: task-camera renders of the robot and the 3-frame stack.
+
+``tasks -> diffrender``: the task knows its camera (``Task.camera``, DESIGN section 4) and its MJCF; the
+renderer knows nothing of tasks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+import diffrender
+
+__all__ = ["FrameStack", "TaskRenderer"]
+
+
+class TaskRenderer:
+    """qpos -> what the policy sees: RGB images of the robot from the task's camera.
+
+    The camera follows the task's root body (``Task.camera``: eye/target offsets, tracked axes); its pose is
+    computed from ``qpos`` through forward kinematics, so in full mode the image is differentiable in the
+    state both through the robot's pixels and through the camera (the textured floor moves under it).
+
+    Args:
+        task: a :class:`tasks.Task` (its ``mjcf_path``, ``camera``, ``dtype`` and ``device`` are used).
+        height, width: image size [px] (the task camera's 84 x 84 by default).
+        detail: tessellation level of the robot's primitives.
+        extra_meshes, extra_mesh_verts: extra meshes attached to moving links (scene complexity sweeps).
+        sigma, gamma: soft-rasterizer softness [px] and depth temperature; None keeps the renderer defaults
+            (sigma is given at 84 px and scaled with the image height so that edges stay equally soft).
+        settings: further :class:`diffrender.RasterSettings` fields.
+    """
+
+    def __init__(self, task, *, height: int | None = None, width: int | None = None, detail: int = 1,
+                 extra_meshes: int = 0, extra_mesh_verts: int = 64, sigma: float | None = None,
+                 gamma: float | None = None, **settings):
+        spec = task.camera
+        self.spec = spec
+        self.height = height or spec.height
+        self.width = width or spec.width
+        robot = diffrender.RobotModel.from_mjcf(task.mjcf_path, detail=detail, dtype=task.dtype,
+                                                device=task.device)
+        if extra_meshes:
+            robot = robot.with_extra_meshes(extra_meshes, extra_mesh_verts, seed=0)
+        self.robot = robot
+        if spec.root_body not in robot.body_names:
+            raise ValueError(f"camera root body {spec.root_body!r} is not a body of {task.mjcf_path}")
+        self.root_index = robot.body_names.index(spec.root_body)
+        defaults = diffrender.RasterSettings()
+        base_sigma = defaults.sigma if sigma is None else sigma
+        fields = {"sigma": base_sigma * self.height / 84.0}
+        if gamma is not None:
+            fields["gamma"] = gamma
+        fields.update(settings)
+        self.settings = dataclasses.replace(defaults, **fields)
+
+    @property
+    def num_faces(self) -> int:
+        return self.robot.num_faces
+
+    @property
+    def num_vertices(self) -> int:
+        return self.robot.num_vertices
+
+    def camera(self, qpos: torch.Tensor) -> diffrender.Camera:
+        """The task camera for each environment of ``qpos: (B, nq)``."""
+        spec = self.spec
+        root = self.robot.link_poses(qpos)[:, self.root_index, :3, 3]
+        return diffrender.tracking_camera(root, eye_offset=spec.eye, target_offset=spec.target, track=spec.track,
+                                          fov_deg=spec.fov_deg, height=self.height, width=self.width)
+
+    def __call__(self, qpos: torch.Tensor) -> torch.Tensor:
+        """qpos: (B, nq) -> images (B, 3, H, W) in [0, 1]."""
+        verts, normals = self.robot.world_vertices_and_normals(qpos)
+        return diffrender.render(verts, self.robot.faces, self.robot.colors, self.camera(qpos), self.settings,
+                                 normals=normals)
+
+
+class FrameStack:
+    """The last ``k`` RGB frames stacked on channels, oldest first: (B, 3k, H, W).
+
+    At reset the first frame is tiled k times; environments that reset mid-window get their new first frame
+    tiled while the others shift by one. ``detach`` cuts the buffer from the graph (SHAC window start).
+    """
+
+    def __init__(self, k: int = 3):
+        if k < 1:
+            raise ValueError(f"FrameStack needs k >= 1, got {k}")
+        self.k = k
+        self.frames: list[torch.Tensor] = []
+
+    def reset(self, frame: torch.Tensor) -> None:
+        """frame: (B, 3, H, W)."""
+        self.frames = [frame] * self.k
+
+    def push(self, frame: torch.Tensor, *, reset: torch.Tensor) -> None:
+        """frame: (B, 3, H, W) of the state after the step; reset: (B,) bool, envs that were just reset."""
+        if not self.frames:
+            raise RuntimeError("FrameStack.push before reset")
+        m = reset.view(-1, 1, 1, 1)
+        older = [torch.where(m, frame, f) for f in self.frames[1:]]
+        self.frames = [*older, frame]
+
+    def stacked(self) -> torch.Tensor:
+        if not self.frames:
+            raise RuntimeError("FrameStack.stacked before reset")
+        return torch.cat(self.frames, dim=1)
+
+    def detach(self) -> None:
+        self.frames = [f.detach() for f in self.frames]
+
+    def state_dict(self) -> dict:
+        return {"k": self.k, "frames": [f.detach().clone() for f in self.frames]}
+
+    def load_state_dict(self, state: dict, *, device: torch.device | str | None = None) -> None:
+        self.k = state["k"]
+        self.frames = [f.to(device) if device is not None else f for f in state["frames"]]

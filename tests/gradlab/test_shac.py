@@ -1,0 +1,133 @@
+"""SHAC / D.Va trainer: the switch, the probes, determinism, the NaN guard (CPU, tiny sizes)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import tasks
+from gradlab import SHAC, SHACConfig
+from gradlab.probes import NonFiniteError, cosine, flat_grad
+
+TIMING = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb")
+
+
+def tiny(task="cartpole", mode="decoupled", **kw) -> SHACConfig:
+    base = dict(task=task, mode=mode, iters=4, num_envs=3, horizon=4, image_size=24, critic_iterations=2,
+                critic_batches=2, cosine_every=0, seed=3)
+    base.update(kw)
+    return SHACConfig(**base)
+
+
+def actor_grad(trainer: SHAC, *, render_grad: bool, gate_open: bool) -> torch.Tensor:
+    trainer._start()
+    loss, _ = trainer._rollout(render_grad=render_grad)
+    trainer.actor.zero_grad(set_to_none=True)
+    trainer.gate.open = gate_open
+    loss.backward()
+    return flat_grad(trainer.actor.parameters())
+
+
+def test_decoupled_gradient_equals_explicit_detach():
+    # Decoupled training renders without grad (the image is a constant); the probe renders with grad behind a
+    # closed gate. Both must be the gradient with the image explicitly detached.
+    g_nograd = actor_grad(SHAC(tiny(), device="cpu"), render_grad=False, gate_open=False)
+    g_gated = actor_grad(SHAC(tiny(), device="cpu"), render_grad=True, gate_open=False)
+    torch.testing.assert_close(g_gated, g_nograd, rtol=1e-6, atol=1e-9)
+    assert float(g_nograd.norm()) > 0
+
+
+def test_full_and_decoupled_differ_through_the_renderer():
+    # Same seed -> the same rollout; with the gate open the image path adds gradient through the renderer.
+    # Over a few 1/60 s steps the cart barely moves, so the image term is small (~1e-6 relative) but real: the
+    # noise floor is exactly zero because the same computation repeats bit for bit on the CPU.
+    cfg = tiny(mode="full", horizon=6)
+    g_full = actor_grad(SHAC(cfg, device="cpu"), render_grad=True, gate_open=True)
+    g_dec = actor_grad(SHAC(cfg, device="cpu"), render_grad=True, gate_open=False)
+    g_dec_again = actor_grad(SHAC(cfg, device="cpu"), render_grad=True, gate_open=False)
+    assert torch.equal(g_dec, g_dec_again)
+    diff = float((g_full - g_dec).norm())
+    assert diff > 1e-8 * float(g_dec.norm()), diff
+    assert float(cosine(g_full, g_dec)) < 1.0
+
+
+def test_state_mode_has_no_image_path():
+    g_open = actor_grad(SHAC(tiny(mode="state"), device="cpu"), render_grad=False, gate_open=True)
+    g_closed = actor_grad(SHAC(tiny(mode="state"), device="cpu"), render_grad=False, gate_open=False)
+    assert torch.equal(g_open, g_closed)
+
+
+def test_probe_reports_both_gradients_of_one_rollout_and_trains_with_the_mode():
+    trainer = SHAC(tiny(mode="decoupled", cosine_every=1), device="cpu")
+    m = trainer.train_iteration()
+    for k in ("grad_norm_full", "grad_norm_decoupled", "cos_full_decoupled", "grad_norm_render_term"):
+        assert k in m
+    # The applied (pre-clip) gradient is the decoupled one.
+    assert m["grad_norm"] == pytest.approx(m["grad_norm_decoupled"], rel=1e-5)
+    assert -1.0 <= m["cos_full_decoupled"] <= 1.0
+    full = SHAC(tiny(mode="full", cosine_every=1), device="cpu").train_iteration()
+    assert full["grad_norm"] == pytest.approx(full["grad_norm_full"], rel=1e-5)
+    # Same seed, same rollout: both runs measured the same pair of gradients.
+    assert full["grad_norm_decoupled"] == pytest.approx(m["grad_norm_decoupled"], rel=1e-5)
+    assert full["cos_full_decoupled"] == pytest.approx(m["cos_full_decoupled"], abs=1e-5)
+
+
+def test_same_seed_same_metrics():
+    def metrics():
+        tr = SHAC(tiny(mode="decoupled", cosine_every=2), device="cpu")
+        return [{k: v for k, v in tr.train_iteration().items() if k not in TIMING} for _ in range(3)]
+
+    assert metrics() == metrics()
+
+
+def test_metrics_keys_and_types():
+    m = SHAC(tiny(mode="state"), device="cpu").train_iteration()
+    for k in ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "critic_loss", "grad_norm",
+              "grad_norm_clipped", "fwd_ms", "bwd_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb"):
+        assert k in m
+    assert m["iter"] == 1 and m["env_steps"] == 3 * 4
+    assert m["grad_norm_clipped"] <= 1.0 + 1e-6
+    assert m["peak_alloc_mb"] is None  # CPU: torch keeps no peak statistics
+
+
+def test_full_mode_saves_more_for_backward_than_decoupled():
+    full = SHAC(tiny(mode="full"), device="cpu").train_iteration()
+    dec = SHAC(tiny(mode="decoupled"), device="cpu").train_iteration()
+    assert full["saved_mb"] > dec["saved_mb"]
+
+
+def test_nan_guard_names_iteration_step_and_tensor(monkeypatch):
+    trainer = SHAC(tiny(mode="state"), device="cpu")
+    trainer.train_iteration()
+    real_step = trainer.task.step
+    calls = {"n": 0}
+
+    def poisoned(action):
+        obs, reward, done, info = real_step(action)
+        calls["n"] += 1
+        if calls["n"] == 3:  # horizon step 2 of iteration 1
+            reward = reward * float("nan")
+        return obs, reward, done, info
+
+    monkeypatch.setattr(trainer.task, "step", poisoned)
+    with pytest.raises(NonFiniteError, match=r"iteration 1: non-finite forward value at horizon step 2 in reward"):
+        trainer.train_iteration()
+
+
+def test_evaluate_and_video_frames():
+    trainer = SHAC(tiny(mode="decoupled"), device="cpu")
+    ret, frames = trainer.evaluate(steps=3, num_envs=2, video_size=32, record=True)
+    assert isinstance(ret, float) and len(frames) == 3
+    assert frames[0].shape == (32, 32, 3) and frames[0].dtype.name == "uint8"
+
+
+def test_config_errors_are_clear():
+    with pytest.raises(ValueError, match="unknown task 'cartpol'; valid tasks: cartpole"):
+        SHAC(tiny(task="cartpol"), device="cpu")
+    with pytest.raises(ValueError, match="unknown mode 'ful'; valid modes: full, decoupled, state"):
+        SHAC(tiny(mode="ful"), device="cpu")
+    with pytest.raises(ValueError, match="num_envs must be a positive integer"):
+        SHAC(tiny(num_envs=0), device="cpu")
+    with pytest.raises(ValueError, match="horizon must be a positive integer"):
+        SHAC(tiny(horizon=-1), device="cpu")
+    assert "ant" in tasks.TASKS
