@@ -110,8 +110,9 @@ class SHACConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 0:
                 raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
-        if self.extra_meshes and self.extra_mesh_verts < 4:
-            raise ValueError(f"extra_mesh_verts must be >= 4, got {self.extra_mesh_verts}")
+        if self.extra_meshes and self.extra_mesh_verts < 6:
+            # The renderer's extra meshes are spheres; the smallest closed one it builds has 6 vertices.
+            raise ValueError(f"extra_mesh_verts must be >= 6, got {self.extra_mesh_verts}")
         if not 0 < self.gamma <= 1 or not 0 <= self.lam <= 1:
             raise ValueError(f"gamma must be in (0, 1] and lam in [0, 1], got {self.gamma}, {self.lam}")
         if self.actor_lr <= 0 or (self.critic_lr is not None and self.critic_lr <= 0):
