@@ -63,13 +63,15 @@ class SHAC:
 
         overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
         self.task = tasks.make(cfg.task, cfg.num_envs, device=self.device, seed=cfg.seed, **overrides)
+        if cfg.compile:
+            self.task.compile()
         self.visual = cfg.mode in ("full", "decoupled")
         self.renderer = None
         if self.visual:
             self.renderer = TaskRenderer(
                 self.task, height=cfg.image_size, width=cfg.image_size, detail=cfg.render_detail,
                 extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts, sigma=cfg.sigma,
-                gamma=cfg.render_gamma)
+                gamma=cfg.render_gamma, compile=cfg.compile)
             self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
                                      cfg.trunk_dim, cfg.actor_hidden)
         else:

@@ -1,0 +1,129 @@
+"""Whole SHAC iterations per task and mode: forward, backward, critic and total time, peak memory.
+
+This is the Table-1-style measurement (the D.Va paper's Table 1 reports backward time per iteration). It
+drives the real trainer (``gradlab.SHAC``), so it measures exactly what ``ablate`` runs: rollout + render +
+loss (forward), the actor backward, the critic fit, and the whole iteration, each CUDA-synchronised by the
+trainer's own timers; warm-up iterations are excluded; medians over the measured iterations. Peak allocated
+and reserved memory are read after ``reset_peak_memory_stats`` around the actor's forward+backward.
+
+The probe overhead is measured too: with ``--probe-every K`` one probed iteration (both gradients of the
+same rollout) is timed separately and the overhead at K is ``(probed - plain) / K / plain``.
+
+Not a test. Examples::
+
+    python benchmarks/iteration.py --device cuda --tasks cartpole ant --modes decoupled full --out iter.json
+    python benchmarks/iteration.py --device cpu --tasks cartpole --num-envs 4 --horizon 4 --image-size 32 \
+        --warmup 1 --iters 2 --out /tmp/iter.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from gradlab import SHAC, SHACConfig
+from gradlab.timing import median
+
+KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
+
+
+def measure(task: str, mode: str, args) -> dict:
+    cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
+                     iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile)
+    row = {"task": task, "mode": mode, "num_envs": args.num_envs, "horizon": args.horizon,
+           "image_size": args.image_size, "compile": args.compile, "status": "ok"}
+    try:
+        t0 = time.perf_counter()
+        trainer = SHAC(cfg, device=args.device)
+        row["setup_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for _ in range(args.warmup):
+            trainer.train_iteration()
+        row["warmup_s"] = time.perf_counter() - t0
+        rows = [trainer.train_iteration() for _ in range(args.iters)]
+        for k in KEYS:
+            vals = [r[k] for r in rows if r.get(k) is not None]
+            row[k] = median(vals) if vals else None
+        row["grad_norm"] = median([r["grad_norm"] for r in rows])
+        if mode != "state" and args.probe_every > 0:
+            trainer.cfg.cosine_every = 1
+            trainer.iteration = 0  # probes fire when iteration % cosine_every == 0
+            probed = [trainer.train_iteration() for _ in range(max(1, args.iters // 2))]
+            p_iter = median([r["iter_ms"] for r in probed])
+            row["probed_iter_ms"] = p_iter
+            row["probed_bwd_ms"] = median([r["bwd_ms"] for r in probed])
+            row["probe_overhead_at_k"] = (p_iter - row["iter_ms"]) / args.probe_every / row["iter_ms"]
+            row["cos_full_decoupled"] = median([r["cos_full_decoupled"] for r in probed])
+            row["grad_norm_full"] = median([r["grad_norm_full"] for r in probed])
+            row["grad_norm_decoupled"] = median([r["grad_norm_decoupled"] for r in probed])
+    except torch.OutOfMemoryError as e:
+        row.update(status="oom", error=str(e).splitlines()[0])
+    except Exception as e:  # a benchmark reports a failing point and goes on
+        row.update(status="error", error=f"{type(e).__name__}: {e}"[:500])
+    finally:
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+    return row
+
+
+def fmt(v, nd=1):
+    return "-" if v is None else f"{v:.{nd}f}"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--tasks", nargs="+", default=["cartpole", "hopper", "ant", "humanoid"])
+    p.add_argument("--modes", nargs="+", default=["decoupled", "full"])
+    p.add_argument("--num-envs", type=int, default=64)
+    p.add_argument("--horizon", type=int, default=32)
+    p.add_argument("--image-size", type=int, default=84)
+    p.add_argument("--warmup", type=int, default=2, help="iterations excluded from the medians")
+    p.add_argument("--iters", type=int, default=4, help="measured iterations")
+    p.add_argument("--probe-every", type=int, default=10, help="K for the probe-overhead estimate (0: skip)")
+    p.add_argument("--compile", action="store_true", help="the trainer's --compile path")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("iteration.json"))
+    args = p.parse_args()
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+
+    env = {"torch": torch.__version__, "python": platform.python_version(), "device": args.device,
+           "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv)}
+    if args.device.startswith("cuda"):
+        env["gpu"] = torch.cuda.get_device_name()
+    results = []
+    for task in args.tasks:
+        for mode in args.modes:
+            row = measure(task, mode, args)
+            results.append(row)
+            print(json.dumps(row), flush=True)
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps({"environment": env, "results": results}, indent=2))
+
+    print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
+          f"{env.get('gpu', args.device)}, compile={args.compile} "
+          f"(medians of {args.iters} after {args.warmup} warm-up)")
+    print(f"{'task':9} {'mode':9} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'iter ms':>9} {'alloc MB':>9} "
+          f"{'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
+    for r in results:
+        if r["status"] != "ok":
+            print(f"{r['task']:9} {r['mode']:9} {r['status']}: {r.get('error', '')[:80]}")
+            continue
+        ov = r.get("probe_overhead_at_k")
+        print(f"{r['task']:9} {r['mode']:9} {fmt(r['fwd_ms']):>9} {fmt(r['bwd_ms']):>9} {fmt(r['critic_ms']):>8} "
+              f"{fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} {fmt(r['peak_reserved_mb'], 0):>9} "
+              f"{fmt(r['saved_mb'], 1):>9} {('-' if ov is None else f'{100 * ov:.1f}'):>8} "
+              f"{fmt(r.get('cos_full_decoupled'), 3):>6}")
+
+
+if __name__ == "__main__":
+    main()
