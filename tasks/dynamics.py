@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from .model import ArticulatedModel
-from .spatial import cross, cross_force, cross_motion, quat_mul, quat_to_mat, skew
+from .spatial import bmm, bmv, contract, cross, cross_force, cross_motion, quat_mul, quat_to_mat, skew
 
 __all__ = ["ContactParams", "Frames", "LimitParams", "Simulator"]
 
@@ -70,17 +70,24 @@ class LimitParams:
 class Frames(NamedTuple):
     """Kinematics of a batch of states.
 
-    rot: (B, nb, 3, 3) body orientations (world from body). pos: (B, nb, 3) [m] body origins, world frame.
-    origin: (B, 3) [m] reference point of the spatial quantities (the first body's origin).
-    rel: (B, nb, 3) [m] body origins relative to ``origin``. S: (B, nv, 6) motion subspace of every dof,
-    world-aligned, about ``origin``.
+    X: (B, nb, 4, 4) body poses as homogeneous transforms, world-aligned, translations [m] relative to
+    ``origin``. origin: (B, 3) [m] world position of the reference point (the floating base, else the first
+    body's origin). S: (B, nv, 6) motion subspace of every dof, world-aligned, about ``origin``.
     """
 
-    rot: torch.Tensor
-    pos: torch.Tensor
+    X: torch.Tensor
     origin: torch.Tensor
-    rel: torch.Tensor
     S: torch.Tensor
+
+    @property
+    def rot(self) -> torch.Tensor:
+        """(B, nb, 3, 3) body orientations (world from body), MuJoCo's ``xmat``."""
+        return self.X[..., :3, :3]
+
+    @property
+    def pos(self) -> torch.Tensor:
+        """(B, nb, 3) [m] body origins in the world frame, MuJoCo's ``xpos``."""
+        return self.X[..., :3, 3] + self.origin[:, None]
 
 
 class _SPDSolve(torch.autograd.Function):
@@ -148,6 +155,7 @@ class Simulator:
         self.limits = limits
         self.nq, self.nv, self.nb = model.nq, model.nv, model.nb
         nb, nh, nf, nv = model.nb, model.nh, model.nf, model.nv
+        self._nf = nf
 
         def f(x) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=dtype, device=self.device)
@@ -155,53 +163,66 @@ class Simulator:
         def i(x) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x, dtype=np.int64), dtype=torch.long, device=self.device)
 
-        # hinge/slide joints
+        # --- hinge/slide joint transforms: J(q) = I + sin(q) A1 + (1 - cos(q)) A2 + q A3 (4x4, frame before
+        # the joint). Hinge about axis u through anchor a: R = I + s K + (1-c) K^2 (K = [u]x), translation
+        # a - R a = -(s K + (1-c) K^2) a. Slide along u: translation u q. Entry nh is an identity "joint" that
+        # pads bodies with fewer joints.
+        hinge = model.hs_hinge.astype(np.float64)
+        K = np.array([[[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]] for u in model.hs_axis]).reshape(nh, 3, 3)
+        A1 = np.zeros((nh + 1, 4, 4))
+        A2 = np.zeros((nh + 1, 4, 4))
+        A3 = np.zeros((nh + 1, 4, 4))
+        for h in range(nh):
+            k1, k2, a = K[h], K[h] @ K[h], model.hs_anchor[h]
+            A1[h, :3, :3], A1[h, :3, 3] = hinge[h] * k1, -hinge[h] * (k1 @ a)
+            A2[h, :3, :3], A2[h, :3, 3] = hinge[h] * k2, -hinge[h] * (k2 @ a)
+            A3[h, :3, 3] = (1.0 - hinge[h]) * model.hs_axis[h]
+        self._J_tables = f(np.stack([A1, A2, A3]))  # (3, nh + 1, 4, 4)
         self._hs_qadr = i(model.hs_qadr)
         self._hs_dof = i(model.hs_dof)
         self._hs_qpos0 = f(model.hs_qpos0)
-        self._hs_hinge = f(model.hs_hinge.astype(np.float64))
-        self._hs_axis = f(model.hs_axis)
-        self._hs_anchor = f(model.hs_anchor)
-        k1 = skew(torch.as_tensor(model.hs_axis, dtype=torch.float64))
-        self._hs_k1 = k1.to(device=self.device, dtype=dtype)
-        self._hs_k2 = (k1 @ k1).to(device=self.device, dtype=dtype)
+        self._hs_hinge = f(hinge)
+        # axis (homogeneous direction) and anchor (homogeneous point) as the two columns of a (nh, 4, 2) table
+        ua = np.zeros((nh, 4, 2))
+        ua[:, :3, 0], ua[:, :3, 1], ua[:, 3, 1] = model.hs_axis, model.hs_anchor, 1.0
+        self._hs_axis_anchor = f(ua)
         self._hs_body = i(model.hs_body)
         self._hs_slot = i(model.hs_slot)
         par = model.body_parent[model.hs_body] if nh else np.zeros(0, dtype=np.int64)
-        self._hs_parent = i(np.where(par < 0, nb, par))  # nb indexes an appended identity (world) frame
+        self._hs_parent = i(np.where(par < 0, nb, par))  # nb indexes an appended world frame
         self._hs_stiffness = f(model.hs_stiffness)
         self._hs_springref = f(model.hs_springref)
         big = 1e10  # "unlimited": clamp(q, -big, big) == q; finite so that no inf * 0 can appear
-        lo = np.where(model.hs_limited, model.hs_range[:, 0], -big) if nh else np.zeros(0)
-        hi = np.where(model.hs_limited, model.hs_range[:, 1], big) if nh else np.zeros(0)
-        self._hs_lo, self._hs_hi = f(lo), f(hi)
-        self._hs_limited = f(model.hs_limited.astype(np.float64))
+        self._hs_lo = f(np.where(model.hs_limited, model.hs_range[:, 0], -big) if nh else np.zeros(0))
+        self._hs_hi = f(np.where(model.hs_limited, model.hs_range[:, 1], big) if nh else np.zeros(0))
         self._has_stiffness = bool(np.any(model.hs_stiffness != 0))
 
-        # free joints
+        # --- free joints
         self._free_body = i(model.free_body)
         self._root_free = int(model.body_free[0]) if nb else -1
-        self._free_dof = i(model.free_dof)
         self._free_pos_idx = i((model.free_qadr[:, None] + np.arange(3)).reshape(nf, 3))
         self._free_quat_idx = i((model.free_qadr[:, None] + np.arange(3, 7)).reshape(nf, 4))
         self._free_lin_idx = i((model.free_dof[:, None] + np.arange(3)).reshape(nf, 3))
         self._free_ang_idx = i((model.free_dof[:, None] + np.arange(3, 6)).reshape(nf, 3))
         self._free_S_trans = f(np.concatenate([np.zeros((3, 3)), np.eye(3)], axis=1))  # (3, 6)
+        self._bottom_row = f(np.array([[0.0, 0.0, 0.0, 1.0]]))
 
-        # bodies
-        self._body_rot = f(model.body_rot)
-        self._body_pos = f(model.body_pos)
+        # --- bodies: local offsets (4x4), joint slots, tree levels
+        off = np.tile(np.eye(4), (nb, 1, 1))
+        off[:, :3, :3], off[:, :3, 3] = model.body_rot, model.body_pos
+        self._body_off = f(off)
         off_src = np.arange(nb)
         for fj, b in enumerate(model.free_body):
-            off_src[b] = nb + fj
+            off_src[b] = nb + fj  # free bodies take their transform from qpos
         self._off_src = i(off_src)
         self._slots = i(model.body_slots)
-        self._n_slots = model.body_slots.shape[1]
+        self._n_slots = model.body_slots.shape[1] if nh else 0
         perm = np.concatenate(model.levels) if nb else np.zeros(0, dtype=np.int64)
         pos_in_perm = np.empty(nb, dtype=np.int64)
         pos_in_perm[perm] = np.arange(nb)
         self._perm = i(perm)
         self._inv_perm = i(pos_in_perm)
+        self._perm_identity = bool(np.array_equal(perm, np.arange(nb)))
         self._level_slices: list[tuple[int, int, torch.Tensor]] = []
         start = 0
         for lv in model.levels:
@@ -209,11 +230,11 @@ class Simulator:
             self._level_slices.append((start, end, i(pos_in_perm[np.maximum(model.body_parent[lv], 0)])))
             start = end
         self._body_mass = f(model.body_mass)
-        self._body_ipos = f(model.body_ipos)
+        self._body_ipos_h = f(np.concatenate([model.body_ipos, np.ones((nb, 1))], axis=1))  # homogeneous
         self._body_inertia = f(model.body_inertia)
-        self._composite_mass = f(model.body_desc @ model.body_mass)
+        self._mass_eye = f(model.body_mass[:, None, None] * np.eye(3))
 
-        # dofs: S and generalized forces are assembled from [hinge/slide (nh), free (6 nf)] blocks
+        # --- dofs: S and generalized forces are assembled from [hinge/slide (nh), free (6 nf)] blocks
         dof_src = np.empty(nv, dtype=np.int64)
         dof_src[model.hs_dof] = np.arange(nh)
         for fj, d in enumerate(model.free_dof):
@@ -226,169 +247,162 @@ class Simulator:
             qpos_src[a + 3 : a + 7] = nh + 3 * nf + 4 * fj + np.arange(4)
         self._qpos_src = i(qpos_src)
         self._dof_body = i(model.dof_body)
-        self._armature = f(model.dof_armature)
+        self._armature = f(np.diag(model.dof_armature))
         self._damping = f(model.dof_damping)
-        self._body_dof_anc = f(model.body_dof_anc)
+        self._body_dof_anc = f(model.body_dof_anc)  # (nb, nv)
+        self._dof_body_anc = f(model.body_dof_anc.T.copy())  # (nv, nb)
         self._body_desc = f(model.body_desc)
         self._dof_vel = f(model.dof_vel)
-        self._upper = f(model.dof_anc).bool()  # [i, j]: i ancestor-or-self of j
-        self._strict_upper = f(model.dof_anc - np.eye(nv)).bool()
-        g = np.concatenate([np.zeros(3), -model.gravity])
-        self._a0 = f(g)  # base acceleration -g: gravity enters Newton-Euler as an upward acceleration
+        self._upper = f(model.dof_anc)  # [i, j] = 1: i ancestor-or-self of j
+        self._strict_upper = f(model.dof_anc - np.eye(nv))
+        self._a0 = f(np.concatenate([np.zeros(3), -model.gravity]))  # gravity as an upward base acceleration
 
-        # contact points
+        # --- contact points (homogeneous, body frame) and their body
         self._c_body = i(model.contact_body)
-        self._c_pos = f(model.contact_pos)
-        self._c_dist = f(model.contact_dist)
+        self._c_pos_h = f(np.concatenate([model.contact_pos, np.ones((model.nc, 1))], axis=1))
+        c_off = np.zeros((model.nc, 3))
+        c_off[:, 2] = model.contact_dist
+        self._c_offset = f(c_off)  # p = X c - n dist, n = +z
         one_hot = np.zeros((nb, model.nc))
         one_hot[model.contact_body, np.arange(model.nc)] = 1.0
         self._c_to_body = f(one_hot)
         self._ground = float(model.ground_height or 0.0)
+        self._xy_mask = f(np.array([1.0, 1.0, 0.0]))
+        self._z_unit = f(np.array([0.0, 0.0, 1.0]))
 
-        # actuators: ctrl (B, nu) @ act_map -> generalized force (B, nv)
+        # --- actuators: ctrl (B, nu) @ act_map -> generalized force (B, nv)
         act_map = np.zeros((model.nu, nv))
         act_map[np.arange(model.nu), model.act_dof] = model.act_gear
         self._act_map = f(act_map)
 
     # ------------------------------------------------------------------------------------------------------
     # kinematics
+    def _homogeneous(self, R: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """(..., 3, 3), (..., 3) -> (..., 4, 4)."""
+        top = torch.cat((R, p.unsqueeze(-1)), dim=-1)
+        return torch.cat((top, self._bottom_row.expand(*top.shape[:-2], 1, 4)), dim=-2)
+
     def frames(self, qpos: torch.Tensor) -> Frames:
         """Forward kinematics. qpos: (B, nq) -> :class:`Frames` (equal to MuJoCo's ``xmat``/``xpos``)."""
         B = qpos.shape[0]
-        dt, dev = qpos.dtype, qpos.device
-        eye = torch.eye(3, dtype=dt, device=dev)
 
-        # joint transforms of all hinge/slide joints at once, in the frame before each joint:
-        # hinge about the axis through the anchor a: x -> R x + (a - R a); slide: x -> x + u q
+        # all hinge/slide joint transforms at once (entry nh: identity)
         theta = qpos[:, self._hs_qadr] - self._hs_qpos0  # (B, nh)
-        h = self._hs_hinge
-        s = torch.sin(theta)[..., None, None]
-        c = torch.cos(theta)[..., None, None]
-        Rj = eye + h[:, None, None] * (s * self._hs_k1 + (1.0 - c) * self._hs_k2)  # (B, nh, 3, 3)
-        Ra = (Rj @ self._hs_anchor[..., None]).squeeze(-1)
-        tj = h[:, None] * (self._hs_anchor - Ra) + (1.0 - h)[:, None] * self._hs_axis * theta[..., None]
-        Rj = torch.cat((Rj, eye.expand(B, 1, 3, 3)), dim=1)  # index nh = identity (empty slot)
-        tj = torch.cat((tj, tj.new_zeros(B, 1, 3)), dim=1)
+        theta = torch.cat((theta, theta.new_zeros(B, 1)), dim=1)[..., None, None]
+        A1, A2, A3 = self._J_tables
+        eye4 = self._body_off.new_ones(4).diag()
+        J = eye4 + torch.sin(theta) * A1 + (1.0 - torch.cos(theta)) * A2 + theta * A3  # (B, nh + 1, 4, 4)
 
-        # body frames in their parent's frame: offset (or the free joint's pose) then the joints in order
-        free_R = quat_to_mat(qpos[:, self._free_quat_idx])  # (B, nf, 3, 3)
-        free_p = qpos[:, self._free_pos_idx]  # (B, nf, 3)
-        if self._root_free >= 0:
-            # floating base: work relative to its position from the start, so that a robot far from the
-            # world origin loses no float32 precision in its internal geometry
-            origin = free_p[:, self._root_free]
-            free_p = free_p - origin[:, None]
-        LR = torch.cat((self._body_rot.expand(B, -1, -1, -1), free_R), dim=1)[:, self._off_src]
-        Lp = torch.cat((self._body_pos.expand(B, -1, -1), free_p), dim=1)[:, self._off_src]
-        pre_R, pre_p = [], []
+        # body frames in the parent frame: offset (or the free joint's pose), then the body's joints in order
+        L = self._body_off.expand(B, -1, -1, -1)
+        if self._nf:
+            free_p = qpos[:, self._free_pos_idx]  # (B, nf, 3)
+            if self._root_free >= 0:
+                # floating base: work relative to its position from the start, so that a robot far from the
+                # world origin loses no float32 precision in its internal geometry
+                origin = free_p[:, self._root_free]
+                free_p = free_p - origin[:, None]
+            free_T = self._homogeneous(quat_to_mat(qpos[:, self._free_quat_idx]), free_p)
+            L = torch.cat((L, free_T), dim=1)[:, self._off_src]
+        pre = []  # frame before each joint slot, in the parent frame
         for k in range(self._n_slots):
-            idx = self._slots[:, k]
-            pre_R.append(LR)
-            pre_p.append(Lp)
-            Lp = Lp + (LR @ tj[:, idx, :, None]).squeeze(-1)
-            LR = LR @ Rj[:, idx]
+            pre.append(L)
+            L = bmm(L, J[:, self._slots[:, k]])
 
         # world frames, one tree level at a time (bodies permuted so that each level is a contiguous block)
-        LR, Lp = LR[:, self._perm], Lp[:, self._perm]
+        if not self._perm_identity:
+            L = L[:, self._perm]
         s0, e0, _ = self._level_slices[0]
-        WR, Wp = LR[:, s0:e0], Lp[:, s0:e0]
+        X = L[:, s0:e0]
         for start, end, par in self._level_slices[1:]:
-            PR, Pp = WR[:, par], Wp[:, par]
-            WR = torch.cat((WR, PR @ LR[:, start:end]), dim=1)
-            Wp = torch.cat((Wp, Pp + (PR @ Lp[:, start:end, :, None]).squeeze(-1)), dim=1)
-        WR, Wp = WR[:, self._inv_perm], Wp[:, self._inv_perm]
-        if self._root_free >= 0:
-            rel, Wp = Wp, Wp + origin[:, None]
-        else:
-            origin = Wp[:, 0]
-            rel = Wp - origin[:, None]
+            X = torch.cat((X, bmm(X[:, par], L[:, start:end])), dim=1)
+        if not self._perm_identity:
+            X = X[:, self._inv_perm]
+        if self._root_free < 0:  # fixed or planar base: reference point = first body's origin
+            origin = X[:, 0, :3, 3]
+            X = X - torch.nn.functional.pad(origin[:, None, :, None], (3, 0, 0, 1))  # translations -= origin
+        return self._finish_frames(X, origin, pre)
 
-        # motion subspaces. Hinge/slide: axis and anchor in the frame just before the joint
-        PR = torch.stack(pre_R, dim=1)[:, self._hs_slot, self._hs_body]  # (B, nh, 3, 3)
-        Pp = torch.stack(pre_p, dim=1)[:, self._hs_slot, self._hs_body]
-        axis_l = (PR @ self._hs_axis[..., None]).squeeze(-1)
-        anchor_l = Pp + (PR @ self._hs_anchor[..., None]).squeeze(-1)
-        WRx = torch.cat((WR, eye.expand(B, 1, 3, 3)), dim=1)[:, self._hs_parent]
-        Wpx = torch.cat((rel, rel.new_zeros(B, 1, 3) - origin[:, None]), dim=1)[:, self._hs_parent]
-        axis = (WRx @ axis_l[..., None]).squeeze(-1)
-        anchor = Wpx + (WRx @ anchor_l[..., None]).squeeze(-1)
-        S_hs = torch.cat((h[:, None] * axis, h[:, None] * cross(anchor, axis) + (1.0 - h)[:, None] * axis), -1)
-        # free joints: world-frame translation, then rotation about the body axes through the body origin
-        nf = free_R.shape[1]
-        rot_axes = WR[:, self._free_body].transpose(-1, -2)  # (B, nf, 3, 3): rows = body axes
-        r_free = rel[:, self._free_body]
-        S_rot = torch.cat((rot_axes, cross(r_free[:, :, None, :], rot_axes)), dim=-1)  # (B, nf, 3, 6)
-        S_free = torch.cat((self._free_S_trans.expand(B, nf, 3, 6), S_rot), dim=2).reshape(B, 6 * nf, 6)
-        S = torch.cat((S_hs, S_free), dim=1)[:, self._dof_src]
-        return Frames(WR, Wp, origin, rel, S)
+    def _finish_frames(self, X: torch.Tensor, origin: torch.Tensor, pre: list[torch.Tensor]) -> Frames:
+        """Motion subspaces from the body frames X (B, nb, 4, 4) relative to ``origin`` (B, 3)."""
+        B = X.shape[0]
+        parts = []
+        if self.model.nh:
+            # joint frame = parent body frame (world for root bodies) x frame before the joint's slot
+            world = torch.nn.functional.pad(-origin[:, None, :, None], (3, 0, 0, 1)) + self._body_off.new_ones(4).diag()
+            Xp = torch.cat((X, world), dim=1)[:, self._hs_parent]
+            P = torch.stack(pre, dim=1)[:, self._hs_slot, self._hs_body]  # (B, nh, 4, 4)
+            aa = bmm(bmm(Xp, P), self._hs_axis_anchor)  # (B, nh, 4, 2): axis, anchor
+            axis, anchor = aa[..., :3, 0], aa[..., :3, 1]
+            h = self._hs_hinge[:, None]
+            parts.append(torch.cat((h * axis, h * cross(anchor, axis) + (1.0 - h) * axis), dim=-1))
+        if self._nf:
+            # free joints: world-frame translation, then rotation about the body axes through the body origin
+            Xf = X[:, self._free_body]
+            axes = Xf[..., :3, :3].mT  # (B, nf, 3, 3): rows are the body axes
+            r = Xf[..., :3, 3]
+            S_rot = torch.cat((axes, cross(r.unsqueeze(-2), axes)), dim=-1)  # (B, nf, 3, 6)
+            S_free = torch.cat((self._free_S_trans.expand(B, self._nf, 3, 6), S_rot), dim=2)
+            parts.append(S_free.reshape(B, 6 * self._nf, 6))
+        S = torch.cat(parts, dim=1)[:, self._dof_src] if len(parts) > 1 else parts[0][:, self._dof_src]
+        return Frames(X, origin, S)
 
     # ------------------------------------------------------------------------------------------------------
     # inertia
-    def _body_inertias(self, fr: Frames) -> tuple[torch.Tensor, torch.Tensor]:
-        """First moments h = m c (B, nb, 3) and rotational inertias about the reference point (B, nb, 3, 3)."""
-        com = fr.rel + (fr.rot @ self._body_ipos[..., None]).squeeze(-1)
-        m = self._body_mass
-        I_c = fr.rot @ self._body_inertia @ fr.rot.mT
-        cc = (com * com).sum(-1)[..., None, None] * torch.eye(3, dtype=com.dtype, device=com.device)
-        I_o = I_c + m[:, None, None] * (cc - com[..., :, None] * com[..., None, :])
-        return m[:, None] * com, I_o
+    def _spatial_inertia(self, X: torch.Tensor) -> torch.Tensor:
+        """Body spatial inertias about the reference point, world-aligned. X: (B, nb, 4, 4) -> (B, nb, 6, 6).
 
-    def _mass_matrix(self, fr: Frames, h: torch.Tensor, I_o: torch.Tensor) -> torch.Tensor:
-        B, nb = h.shape[:2]
-        packed = torch.cat((h, I_o.reshape(B, nb, 9)), dim=-1)
-        comp = torch.einsum("ab,xbk->xak", self._body_desc, packed)  # composite (subtree) inertias
-        hc, Ic = comp[..., :3][:, self._dof_body], comp[..., 3:].reshape(B, nb, 3, 3)[:, self._dof_body]
-        mc = self._composite_mass[self._dof_body][:, None]
-        w, v = fr.S[..., :3], fr.S[..., 3:]
-        F = torch.cat(((Ic @ w[..., None]).squeeze(-1) + cross(hc, v), mc * v - cross(hc, w)), dim=-1)
-        G = fr.S @ F.mT  # G[i, j] = S_i . Ic[body j] S_j: M_ij when i is an ancestor-or-self of j
-        M = torch.where(self._upper, G, 0.0)
-        M = M + torch.where(self._strict_upper, G, 0.0).mT
-        return M + torch.diag_embed(self._armature)
+        [[I_c + m ([c]x [c]x^T), m [c]x], [m [c]x^T, m 1]] with c the centre of mass relative to the
+        reference point and I_c the rotational inertia about the centre of mass.
+        """
+        R = X[..., :3, :3]
+        c = bmv(X, self._body_ipos_h)[..., :3]
+        m = self._body_mass[:, None, None]
+        I_c = bmm(bmm(R, self._body_inertia), R.mT)
+        cx = skew(c)
+        top = torch.cat((I_c - m * bmm(cx, cx), m * cx), dim=-1)
+        bottom = torch.cat((-m * cx, self._mass_eye.expand_as(cx)), dim=-1)
+        return torch.cat((top, bottom), dim=-2)
+
+    def _mass_matrix(self, S: torch.Tensor, I6: torch.Tensor) -> torch.Tensor:
+        B, nb = I6.shape[:2]
+        Ic = contract(self._body_desc, I6.reshape(B, nb, 36)).reshape(B, nb, 6, 6)  # composite inertias
+        F = bmv(Ic[:, self._dof_body], S)  # (B, nv, 6)
+        G = bmm(S, F.mT)  # G[i, j] = S_i . Ic[body j] S_j = M_ij when i is an ancestor-or-self of j
+        return G * self._upper + (G * self._strict_upper).mT + self._armature
 
     def mass_matrix(self, qpos: torch.Tensor) -> torch.Tensor:
         """Joint-space inertia including armature (MuJoCo's ``qM``, dense). qpos: (B, nq) -> (B, nv, nv)."""
         fr = self.frames(qpos)
-        h, I_o = self._body_inertias(fr)
-        return self._mass_matrix(fr, h, I_o)
+        return self._mass_matrix(fr.S, self._spatial_inertia(fr.X))
 
     # ------------------------------------------------------------------------------------------------------
     # forces
-    @staticmethod
-    def _apply_inertia(m, h, I_o, x):
-        """Spatial inertia (m, h, I_o) times motion x: (B, nb, 6) -> momentum (B, nb, 6)."""
-        w, v = x[..., :3], x[..., 3:]
-        return torch.cat(((I_o @ w[..., None]).squeeze(-1) + cross(h, v), m[:, None] * v - cross(h, w)), dim=-1)
-
-    def _bias(self, fr, h, I_o, Sq, vb, f_ext):
+    def _bias(self, S, I6, Sq, vb, f_ext):
         """Newton-Euler: generalized bias force minus generalized external force (B, nv).
 
         Sq: (B, nv, 6) S_j qd_j; vb: (B, nb, 6) body spatial velocities; f_ext: (B, nb, 6) spatial forces
-        about the reference point, or None.
+        about the reference point, or None. Body accelerations use dS_j/dt = v_j x S_j with v_j the velocity
+        of the frame that carries S_j (the dof_vel mask).
         """
-        m = self._body_mass
-        vd = torch.einsum("jn,xnk->xjk", self._dof_vel, Sq)
-        ab = torch.einsum("bn,xnk->xbk", self._body_dof_anc, cross_motion(vd, Sq)) + self._a0
-        fb = self._apply_inertia(m, h, I_o, ab) + cross_force(vb, self._apply_inertia(m, h, I_o, vb))
+        vd = contract(self._dof_vel, Sq)
+        ab = contract(self._body_dof_anc, cross_motion(vd, Sq)) + self._a0
+        fb = bmv(I6, ab) + cross_force(vb, bmv(I6, vb))
         if f_ext is not None:
             fb = fb - f_ext
-        fd = torch.einsum("bn,xbk->xnk", self._body_dof_anc, fb)
-        return (fr.S * fd).sum(-1)
+        return (S * contract(self._dof_body_anc, fb)).sum(-1)
 
     def _contact_forces(self, fr: Frames, vb: torch.Tensor) -> torch.Tensor:
         """dflex ground contact at every contact point; returns body spatial forces (B, nb, 6)."""
         cp = self.contact
         assert cp is not None
-        R = fr.rot[:, self._c_body]
-        p = fr.rel[:, self._c_body] + (R @ self._c_pos[..., None]).squeeze(-1)
-        p = torch.cat((p[..., :2], p[..., 2:] - self._c_dist[:, None]), dim=-1)  # p = X c - n dist
-        height = p[..., 2] + fr.origin[:, None, 2] - self._ground
+        p = bmv(fr.X[:, self._c_body], self._c_pos_h)[..., :3] - self._c_offset  # p = X c - n dist
+        height = p[..., 2] + (fr.origin[:, None, 2] - self._ground)
         v6 = vb[:, self._c_body]
         vel = v6[..., 3:] + cross(v6[..., :3], p)  # velocity of the point p
         depth = torch.clamp(-height, min=0.0)
-        vn = vel[..., 2]
-        fn = cp.ke * depth - cp.kd * torch.clamp(vn, max=0.0) * depth
-        vt = torch.cat((vel[..., :2], torch.zeros_like(vel[..., 2:])), dim=-1)
+        fn = (cp.ke - cp.kd * torch.clamp(vel[..., 2], max=0.0)) * depth
+        vt = vel * self._xy_mask
         vt2 = (vt * vt).sum(-1)
         # Coulomb cap on viscous friction: coef = min(kf, mu ke d / |v_t|); at |v_t| ~ 0 the viscous branch is
         # exact and the division is never evaluated, so values and gradients stay finite.
@@ -396,14 +410,15 @@ class Simulator:
         inv_norm = torch.rsqrt(torch.where(moving, vt2, 1.0))
         coef = torch.where(moving, torch.clamp(cp.mu * cp.ke * depth * inv_norm, max=cp.kf), cp.kf)
         coef = torch.where(depth > 0, coef, 0.0)
-        force = -coef[..., None] * vt
-        force = torch.cat((force[..., :2], force[..., 2:] + fn[..., None]), dim=-1)
+        force = fn.unsqueeze(-1) * self._z_unit - coef.unsqueeze(-1) * vt
         spatial = torch.cat((cross(p, force), force), dim=-1)  # (B, nc, 6) about the reference point
-        return torch.einsum("bc,xck->xbk", self._c_to_body, spatial)
+        return contract(self._c_to_body, spatial)
 
     def _scatter_hs(self, x: torch.Tensor) -> torch.Tensor:
         """Per hinge/slide joint values (B, nh) -> generalized force vector (B, nv) (zeros on free dofs)."""
-        return torch.cat((x, x.new_zeros(x.shape[0], 6 * self.model.nf)), dim=1)[:, self._dof_src]
+        if self._nf:
+            x = torch.cat((x, x.new_zeros(x.shape[0], 6 * self._nf)), dim=1)
+        return x[:, self._dof_src]
 
     def passive_force(self, qpos: torch.Tensor, qvel: torch.Tensor, *, limits: bool) -> torch.Tensor:
         """Joint damping, stiffness springs and (if ``limits``) the joint-limit penalty. -> (B, nv)."""
@@ -443,13 +458,12 @@ class Simulator:
         """Joint accelerations with generalized applied force ``tau (B, nv)``, including ground contact and
         joint limits when enabled here and configured on the simulator. -> qacc (B, nv)."""
         fr = self.frames(qpos)
-        h, I_o = self._body_inertias(fr)
-        M = self._mass_matrix(fr, h, I_o)
-        Sq = fr.S * qvel[..., None]  # (B, nv, 6)
-        vb = torch.einsum("bn,xnk->xbk", self._body_dof_anc, Sq)  # body spatial velocities
+        I6 = self._spatial_inertia(fr.X)
+        M = self._mass_matrix(fr.S, I6)
+        Sq = fr.S * qvel.unsqueeze(-1)  # (B, nv, 6)
+        vb = contract(self._body_dof_anc, Sq)  # body spatial velocities
         f_ext = self._contact_forces(fr, vb) if (contact and self.contact is not None) else None
-        bias = self._bias(fr, h, I_o, Sq, vb, f_ext)
-        rhs = tau + self.passive_force(qpos, qvel, limits=limits) - bias
+        rhs = tau + self.passive_force(qpos, qvel, limits=limits) - self._bias(fr.S, I6, Sq, vb, f_ext)
         return spd_solve(M, rhs)
 
     def integrate(self, qpos: torch.Tensor, qvel: torch.Tensor, dt: float) -> torch.Tensor:
@@ -459,13 +473,14 @@ class Simulator:
         ``q + dt/2 q (0, w_body)`` renormalised. qpos: (B, nq), qvel: (B, nv) -> (B, nq).
         """
         q_hs = qpos[:, self._hs_qadr] + dt * qvel[:, self._hs_dof]
+        if not self._nf:
+            return q_hs[:, self._qpos_src]
+        B = qpos.shape[0]
         pos = qpos[:, self._free_pos_idx] + dt * qvel[:, self._free_lin_idx]  # (B, nf, 3)
         quat = qpos[:, self._free_quat_idx]
         w = qvel[:, self._free_ang_idx]
-        dq = quat_mul(quat, torch.cat((torch.zeros_like(w[..., :1]), w), dim=-1))
-        quat = quat + (0.5 * dt) * dq
+        quat = quat + (0.5 * dt) * quat_mul(quat, torch.nn.functional.pad(w, (1, 0)))
         quat = quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)
-        B = qpos.shape[0]
         return torch.cat((q_hs, pos.reshape(B, -1), quat.reshape(B, -1)), dim=1)[:, self._qpos_src]
 
     def substep(
@@ -475,8 +490,7 @@ class Simulator:
 
         qpos: (B, nq), qvel: (B, nv), tau: (B, nv) generalized applied force, dt [s] -> (qpos, qvel).
         """
-        qacc = self.acceleration(qpos, qvel, tau)
-        qvel = qvel + dt * qacc
+        qvel = qvel + dt * self.acceleration(qpos, qvel, tau)
         return self.integrate(qpos, qvel, dt), qvel
 
     def actuator_force(self, ctrl: torch.Tensor) -> torch.Tensor:

@@ -6,13 +6,19 @@ import dataclasses
 
 import torch
 
+from .ant import AntTask
 from .cartpole import CartpoleTask
+from .hopper import HopperTask
+from .humanoid import HumanoidTask
 from .task import Task, config_fields
 
 __all__ = ["TASKS", "make"]
 
 _REGISTRY: dict[str, type[Task]] = {
     "cartpole": CartpoleTask,
+    "hopper": HopperTask,
+    "ant": AntTask,
+    "humanoid": HumanoidTask,
 }
 TASKS: tuple[str, ...] = tuple(_REGISTRY)
 

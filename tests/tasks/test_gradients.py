@@ -25,6 +25,37 @@ def test_cartpole_16_steps_matches_finite_differences():
     assert any(abs(ad) > 1.0 for ad, _ in pairs)  # the check is not vacuous
 
 
+def _ant_in_contact(num_envs: int):
+    """Float64 ants 13 steps after the start: they fell 0.2 m and landed, all four foot tips in the ground."""
+    env = tasks.make("ant", num_envs, dtype=torch.float64, early_termination=False, reset_noise=False)
+    env.reset()
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for _ in range(13):
+            env.step(0.3 * torch.tanh(torch.randn(num_envs, 8, generator=gen, dtype=torch.float64)))
+    return env
+
+
+def test_ant_8_steps_through_contact_matches_finite_differences():
+    """d(return)/d(actions, initial qpos, initial qvel) over 8 control steps (128 substeps) with the feet in
+    ground contact, so the gradient flows through the contact normal, damping and friction forces."""
+    env = _ant_in_contact(2)
+    qpos0, qvel0 = env.qpos.clone(), env.qvel.clone()
+    fr = env.sim.frames(qpos0)
+    vb = torch.einsum("bn,xnk->xbk", env.sim._body_dof_anc, fr.S * qvel0[..., None])
+    f_contact = env.sim._contact_forces(fr, vb)
+    feet = torch.tensor([4, 7, 10, 13]) - 1  # the foot bodies carry the contact
+    assert (f_contact[:, feet, 5] > 50).all(), "the ants must stand on their feet for this test"
+    gen = torch.Generator().manual_seed(4)
+    actions = torch.tanh(0.7 * torch.randn(8, 2, 8, generator=gen, dtype=torch.float64))
+
+    def f(a, q, v):
+        return rollout_return(env, q, v, a)
+
+    pairs = directional_fd_check(f, [actions, qpos0, qvel0], n_dirs=3, eps=1e-6, rtol=1e-4, seed=1)
+    assert any(abs(ad) > 1e-2 for ad, _ in pairs)
+
+
 def test_step_gradient_reaches_action_and_state():
     env = tasks.make("cartpole", 2, dtype=torch.float64)
     env.reset()

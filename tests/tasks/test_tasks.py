@@ -226,3 +226,94 @@ def test_float64_task_runs_in_float64():
     obs = env.reset()
     assert obs.dtype == torch.float64 and env.qpos.dtype == torch.float64
     assert env.step(torch.zeros(2, 1, dtype=torch.float64))[1].dtype == torch.float64
+
+
+def test_hopper_reward_obs_termination_on_hand_made_states():
+    env = tasks.make("hopper", 3, dtype=torch.float64)
+    qpos = torch.tensor(
+        [[0.0, 1.25, 0.1, 0.0, 0.0, 0.0], [1.0, 0.75, -0.2, -0.5, -0.5, 0.1], [2.0, 0.70, 0.0, 0.0, 0.0, 0.0]],
+        dtype=torch.float64,
+    )
+    qvel = torch.arange(18, dtype=torch.float64).reshape(3, 6) / 10
+    a = torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
+    r = env.compute_reward(qpos, qvel, a)
+    ang = (math.pi / 6) ** 2
+    expected = [
+        0.0 + 0.3 + (1 - 0.01 / ang) - 0.1 * 0.25,  # at the start height: height term clipped to 0.3
+        0.6 + (-200 * 0.2**2) + (1 - 0.04 / ang),  # 0.5 m below: h = -0.2
+        1.2 + (-200 * 0.25**2) + 1 - 0.1 * 3,  # 0.55 m below: h = -0.25
+    ]
+    assert torch.allclose(r, torch.tensor(expected, dtype=torch.float64))
+    assert env.compute_terminated(qpos, qvel).tolist() == [False, True, True]
+    assert torch.equal(env.observe(qpos, qvel, a), torch.cat((qpos[:, 1:], qvel), dim=1))
+
+
+def _quat(axis, angle):
+    axis = torch.tensor(axis, dtype=torch.float64)
+    return torch.cat(
+        (torch.tensor([math.cos(angle / 2)], dtype=torch.float64), math.sin(angle / 2) * axis / axis.norm())
+    )
+
+
+def test_ant_reward_and_obs_on_hand_made_states():
+    env = tasks.make("ant", 3, dtype=torch.float64)
+    qpos = torch.zeros(3, 15, dtype=torch.float64)
+    qpos[:, 2] = torch.tensor([0.5, 0.6, 0.3])
+    qpos[0, 3:7] = _quat([1, 0, 0], 0.0)
+    qpos[1, 3:7] = _quat([0, 0, 1], math.pi / 2)  # facing +y: heading 0
+    qpos[2, 3:7] = _quat([0, 1, 0], math.pi / 2)  # pitched 90 deg: up 0, heading 0
+    qpos[:, 7:] = torch.arange(8, dtype=torch.float64) / 10
+    qvel = torch.zeros(3, 14, dtype=torch.float64)
+    qvel[:, 0] = torch.tensor([1.5, -1.0, 0.0])
+    qvel[1, 3:6] = torch.tensor([1.0, 0.0, 0.0])  # body-frame roll rate of a torso yawed by 90 deg
+    qvel[:, 6:] = 1.0
+    a = torch.full((3, 8), 0.5, dtype=torch.float64)
+    r = env.compute_reward(qpos, qvel, a)
+    expected = [1.5 + 0.1 + 1 + 0.23, -1.0 + 0.1 + 0 + 0.33, 0 + 0 + 0 + 0.03]
+    assert torch.allclose(r, torch.tensor(expected, dtype=torch.float64), atol=1e-12)
+    obs = env.observe(qpos, qvel, a)
+    assert obs.shape == (3, 37)
+    assert torch.allclose(obs[1, 0:1], qpos[1, 2:3]) and torch.allclose(obs[1, 1:5], qpos[1, 3:7])
+    assert torch.allclose(obs[1, 5:8], qvel[1, 0:3])
+    assert torch.allclose(obs[1, 8:11], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), atol=1e-12)  # world
+    assert torch.allclose(obs[1, 11:19], qpos[1, 7:]) and torch.allclose(obs[1, 19:27], 0.1 * qvel[1, 6:])
+    assert torch.allclose(obs[:, 27], torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64), atol=1e-12)  # up
+    assert torch.allclose(obs[:, 28], torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), atol=1e-12)  # heading
+    assert torch.equal(obs[:, 29:], a)
+    assert env.compute_terminated(qpos, qvel).tolist() == [False, False, False]
+    qpos[0, 2] = 0.26
+    assert env.compute_terminated(qpos, qvel).tolist() == [True, False, False]
+
+
+def test_humanoid_reward_on_hand_made_states():
+    env = tasks.make("humanoid", 3, dtype=torch.float64)
+    qpos = torch.zeros(3, 28, dtype=torch.float64)
+    qpos[:, 3] = 1.0
+    qpos[:, 2] = torch.tensor([1.0, 0.8, 0.5])
+    qvel = torch.zeros(3, 27, dtype=torch.float64)
+    qvel[:, 0] = 2.0
+    a = torch.zeros(3, 21, dtype=torch.float64)
+    a[2] = 1.0
+    r = env.compute_reward(qpos, qvel, a)
+    expected = [2 + 0.1 + 1 + 10 * 0.1, 2 + 0.1 + 1 - 200 * 0.04**2, 2 + 0.1 + 1 - 200 * 0.34**2 - 0.002 * 21]
+    assert torch.allclose(r, torch.tensor(expected, dtype=torch.float64))
+    assert env.compute_terminated(qpos, qvel).tolist() == [False, False, True]
+    assert env.observe(qpos, qvel, a).shape == (3, 76)
+
+
+@pytest.mark.parametrize("name", ["ant", "humanoid"])
+def test_floating_base_reset_distribution(name):
+    env = tasks.make(name, 2048, seed=4)
+    env.reset()
+    start = 0.75 if name == "ant" else 1.35
+    pos, quat = env.qpos[:, :3], env.qpos[:, 3:7]
+    assert (pos[:, :2].abs() <= 0.1).all() and ((pos[:, 2] - start).abs() <= 0.1).all()
+    assert torch.allclose(quat.norm(dim=1), torch.ones(2048), atol=1e-6)
+    angle = 2 * torch.acos(quat[:, 0].clamp(max=1.0))
+    assert angle.max() <= math.pi / 24 + 1e-5 and angle.max() > 0.9 * math.pi / 24
+    joints0 = tasks.make(name, 1, reset_noise=False).qpos[0, 7:]
+    assert ((env.qpos[:, 7:] - joints0).abs() <= 0.2 + 1e-6).all()
+    assert (env.qvel.abs() <= 0.25).all() and env.qvel.std() > 0.1
+    # the rotation axis is spread over all directions
+    axes = quat[:, 1:] / quat[:, 1:].norm(dim=1, keepdim=True)
+    assert (axes.mean(0).abs() < 0.1).all()
