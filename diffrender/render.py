@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 from .camera import Camera
-from .raster.binning import bin_faces
+from .raster.binning import bin_faces, count_pairs
 from .raster.dense import rasterize_dense
 from .raster.tiled import rasterize_tiled, tiled_static
 from .settings import RasterSettings
 
 __all__ = ["render"]
+
+# Automatic bin capacities (settings.bin_capacity None), per scene layout: measured once (one sync), then
+# static, so later calls neither sync to size buffers nor change shapes (compile / CUDA-graph friendly).
+_capacity_cache: dict[tuple, int] = {}
+
+
+def _with_headroom(need: int) -> int:
+    return max(256, -(-int(need * 1.25) // 256) * 256)
+
 
 # Faces tensors already checked for out-of-range indices, keyed by identity and version: the index check
 # needs a host sync, and the faces of a robot never change, so it runs once per faces tensor.
@@ -125,9 +136,23 @@ def render(
     backend = "tiled" if settings.backend == "auto" else settings.backend
     if backend == "dense":
         img = rasterize_dense(verts, normals, colors, camera, faces, settings)
-        count, capacity = None, None
+        count = capacity = None
     else:
-        img, count, capacity = rasterize_tiled(verts, normals, colors, camera, faces, settings)
+        auto = settings.bin_capacity is None
+        if auto:
+            key = (faces.data_ptr(), faces.shape[0], nv, camera.height, camera.width, settings.tile_size,
+                   settings.cutoff_radius, settings.cull_backfaces, device)
+            capacity = _capacity_cache.get(key)
+            if capacity is None:
+                st = tiled_static(settings, camera)
+                if sync:  # measure once (one extra sync the first time this scene layout is rendered)
+                    capacity = _with_headroom(int(count_pairs(verts, camera.rotation, camera.eye, faces, st).max()))
+                else:  # cannot measure inside capture: a generous guess; overflow shows as NaN
+                    capacity = max(4096, 4 * faces.shape[0])
+                _capacity_cache[key] = capacity
+        else:
+            capacity = settings.bin_capacity
+        img, count = rasterize_tiled(verts, normals, colors, camera, faces, settings, capacity)
 
     if sync:
         flags = nonfinite.long()
@@ -138,7 +163,14 @@ def render(
         if bad:
             raise ValueError(f"{', '.join(bad)} contain(s) NaN or inf values; the image would be meaningless")
         if count is not None and flags[-1] > capacity:
-            raise RuntimeError(_overflow_message(verts, camera, faces, settings, count, capacity))
+            if not auto:
+                raise RuntimeError(_overflow_message(verts, camera, faces, settings, count, capacity))
+            # automatic capacity: grow it for this scene layout and render again (never an incomplete image)
+            new_capacity = _with_headroom(flags[-1])
+            warnings.warn(f"diffrender: automatic bin capacity grown from {capacity} to {new_capacity} (pairs "
+                          f"needed {flags[-1]}); the tiled kernel's shapes change once", stacklevel=2)
+            _capacity_cache[key] = new_capacity
+            img, _ = rasterize_tiled(verts, normals, colors, camera, faces, settings, new_capacity)
     return img
 
 

@@ -76,8 +76,11 @@ class RasterSettings:
         backend: ``"tiled"`` (binned, memory-bounded custom backward), ``"dense"`` (every face at every
             pixel, plain autograd; tiny scenes and tests only) or ``"auto"`` (= tiled).
         tile_size: tile side [px] for binning.
-        bin_capacity: (tile, face) pairs per environment the tiled backend can hold; None picks
-            ``max(4096, 4 F)``. Overflow is an error with the numbers (never an incomplete image).
+        bin_capacity: (tile, face) pairs per environment the tiled backend can hold (its work is
+            proportional to it). None (default): measured the first time a scene layout (faces, image and
+            tile size, cut-off radius) is rendered, plus 25 % headroom, then fixed; if a later frame needs
+            more, the capacity grows and that frame is rendered again (with a warning). An int is a hard
+            limit: overflow raises a RuntimeError with the numbers. Never an incomplete image.
         chunk_elems: pixel-face evaluations per chunk (bounds transient memory); environments are
             processed ``max(1, chunk_elems // (bin_capacity * tile_size**2))`` at a time.
         compile: run the per-chunk kernel through ``torch.compile`` (first call compiles).
@@ -98,7 +101,7 @@ class RasterSettings:
     cull_backfaces: bool = True
     coverage_cutoff: float = 1e-4
     backend: str = "auto"
-    tile_size: int = 8
+    tile_size: int = 4
     bin_capacity: int | None = None
     chunk_elems: int = 1 << 22
     compile: bool = False
@@ -134,6 +137,3 @@ class RasterSettings:
         """Distance [px] outside a triangle beyond which its coverage is below ``coverage_cutoff``."""
         return self.sigma * math.log(1.0 / self.coverage_cutoff - 1.0)
 
-    def capacity_for(self, num_faces: int) -> int:
-        """The bin capacity used for a mesh of ``num_faces`` faces."""
-        return self.bin_capacity if self.bin_capacity is not None else max(4096, 4 * num_faces)

@@ -1,6 +1,6 @@
 """Soft rasterization: a shared per-pair kernel, a dense reference backend and the tiled backend."""
 
-from .binning import Bins, bin_faces
+from .binning import Bins, bin_faces, count_pairs
 from .dense import rasterize_dense
 from .kernel import Static, face_validity, project, render_pairs, vertex_normals
 from .tiled import rasterize_tiled, tiled_static
@@ -9,6 +9,7 @@ __all__ = [
     "Bins",
     "Static",
     "bin_faces",
+    "count_pairs",
     "face_validity",
     "project",
     "rasterize_dense",

@@ -17,7 +17,7 @@ import torch
 
 from .kernel import _BBOX_MARGIN, Static, face_validity, project
 
-__all__ = ["Bins", "bin_faces"]
+__all__ = ["Bins", "bin_faces", "count_pairs"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,30 @@ def _pixel_range(lo: torch.Tensor, hi: torch.Tensor, size: int) -> tuple[torch.T
     return first.clamp(0, size - 1), last.clamp(0, size - 1), nonempty
 
 
+def _face_tiles(verts, rotation, eye, faces, st: Static):
+    """Per face: first tile column/row, tile-range width, and the number of (face, tile) pairs (B, F)."""
+    fuvz = project(verts, rotation, eye, st)[:, faces]  # (B, F, 3, 3)
+    valid = face_validity(fuvz, st)
+    r = st.cutoff_radius + _BBOX_MARGIN
+    u, v = fuvz[..., 0], fuvz[..., 1]
+    x0, x1, xok = _pixel_range(u.amin(-1) - r, u.amax(-1) + r, st.width)
+    y0, y1, yok = _pixel_range(v.amin(-1) - r, v.amax(-1) + r, st.height)
+    tx0, tx1 = x0 // st.tile_w, x1 // st.tile_w
+    ty0, ty1 = y0 // st.tile_h, y1 // st.tile_h
+    nx = (tx1 - tx0 + 1).clamp(min=1)  # >= 1 even for empty ranges: it is a divisor below
+    count = torch.where(valid & xok & yok, nx * (ty1 - ty0 + 1), torch.zeros_like(nx))
+    return tx0, ty0, nx, count
+
+
+@torch.no_grad()
+def count_pairs(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, faces: torch.Tensor,
+                st: Static) -> torch.Tensor:
+    """(B,) long: the (face, tile) pairs each environment needs (what :func:`bin_faces` would fill)."""
+    if faces.shape[0] == 0:
+        return torch.zeros(verts.shape[0], dtype=torch.long, device=verts.device)
+    return _face_tiles(verts, rotation, eye, faces, st)[3].sum(1)
+
+
 @torch.no_grad()
 def bin_faces(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, faces: torch.Tensor,
               st: Static, capacity: int) -> Bins:
@@ -57,16 +81,7 @@ def bin_faces(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, fa
     """
     b = verts.shape[0]
     nf = faces.shape[0]
-    fuvz = project(verts, rotation, eye, st)[:, faces]  # (B, F, 3, 3)
-    valid = face_validity(fuvz, st)
-    r = st.cutoff_radius + _BBOX_MARGIN
-    u, v = fuvz[..., 0], fuvz[..., 1]
-    x0, x1, xok = _pixel_range(u.amin(-1) - r, u.amax(-1) + r, st.width)
-    y0, y1, yok = _pixel_range(v.amin(-1) - r, v.amax(-1) + r, st.height)
-    tx0, tx1 = x0 // st.tile_w, x1 // st.tile_w
-    ty0, ty1 = y0 // st.tile_h, y1 // st.tile_h
-    nx = (tx1 - tx0 + 1).clamp(min=1)  # >= 1 even for empty ranges: it is a divisor below
-    count = torch.where(valid & xok & yok, nx * (ty1 - ty0 + 1), torch.zeros_like(nx))  # (B, F)
+    tx0, ty0, nx, count = _face_tiles(verts, rotation, eye, faces, st)  # (B, F) each
     cum = torch.cumsum(count, dim=1)
     total = cum[:, -1]
     slots = torch.arange(capacity, device=verts.device)

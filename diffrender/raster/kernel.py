@@ -166,7 +166,9 @@ def render_pairs(
     dummy = torch.cat([dummy, verts.new_zeros(3, 7)], dim=1)
     fd = torch.where(valid[:, None, None], fd, dummy)
 
-    # ---- per-pair constants, shape (N, 1)
+    # ---- per-pair constants, shape (N, 1). Everything that does not depend on the pixel is computed here,
+    # and the pixel-dependent quantities are affine in the tile-local pixel offsets (lx, ly), so the
+    # per-pixel work below is a few multiply-adds per quantity.
     u = [fd[:, k, 0:1] for k in range(3)]
     v = [fd[:, k, 1:2] for k in range(3)]
     iz = [1.0 / fd[:, k, 2:3] for k in range(3)]
@@ -176,37 +178,46 @@ def render_pairs(
     ndn = ((nrm[1] * nrm[2]).sum(-1, keepdim=True), (nrm[2] * nrm[0]).sum(-1, keepdim=True),
            (nrm[0] * nrm[1]).sum(-1, keepdim=True))
     area2 = (u[1] - u[0]) * (v[2] - v[0]) - (v[1] - v[0]) * (u[2] - u[0])
-    area2 = torch.where(area2 == 0, torch.ones_like(area2), area2)
+    area2 = torch.where(area2 == 0, torch.ones_like(area2), area2)  # only padding/dropped faces
     inv_area = 1.0 / area2
-    orient = torch.sign(area2)
+    abs_area = area2.abs()
+    tile = pair_tile.reshape(n)
+    x0 = ((tile % st.tiles_x) * st.tile_w).to(dt)[:, None]
+    y0 = ((tile // st.tiles_x) * st.tile_h).to(dt)[:, None]
+    k_pix = torch.arange(st.tile_pixels, device=verts.device)
+    lx = ((k_pix % st.tile_w).to(dt) + 0.5)[None]  # (1, T) pixel-centre offsets within the tile
+    ly = ((k_pix // st.tile_w).to(dt) + 0.5)[None]
 
     # ---- per pixel of the pair's tile, shape (N, T)
-    tile = pair_tile.reshape(n)
-    px, py = _tile_pixel_centres(tile, st, dt)
     lam, dline, dseg2 = [], [], []
     for k in range(3):
         a, c = (k + 1) % 3, (k + 2) % 3  # edge opposite vertex k, from a to c
         ex, ey = u[c] - u[a], v[c] - v[a]
-        inv_len2 = 1.0 / (ex * ex + ey * ey)
-        wx, wy = px - u[a], py - v[a]
-        cross = ex * wy - ey * wx
-        lam.append(cross * inv_area)  # screen-space barycentric of vertex k
-        dline.append(cross * (orient * torch.sqrt(inv_len2)))  # signed distance to the edge's line
-        t = ((wx * ex + wy * ey) * inv_len2).clamp(0.0, 1.0)
-        qx, qy = wx - t * ex, wy - t * ey
-        dseg2.append(qx * qx + qy * qy)  # squared distance to the edge segment
-    inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+        len2 = ex * ex + ey * ey
+        inv_len2 = 1.0 / len2
+        ox, oy = x0 - u[a], y0 - v[a]  # tile origin relative to the edge start
+        if k < 2:
+            # screen-space barycentric of vertex k: cross(e, p - a) / area2, affine in the pixel offset
+            lam.append((ex * oy - ey * ox) * inv_area + (ex * inv_area) * ly - (ey * inv_area) * lx)
+        else:
+            lam.append(1.0 - lam[0] - lam[1])
+        dline.append(lam[k] * (abs_area * torch.sqrt(inv_len2)))  # signed distance to the edge's line
+        # position along the edge (0 at a, 1 at c); beyond [0, 1] the nearest point is an end point
+        s_par = (ex * ox + ey * oy) * inv_len2 + (ex * inv_len2) * lx + (ey * inv_len2) * ly
+        overshoot = s_par - s_par.clamp(0.0, 1.0)
+        dseg2.append(dline[k] * dline[k] + len2 * (overshoot * overshoot))  # squared distance to the segment
+    dmin = torch.minimum(torch.minimum(dline[0], dline[1]), dline[2])
     # exact signed Euclidean distance to the triangle (linear in the pixel offset at an edge):
     # inside, the nearest edge line; outside, the nearest point of the boundary
-    sd = torch.where(inside, torch.minimum(torch.minimum(dline[0], dline[1]), dline[2]),
+    sd = torch.where(dmin >= 0, dmin,
                      -torch.sqrt(torch.minimum(torch.minimum(dseg2[0], dseg2[1]), dseg2[2]) + 1e-20))
     # perspective-correct barycentrics from clamped screen barycentrics (1/z is affine in screen space)
     lc = [x.clamp(min=0.0) for x in lam]
     q = [lc[k] * iz[k] for k in range(3)]
-    qsum = q[0] + q[1] + q[2]
-    depth = (lc[0] + lc[1] + lc[2]) / qsum
-    bary = (q[0] / qsum, q[1] / qsum, q[2] / qsum)
-    z_n = (st.zfar - depth) / (st.zfar - st.znear)
+    inv_q = 1.0 / (q[0] + q[1] + q[2])
+    depth = (lc[0] + lc[1] + lc[2]) * inv_q
+    bary = (q[0] * inv_q, q[1] * inv_q, q[2] * inv_q)
+    z_n = (st.zfar - depth) * (1.0 / (st.zfar - st.znear))
     shade = lambert_from_dots(bary, ndl, ndn, ambient=st.ambient, diffuse=st.diffuse)
     albedo = bary[0][..., None] * alb[0][:, None] + bary[1][..., None] * alb[1][:, None] \
         + bary[2][..., None] * alb[2][:, None]
@@ -235,8 +246,8 @@ def render_pairs(
     with torch.no_grad():
         cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
         m = m0.scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand, reduce="amax", include_self=True)
-    coverage = torch.sigmoid(sd / st.sigma)
-    expo = torch.where(keep, (z_n - m[rows]) / st.gamma, torch.full_like(z_n, -math.inf))
+    coverage = torch.sigmoid(sd * (1.0 / st.sigma))
+    expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
     w = coverage * torch.exp(expo)  # exactly 0 for dropped pairs (also in the backward)
     src = torch.cat([color * w[..., None], w[..., None]], dim=-1)  # (N, T, 4)
     acc = verts.new_zeros(b * ntile, st.tile_pixels, 4).index_add(0, rows, src)

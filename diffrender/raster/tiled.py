@@ -116,12 +116,11 @@ class _TiledRasterize(torch.autograd.Function):
 
 
 def rasterize_tiled(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
-                    faces: torch.Tensor, settings: RasterSettings) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """Tiled render (see :func:`diffrender.render`). Returns the image (B, 3, H, W), the pairs each
-    environment needed (B,) long, and the capacity used."""
+                    faces: torch.Tensor, settings: RasterSettings, capacity: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tiled render with ``capacity`` pair slots per environment (see :func:`diffrender.render`). Returns the
+    image (B, 3, H, W) (NaN for environments that overflowed) and the pairs each environment needed (B,)."""
     st = tiled_static(settings, camera)
-    capacity = settings.capacity_for(faces.shape[0]) if faces.shape[0] else 0
+    capacity = capacity if faces.shape[0] else 0
     chunk = max(1, settings.chunk_elems // max(1, capacity * st.tile_pixels))
-    img, count = _TiledRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st,
-                                       capacity, chunk, bool(settings.compile))
-    return img, count, capacity
+    return _TiledRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st, capacity, chunk,
+                                 bool(settings.compile))

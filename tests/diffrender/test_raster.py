@@ -1,0 +1,345 @@
+"""The soft rasterizer: gradients, backend agreement, limits, symmetries, robustness, memory, errors."""
+
+import itertools
+import math
+
+import pytest
+import torch
+
+import diffrender as dr
+from diffrender.profiling import SavedTensorMeter
+
+from .helpers import F64, ant_camera, ant_pose, asset, hard_zbuffer, tiny_camera, tiny_scene, tiny_settings
+
+BACKENDS = ("dense", "tiled")
+
+
+def _settings(backend, **kw):
+    # tiled: 3x3 tiles that do not divide the 7x6 image, one environment per chunk
+    extra = dict(tile_size=3, chunk_elems=1) if backend == "tiled" else {}
+    extra.update(kw)
+    return tiny_settings(backend=backend, **extra)
+
+
+@pytest.fixture(scope="module")
+def ant64():
+    return dr.RobotModel.from_mjcf(asset("ant"), dtype=F64, detail=0)
+
+
+# ------------------------------------------------------------------------------------------------ gradients
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("cull", [True, False])
+def test_gradcheck_vertices_and_colors(backend, cull):
+    verts, faces, colors = tiny_scene()
+    _, _, cam = tiny_camera()
+    s = _settings(backend, cull_backfaces=cull)
+    per_env_colors = colors.expand(2, 9, 3).clone()
+    for col in (colors, per_env_colors):
+        torch.autograd.gradcheck(lambda v, c: dr.render(v, faces, c, cam, s),
+                                 (verts.clone().requires_grad_(), col.clone().requires_grad_()),
+                                 eps=1e-6, atol=1e-7, rtol=1e-5, fast_mode=True)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradcheck_camera_eye_target_and_normals(backend):
+    verts, faces, colors = tiny_scene()
+    eye, target, _ = tiny_camera()
+    normals = torch.nn.functional.normalize(torch.randn(2, 9, 3, dtype=F64) + torch.tensor([0, -2.0, 0.5],
+                                                                                          dtype=F64), dim=-1)
+    s = _settings(backend)
+
+    def fn(e, t, n):
+        cam = dr.Camera.look_at(e, t, (0.0, 0.0, 1.0), 40.0, 7, 6)
+        return dr.render(verts, faces, colors, cam, s, normals=n)
+
+    torch.autograd.gradcheck(fn, (eye.clone().requires_grad_(), target.clone().requires_grad_(),
+                                  normals.clone().requires_grad_()), eps=1e-6, atol=1e-7, rtol=1e-5,
+                             fast_mode=True)
+
+
+def test_camera_gradient_reaches_floor_only_scene():
+    """With no faces at all the image is pure floor: it still depends smoothly on the eye."""
+    eye, target, _ = tiny_camera()
+    faces = torch.zeros(0, 3, dtype=torch.long)
+    for backend in BACKENDS:
+        s = _settings(backend)
+
+        def fn(e, s=s):
+            cam = dr.Camera.look_at(e, target, (0.0, 0.0, 1.0), 40.0, 7, 6)
+            return dr.render(torch.zeros(2, 0, 3, dtype=F64), faces, torch.zeros(0, 3, dtype=F64), cam, s)
+
+        e = eye.clone().requires_grad_()
+        torch.autograd.gradcheck(fn, (e,), eps=1e-6, atol=1e-7, rtol=1e-5, fast_mode=True)
+        fn(e).sum().backward()
+        assert e.grad.abs().sum() > 1e-3
+
+
+# ------------------------------------------------------------------------------------------------ backends
+def _ant_inputs(robot, batch=2, size=20, seed=0):
+    q = ant_pose(batch, seed=seed)
+    verts, normals = robot.world_vertices_and_normals(q)
+    return verts, normals, ant_camera(q, size=size)
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(),
+        dict(tile_size=5, chunk_elems=1),  # ragged tiles, one environment per chunk
+        dict(tile_size=16, cull_backfaces=False, floor=None),
+        dict(tile_size=4, sigma=0.3, gamma=1e-3),
+    ],
+)
+def test_tiled_matches_dense_forward_and_backward(ant64, kw):
+    verts, _normals, cam = _ant_inputs(ant64)
+    colors = ant64.colors
+    out, grads = {}, {}
+    for backend in BACKENDS:
+        v = verts.clone().requires_grad_()
+        c = colors.clone().requires_grad_()
+        e = cam.eye.clone().requires_grad_()
+        camera = dr.Camera(rotation=cam.rotation, eye=e, focal=cam.focal, height=cam.height, width=cam.width)
+        s = dr.RasterSettings(backend=backend, **kw)
+        img = dr.render(v, ant64.faces, c, camera, s)
+        w = torch.linspace(-1, 1, img.numel(), dtype=F64).view_as(img)
+        (img * w).sum().backward()
+        out[backend], grads[backend] = img.detach(), (v.grad, c.grad, e.grad)
+    assert (out["dense"] - out["tiled"]).abs().max() < 1e-12
+    for gd, gt in zip(grads["dense"], grads["tiled"]):
+        assert gd.abs().max() > 0
+        assert (gd - gt).abs().max() <= 1e-10 * gd.abs().max()
+
+
+def test_tiled_matches_dense_with_given_normals_and_per_env_colors(ant64):
+    verts, normals, cam = _ant_inputs(ant64, batch=2, size=20, seed=5)
+    colors = torch.rand(2, ant64.num_vertices, 3, dtype=F64)
+    res = []
+    for backend in BACKENDS:
+        n = normals.clone().requires_grad_()
+        c = colors.clone().requires_grad_()
+        img = dr.render(verts, ant64.faces, c, cam, dr.RasterSettings(backend=backend, tile_size=6), normals=n)
+        img.square().sum().backward()
+        res.append((img.detach(), n.grad, c.grad))
+    for a, b in zip(*res):
+        assert a.abs().max() > 0 and (a - b).abs().max() <= 1e-10 * a.abs().max()
+
+
+# ------------------------------------------------------------------------------------------------ limits
+@pytest.mark.parametrize("floor", [True, False])
+def test_soft_approaches_hard_zbuffer_monotonically(ant64, floor):
+    """As sigma, gamma -> 0 the fraction of pixels differing from an independent hard z-buffer decreases
+    monotonically to (almost) nothing."""
+    verts, normals, cam = _ant_inputs(ant64, batch=2, size=32, seed=2)
+    base = dict(znear=0.5, zfar=6.0, floor=dr.FloorSettings() if floor else None)
+    hard = hard_zbuffer(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(**base), normals=normals)
+    fractions = []
+    for sigma, gamma in [(1.0, 1e-2), (0.3, 3e-3), (0.1, 1e-3), (0.03, 3e-4), (0.01, 1e-4), (0.003, 1e-5)]:
+        s = dr.RasterSettings(sigma=sigma, gamma=gamma, **base)
+        soft = dr.render(verts, ant64.faces, ant64.colors, cam, s, normals=normals)
+        fractions.append(((soft - hard).abs().amax(1) > 0.02).double().mean().item())
+    assert all(a > b for a, b in itertools.pairwise(fractions)), fractions
+    assert fractions[0] > 0.1 and fractions[-1] < 0.01, fractions
+
+
+# ------------------------------------------------------------------------------------------------ symmetries
+def test_mirror_equivariance(ant64):
+    """Mirroring the world about the camera's vertical plane x = s/2 (which maps the checker onto itself)
+    mirrors the image left-right, for both backends."""
+    q = ant_pose(2, seed=7)
+    verts, normals = ant64.world_vertices_and_normals(q)
+    s_sq = dr.FloorSettings().square_size
+    eye = torch.tensor([s_sq / 2, -2.0, 1.2], dtype=F64)
+    target = torch.tensor([s_sq / 2, 0.3, 0.5], dtype=F64)
+    cam = dr.Camera.look_at(eye, target, (0.0, 0.0, 1.0), 60.0, 20, 26)
+    flip = torch.tensor([-1.0, 1.0, 1.0], dtype=F64)
+    mverts = verts * flip + torch.tensor([s_sq, 0, 0], dtype=F64)
+    mfaces = ant64.faces[:, [0, 2, 1]]  # mirroring flips the winding
+    for backend in BACKENDS:
+        s = dr.RasterSettings(backend=backend, sigma=0.5, gamma=1e-3, light_dir=(0.3, -0.5, 1.0))
+        sm = dr.RasterSettings(backend=backend, sigma=0.5, gamma=1e-3, light_dir=(-0.3, -0.5, 1.0))
+        a = dr.render(verts, ant64.faces, ant64.colors, cam, s, normals=normals)
+        b = dr.render(mverts, mfaces, ant64.colors, cam, sm, normals=normals * flip)
+        assert (a - a.flip(-1)).abs().max() > 0.05  # the scene itself is not symmetric
+        assert (a - b.flip(-1)).abs().max() < 1e-12
+
+
+def test_integer_pixel_shift_equivariance(ant64):
+    """Widening the image by 2k pixels moves the principal point by k: the wide image, cropped by k, equals the
+    narrow one (tiles land differently relative to the content)."""
+    verts, _normals, cam = _ant_inputs(ant64, batch=2, size=24, seed=3)
+    for backend in BACKENDS:
+        s = dr.RasterSettings(backend=backend, tile_size=8)
+        ref = dr.render(verts, ant64.faces, ant64.colors, cam, s)
+        for dx, dy in ((3, 0), (0, 2), (5, 1)):
+            wide = dr.Camera(rotation=cam.rotation, eye=cam.eye, focal=cam.focal, height=24 + 2 * dy,
+                             width=24 + 2 * dx)
+            img = dr.render(verts, ant64.faces, ant64.colors, wide, s)
+            assert (img[..., dy: dy + 24, dx: dx + 24] - ref).abs().max() < 1e-12
+
+
+# ------------------------------------------------------------------------------------------------ robustness
+def test_degenerate_faces_give_finite_images_and_gradients():
+    """Zero-area, collinear, edge-on, behind-camera, near-plane-straddling faces and a vertex at the eye."""
+    eye = torch.tensor([0.0, -3.0, 1.0], dtype=F64)
+    good = [[-0.5, 0.0, 0.5], [0.5, 0.0, 0.5], [0.0, 0.0, 1.3]]
+    tris = [
+        good,
+        [[0.1, 0.0, 0.8], [0.1, 0.0, 0.8], [0.3, 0.1, 0.9]],  # two identical vertices
+        [[-0.2, 0.0, 0.7], [0.0, 0.0, 0.8], [0.2, 0.0, 0.9]],  # collinear
+        [[0.0, -3.0 + 1.0, 1.0], [0.0, 0.5, 1.0], [0.0, 0.5, 0.5]],  # edge-on: its plane x = 0 holds the eye
+        [[-0.5, -4.0, 1.0], [0.5, -4.0, 1.0], [0.0, -4.0, 1.5]],  # behind the camera
+        [[-0.2, -3.5, 0.9], [0.2, -2.0, 0.9], [0.0, -2.5, 1.2]],  # straddles z = 0 and znear
+        [eye.tolist(), [0.4, 0.5, 0.5], [-0.4, 0.5, 0.6]],  # a vertex exactly at the eye
+    ]
+    verts = torch.tensor(tris, dtype=F64).view(1, -1, 3)
+    faces = torch.arange(verts.shape[1]).view(-1, 3)
+    colors = torch.rand(verts.shape[1], 3, dtype=F64)
+    cam = dr.Camera.look_at(eye, torch.tensor([0.0, 0.0, 0.8]).double(), (0, 0, 1.0), 50.0, 16, 16)
+    for backend in BACKENDS:
+        for cull in (True, False):
+            v = verts.clone().requires_grad_()
+            s = dr.RasterSettings(backend=backend, cull_backfaces=cull, sigma=0.7, gamma=1e-3, znear=0.1, zfar=8)
+            img = dr.render(v, faces, colors, cam, s)
+            assert torch.isfinite(img).all() and 0 <= img.min() and img.max() <= 1
+            img.sum().backward()
+            assert torch.isfinite(v.grad).all()
+            assert v.grad[0, :3].abs().sum() > 0  # the good face gets gradients
+            assert v.grad[0, 12:18].abs().sum() == 0  # dropped faces (behind, straddling) get none
+
+
+def test_float32_matches_float64(ant64):
+    verts, _normals, cam = _ant_inputs(ant64, batch=2, size=24, seed=4)
+    ref = dr.render(verts, ant64.faces, ant64.colors, cam)
+    cam32 = dr.Camera(rotation=cam.rotation.float(), eye=cam.eye.float(), focal=cam.focal, height=24, width=24)
+    img = dr.render(verts.float(), ant64.faces, ant64.colors.float(), cam32)
+    assert img.dtype == torch.float32 and (img.double() - ref).abs().max() < 2e-3
+
+
+# ------------------------------------------------------------------------------------------------ memory
+def test_backward_twice_with_retain_graph(ant64):
+    verts, _normals, cam = _ant_inputs(ant64, batch=2, size=16)
+    v = verts.clone().requires_grad_()
+    img = dr.render(v, ant64.faces, ant64.colors, cam, dr.RasterSettings(chunk_elems=1))
+    loss = (img * torch.rand_like(img)).sum()
+    g1, = torch.autograd.grad(loss, v, retain_graph=True)
+    g2, = torch.autograd.grad(loss, v)
+    assert g1.abs().max() > 0 and torch.equal(g1, g2)
+
+
+def _saved_bytes(verts, faces, colors, cam, settings):
+    v = verts.clone().requires_grad_()
+    with SavedTensorMeter(exclude=[faces]) as meter:
+        img = dr.render(v, faces, colors, cam, settings)
+    img.sum().backward()  # what was saved is enough for a backward
+    assert v.grad.abs().sum() > 0
+    return meter.bytes
+
+
+def test_saved_memory_is_flat_in_faces(ant64):
+    """Tiled: saved-for-backward bytes do not change when the face count grows 10x over the same vertices
+    (only the caller's faces tensor itself, excluded here, grows); dense grows with faces x pixels."""
+    verts, _, cam = _ant_inputs(ant64, batch=2, size=16)
+    g = torch.Generator().manual_seed(0)
+    nv = ant64.num_vertices
+    # more faces over the same vertices: the mesh plus random small triangles between nearby vertices
+    many = torch.cat([ant64.faces] + [ant64.faces[torch.randperm(ant64.num_faces, generator=g)][:, [0, 2, 1]]
+                                      .roll(k, dims=1) for k in range(9)])
+    assert many.shape[0] == 10 * ant64.num_faces and int(many.max()) < nv
+    sizes = {}
+    for backend in BACKENDS:
+        s = dr.RasterSettings(backend=backend, cull_backfaces=False, bin_capacity=40_000)
+        sizes[backend] = [_saved_bytes(verts, f, ant64.colors, cam, s) for f in (ant64.faces, many)]
+    small, big = sizes["tiled"]
+    assert small == big
+    assert small <= 2 * verts.numel() * 8 + 4096  # inputs only: vertices, colours, camera
+    d_small, d_big = sizes["dense"]
+    assert d_big > 5 * d_small > 50 * small  # the measurement does see per-face intermediates
+
+
+def test_saved_memory_is_linear_in_vertices(ant64):
+    """Growing the scene (extra meshes) grows saved bytes only with B * V."""
+    verts, _, cam = _ant_inputs(ant64, batch=2, size=16)
+    big = ant64.with_extra_meshes(40, 200)
+    q = ant_pose(2)
+    vb = big.world_vertices(q)
+    s = dr.RasterSettings()
+    a = _saved_bytes(verts, ant64.faces, ant64.colors, cam, s)
+    b = _saved_bytes(vb, big.faces, big.colors, cam, s)
+    per_vertex = (b - a) / (big.num_vertices - ant64.num_vertices)
+    assert per_vertex <= 2 * 3 * 8 + 3 * 8  # verts (B = 2) and shared colours, float64
+
+
+# ------------------------------------------------------------------------------------------------ errors
+def test_bin_overflow_raises_with_numbers_or_poisons_without_sync(ant64):
+    verts, _, cam = _ant_inputs(ant64, batch=3, size=24)
+    s = dr.RasterSettings(bin_capacity=64)
+    with pytest.raises(RuntimeError, match=r"environment \d+ needs \d+ \(tile, face\) pairs but bin_capacity is "
+                                           r"64.*busiest tile.*holds \d+ faces.*bin_capacity=\.\.\.\) to at least"):
+        dr.render(verts, ant64.faces, ant64.colors, cam, s)
+    img = dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(bin_capacity=64, sync_checks=False))
+    assert torch.isnan(img).all()
+    # enough capacity for exactly what is needed: no error, no NaN
+    need = int(dr.raster.bin_faces(verts, cam.rotation, cam.eye, ant64.faces,
+                                   dr.raster.tiled_static(dr.RasterSettings(), cam), 100_000).count.max())
+    img = dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(bin_capacity=need))
+    assert torch.isfinite(img).all()
+    with pytest.raises(RuntimeError, match="bin overflow"):
+        dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(bin_capacity=need - 1))
+
+
+def test_bad_inputs_raise_clear_errors():
+    verts, faces, colors = tiny_scene()
+    _, _, cam = tiny_camera()
+    s = tiny_settings()
+    cases = [
+        (dict(verts=verts[0]), r"verts must have shape \(B, V, 3\)"),
+        (dict(verts=verts.long()), "verts must be float32 or float64"),
+        (dict(verts=verts.float()), "colors is torch.float64 but verts is torch.float32"),
+        (dict(verts=verts.float(), colors=colors.float()), "camera is torch.float64 but verts is torch.float32"),
+        (dict(colors=colors.float()), "colors is torch.float32 but verts is torch.float64"),
+        (dict(colors=colors[:5]), r"colors must have shape \(9, 3\) or \(2, 9, 3\)"),
+        (dict(faces=faces.double()), "faces must be an int64/int32 tensor"),
+        (dict(faces=faces[:, :2]), r"faces must have shape \(F, 3\)"),
+        (dict(faces=faces.to("meta")), "faces is on meta but verts is on cpu"),
+        (dict(faces=faces + 1), r"faces index vertices 1\.\.9 but there are 9 vertices"),
+        (dict(verts=verts.clone().index_put_((torch.tensor([1]),), torch.tensor(math.nan, dtype=F64))),
+         "verts contain.* NaN or inf"),
+        (dict(colors=colors.clone().fill_(math.inf)), "colors contain.* NaN or inf"),
+        (dict(camera=tiny_camera(1)[2].expand(1)), None),  # a single camera broadcasts: fine
+        (dict(camera="cam"), "camera must be a diffrender.Camera"),
+        (dict(settings=dict(sigma=1.0)), "settings must be a RasterSettings"),
+        (dict(normals=torch.zeros(2, 8, 3, dtype=F64)), "normals must have the shape of verts"),
+    ]
+    for override, msg in cases:
+        args = dict(verts=verts, faces=faces, colors=colors, camera=cam, settings=s) | override
+        if msg is None:
+            dr.render(**args)
+            continue
+        with pytest.raises(ValueError, match=msg):
+            dr.render(**args)
+    three = dr.Camera.look_at(torch.zeros(3, 3, dtype=F64), torch.ones(3, dtype=F64), (0, 0, 1.0), 40, 7, 6)
+    with pytest.raises(ValueError, match="camera has 3 views but verts has 2 environments"):
+        dr.render(verts, faces, colors, three, s)
+    for kw, msg in ((dict(sigma=0.0), "sigma"), (dict(znear=2.0, zfar=1.0), "znear"), (dict(backend="x"), "backend"),
+                    (dict(tile_size=0), "tile_size"), (dict(bin_capacity=-1), "bin_capacity"),
+                    (dict(background=(2, 0, 0)), "background")):
+        with pytest.raises(ValueError, match=msg):
+            dr.RasterSettings(**kw)
+    with pytest.raises(TypeError):
+        dr.RasterSettings(0.5)  # keyword-only
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu(ant64):
+    verts, _normals, cam = _ant_inputs(ant64, batch=2, size=24)
+    ref_v = verts.clone().requires_grad_()
+    ref = dr.render(ref_v, ant64.faces, ant64.colors, cam)
+    ref.square().sum().backward()
+    dev = torch.device("cuda")
+    cam_d = dr.Camera(rotation=cam.rotation.to(dev), eye=cam.eye.to(dev), focal=cam.focal, height=24, width=24)
+    v = verts.to(dev).requires_grad_()
+    img = dr.render(v, ant64.faces.to(dev), ant64.colors.to(dev), cam_d)
+    img.square().sum().backward()
+    assert (img.cpu() - ref).abs().max() < 1e-10
+    assert (v.grad.cpu() - ref_v.grad).abs().max() < 1e-8 * ref_v.grad.abs().max()
