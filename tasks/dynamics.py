@@ -90,32 +90,29 @@ class Frames(NamedTuple):
         return self.X[..., :3, 3] + self.origin[:, None]
 
 
-class _SPDSolve(torch.autograd.Function):
-    """``x = M^-1 b`` for symmetric positive-definite ``M (B, n, n)``, ``b (B, n)``.
+class _CholeskySolve(torch.autograd.Function):
+    """``x = M^-1 b`` given ``M (B, n, n)`` (SPD), its Cholesky factor ``L`` (computed without grad) and
+    ``b (B, n)``.
 
-    Forward: one Cholesky factorisation (``cholesky_ex``: no error check, hence no host sync) and two
-    triangular solves. Backward reuses the factor: ``gb = M^-1 gx``, ``gM = -gb x^T``; cheaper than
-    differentiating through the factorisation.
+    Forward: two triangular solves with ``L``. Backward reuses the factor: ``gb = M^-1 gx``,
+    ``gM = -gb x^T``; cheaper than differentiating through the factorisation, and it lets a factor be
+    reused for several substeps (dflex's mass-matrix caching) while gradients still reach ``M``.
     """
 
     @staticmethod
-    def forward(M: torch.Tensor, b: torch.Tensor):  # type: ignore[override]
-        L = torch.linalg.cholesky_ex(M)[0]
-        x = _chol_solve(L, b)
-        return x, L
+    def forward(M: torch.Tensor, L: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        return _chol_solve(L, b)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        x, L = output
-        ctx.save_for_backward(x, L)
-        ctx.mark_non_differentiable(L)
+        ctx.save_for_backward(output, inputs[1])
 
     @staticmethod
-    def backward(ctx, gx, gL):  # type: ignore[override]
+    def backward(ctx, gx):  # type: ignore[override]
         x, L = ctx.saved_tensors
         gb = _chol_solve(L, gx)
         gM = -gb.unsqueeze(-1) * x.unsqueeze(-2)
-        return gM, gb
+        return gM, None, gb
 
 
 def _chol_solve(L: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -124,9 +121,16 @@ def _chol_solve(L: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.solve_triangular(L.mT, y, upper=True).squeeze(-1)
 
 
-def spd_solve(M: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``M^-1 b`` for a batch of SPD matrices (see :class:`_SPDSolve`). M: (B, n, n), b: (B, n) -> (B, n)."""
-    return _SPDSolve.apply(M, b)[0]
+def cholesky(M: torch.Tensor) -> torch.Tensor:
+    """Lower Cholesky factor of SPD ``M (B, n, n)``, outside autograd (gradients reach ``M`` through
+    :func:`spd_solve`). ``cholesky_ex`` does not check for errors, so there is no host synchronisation."""
+    with torch.no_grad():
+        return torch.linalg.cholesky_ex(M.detach())[0]
+
+
+def spd_solve(M: torch.Tensor, b: torch.Tensor, L: torch.Tensor | None = None) -> torch.Tensor:
+    """``M^-1 b`` for a batch of SPD matrices. M: (B, n, n), b: (B, n), optional factor L = cholesky(M)."""
+    return _CholeskySolve.apply(M, cholesky(M) if L is None else L, b)
 
 
 class Simulator:
@@ -452,19 +456,37 @@ class Simulator:
         """
         return self.acceleration(qpos, qvel, tau, contact=False, limits=False)
 
+    def factorize(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mass matrix ``M (B, nv, nv)`` (differentiable) and its Cholesky factor ``L`` (no grad), for reuse
+        over several substeps (dflex's mass-matrix caching). qpos: (B, nq)."""
+        M = self.mass_matrix(qpos)
+        return M, cholesky(M)
+
     def acceleration(
-        self, qpos: torch.Tensor, qvel: torch.Tensor, tau: torch.Tensor, *, contact: bool = True, limits: bool = True
+        self,
+        qpos: torch.Tensor,
+        qvel: torch.Tensor,
+        tau: torch.Tensor,
+        *,
+        contact: bool = True,
+        limits: bool = True,
+        mass: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """Joint accelerations with generalized applied force ``tau (B, nv)``, including ground contact and
-        joint limits when enabled here and configured on the simulator. -> qacc (B, nv)."""
+        joint limits when enabled here and configured on the simulator. ``mass``: a cached (M, L) from
+        :meth:`factorize` (default: the mass matrix at ``qpos``). -> qacc (B, nv)."""
         fr = self.frames(qpos)
         I6 = self._spatial_inertia(fr.X)
-        M = self._mass_matrix(fr.S, I6)
+        if mass is None:
+            M = self._mass_matrix(fr.S, I6)
+            L = cholesky(M)
+        else:
+            M, L = mass
         Sq = fr.S * qvel.unsqueeze(-1)  # (B, nv, 6)
         vb = contract(self._body_dof_anc, Sq)  # body spatial velocities
         f_ext = self._contact_forces(fr, vb) if (contact and self.contact is not None) else None
         rhs = tau + self.passive_force(qpos, qvel, limits=limits) - self._bias(fr.S, I6, Sq, vb, f_ext)
-        return spd_solve(M, rhs)
+        return spd_solve(M, rhs, L)
 
     def integrate(self, qpos: torch.Tensor, qvel: torch.Tensor, dt: float) -> torch.Tensor:
         """Positions after ``dt`` [s] at constant velocity ``qvel`` (the second half of semi-implicit Euler).
@@ -484,13 +506,19 @@ class Simulator:
         return torch.cat((q_hs, pos.reshape(B, -1), quat.reshape(B, -1)), dim=1)[:, self._qpos_src]
 
     def substep(
-        self, qpos: torch.Tensor, qvel: torch.Tensor, tau: torch.Tensor, dt: float
+        self,
+        qpos: torch.Tensor,
+        qvel: torch.Tensor,
+        tau: torch.Tensor,
+        dt: float,
+        mass: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One semi-implicit Euler step: ``qvel += dt qacc`` then ``qpos`` from the new ``qvel``.
 
-        qpos: (B, nq), qvel: (B, nv), tau: (B, nv) generalized applied force, dt [s] -> (qpos, qvel).
+        qpos: (B, nq), qvel: (B, nv), tau: (B, nv) generalized applied force, dt [s], mass: optional cached
+        (M, L) from :meth:`factorize` -> (qpos, qvel).
         """
-        qvel = qvel + dt * self.acceleration(qpos, qvel, tau)
+        qvel = qvel + dt * self.acceleration(qpos, qvel, tau, mass=mass)
         return self.integrate(qpos, qvel, dt), qvel
 
     def actuator_force(self, ctrl: torch.Tensor) -> torch.Tensor:

@@ -63,7 +63,9 @@ class TaskConfig:
     contact_ke [N/m], contact_kd [N s/m^2], contact_kf [N s/m], contact_mu: dflex contact parameters.
     limit_ke [N m/rad], limit_kd [N m s/rad], limit_damping: joint-limit penalty (see
     :class:`tasks.dynamics.LimitParams`; "always" is dflex's behaviour). action_scale: torque = clip(a, -1, 1)
-    * gear * action_scale. reset_noise: randomise reset states (False: the nominal start state).
+    * gear * action_scale. mass_matrix_every: recompute the mass matrix and its factor every this many substeps
+    and reuse it in between (dflex's "MM caching", which SHAC used once per control step; None = substeps,
+    1 = every substep). reset_noise: randomise reset states (False: the nominal start state).
     validate: check actions for NaN/inf on every step (a host sync; default from env var TASKS_VALIDATE).
     """
 
@@ -79,6 +81,7 @@ class TaskConfig:
     limit_kd: float = 1.0e1
     limit_damping: Literal["always", "violated"] = "always"
     action_scale: float = 1.0
+    mass_matrix_every: int | None = None
     reset_noise: bool = True
     validate: bool = field(default_factory=lambda: _env_flag("TASKS_VALIDATE"))
 
@@ -87,6 +90,10 @@ class TaskConfig:
             raise ValueError(f"episode_length must be a positive int, got {self.episode_length!r}")
         if not (isinstance(self.substeps, int) and self.substeps >= 1):
             raise ValueError(f"substeps must be a positive int, got {self.substeps!r}")
+        if self.mass_matrix_every is not None and not (
+            isinstance(self.mass_matrix_every, int) and self.mass_matrix_every >= 1
+        ):
+            raise ValueError(f"mass_matrix_every must be None or a positive int, got {self.mass_matrix_every!r}")
         if self.limit_damping not in ("always", "violated"):
             raise ValueError(f"limit_damping must be 'always' or 'violated', got {self.limit_damping!r}")
         for name in ("contact_ke", "contact_kd", "contact_kf", "contact_mu", "limit_ke", "limit_kd"):
@@ -155,6 +162,8 @@ class Task(abc.ABC):
         self.substeps = cfg.substeps
         self.rng = CounterRNG(num_envs, self.noise_dim, seed=self.seed, device=self.device)
         self._substep: Callable = self.sim.substep
+        self._factorize: Callable = self.sim.factorize
+        self.mass_matrix_every = cfg.mass_matrix_every or cfg.substeps
         self._finish: Callable = self._finish_impl
         qpos, qvel = self.initial_state(None)
         self.qpos, self.qvel = qpos, qvel
@@ -220,8 +229,11 @@ class Task(abc.ABC):
         tau = self.sim.actuator_force(a * self.config.action_scale)
         h = self.dt / self.substeps
         qpos, qvel = self.qpos, self.qvel
-        for _ in range(self.substeps):
-            qpos, qvel = self._substep(qpos, qvel, tau, h)
+        mass = None
+        for i in range(self.substeps):
+            if i % self.mass_matrix_every == 0:
+                mass = self._factorize(qpos)
+            qpos, qvel = self._substep(qpos, qvel, tau, h, mass)
         (self.qpos, self.qvel, self.progress, self.prev_actions, obs, reward, done, info) = self._finish(
             qpos, qvel, a, self.progress
         )
@@ -294,13 +306,15 @@ class Task(abc.ABC):
         self.rng.set_state(state["rng"])
 
     def compile(self, **compile_kwargs: Any) -> Task:
-        """Compile the physics substep and the per-step reward/reset with ``torch.compile`` (static shapes).
+        """Compile the physics substep, the mass-matrix factorisation and the per-step reward/reset with
+        ``torch.compile`` (static shapes).
 
         Keyword arguments go to ``torch.compile`` (default ``dynamic=False``). The substep is compiled on
         its own (not the whole control step) so compile time does not grow with ``substeps``. Returns self.
         """
         kw = {"dynamic": False, **compile_kwargs}
         self._substep = torch.compile(self.sim.substep, **kw)
+        self._factorize = torch.compile(self.sim.factorize, **kw)
         self._finish = torch.compile(self._finish_impl, **kw)
         return self
 

@@ -1,0 +1,182 @@
+"""Simulator benchmark: a SHAC-style horizon forward + backward per task, batch size and execution mode.
+
+One measured iteration = restore the start state, roll ``--horizon`` control steps (each ``substeps`` physics
+substeps) with actions ``tanh(theta)``, loss = sum of rewards, backward to ``theta``. Modes:
+
+* ``eager``: plain PyTorch.
+* ``compiled``: ``Task.compile()`` (the physics substep and the per-step reward/reset through torch.compile;
+  autograd links the compiled pieces across substeps).
+* ``graph``: compiled, and the WHOLE forward + backward captured in one CUDA graph (static shapes, the state
+  restored by in-place copies into the captured input tensors), then replayed (CUDA only).
+
+Timing is CUDA-synchronised, warm-up (compilation, capture) is excluded and reported separately, the result
+is the median over ``--iters`` iterations. Peak allocated and reserved memory are read after
+``reset_peak_memory_stats`` around the measured iterations (CUDA only). With ``--kernels`` one compiled
+iteration is profiled and the number of GPU kernels per substep (forward + backward) is reported.
+
+Not a test. Examples::
+
+    python benchmarks/sim.py --device cuda --quick --out sim_quick.json
+    python benchmarks/sim.py --device cuda --tasks ant humanoid --num-envs 64 1024 4096 --out sim.json
+    python benchmarks/sim.py --device cpu --tasks cartpole ant --num-envs 4 --horizon 2 --modes eager compiled
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import tasks
+
+MODES = ("eager", "compiled", "graph")
+QUICK = [("ant", 64), ("humanoid", 64), ("ant", 4096)]
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class Rollout:
+    """The measured computation for one (task, batch, mode): state restore, horizon, loss, backward."""
+
+    def __init__(self, name: str, num_envs: int, horizon: int, device: torch.device, mode: str, seed: int):
+        self.task = tasks.make(name, num_envs, device=device, seed=seed)
+        if mode in ("compiled", "graph"):
+            self.task.compile()
+        self.task.reset()
+        self.start = {k: v.clone() for k, v in self.task.get_state().items()}
+        gen = torch.Generator(device="cpu").manual_seed(seed)
+        theta = 0.5 * torch.randn(horizon, num_envs, self.task.num_act, generator=gen)
+        self.theta = theta.to(device).requires_grad_(True)
+
+    def __call__(self) -> tuple[torch.Tensor, torch.Tensor]:
+        t = self.task
+        # restore the start state into the SAME tensors every time (a captured graph reads them)
+        t.qpos, t.qvel = self.start["qpos"], self.start["qvel"]
+        t.progress, t.prev_actions = self.start["progress"], self.start["prev_actions"]
+        loss = self.theta.new_zeros(())
+        for a in torch.tanh(self.theta):
+            loss = loss + t.step(a)[1].sum()
+        (grad,) = torch.autograd.grad(loss, self.theta)
+        return loss.detach(), grad
+
+
+def measure(name: str, num_envs: int, mode: str, args) -> dict:
+    device = torch.device(args.device)
+    row: dict = {"task": name, "num_envs": num_envs, "mode": mode, "horizon": args.horizon, "status": "ok"}
+    if mode == "graph" and device.type != "cuda":
+        row["status"] = "skipped (CUDA graphs need a CUDA device)"
+        return row
+    try:
+        roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed)
+        row["substeps"] = roll.task.substeps
+        fn = roll
+        t0 = time.perf_counter()
+        if mode == "graph":
+            side = torch.cuda.Stream(device)
+            side.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(side):  # warm up (compiles) off the capture stream, as CUDA graphs require
+                for _ in range(max(1, args.warmup)):
+                    roll()
+            torch.cuda.current_stream(device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                static_out = roll()
+
+            def fn():
+                graph.replay()
+                return static_out
+        else:
+            for _ in range(max(1, args.warmup)):
+                fn()
+        _sync(device)
+        row["warmup_s"] = round(time.perf_counter() - t0, 2)
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+        times = []
+        for _ in range(args.iters):
+            _sync(device)
+            t0 = time.perf_counter()
+            loss, grad = fn()
+            _sync(device)
+            times.append((time.perf_counter() - t0) * 1e3)
+        row["ms"] = round(statistics.median(times), 3)
+        row["ms_min"] = round(min(times), 3)
+        row["ms_per_substep"] = round(row["ms"] / (args.horizon * roll.task.substeps), 4)
+        row["loss"] = float(loss)
+        row["grad_finite"] = bool(torch.isfinite(grad).all())
+        if device.type == "cuda":
+            row["peak_alloc_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+            row["peak_reserved_mb"] = round(torch.cuda.max_memory_reserved(device) / 2**20, 1)
+            if args.kernels and mode != "graph":
+                row["kernels_per_substep"] = _kernels_per_substep(roll, args.horizon * roll.task.substeps)
+    except Exception as e:  # a failing configuration is a row, not the end of the sweep
+        row["status"] = f"error: {type(e).__name__}: {e}"[:400]
+    return row
+
+
+def _kernels_per_substep(roll: Rollout, n_substeps: int) -> float:
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        roll()
+        torch.cuda.synchronize()
+    n = sum(e.count for e in prof.key_averages() if e.device_type.name == "CUDA")
+    return round(n / n_substeps, 1)
+
+
+def table(rows: list[dict]) -> str:
+    cols = ("task", "num_envs", "mode", "substeps", "ms", "ms_per_substep", "peak_alloc_mb", "warmup_s", "status")
+    lines = [" | ".join(cols)]
+    for r in rows:
+        lines.append(" | ".join(str(r.get(c, "")) for c in cols))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--tasks", nargs="+", default=list(tasks.TASKS), choices=tasks.TASKS)
+    p.add_argument("--num-envs", nargs="+", type=int, default=[64, 1024, 4096])
+    p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    p.add_argument("--horizon", type=int, default=32)
+    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--iters", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (compiled/eager)")
+    p.add_argument("--quick", action="store_true", help="ant and humanoid at 64 envs, ant at 4096; all modes")
+    p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
+    args = p.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda but no CUDA device is available")
+    configs = QUICK if args.quick else [(t, n) for t in args.tasks for n in args.num_envs]
+    meta = {
+        "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.processor() or "cpu",
+        "torch": torch.__version__,
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "argv": sys.argv[1:] if argv is None else argv,
+    }
+    rows = []
+    for name, n in configs:
+        for mode in args.modes:
+            row = measure(name, n, mode, args)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+            if args.out:
+                args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    print(f"\n# {meta['device']}, torch {meta['torch']}, {meta['date']}")
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
