@@ -9,7 +9,7 @@ import torch
 from .camera import Camera
 from .raster.binning import bin_faces, count_pairs
 from .raster.dense import rasterize_dense
-from .raster.tiled import rasterize_tiled, tiled_static
+from .raster.tiled import chunk_of, measure_capacity, rasterize_tiled, tiled_static
 from .settings import RasterSettings
 
 __all__ = ["render"]
@@ -17,10 +17,6 @@ __all__ = ["render"]
 # Automatic bin capacities (settings.bin_capacity None), per scene layout: measured once (one sync), then
 # static, so later calls neither sync to size buffers nor change shapes (compile / CUDA-graph friendly).
 _capacity_cache: dict[tuple, int] = {}
-
-
-def _with_headroom(need: int) -> int:
-    return max(256, -(-int(need * 1.25) // 256) * 256)
 
 
 # Faces tensors already checked for out-of-range indices, keyed by identity and version: the index check
@@ -140,13 +136,13 @@ def render(
     else:
         auto = settings.bin_capacity is None
         if auto:
-            key = (faces.data_ptr(), faces.shape[0], nv, camera.height, camera.width, settings.tile_size,
-                   settings.cutoff_radius, settings.cull_backfaces, device)
+            key = (faces.data_ptr(), faces.shape[0], nv, camera.height, camera.width, camera.focal,
+                   settings.tile_size, settings.cutoff_radius, settings.cull_backfaces, device)
             capacity = _capacity_cache.get(key)
             if capacity is None:
                 st = tiled_static(settings, camera)
                 if sync:  # measure once (one extra sync the first time this scene layout is rendered)
-                    capacity = _with_headroom(int(count_pairs(verts, camera.rotation, camera.eye, faces, st).max()))
+                    _, capacity = measure_capacity(verts, camera.rotation, camera.eye, faces, settings, st)
                 else:  # cannot measure inside capture: a generous guess; overflow shows as NaN
                     capacity = max(4096, 4 * faces.shape[0])
                 _capacity_cache[key] = capacity
@@ -166,7 +162,9 @@ def render(
             if not auto:
                 raise RuntimeError(_overflow_message(verts, camera, faces, settings, count, capacity))
             # automatic capacity: grow it for this scene layout and render again (never an incomplete image)
-            new_capacity = _with_headroom(flags[-1])
+            _, new_capacity = measure_capacity(verts, camera.rotation, camera.eye, faces, settings,
+                                               tiled_static(settings, camera))
+            new_capacity = max(new_capacity, capacity + 64)
             warnings.warn(f"diffrender: automatic bin capacity grown from {capacity} to {new_capacity} (pairs "
                           f"needed {flags[-1]}); the tiled kernel's shapes change once", stacklevel=2)
             _capacity_cache[key] = new_capacity
@@ -174,21 +172,28 @@ def render(
     return img
 
 
-def _overflow_message(verts, camera, faces, settings, count, capacity) -> str:
-    env = int(torch.argmax(count))
-    need = int(count[env])
+def _overflow_message(verts, camera, faces, settings, need, capacity) -> str:
     st = tiled_static(settings, camera)
-    bins = bin_faces(verts[env:env + 1].detach(), camera.rotation[env:env + 1].detach(),
-                     camera.eye[env:env + 1].detach(), faces, st, need)
+    worst = int(torch.argmax(need))
+    sl = chunk_of(worst, verts.shape[0], settings, st, capacity)
+    nb = sl.stop - sl.start
+    v, rot, eye = verts[sl].detach(), camera.rotation[sl].detach(), camera.eye[sl].detach()
+    per_env = count_pairs(v, rot, eye, faces, st)
+    busiest = int(torch.argmax(per_env))
+    bins = bin_faces(v[busiest:busiest + 1], rot[busiest:busiest + 1], eye[busiest:busiest + 1], faces, st,
+                     int(per_env[busiest]))
     per_tile = torch.bincount(bins.tile[bins.valid], minlength=st.num_tiles)
     tile = int(torch.argmax(per_tile))
-    suggest = 1 << (int(need * 1.5) - 1).bit_length()
-    n_over = int((count > capacity).sum())
+    per_env_need = int(need[worst])
+    n_over = int((need > capacity).sum())
     return (
-        f"tiled rasterizer bin overflow: environment {env} needs {need} (tile, face) pairs but bin_capacity "
-        f"is {capacity} ({n_over} of {count.numel()} environments overflow; {faces.shape[0]} faces, "
-        f"{st.num_tiles} tiles of {st.tile_h}x{st.tile_w} px). The busiest tile, {tile} (tile row "
+        f"tiled rasterizer bin overflow: environments {sl.start}..{sl.stop - 1} (rendered together) need "
+        f"{int(per_env.sum())} (tile, face) pairs, {per_env_need} per environment, but bin_capacity is "
+        f"{capacity} per environment ({capacity * nb} slots; {n_over} of {need.numel()} environments overflow; "
+        f"{faces.shape[0]} faces, {st.num_tiles} tiles of {st.tile_h}x{st.tile_w} px). The busiest environment, "
+        f"{sl.start + busiest}, needs {int(per_env[busiest])}; its busiest tile, {tile} (tile row "
         f"{tile // st.tiles_x}, column {tile % st.tiles_x}), holds {int(per_tile[tile])} faces. Raise "
-        f"RasterSettings(bin_capacity=...) to at least {need} (e.g. {suggest} for headroom) or use a larger "
-        f"tile_size (fewer tiles per face). No image was returned because it would be incomplete."
+        f"RasterSettings(bin_capacity=...) to at least {per_env_need} (e.g. {int(per_env_need * 1.25) + 1} for "
+        f"headroom), leave it None for an automatic capacity, or use a larger tile_size (fewer tiles per face). "
+        f"No image was returned because it would be incomplete."
     )

@@ -3,14 +3,16 @@
 from .binning import Bins, bin_faces, count_pairs
 from .dense import rasterize_dense
 from .kernel import Static, face_validity, project, render_pairs, vertex_normals
-from .tiled import rasterize_tiled, tiled_static
+from .tiled import chunk_of, measure_capacity, rasterize_tiled, tiled_static
 
 __all__ = [
     "Bins",
     "Static",
     "bin_faces",
     "count_pairs",
+    "chunk_of",
     "face_validity",
+    "measure_capacity",
     "project",
     "rasterize_dense",
     "rasterize_tiled",

@@ -1,12 +1,16 @@
-"""Face-to-tile binning into fixed-capacity pair lists (no gradients, static shapes, no host sync).
+"""Face-to-tile binning into a fixed-capacity pair list (no gradients, static shapes, no host sync).
 
 For each environment, every valid face's screen bounding box is expanded by the coverage cut-off radius
-(plus a small margin) and cut into the tiles it touches; the (face, tile) pairs are written into a buffer of
-``capacity`` slots per environment. The variable-length "one face -> several tiles" expansion is done with a
-prefix sum and ``searchsorted`` instead of a host-sized ``repeat_interleave``: slot ``s`` belongs to the face
-whose inclusive count prefix first exceeds ``s``. Nothing is sized from data, so the shapes are static and the
-whole step can be compiled or captured. Slots beyond an environment's pair count are padding
-(``pair_valid`` False); the count itself is returned so the caller can detect overflow.
+(plus a small margin) and cut into the tiles it touches; the (environment, face, tile) triples of all the
+environments binned together are written into one buffer of ``capacity`` slots. Pooling the slots over
+environments (instead of a fixed share per environment) means the padding only has to absorb the variation
+of the *total*, which is much smaller than that of the busiest environment.
+
+The variable-length "one face -> several tiles" expansion is done with a prefix sum and ``searchsorted``
+instead of a host-sized ``repeat_interleave``: slot ``s`` belongs to the (environment, face) whose inclusive
+count prefix first exceeds ``s``. Nothing is sized from data, so the shapes are static and the whole step can
+be compiled or captured. Slots beyond the total are padding (``valid`` False); the per-environment counts are
+returned so the caller can detect overflow.
 """
 
 from __future__ import annotations
@@ -22,13 +26,15 @@ __all__ = ["Bins", "bin_faces", "count_pairs"]
 
 @dataclass(frozen=True)
 class Bins:
-    """Pair lists of B environments.
+    """Pooled pair list of B environments.
 
     Attributes:
-        face, tile: (B, capacity) long; valid: (B, capacity) bool.
-        count: (B,) long, pairs each environment needs (> capacity means overflow: pairs were dropped).
+        env, face, tile: (capacity,) long; valid: (capacity,) bool.
+        count: (B,) long, pairs each environment needs; ``count.sum() > capacity`` means overflow (pairs
+            were dropped).
     """
 
+    env: torch.Tensor
     face: torch.Tensor
     tile: torch.Tensor
     valid: torch.Tensor
@@ -73,23 +79,22 @@ def count_pairs(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, 
 @torch.no_grad()
 def bin_faces(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, faces: torch.Tensor,
               st: Static, capacity: int) -> Bins:
-    """Bin faces into tiles.
+    """Bin the faces of B environments into tiles, pooling ``capacity`` slots over the environments.
 
     Args:
         verts: (B, V, 3) [m]; rotation (B, 3, 3), eye (B, 3): camera; faces: (F, 3) long (F >= 1).
-        st: static settings (tile size, cut-off radius, culling); capacity: slots per environment.
+        st: static settings (tile size, cut-off radius, culling); capacity: slots for all B environments.
     """
-    b = verts.shape[0]
     nf = faces.shape[0]
     tx0, ty0, nx, count = _face_tiles(verts, rotation, eye, faces, st)  # (B, F) each
-    cum = torch.cumsum(count, dim=1)
-    total = cum[:, -1]
+    flat = count.reshape(-1)
+    cum = torch.cumsum(flat, dim=0)
     slots = torch.arange(capacity, device=verts.device)
-    face = torch.searchsorted(cum, slots.expand(b, capacity).contiguous(), right=True).clamp(max=nf - 1)
-    pair_valid = slots < total[:, None]
-    local = slots - (cum.gather(1, face) - count.gather(1, face))
-    nxf = nx.gather(1, face)
-    tile = (ty0.gather(1, face) + local // nxf) * st.tiles_x + tx0.gather(1, face) + local % nxf
-    zero = torch.zeros_like(face)
-    return Bins(face=torch.where(pair_valid, face, zero), tile=torch.where(pair_valid, tile, zero),
-                valid=pair_valid, count=total)
+    idx = torch.searchsorted(cum, slots, right=True).clamp(max=flat.shape[0] - 1)  # flat (env, face)
+    valid = slots < cum[-1]
+    local = slots - (cum[idx] - flat[idx])
+    nxf = nx.reshape(-1)[idx]
+    tile = (ty0.reshape(-1)[idx] + local // nxf) * st.tiles_x + tx0.reshape(-1)[idx] + local % nxf
+    zero = torch.zeros_like(idx)
+    return Bins(env=torch.where(valid, idx // nf, zero), face=torch.where(valid, idx % nf, zero),
+                tile=torch.where(valid, tile, zero), valid=valid, count=count.sum(1))

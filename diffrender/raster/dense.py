@@ -25,6 +25,8 @@ def rasterize_dense(verts: torch.Tensor, normals: torch.Tensor | None, colors: t
     b, nf = verts.shape[0], faces.shape[0]
     with torch.no_grad():
         valid = face_validity(project(verts, camera.rotation, camera.eye, st)[:, faces], st)
-    pair_face = torch.arange(nf, device=verts.device).expand(b, nf)
-    pair_tile = torch.zeros_like(pair_face)
-    return render_pairs(verts, normals, colors, camera.rotation, camera.eye, faces, pair_face, pair_tile, valid, st)
+    dev = verts.device
+    pair_env = torch.arange(b, device=dev).repeat_interleave(nf)
+    pair_face = torch.arange(nf, device=dev).repeat(b)
+    return render_pairs(verts, normals, colors, camera.rotation, camera.eye, faces, pair_env, pair_face,
+                        torch.zeros_like(pair_face), valid.reshape(-1), st)

@@ -127,12 +127,13 @@ def render_pairs(
     rotation: torch.Tensor,
     eye: torch.Tensor,
     faces: torch.Tensor,
+    pair_env: torch.Tensor,
     pair_face: torch.Tensor,
     pair_tile: torch.Tensor,
     pair_valid: torch.Tensor,
     st: Static,
 ) -> torch.Tensor:
-    """Render B environments from their (face, tile) pair lists.
+    """Render B environments from a pooled list of (environment, face, tile) pairs.
 
     Args:
         verts: (B, V, 3) [m] world vertices.
@@ -140,14 +141,13 @@ def render_pairs(
         colors: (V, 3) or (B, V, 3) albedo in [0, 1].
         rotation: (B, 3, 3), eye: (B, 3) [m]: camera extrinsics (see :class:`diffrender.Camera`).
         faces: (F, 3) long.
-        pair_face, pair_tile: (B, P) long; pair_valid: (B, P) bool (invalid slots are padding).
+        pair_env, pair_face, pair_tile: (N,) long; pair_valid: (N,) bool (invalid slots are padding).
         st: static settings.
     Returns:
         (B, 3, H, W) image.
     """
     b, nv, _ = verts.shape
-    npair = pair_face.shape[1]
-    n = b * npair
+    n = pair_face.shape[0]
     dt = verts.dtype
     uvz = project(verts, rotation, eye, st)
     if normals is None:
@@ -158,9 +158,9 @@ def render_pairs(
     n_dot_l = (normals * light).sum(-1, keepdim=True)
     # one gather of everything a face needs: (u, v, z, n.l, n (3), albedo (3)) per corner
     vdata = torch.cat([uvz, n_dot_l, normals, colors], dim=-1)  # (B, V, 10)
-    vidx = faces[pair_face] + (torch.arange(b, device=verts.device) * nv)[:, None, None]  # (B, P, 3)
+    vidx = faces[pair_face] + (pair_env * nv)[:, None]  # (N, 3)
     fd = vdata.reshape(b * nv, 10).index_select(0, vidx.reshape(-1)).view(n, 3, 10)
-    valid = pair_valid.reshape(n)
+    valid = pair_valid
     # padding slots get a harmless unit triangle so no inf/NaN is ever formed (their weight is zero)
     dummy = verts.new_tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
     dummy = torch.cat([dummy, verts.new_zeros(3, 7)], dim=1)
@@ -181,7 +181,7 @@ def render_pairs(
     area2 = torch.where(area2 == 0, torch.ones_like(area2), area2)  # only padding/dropped faces
     inv_area = 1.0 / area2
     abs_area = area2.abs()
-    tile = pair_tile.reshape(n)
+    tile = pair_tile
     x0 = ((tile % st.tiles_x) * st.tile_w).to(dt)[:, None]
     y0 = ((tile // st.tiles_x) * st.tile_h).to(dt)[:, None]
     k_pix = torch.arange(st.tile_pixels, device=verts.device)
@@ -226,7 +226,7 @@ def render_pairs(
 
     # ---- blend. Per-pixel buffers are laid out (B * tiles, T): a pair's pixels are one contiguous row.
     ntile = st.num_tiles
-    rows = (torch.arange(b, device=verts.device)[:, None] * ntile + pair_tile).reshape(n)
+    rows = pair_env * ntile + pair_tile
     all_tiles = torch.arange(ntile, device=verts.device)
     fpx, fpy = _tile_pixel_centres(all_tiles, st, dt)  # (tiles, T)
     bg_zn = 0.0

@@ -25,10 +25,10 @@ import torch
 
 from ..camera import Camera
 from ..settings import RasterSettings
-from .binning import Bins, bin_faces
+from .binning import Bins, bin_faces, count_pairs
 from .kernel import Static, render_pairs
 
-__all__ = ["rasterize_tiled", "tiled_static"]
+__all__ = ["chunk_of", "measure_capacity", "rasterize_tiled", "tiled_static"]
 
 
 @functools.cache
@@ -45,13 +45,18 @@ def tiled_static(settings: RasterSettings, camera: Camera) -> Static:
                        tile_h=settings.tile_size, tile_w=settings.tile_size)
 
 
-def _bins(verts, rotation, eye, faces, st: Static, capacity: int) -> Bins:
-    if faces.shape[0] == 0 or capacity == 0:
-        b = verts.shape[0]
-        empty = torch.zeros(b, 0, dtype=torch.long, device=verts.device)
-        return Bins(face=empty, tile=empty, valid=empty.bool(), count=torch.zeros(b, dtype=torch.long,
-                                                                                    device=verts.device))
-    return bin_faces(verts, rotation, eye, faces, st, capacity)
+def _chunk_envs(settings: RasterSettings, st: Static, capacity: int) -> int:
+    """Environments per chunk: as many as fit ``chunk_elems`` pixel-face evaluations."""
+    return max(1, settings.chunk_elems // max(1, capacity * st.tile_pixels))
+
+
+def _bins(verts, rotation, eye, faces, st: Static, slots: int) -> Bins:
+    if faces.shape[0] == 0 or slots == 0:
+        b, dev = verts.shape[0], verts.device
+        empty = torch.zeros(0, dtype=torch.long, device=dev)
+        return Bins(env=empty, face=empty, tile=empty, valid=empty.bool(),
+                    count=torch.zeros(b, dtype=torch.long, device=dev))
+    return bin_faces(verts, rotation, eye, faces, st, slots)
 
 
 def _rows(x: torch.Tensor | None, sl: slice, *, shared_ok: bool = False) -> torch.Tensor | None:
@@ -61,6 +66,11 @@ def _rows(x: torch.Tensor | None, sl: slice, *, shared_ok: bool = False) -> torc
     return x[sl]
 
 
+def _chunks(b: int, chunk: int):
+    for b0 in range(0, b, chunk):
+        yield slice(b0, min(b, b0 + chunk))
+
+
 class _TiledRasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, capacity: int, chunk: int,
@@ -68,39 +78,37 @@ class _TiledRasterize(torch.autograd.Function):
         kernel = _kernel(compile_)
         b = verts.shape[0]
         out = verts.new_empty(b, 3, st.height, st.width)
-        counts = []
-        for b0 in range(0, b, chunk):
-            sl = slice(b0, min(b, b0 + chunk))
-            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity)
-            counts.append(bins.count)
+        need = torch.zeros(b, dtype=torch.long, device=verts.device)
+        for sl in _chunks(b, chunk):
+            nb = sl.stop - sl.start
+            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * nb)
+            # slots are pooled over the chunk: report the chunk's demand per environment (rounded up)
+            need[sl] = -(-bins.count.sum() // nb)
             out[sl] = kernel(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True), rotation[sl],
-                             eye[sl], faces, bins.face, bins.tile, bins.valid, st)
-        count = torch.cat(counts)
-        # an environment whose bins overflowed is NaN, never a silently incomplete image (render() also
+                             eye[sl], faces, bins.env, bins.face, bins.tile, bins.valid, st)
+        # environments of an overflowing chunk are NaN, never a silently incomplete image (render() also
         # raises unless host syncs are disabled)
-        out.masked_fill_((count > capacity)[:, None, None, None], math.nan)
+        out.masked_fill_((need > capacity)[:, None, None, None], math.nan)
         ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
         ctx.cfg = (st, capacity, chunk, compile_)
-        ctx.mark_non_differentiable(count)
-        return out, count
+        ctx.mark_non_differentiable(need)
+        return out, need
 
     @staticmethod
-    def backward(ctx, grad_img, _grad_count):
+    def backward(ctx, grad_img, _grad_need):
         verts, normals, colors, rotation, eye, faces = ctx.saved_tensors
         st, capacity, chunk, compile_ = ctx.cfg
         kernel = _kernel(compile_)
         need = ctx.needs_input_grad[:5]
         inputs = (verts, normals, colors, rotation, eye)
         grads = [torch.zeros_like(x) if (nd and x is not None) else None for x, nd in zip(inputs, need)]
-        b = verts.shape[0]
-        for b0 in range(0, b, chunk):
-            sl = slice(b0, min(b, b0 + chunk))
-            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity)
+        for sl in _chunks(verts.shape[0], chunk):
+            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * (sl.stop - sl.start))
             with torch.enable_grad():
                 leaves = [None if x is None
                           else _rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
                           for i, (x, nd) in enumerate(zip(inputs, need))]
-                img = kernel(*leaves, faces, bins.face, bins.tile, bins.valid, st)
+                img = kernel(*leaves, faces, bins.env, bins.face, bins.tile, bins.valid, st)
                 wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
                 if not wanted:
                     continue
@@ -115,12 +123,37 @@ class _TiledRasterize(torch.autograd.Function):
         return (*grads, None, None, None, None, None)
 
 
+def measure_capacity(verts, rotation, eye, faces, settings: RasterSettings, st: Static) -> tuple[int, int]:
+    """Slots per environment the current frame needs under the chunking that capacity implies, and the
+    capacity with 25 % headroom (two passes: the chunking depends on the capacity). One host sync."""
+    counts = count_pairs(verts, rotation, eye, faces, st).tolist()
+    b = len(counts)
+    capacity = _with_headroom(sum(counts) / b)
+    need = 0
+    for _ in range(2):
+        chunk = _chunk_envs(settings, st, capacity)
+        need = max(-(-sum(counts[sl]) // (sl.stop - sl.start)) for sl in _chunks(b, chunk))
+        capacity = _with_headroom(need)
+    return need, capacity
+
+
+def chunk_of(env: int, b: int, settings: RasterSettings, st: Static, capacity: int) -> slice:
+    """The chunk of environments that ``env`` is rendered with."""
+    chunk = _chunk_envs(settings, st, capacity)
+    start = env // chunk * chunk
+    return slice(start, min(b, start + chunk))
+
+
+def _with_headroom(need: float) -> int:
+    return max(64, -(-int(need * 1.25) // 64) * 64)
+
+
 def rasterize_tiled(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
                     faces: torch.Tensor, settings: RasterSettings, capacity: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Tiled render with ``capacity`` pair slots per environment (see :func:`diffrender.render`). Returns the
-    image (B, 3, H, W) (NaN for environments that overflowed) and the pairs each environment needed (B,)."""
+    """Tiled render with ``capacity`` pair slots per environment, pooled over each chunk of environments
+    (see :func:`diffrender.render`). Returns the image (B, 3, H, W) (NaN for the environments of a chunk
+    that overflowed) and each environment's chunk demand per environment (B,) long (> capacity: overflow)."""
     st = tiled_static(settings, camera)
     capacity = capacity if faces.shape[0] else 0
-    chunk = max(1, settings.chunk_elems // max(1, capacity * st.tile_pixels))
-    return _TiledRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st, capacity, chunk,
-                                 bool(settings.compile))
+    return _TiledRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st, capacity,
+                                 _chunk_envs(settings, st, capacity), bool(settings.compile))

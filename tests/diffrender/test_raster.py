@@ -273,18 +273,41 @@ def test_saved_memory_is_linear_in_vertices(ant64):
 def test_bin_overflow_raises_with_numbers_or_poisons_without_sync(ant64):
     verts, _, cam = _ant_inputs(ant64, batch=3, size=24)
     s = dr.RasterSettings(bin_capacity=64)
-    with pytest.raises(RuntimeError, match=r"environment \d+ needs \d+ \(tile, face\) pairs but bin_capacity is "
-                                           r"64.*busiest tile.*holds \d+ faces.*bin_capacity=\.\.\.\) to at least"):
+    with pytest.raises(RuntimeError, match=r"environments 0\.\.2 \(rendered together\) need \d+ \(tile, face\) "
+                                           r"pairs, \d+ per environment, but bin_capacity is 64.*busiest tile.*"
+                                           r"holds \d+ faces.*bin_capacity=\.\.\.\) to at least"):
         dr.render(verts, ant64.faces, ant64.colors, cam, s)
     img = dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(bin_capacity=64, sync_checks=False))
     assert torch.isnan(img).all()
-    # enough capacity for exactly what is needed: no error, no NaN
-    need = int(dr.raster.bin_faces(verts, cam.rotation, cam.eye, ant64.faces,
-                                   dr.raster.tiled_static(dr.RasterSettings(), cam), 100_000).count.max())
+    # exactly the capacity needed: no error, no NaN; one slot less: error
+    st = dr.raster.tiled_static(dr.RasterSettings(), cam)
+    need = -(-int(dr.raster.count_pairs(verts, cam.rotation, cam.eye, ant64.faces, st).sum()) // 3)
     img = dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(bin_capacity=need))
     assert torch.isfinite(img).all()
     with pytest.raises(RuntimeError, match="bin overflow"):
         dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(bin_capacity=need - 1))
+    # one environment per chunk: only the overflowing environments are poisoned
+    s1 = dict(chunk_elems=1, sync_checks=False)
+    per_env = dr.raster.count_pairs(verts, cam.rotation, cam.eye, ant64.faces, st)
+    cap = int(per_env.min())
+    img = dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(bin_capacity=cap, **s1))
+    assert torch.equal(torch.isnan(img).flatten(1).all(1), per_env > cap) and (per_env > cap).any()
+
+
+def test_automatic_capacity_grows_instead_of_failing(ant64):
+    verts, _, cam = _ant_inputs(ant64, batch=2, size=24)
+    small = ant64.to(dtype=F64)  # a fresh faces tensor: a fresh automatic capacity
+    # first frame: the robots half out of view set a small capacity
+    aside = verts + 1.5 * cam.rotation[:, 0][:, None]
+    st = dr.raster.tiled_static(dr.RasterSettings(), cam)
+    counts = [dr.raster.count_pairs(v, cam.rotation, cam.eye, small.faces, st).sum() for v in (aside, verts)]
+    assert counts[0] * 1.5 < counts[1]
+    dr.render(aside, small.faces, small.colors, cam)
+    # a busier frame needs more than the measured capacity: it grows, the frame is rendered completely
+    with pytest.warns(UserWarning, match="automatic bin capacity grown"):
+        img = dr.render(verts, small.faces, small.colors, cam)
+    ref = dr.render(verts, small.faces, small.colors, cam, dr.RasterSettings(backend="dense"))
+    assert (img - ref).abs().max() < 1e-12
 
 
 def test_bad_inputs_raise_clear_errors():

@@ -1,0 +1,265 @@
+"""Benchmark of diffrender's soft rasterizer: time, peak memory and saved-for-backward bytes.
+
+Not a test. Sweeps one factor at a time around the target point (64 ant environments at 84 x 84):
+batch size, resolution, face count (the ant plus extra sphere meshes attached to its moving bodies) and,
+with ``--tiles``, the tile size; per backend. Timing is CUDA-synchronised, after warm-up, median of
+repeats; ``torch.cuda.reset_peak_memory_stats`` precedes every measured region.
+
+Reported per point: ``fwd_ms`` (render only, no graph), ``fwdbwd_ms`` (render with grad + backward of a
+weighted image sum into the vertices and camera eye), ``fk_fwdbwd_ms`` (the same including forward
+kinematics from qpos, the way a task renders), peak allocated / reserved memory of the fwd+bwd region
+[MB] and above the region's start, ``saved_mb`` (bytes autograd keeps for the backward of one render,
+measured with saved-tensor hooks; the faces tensor, which the caller owns anyway, is excluded),
+``pairs`` (tile-face pairs per environment, mean) and ``capacity``.
+
+    python benchmarks/render.py --device cuda --quick --out bench_render.json
+    python benchmarks/render.py --device cpu --tiny                  # smoke test on a laptop
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import statistics
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import ClassVar
+
+import torch
+
+import diffrender as dr
+from diffrender.profiling import SavedTensorMeter
+from diffrender.raster import count_pairs, tiled_static
+
+ASSETS = Path(__file__).resolve().parents[1] / "tasks" / "assets"
+TARGET = dict(fwd_ms=3.0, fwdbwd_ms=8.0, saved_mb=4.0)  # H100, 64 ant envs at 84 x 84
+DENSE_MAX_ELEMS = 3e7  # the dense reference materialises B * F * H * W pixel-face pairs (x ~100 floats)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _time(fn, device, *, warmup: int, repeats: int) -> tuple[float, float]:
+    """Median and first-call time [ms]."""
+    _sync(device)
+    t0 = time.perf_counter()
+    fn()
+    _sync(device)
+    first = (time.perf_counter() - t0) * 1e3
+    for _ in range(max(0, warmup - 1)):
+        fn()
+    times = []
+    for _ in range(repeats):
+        _sync(device)
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times), first
+
+
+class Scene:
+    """The ant (optionally with extra meshes up to about ``faces`` faces) at random poses."""
+
+    _cache: ClassVar[dict] = {}
+
+    def __init__(self, faces: int, batch: int, res: int, device, dtype, seed: int = 0):
+        key = (faces, device, dtype)
+        if key not in Scene._cache:
+            robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=1, dtype=dtype, device=device)
+            if faces > robot.num_faces:
+                per_mesh_verts = 242 if faces <= 20_000 else 482  # 480 / 960 faces per sphere
+                per_mesh_faces = 2 * per_mesh_verts - 4
+                n = math.ceil((faces - robot.num_faces) / per_mesh_faces)
+                robot = robot.with_extra_meshes(n, per_mesh_verts, seed=seed)
+            elif faces < robot.num_faces:
+                robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=0, dtype=dtype, device=device)
+            Scene._cache[key] = robot
+        self.robot = robot = Scene._cache[key]
+        g = torch.Generator().manual_seed(seed)
+        q = torch.zeros(batch, robot.nq, dtype=torch.float64)
+        q[:, :2] = torch.randn(batch, 2, generator=g)
+        q[:, 2] = 0.75
+        q[:, 3] = 1.0
+        q[:, 7:] = torch.tensor([0, 1, 0, -1, 0, -1, 0, 1.0]) + 0.3 * torch.randn(batch, 8, generator=g)
+        self.qpos = q.to(device=device, dtype=dtype)
+        with torch.no_grad():
+            self.verts = robot.world_vertices(self.qpos)
+        self.res = res
+
+    def camera(self, qpos: torch.Tensor) -> dr.Camera:
+        # the ant task's camera (DESIGN section 4): eye (0.5, -2, 1) -> (0, 0, 1) from the torso, fov 90
+        return dr.tracking_camera(qpos[:, :3], eye_offset=(0.5, -2.0, 1.0), target_offset=(0.0, 0.0, 1.0),
+                                  track="xyz", fov_deg=90.0, height=self.res, width=self.res)
+
+
+def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int) -> dict:
+    device = torch.device(args.device)
+    dtype = torch.float64 if args.float64 else torch.float32
+    rec = dict(backend=backend, batch=batch, res=res, faces_target=faces, tile=tile, compile=args.compile)
+    scene = Scene(faces, batch, res, device, dtype)
+    robot = scene.robot
+    rec.update(faces=robot.num_faces, verts=robot.num_vertices)
+    if backend == "dense" and batch * robot.num_faces * res * res > DENSE_MAX_ELEMS:
+        rec["status"] = "skipped: too large for the dense reference"
+        return rec
+    settings = dr.RasterSettings(backend=backend, tile_size=tile, compile=args.compile, sigma=args.sigma)
+    cam = scene.camera(scene.qpos)
+    verts = scene.verts
+    if backend == "tiled":
+        st = tiled_static(settings, cam)
+        pairs = count_pairs(verts, cam.rotation, cam.eye, robot.faces, st).double()
+        rec.update(pairs_mean=float(pairs.mean()), pairs_max=int(pairs.max()))
+    weights = torch.rand(batch, 3, res, res, device=device, dtype=dtype)
+
+    def fwd():
+        with torch.no_grad():
+            return dr.render(verts, robot.faces, robot.colors, cam, settings)
+
+    def fwdbwd():
+        v = verts.detach().requires_grad_()
+        eye = cam.eye.detach().requires_grad_()
+        c = dr.Camera(rotation=cam.rotation, eye=eye, focal=cam.focal, height=res, width=res)
+        img = dr.render(v, robot.faces, robot.colors, c, settings)
+        (img * weights).sum().backward()
+
+    def fk_fwdbwd():
+        q = scene.qpos.detach().requires_grad_()
+        v, n = robot.world_vertices_and_normals(q)
+        img = dr.render(v, robot.faces, robot.colors, scene.camera(q), settings, normals=n)
+        (img * weights).sum().backward()
+
+    try:
+        rec["fwd_ms"], rec["first_call_ms"] = _time(fwd, device, warmup=args.warmup, repeats=args.repeats)
+        rec["fwdbwd_ms"], _ = _time(fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
+        rec["fk_fwdbwd_ms"], _ = _time(fk_fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
+        # memory of one fwd+bwd
+        if device.type == "cuda":
+            _sync(device)
+            base = torch.cuda.memory_allocated(device)
+            torch.cuda.reset_peak_memory_stats(device)
+            fwdbwd()
+            _sync(device)
+            rec["peak_alloc_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+            rec["peak_alloc_above_start_mb"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
+            rec["peak_reserved_mb"] = torch.cuda.max_memory_reserved(device) / 2**20
+            torch.cuda.reset_peak_memory_stats(device)
+            with torch.no_grad():
+                fwd()
+            _sync(device)
+            rec["fwd_peak_alloc_above_start_mb"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
+        v = verts.detach().requires_grad_()
+        with SavedTensorMeter(exclude=[robot.faces]) as meter:
+            img = dr.render(v, robot.faces, robot.colors, cam, settings)
+        rec["saved_mb"] = meter.bytes / 2**20
+        rec["saved_storages"] = meter.num_storages
+        del img
+        rec["status"] = "ok"
+    except torch.OutOfMemoryError:
+        rec["status"] = "oom"
+    except Exception as err:  # a benchmark records failures and goes on
+        rec["status"] = f"error: {type(err).__name__}: {err}"
+        traceback.print_exc()
+    finally:
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    return rec
+
+
+def points(args) -> list[dict]:
+    """One-factor-at-a-time sweeps around the target point."""
+    b0, r0, f0 = 64, 84, 0  # faces 0: the plain ant (detail 1, 1856 faces)
+    if args.tiny:
+        return [dict(backend=be, batch=2, res=24, faces=f, tile=4) for be in ("tiled", "dense") for f in (0, 3000)]
+    tiles = args.tiles or [4]
+    pts = []
+    for tile in tiles:
+        pts.append(dict(backend="tiled", batch=b0, res=r0, faces=f0, tile=tile))
+    t0 = tiles[0]
+    batches = [16, 64, 256]
+    resolutions = [64, 84, 128]
+    face_targets = [1000, 10_000, 30_000, 100_000] if args.quick else [1000, 5000, 10_000, 30_000, 100_000]
+    if not args.quick:
+        batches = [16, 32, 64, 128, 256]
+    for b in batches:
+        if b != b0:
+            pts.append(dict(backend="tiled", batch=b, res=r0, faces=f0, tile=t0))
+    for r in resolutions:
+        if r != r0:
+            pts.append(dict(backend="tiled", batch=b0, res=r, faces=f0, tile=t0))
+    for f in face_targets:
+        pts.append(dict(backend="tiled", batch=b0, res=r0, faces=f, tile=t0))
+    # the dense reference only where it fits
+    pts.append(dict(backend="dense", batch=4, res=64, faces=1000, tile=t0))
+    pts.append(dict(backend="tiled", batch=4, res=64, faces=1000, tile=t0))
+    return pts
+
+
+def table(records: list[dict]) -> str:
+    cols = [("backend", "{}"), ("batch", "{}"), ("res", "{}"), ("faces", "{}"), ("tile", "{}"),
+            ("pairs_mean", "{:.0f}"), ("fwd_ms", "{:.2f}"), ("fwdbwd_ms", "{:.2f}"), ("fk_fwdbwd_ms", "{:.2f}"),
+            ("peak_alloc_above_start_mb", "{:.0f}"), ("peak_reserved_mb", "{:.0f}"), ("saved_mb", "{:.2f}"),
+            ("status", "{}")]
+    head = ["backend", "B", "res", "faces", "tile", "pairs", "fwd ms", "f+b ms", "fk+f+b", "peak MB", "resv MB",
+            "saved MB", "status"]
+    rows = [head]
+    for r in records:
+        row = []
+        for key, fmt in cols:
+            val = r.get(key)
+            row.append("-" if val is None else fmt.format(val) if not isinstance(val, str) else val[:40])
+        rows.append(row)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--quick", action="store_true", help="the target point, batch/resolution/face sweeps (<4 min)")
+    p.add_argument("--tiny", action="store_true", help="a few tiny points (CPU smoke test)")
+    p.add_argument("--tiles", type=int, nargs="*", help="tile sizes to compare at the target point")
+    p.add_argument("--compile", action="store_true", help="torch.compile the per-chunk kernel")
+    p.add_argument("--float64", action="store_true")
+    p.add_argument("--sigma", type=float, default=dr.RasterSettings().sigma)
+    p.add_argument("--warmup", type=int, default=None)
+    p.add_argument("--repeats", type=int, default=None)
+    p.add_argument("--out", type=Path, default=Path("bench_render.json"))
+    args = p.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda but CUDA is not available")
+    args.warmup = args.warmup if args.warmup is not None else (3 if args.compile else 2)
+    args.repeats = args.repeats if args.repeats is not None else (3 if args.tiny else 7 if args.quick else 15)
+    torch.manual_seed(0)
+    records = []
+    start = time.perf_counter()
+    for pt in points(args):
+        rec = measure(args, **pt)
+        records.append(rec)
+        print(json.dumps(rec), flush=True)
+    info = dict(torch=torch.__version__, python=platform.python_version(), device=args.device,
+                device_name=torch.cuda.get_device_name() if args.device == "cuda" else platform.processor(),
+                threads=torch.get_num_threads(), compile=args.compile, dtype="float64" if args.float64 else "float32",
+                sigma=args.sigma, wall_s=time.perf_counter() - start, targets=TARGET)
+    target = next((r for r in records if r.get("status") == "ok" and r["backend"] == "tiled" and r["batch"] == 64
+                   and r["res"] == 84 and r["faces_target"] == 0), None)
+    if target is not None:
+        info["target_point"] = {k: target.get(k) for k in ("fwd_ms", "fwdbwd_ms", "saved_mb")}
+        info["target_met"] = {k: target.get(k) is not None and target[k] <= v for k, v in TARGET.items()}
+    args.out.write_text(json.dumps(dict(info=info, records=records), indent=2))
+    print(f"\nwrote {args.out} ({len(records)} points, {info['wall_s']:.0f} s, {info['device_name']}, "
+          f"torch {torch.__version__}, compile={args.compile})")
+    if "target_met" in info:
+        print(f"target point (64 ant envs, 84x84): {info['target_point']} vs {TARGET} -> {info['target_met']}")
+    print(table(records))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
