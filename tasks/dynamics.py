@@ -133,6 +133,15 @@ def spd_solve(M: torch.Tensor, b: torch.Tensor, L: torch.Tensor | None = None) -
     return _CholeskySolve.apply(M, cholesky(M) if L is None else L, b)
 
 
+def _index(arr: np.ndarray, device: torch.device) -> slice | torch.Tensor:
+    """Column selector for ``x[:, sel]``: a slice when ``arr`` is a contiguous increasing range (a view, and a
+    cheap backward), else a LongTensor (a gather)."""
+    arr = np.asarray(arr, dtype=np.int64)
+    if len(arr) and np.array_equal(arr, np.arange(arr[0], arr[0] + len(arr))):
+        return slice(int(arr[0]), int(arr[0]) + len(arr))
+    return torch.as_tensor(arr, dtype=torch.long, device=device)
+
+
 class Simulator:
     """Differentiable dynamics of one articulated model for batches of states.
 
@@ -167,6 +176,15 @@ class Simulator:
         def i(x) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x, dtype=np.int64), dtype=torch.long, device=self.device)
 
+        def idx(x) -> slice | torch.Tensor:
+            return _index(x, self.device)
+
+        def free_idx(adr: np.ndarray, first: int, n: int) -> slice | torch.Tensor:
+            """Columns [adr + first, adr + first + n) of every free joint: a slice for one joint, else (nf, n)."""
+            if len(adr) == 1:
+                return slice(int(adr[0]) + first, int(adr[0]) + first + n)
+            return i((adr[:, None] + first + np.arange(n)).reshape(len(adr), n))
+
         # --- hinge/slide joint transforms: J(q) = I + sin(q) A1 + (1 - cos(q)) A2 + q A3 (4x4, frame before
         # the joint). Hinge about axis u through anchor a: R = I + s K + (1-c) K^2 (K = [u]x), translation
         # a - R a = -(s K + (1-c) K^2) a. Slide along u: translation u q. Entry nh is an identity "joint" that
@@ -182,8 +200,8 @@ class Simulator:
             A2[h, :3, :3], A2[h, :3, 3] = hinge[h] * k2, -hinge[h] * (k2 @ a)
             A3[h, :3, 3] = (1.0 - hinge[h]) * model.hs_axis[h]
         self._J_tables = f(np.stack([A1, A2, A3]))  # (3, nh + 1, 4, 4)
-        self._hs_qadr = i(model.hs_qadr)
-        self._hs_dof = i(model.hs_dof)
+        self._hs_q = idx(model.hs_qadr)  # a slice when contiguous: no gather, and no scatter in backward
+        self._hs_v = idx(model.hs_dof)
         self._hs_qpos0 = f(model.hs_qpos0)
         self._hs_hinge = f(hinge)
         # axis (homogeneous direction) and anchor (homogeneous point) as the two columns of a (nh, 4, 2) table
@@ -192,8 +210,6 @@ class Simulator:
         self._hs_axis_anchor = f(ua)
         self._hs_body = i(model.hs_body)
         self._hs_slot = i(model.hs_slot)
-        par = model.body_parent[model.hs_body] if nh else np.zeros(0, dtype=np.int64)
-        self._hs_parent = i(np.where(par < 0, nb, par))  # nb indexes an appended world frame
         self._hs_stiffness = f(model.hs_stiffness)
         self._hs_springref = f(model.hs_springref)
         big = 1e10  # "unlimited": clamp(q, -big, big) == q; finite so that no inf * 0 can appear
@@ -204,52 +220,69 @@ class Simulator:
         # --- free joints
         self._free_body = i(model.free_body)
         self._root_free = int(model.body_free[0]) if nb else -1
-        self._free_pos_idx = i((model.free_qadr[:, None] + np.arange(3)).reshape(nf, 3))
-        self._free_quat_idx = i((model.free_qadr[:, None] + np.arange(3, 7)).reshape(nf, 4))
-        self._free_lin_idx = i((model.free_dof[:, None] + np.arange(3)).reshape(nf, 3))
-        self._free_ang_idx = i((model.free_dof[:, None] + np.arange(3, 6)).reshape(nf, 3))
+        self._free_pos = free_idx(model.free_qadr, 0, 3)
+        self._free_quat = free_idx(model.free_qadr, 3, 4)
+        self._free_lin = free_idx(model.free_dof, 0, 3)
+        self._free_ang = free_idx(model.free_dof, 3, 3)
         self._free_S_trans = f(np.concatenate([np.zeros((3, 3)), np.eye(3)], axis=1))  # (3, 6)
         self._bottom_row = f(np.array([[0.0, 0.0, 0.0, 1.0]]))
+        self._eye4 = f(np.eye(4))
 
-        # --- bodies: local offsets (4x4), joint slots, tree levels
+        # --- kinematic "entries": the nb bodies, then one pre-joint frame per hinge/slide joint (the joint's
+        # frame just before it moves, where its axis and anchor are constant). Local frames come from prefix
+        # products of the body offset and the body's joint transforms ("slot rounds", one per joint slot);
+        # world frames from products along the ancestor chain ("depth rounds", one per tree level), all
+        # entries at once - no per-level concatenation or permutation.
         off = np.tile(np.eye(4), (nb, 1, 1))
         off[:, :3, :3], off[:, :3, 3] = model.body_rot, model.body_pos
-        self._body_off = f(off)
-        off_src = np.arange(nb)
+        owner = np.concatenate([np.arange(nb), model.hs_body]).astype(np.int64)
+        n_prefix = np.concatenate([(model.body_slots < nh).sum(1), model.hs_slot]).astype(np.int64)
+        n_prefix[:nb][model.body_free >= 0] = 0
+        self._n_slots = int(n_prefix.max()) if len(n_prefix) else 0
+        self._slot_chain = [
+            i(np.where(r < n_prefix, model.body_slots[owner, min(r, model.body_slots.shape[1] - 1)], nh))
+            for r in range(self._n_slots)
+        ]
+        E = nb + nh
+        off_src = np.arange(E)  # initial local frame: the owner's offset, or its free joint's pose
         for fj, b in enumerate(model.free_body):
-            off_src[b] = nb + fj  # free bodies take their transform from qpos
+            off_src[b] = E + fj
+        self._entry_off = f(off[owner])
         self._off_src = i(off_src)
-        self._slots = i(model.body_slots)
-        self._n_slots = model.body_slots.shape[1] if nh else 0
-        perm = np.concatenate(model.levels) if nb else np.zeros(0, dtype=np.int64)
-        pos_in_perm = np.empty(nb, dtype=np.int64)
-        pos_in_perm[perm] = np.arange(nb)
-        self._perm = i(perm)
-        self._inv_perm = i(pos_in_perm)
-        self._perm_identity = bool(np.array_equal(perm, np.arange(nb)))
-        self._level_slices: list[tuple[int, int, torch.Tensor]] = []
-        start = 0
-        for lv in model.levels:
-            end = start + len(lv)
-            self._level_slices.append((start, end, i(pos_in_perm[np.maximum(model.body_parent[lv], 0)])))
-            start = end
+        depth = np.zeros(nb, dtype=np.int64)
+        for b in range(nb):
+            depth[b] = 0 if model.body_parent[b] < 0 else depth[model.body_parent[b]] + 1
+        n_depth = int(depth.max()) + 1 if nb else 0
+        chain = np.full((n_depth, E), E, dtype=np.int64)  # E indexes an appended identity
+        for e in range(E):
+            b = owner[e]
+            ancestors = []
+            a = model.body_parent[b]
+            while a >= 0:
+                ancestors.append(a)
+                a = model.body_parent[a]
+            for r, a in enumerate(reversed(ancestors)):
+                chain[r, e] = a
+            chain[depth[b], e] = e
+        self._depth_chain = [i(c) for c in chain]
         self._body_mass = f(model.body_mass)
         self._body_ipos_h = f(np.concatenate([model.body_ipos, np.ones((nb, 1))], axis=1))  # homogeneous
         self._body_inertia = f(model.body_inertia)
         self._mass_eye = f(model.body_mass[:, None, None] * np.eye(3))
 
-        # --- dofs: S and generalized forces are assembled from [hinge/slide (nh), free (6 nf)] blocks
+        # --- dofs: S and generalized forces are assembled from [free (6 nf), hinge/slide (nh)] blocks, and
+        # qpos from [free (7 nf), hinge/slide (nh)]; for MuJoCo's usual layouts that order is already MuJoCo's
+        # and no permutation is needed (None)
         dof_src = np.empty(nv, dtype=np.int64)
-        dof_src[model.hs_dof] = np.arange(nh)
+        dof_src[model.hs_dof] = 6 * nf + np.arange(nh)
         for fj, d in enumerate(model.free_dof):
-            dof_src[d : d + 6] = nh + 6 * fj + np.arange(6)
-        self._dof_src = i(dof_src)
+            dof_src[d : d + 6] = 6 * fj + np.arange(6)
+        self._dof_src = None if np.array_equal(dof_src, np.arange(nv)) else i(dof_src)
         qpos_src = np.empty(model.nq, dtype=np.int64)
-        qpos_src[model.hs_qadr] = np.arange(nh)
+        qpos_src[model.hs_qadr] = 7 * nf + np.arange(nh)
         for fj, a in enumerate(model.free_qadr):
-            qpos_src[a : a + 3] = nh + 3 * fj + np.arange(3)
-            qpos_src[a + 3 : a + 7] = nh + 3 * nf + 4 * fj + np.arange(4)
-        self._qpos_src = i(qpos_src)
+            qpos_src[a : a + 7] = 7 * fj + np.arange(7)
+        self._qpos_src = None if np.array_equal(qpos_src, np.arange(model.nq)) else i(qpos_src)
         self._dof_body = i(model.dof_body)
         self._armature = f(np.diag(model.dof_armature))
         self._damping = f(model.dof_damping)
@@ -289,67 +322,60 @@ class Simulator:
     def frames(self, qpos: torch.Tensor) -> Frames:
         """Forward kinematics. qpos: (B, nq) -> :class:`Frames` (equal to MuJoCo's ``xmat``/``xpos``)."""
         B = qpos.shape[0]
+        eye4 = self._eye4
 
         # all hinge/slide joint transforms at once (entry nh: identity)
-        theta = qpos[:, self._hs_qadr] - self._hs_qpos0  # (B, nh)
+        theta = qpos[:, self._hs_q] - self._hs_qpos0  # (B, nh)
         theta = torch.cat((theta, theta.new_zeros(B, 1)), dim=1)[..., None, None]
         A1, A2, A3 = self._J_tables
-        eye4 = self._body_off.new_ones(4).diag()
         J = eye4 + torch.sin(theta) * A1 + (1.0 - torch.cos(theta)) * A2 + theta * A3  # (B, nh + 1, 4, 4)
 
-        # body frames in the parent frame: offset (or the free joint's pose), then the body's joints in order
-        L = self._body_off.expand(B, -1, -1, -1)
+        # local frames of all entries: offset (or free pose) x the owner's joints before the entry's slot
+        P = self._entry_off.expand(B, -1, -1, -1)
         if self._nf:
-            free_p = qpos[:, self._free_pos_idx]  # (B, nf, 3)
+            free_p = self._free_take(qpos, self._free_pos)  # (B, nf, 3)
             if self._root_free >= 0:
                 # floating base: work relative to its position from the start, so that a robot far from the
                 # world origin loses no float32 precision in its internal geometry
                 origin = free_p[:, self._root_free]
                 free_p = free_p - origin[:, None]
-            free_T = self._homogeneous(quat_to_mat(qpos[:, self._free_quat_idx]), free_p)
-            L = torch.cat((L, free_T), dim=1)[:, self._off_src]
-        pre = []  # frame before each joint slot, in the parent frame
-        for k in range(self._n_slots):
-            pre.append(L)
-            L = bmm(L, J[:, self._slots[:, k]])
+            free_T = self._homogeneous(quat_to_mat(self._free_take(qpos, self._free_quat)), free_p)
+            P = torch.cat((P, free_T), dim=1)[:, self._off_src]
+        for idx in self._slot_chain:
+            P = bmm(P, J[:, idx])
 
-        # world frames, one tree level at a time (bodies permuted so that each level is a contiguous block)
-        if not self._perm_identity:
-            L = L[:, self._perm]
-        s0, e0, _ = self._level_slices[0]
-        X = L[:, s0:e0]
-        for start, end, par in self._level_slices[1:]:
-            X = torch.cat((X, bmm(X[:, par], L[:, start:end])), dim=1)
-        if not self._perm_identity:
-            X = X[:, self._inv_perm]
+        # world frames: products along the ancestor chains, one tree level per round
+        P = torch.cat((P, eye4.expand(B, 1, 4, 4)), dim=1)
+        X = P[:, self._depth_chain[0]]
+        for idx in self._depth_chain[1:]:
+            X = bmm(X, P[:, idx])
         if self._root_free < 0:  # fixed or planar base: reference point = first body's origin
             origin = X[:, 0, :3, 3]
             X = X - torch.nn.functional.pad(origin[:, None, :, None], (3, 0, 0, 1))  # translations -= origin
-        return self._finish_frames(X, origin, pre)
 
-    def _finish_frames(self, X: torch.Tensor, origin: torch.Tensor, pre: list[torch.Tensor]) -> Frames:
-        """Motion subspaces from the body frames X (B, nb, 4, 4) relative to ``origin`` (B, 3)."""
-        B = X.shape[0]
+        # motion subspaces (world-aligned, about the origin)
+        nb = self.nb
         parts = []
-        if self.model.nh:
-            # joint frame = parent body frame (world for root bodies) x frame before the joint's slot
-            world = torch.nn.functional.pad(-origin[:, None, :, None], (3, 0, 0, 1)) + self._body_off.new_ones(4).diag()
-            Xp = torch.cat((X, world), dim=1)[:, self._hs_parent]
-            P = torch.stack(pre, dim=1)[:, self._hs_slot, self._hs_body]  # (B, nh, 4, 4)
-            aa = bmm(bmm(Xp, P), self._hs_axis_anchor)  # (B, nh, 4, 2): axis, anchor
-            axis, anchor = aa[..., :3, 0], aa[..., :3, 1]
-            h = self._hs_hinge[:, None]
-            parts.append(torch.cat((h * axis, h * cross(anchor, axis) + (1.0 - h) * axis), dim=-1))
         if self._nf:
             # free joints: world-frame translation, then rotation about the body axes through the body origin
             Xf = X[:, self._free_body]
             axes = Xf[..., :3, :3].mT  # (B, nf, 3, 3): rows are the body axes
-            r = Xf[..., :3, 3]
-            S_rot = torch.cat((axes, cross(r.unsqueeze(-2), axes)), dim=-1)  # (B, nf, 3, 6)
+            S_rot = torch.cat((axes, cross(Xf[..., None, :3, 3], axes)), dim=-1)  # (B, nf, 3, 6)
             S_free = torch.cat((self._free_S_trans.expand(B, self._nf, 3, 6), S_rot), dim=2)
             parts.append(S_free.reshape(B, 6 * self._nf, 6))
-        S = torch.cat(parts, dim=1)[:, self._dof_src] if len(parts) > 1 else parts[0][:, self._dof_src]
-        return Frames(X, origin, S)
+        if self.model.nh:
+            aa = bmm(X[:, nb:], self._hs_axis_anchor)  # (B, nh, 4, 2): axis, anchor
+            axis, anchor = aa[..., :3, 0], aa[..., :3, 1]
+            h = self._hs_hinge[:, None]
+            parts.append(torch.cat((h * axis, h * cross(anchor, axis) + (1.0 - h) * axis), dim=-1))
+        S = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+        if self._dof_src is not None:
+            S = S[:, self._dof_src]
+        return Frames(X[:, :nb], origin, S)
+
+    def _free_take(self, x: torch.Tensor, idx) -> torch.Tensor:
+        """Columns of the free joints: a slice (one free joint) -> (B, 1, k), or an index (nf, k) -> (B, nf, k)."""
+        return x[:, idx].unsqueeze(1) if isinstance(idx, slice) else x[:, idx]
 
     # ------------------------------------------------------------------------------------------------------
     # inertia
@@ -421,20 +447,20 @@ class Simulator:
     def _scatter_hs(self, x: torch.Tensor) -> torch.Tensor:
         """Per hinge/slide joint values (B, nh) -> generalized force vector (B, nv) (zeros on free dofs)."""
         if self._nf:
-            x = torch.cat((x, x.new_zeros(x.shape[0], 6 * self._nf)), dim=1)
-        return x[:, self._dof_src]
+            x = torch.cat((x.new_zeros(x.shape[0], 6 * self._nf), x), dim=1)
+        return x if self._dof_src is None else x[:, self._dof_src]
 
     def passive_force(self, qpos: torch.Tensor, qvel: torch.Tensor, *, limits: bool) -> torch.Tensor:
         """Joint damping, stiffness springs and (if ``limits``) the joint-limit penalty. -> (B, nv)."""
         tau = -self._damping * qvel
-        q = qpos[:, self._hs_qadr]
+        q = qpos[:, self._hs_q]
         hs = None
         if self._has_stiffness:
             hs = -self._hs_stiffness * (q - self._hs_springref)
         if limits and self.limits is not None:
             lp = self.limits
             lim = lp.ke * (torch.clamp(q, self._hs_lo, self._hs_hi) - q)
-            qd = qvel[:, self._hs_dof]
+            qd = qvel[:, self._hs_v]
             if lp.damping == "always":
                 lim = lim - lp.kd * qd
             else:
@@ -494,16 +520,16 @@ class Simulator:
         Hinge/slide: ``q + dt qd``. Free joints: position ``+ dt v`` (world frame), quaternion
         ``q + dt/2 q (0, w_body)`` renormalised. qpos: (B, nq), qvel: (B, nv) -> (B, nq).
         """
-        q_hs = qpos[:, self._hs_qadr] + dt * qvel[:, self._hs_dof]
-        if not self._nf:
-            return q_hs[:, self._qpos_src]
-        B = qpos.shape[0]
-        pos = qpos[:, self._free_pos_idx] + dt * qvel[:, self._free_lin_idx]  # (B, nf, 3)
-        quat = qpos[:, self._free_quat_idx]
-        w = qvel[:, self._free_ang_idx]
-        quat = quat + (0.5 * dt) * quat_mul(quat, torch.nn.functional.pad(w, (1, 0)))
-        quat = quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)
-        return torch.cat((q_hs, pos.reshape(B, -1), quat.reshape(B, -1)), dim=1)[:, self._qpos_src]
+        q_hs = qpos[:, self._hs_q] + dt * qvel[:, self._hs_v]
+        if self._nf:
+            B = qpos.shape[0]
+            pos = self._free_take(qpos, self._free_pos) + dt * self._free_take(qvel, self._free_lin)  # (B, nf, 3)
+            quat = self._free_take(qpos, self._free_quat)
+            w = self._free_take(qvel, self._free_ang)
+            quat = quat + (0.5 * dt) * quat_mul(quat, torch.nn.functional.pad(w, (1, 0)))
+            quat = quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)
+            q_hs = torch.cat((torch.cat((pos, quat), dim=-1).reshape(B, 7 * self._nf), q_hs), dim=1)
+        return q_hs if self._qpos_src is None else q_hs[:, self._qpos_src]
 
     def substep(
         self,

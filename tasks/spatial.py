@@ -122,9 +122,11 @@ def cross_force(a: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
 
 def skew(a: torch.Tensor) -> torch.Tensor:
     """Skew-symmetric matrix ``[a]x`` with ``[a]x b = a x b``. (..., 3) -> (..., 3, 3)."""
+    # nested 3-way stacks: Inductor lowers a cat of <= 8 inputs to one pointwise kernel, a wider one to a
+    # separate write per input
     x, y, z = a.unbind(-1)
     o = torch.zeros_like(x)
-    return torch.stack((o, -z, y, z, o, -x, -y, x, o), dim=-1).reshape(*a.shape[:-1], 3, 3)
+    return torch.stack((torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), -2)
 
 
 def quat_to_mat(q: torch.Tensor) -> torch.Tensor:
@@ -134,15 +136,12 @@ def quat_to_mat(q: torch.Tensor) -> torch.Tensor:
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
-    m = torch.stack(
-        (
-            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-        ),
-        dim=-1,
-    )  # fmt: skip
-    return m.reshape(*q.shape[:-1], 3, 3)
+    rows = (
+        torch.stack((1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)), dim=-1),
+        torch.stack((2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)), dim=-1),
+        torch.stack((2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)), dim=-1),
+    )
+    return torch.stack(rows, dim=-2)
 
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
