@@ -208,8 +208,6 @@ class Simulator:
         ua = np.zeros((nh, 4, 2))
         ua[:, :3, 0], ua[:, :3, 1], ua[:, 3, 1] = model.hs_axis, model.hs_anchor, 1.0
         self._hs_axis_anchor = f(ua)
-        self._hs_body = i(model.hs_body)
-        self._hs_slot = i(model.hs_slot)
         self._hs_stiffness = f(model.hs_stiffness)
         self._hs_springref = f(model.hs_springref)
         big = 1e10  # "unlimited": clamp(q, -big, big) == q; finite so that no inf * 0 can appear

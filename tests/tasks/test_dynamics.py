@@ -146,3 +146,21 @@ def test_unsupported_joint_is_named(tmp_path):
     p.write_text(xml)
     with pytest.raises(UnsupportedModelError, match=r"shoulder.*ball"):
         load_model(p)
+
+
+def test_contact_gradient_finite_at_zero_tangential_velocity():
+    """Friction uses v_t/|v_t|; at v_t = 0 (a point pressing straight down, or resting) values and gradients
+    must stay finite: the viscous branch is taken and the division is never evaluated."""
+    model = load_model(ASSETS / "ant.xml")
+    sim = Simulator(model, dtype=torch.float64, contact=ContactParams(ke=4e4, kd=1e4, kf=3e3, mu=0.75))
+    qpos = torch.tensor(model.qpos0)[None].clone()
+    qpos[0, 2] = 0.24  # torso sphere 1 cm into the ground
+    qpos[0, 7:] = torch.tensor([0.0, -1.0, 0.0, 1.0, 0.0, 1.0, 0.0, -1.0])
+    for vz in (-0.3, 0.0):  # pressing down / resting
+        qvel = torch.zeros(1, model.nv, dtype=torch.float64)
+        qvel[0, 2] = vz
+        q, v = qpos.clone().requires_grad_(True), qvel.requires_grad_(True)
+        qacc = sim.acceleration(q, v, torch.zeros(1, model.nv, dtype=torch.float64))
+        gq, gv = torch.autograd.grad(qacc.square().sum(), (q, v))
+        assert torch.isfinite(qacc).all() and torch.isfinite(gq).all() and torch.isfinite(gv).all()
+        assert gv[0, 0].abs() > 0  # the viscous friction still responds to sliding
