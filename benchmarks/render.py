@@ -65,7 +65,8 @@ def _time(fn, device, *, warmup: int, repeats: int) -> tuple[float, float]:
 
 
 class Scene:
-    """The ant (optionally with extra meshes up to about ``faces`` faces) at random poses."""
+    """The ant at random poses: ``faces`` 0 is the plain ant (detail 1, 1,856 faces), fewer than that its
+    detail-0 model (944), more adds extra sphere meshes (480 or 960 faces each) up to about ``faces``."""
 
     _cache: ClassVar[dict] = {}
 
@@ -78,7 +79,7 @@ class Scene:
                 per_mesh_faces = 2 * per_mesh_verts - 4
                 n = math.ceil((faces - robot.num_faces) / per_mesh_faces)
                 robot = robot.with_extra_meshes(n, per_mesh_verts, seed=seed)
-            elif faces < robot.num_faces:
+            elif 0 < faces < robot.num_faces:
                 robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=0, dtype=dtype, device=device)
             Scene._cache[key] = robot
         self.robot = robot = Scene._cache[key]

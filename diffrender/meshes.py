@@ -24,7 +24,8 @@ detail  sphere (ico)      capsule             cylinder           box       ellip
 3       2562 / 5120       258 / 512           258 / 256 (64)     24 / 12   2562 / 5120
 ======  ================  ==================  =================  ========  ====================
 
-Detail 1 (the default) gives the ant 1,856 faces and the humanoid 2,464.
+Detail 1 (the default) gives the ant 1,856 faces (954 vertices), the humanoid 3,008 (1,542), the hopper 512
+(264) and the cartpole 36 (72).
 """
 
 from __future__ import annotations

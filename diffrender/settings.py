@@ -83,7 +83,9 @@ class RasterSettings:
             limit: overflow raises a RuntimeError with the numbers. Never an incomplete image.
         chunk_elems: pixel-face evaluations per chunk (bounds transient memory); environments are
             processed ``max(1, chunk_elems // (bin_capacity * tile_size**2))`` at a time.
-        compile: run the per-chunk kernel through ``torch.compile`` (first call compiles).
+        compile: run binning and the per-chunk kernel through ``torch.compile`` (the first call per shape
+            compiles; forward and the recompute-backward compile separately). Needed for the GPU speed
+            targets: eager mode launches several hundred small kernels per chunk.
         sync_checks: check bin overflow, face indices and finiteness with one host synchronisation per
             render and raise errors. When False (needed inside CUDA-graph capture) nothing syncs and an
             environment whose bins overflow renders as NaN instead, which downstream NaN guards catch.
@@ -103,7 +105,7 @@ class RasterSettings:
     backend: str = "auto"
     tile_size: int = 4
     bin_capacity: int | None = None
-    chunk_elems: int = 1 << 22
+    chunk_elems: int = 1 << 23
     compile: bool = False
     sync_checks: bool = True
 

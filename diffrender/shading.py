@@ -3,8 +3,7 @@
 ``color = albedo * (ambient + diffuse * max(0, n . l))`` with ``l`` the unit direction towards the light and
 ``n`` the unit surface normal. The rasterizer interpolates per-vertex normals with perspective-correct
 barycentrics and shades every pixel-face pair before the depth blend (so each candidate carries its own lit
-colour); :func:`lambert_from_dots` is that per-pair form, written on precomputed dot products so that the
-inner loop touches scalars only.
+colour) with :func:`lambert_shade`.
 """
 
 from __future__ import annotations
@@ -13,7 +12,7 @@ import math
 
 import torch
 
-__all__ = ["lambert", "lambert_from_dots", "unit_light"]
+__all__ = ["lambert", "lambert_shade", "unit_light"]
 
 
 def unit_light(light_dir: tuple[float, float, float]) -> tuple[float, float, float]:
@@ -25,27 +24,12 @@ def unit_light(light_dir: tuple[float, float, float]) -> tuple[float, float, flo
 def lambert(albedo: torch.Tensor, normal: torch.Tensor, light: tuple[float, float, float], *,
             ambient: float, diffuse: float) -> torch.Tensor:
     """Shade ``albedo: (..., 3)`` with (not necessarily unit) normals ``normal: (..., 3)``; returns (..., 3)."""
-    l_vec = normal.new_tensor(light)
-    n_dot_l = (normal * l_vec).sum(-1) * torch.rsqrt((normal * normal).sum(-1) + 1e-20)
-    return albedo * (ambient + diffuse * n_dot_l.clamp(min=0.0))[..., None]
+    return albedo * lambert_shade(normal, normal.new_tensor(light), ambient=ambient, diffuse=diffuse)[..., None]
 
 
-def lambert_from_dots(b: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-                      n_dot_l: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-                      n_dot_n: tuple[torch.Tensor, torch.Tensor, torch.Tensor], *,
-                      ambient: float, diffuse: float) -> torch.Tensor:
-    """Light factor ``ambient + diffuse * max(0, n . l)`` of the normalised interpolated normal
-    ``n = sum_k b_k n_k`` of unit vertex normals ``n_k``, from per-face dot products.
-
-    Args:
-        b: three barycentric weights, each (N, P).
-        n_dot_l: ``n_k . l`` per face vertex, each (N, 1).
-        n_dot_n: ``(n_1 . n_2, n_2 . n_0, n_0 . n_1)``, each (N, 1).
-    Returns:
-        (N, P) light factor.
-    """
-    b0, b1, b2 = b
-    num = b0 * n_dot_l[0] + b1 * n_dot_l[1] + b2 * n_dot_l[2]
-    # |sum b_k n_k|^2 for unit n_k
-    sq = b0 * b0 + b1 * b1 + b2 * b2 + 2.0 * (b1 * b2 * n_dot_n[0] + b2 * b0 * n_dot_n[1] + b0 * b1 * n_dot_n[2])
-    return ambient + diffuse * (num * torch.rsqrt(sq.clamp(min=0.0) + 1e-20)).clamp(min=0.0)
+def lambert_shade(normal: torch.Tensor, light: torch.Tensor, *, ambient: float, diffuse: float) -> torch.Tensor:
+    """Light factor ``ambient + diffuse * max(0, n . l / |n|)`` of (not necessarily unit) normals
+    ``normal: (..., 3)`` and a unit light direction ``light: (3,)``; returns (...)."""
+    n_dot_l = normal @ light
+    inv_len = torch.rsqrt((normal * normal).sum(-1) + 1e-20)
+    return ambient + diffuse * (n_dot_l * inv_len).clamp(min=0.0)

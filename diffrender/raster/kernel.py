@@ -19,7 +19,7 @@ import torch
 
 from ..floor import floor_candidate
 from ..settings import FloorSettings, RasterSettings
-from ..shading import lambert_from_dots, unit_light
+from ..shading import lambert_shade, unit_light
 
 __all__ = ["Static", "face_validity", "project", "render_pairs", "vertex_normals"]
 
@@ -155,9 +155,8 @@ def render_pairs(
     if colors.ndim == 2:
         colors = colors.expand(b, nv, 3)
     light = verts.new_tensor(st.light)
-    n_dot_l = (normals * light).sum(-1, keepdim=True)
-    # one gather of everything a face needs: (u, v, z, n.l, n (3), albedo (3)) per corner
-    vdata = torch.cat([uvz, n_dot_l, normals, colors], dim=-1)  # (B, V, 10)
+    # one gather of everything a face needs: (u, v, z, pad, n (3), albedo (3)) per corner
+    vdata = torch.cat([uvz, torch.zeros_like(uvz[..., :1]), normals, colors], dim=-1)  # (B, V, 10)
     vidx = faces[pair_face] + (pair_env * nv)[:, None]  # (N, 3)
     fd = vdata.reshape(b * nv, 10).index_select(0, vidx.reshape(-1)).view(n, 3, 10)
     valid = pair_valid
@@ -166,62 +165,52 @@ def render_pairs(
     dummy = torch.cat([dummy, verts.new_zeros(3, 7)], dim=1)
     fd = torch.where(valid[:, None, None], fd, dummy)
 
-    # ---- per-pair constants, shape (N, 1). Everything that does not depend on the pixel is computed here,
-    # and the pixel-dependent quantities are affine in the tile-local pixel offsets (lx, ly), so the
-    # per-pixel work below is a few multiply-adds per quantity.
-    u = [fd[:, k, 0:1] for k in range(3)]
-    v = [fd[:, k, 1:2] for k in range(3)]
-    iz = [1.0 / fd[:, k, 2:3] for k in range(3)]
-    ndl = [fd[:, k, 3:4] for k in range(3)]
-    nrm = [fd[:, k, 4:7] for k in range(3)]
-    alb = [fd[:, k, 7:10] for k in range(3)]
-    ndn = ((nrm[1] * nrm[2]).sum(-1, keepdim=True), (nrm[2] * nrm[0]).sum(-1, keepdim=True),
-           (nrm[0] * nrm[1]).sum(-1, keepdim=True))
-    area2 = (u[1] - u[0]) * (v[2] - v[0]) - (v[1] - v[0]) * (u[2] - u[0])
+    # ---- per-pair constants. Index k runs over the three edges, edge k being the one opposite vertex k
+    # (from vertex k+1 to vertex k+2); everything that does not depend on the pixel is computed here, and
+    # the pixel-dependent quantities are affine in the tile-local pixel offsets (lx, ly). The three edges
+    # are stacked on dim 1 so each step below is one tensor operation for all of them (fewer kernels).
+    u, v = fd[:, :, 0], fd[:, :, 1]  # (N, 3)
+    iz = 1.0 / fd[:, :, 2:3]  # (N, 3, 1)
+    ua, va = u.roll(-1, 1), v.roll(-1, 1)  # edge start (vertex k+1)
+    ex, ey = u.roll(-2, 1) - ua, v.roll(-2, 1) - va  # edge vector (to vertex k+2)
+    area2 = ex[:, :1] * (v[:, :1] - va[:, :1]) - ey[:, :1] * (u[:, :1] - ua[:, :1])  # (N, 1), cross(e0, p0 - a0)
     area2 = torch.where(area2 == 0, torch.ones_like(area2), area2)  # only padding/dropped faces
     inv_area = 1.0 / area2
-    abs_area = area2.abs()
+    len2 = ex * ex + ey * ey
+    inv_len2 = 1.0 / len2
     tile = pair_tile
-    x0 = ((tile % st.tiles_x) * st.tile_w).to(dt)[:, None]
-    y0 = ((tile // st.tiles_x) * st.tile_h).to(dt)[:, None]
+    ox = ((tile % st.tiles_x) * st.tile_w).to(dt)[:, None] - ua  # tile origin relative to the edge start
+    oy = ((tile // st.tiles_x) * st.tile_h).to(dt)[:, None] - va
     k_pix = torch.arange(st.tile_pixels, device=verts.device)
-    lx = ((k_pix % st.tile_w).to(dt) + 0.5)[None]  # (1, T) pixel-centre offsets within the tile
-    ly = ((k_pix // st.tile_w).to(dt) + 0.5)[None]
+    lx = ((k_pix % st.tile_w).to(dt) + 0.5).view(1, 1, -1)  # (1, 1, T) pixel-centre offsets in the tile
+    ly = ((k_pix // st.tile_w).to(dt) + 0.5).view(1, 1, -1)
+    # screen-space barycentrics lambda_k = cross(e_k, p - a_k) / area2 and the position along each edge
+    # (0 at its start, 1 at its end), as c0 + cx * lx + cy * ly
+    lam_c = torch.stack([(ex * oy - ey * ox) * inv_area, -ey * inv_area, ex * inv_area], -1)  # (N, 3, 3)
+    par_c = torch.stack([(ex * ox + ey * oy) * inv_len2, ex * inv_len2, ey * inv_len2], -1)
+    height = (area2.abs() * torch.sqrt(inv_len2))[..., None]  # (N, 3, 1): |area2| / |e_k|
 
-    # ---- per pixel of the pair's tile, shape (N, T)
-    lam, dline, dseg2 = [], [], []
-    for k in range(3):
-        a, c = (k + 1) % 3, (k + 2) % 3  # edge opposite vertex k, from a to c
-        ex, ey = u[c] - u[a], v[c] - v[a]
-        len2 = ex * ex + ey * ey
-        inv_len2 = 1.0 / len2
-        ox, oy = x0 - u[a], y0 - v[a]  # tile origin relative to the edge start
-        if k < 2:
-            # screen-space barycentric of vertex k: cross(e, p - a) / area2, affine in the pixel offset
-            lam.append((ex * oy - ey * ox) * inv_area + (ex * inv_area) * ly - (ey * inv_area) * lx)
-        else:
-            lam.append(1.0 - lam[0] - lam[1])
-        dline.append(lam[k] * (abs_area * torch.sqrt(inv_len2)))  # signed distance to the edge's line
-        # position along the edge (0 at a, 1 at c); beyond [0, 1] the nearest point is an end point
-        s_par = (ex * ox + ey * oy) * inv_len2 + (ex * inv_len2) * lx + (ey * inv_len2) * ly
-        overshoot = s_par - s_par.clamp(0.0, 1.0)
-        dseg2.append(dline[k] * dline[k] + len2 * (overshoot * overshoot))  # squared distance to the segment
-    dmin = torch.minimum(torch.minimum(dline[0], dline[1]), dline[2])
+    # ---- per pixel of the pair's tile: (N, 3, T) per edge, (N, T) per pixel
+    lam = lam_c[..., 0:1] + lam_c[..., 1:2] * lx + lam_c[..., 2:3] * ly
+    dline = lam * height  # signed distance to each edge's line (inside positive)
+    s_par = par_c[..., 0:1] + par_c[..., 1:2] * lx + par_c[..., 2:3] * ly
+    overshoot = s_par - s_par.clamp(0.0, 1.0)  # beyond the ends the nearest point is an end point
+    dseg2 = dline * dline + len2[..., None] * (overshoot * overshoot)  # squared distance to each segment
+    dmin = dline.amin(1)
     # exact signed Euclidean distance to the triangle (linear in the pixel offset at an edge):
     # inside, the nearest edge line; outside, the nearest point of the boundary
-    sd = torch.where(dmin >= 0, dmin,
-                     -torch.sqrt(torch.minimum(torch.minimum(dseg2[0], dseg2[1]), dseg2[2]) + 1e-20))
+    sd = torch.where(dmin >= 0, dmin, -torch.sqrt(dseg2.amin(1) + 1e-20))
     # perspective-correct barycentrics from clamped screen barycentrics (1/z is affine in screen space)
-    lc = [x.clamp(min=0.0) for x in lam]
-    q = [lc[k] * iz[k] for k in range(3)]
-    inv_q = 1.0 / (q[0] + q[1] + q[2])
-    depth = (lc[0] + lc[1] + lc[2]) * inv_q
-    bary = (q[0] * inv_q, q[1] * inv_q, q[2] * inv_q)
+    lc = lam.clamp(min=0.0)
+    q = lc * iz
+    inv_q = 1.0 / q.sum(1, keepdim=True)
+    depth = lc.sum(1) * inv_q[:, 0]
+    bary = q * inv_q  # (N, 3, T)
     z_n = (st.zfar - depth) * (1.0 / (st.zfar - st.znear))
-    shade = lambert_from_dots(bary, ndl, ndn, ambient=st.ambient, diffuse=st.diffuse)
-    albedo = bary[0][..., None] * alb[0][:, None] + bary[1][..., None] * alb[1][:, None] \
-        + bary[2][..., None] * alb[2][:, None]
-    color = albedo * shade[..., None]  # (N, T, 3)
+    # interpolate normal and albedo in one batched matmul: (N, T, 3) x (N, 3, 6)
+    attr = torch.bmm(bary.transpose(1, 2), fd[:, :, 4:10])
+    normal, albedo = attr[..., :3], attr[..., 3:]
+    color = albedo * lambert_shade(normal, light, ambient=st.ambient, diffuse=st.diffuse)[..., None]  # (N, T, 3)
     keep = valid[:, None] & (sd > -st.cutoff_radius)
 
     # ---- blend. Per-pixel buffers are laid out (B * tiles, T): a pair's pixels are one contiguous row.
@@ -249,16 +238,19 @@ def render_pairs(
     coverage = torch.sigmoid(sd * (1.0 / st.sigma))
     expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
     w = coverage * torch.exp(expo)  # exactly 0 for dropped pairs (also in the backward)
-    src = torch.cat([color * w[..., None], w[..., None]], dim=-1)  # (N, T, 4)
-    acc = verts.new_zeros(b * ntile, st.tile_pixels, 4).index_add(0, rows, src)
+    # the floor and background start the per-pixel sums; the faces are scattered onto them (scattering into
+    # fresh zero buffers and adding the floor afterwards was mis-compiled by inductor 2.13 on the CPU: the
+    # scattered part went missing; tests/diffrender/test_raster.py::test_compiled_kernel_matches_eager)
     w_bg = torch.exp((bg_zn - m) / st.gamma)
-    num = acc[..., :3] + w_bg[..., None] * verts.new_tensor(st.background)
-    den = acc[..., 3] + w_bg
+    num = w_bg[..., None] * verts.new_tensor(st.background)
+    den = w_bg
     if st.floor is not None:
         # no-hit pixels carry a stand-in depth; mask before exp so no inf is formed (inf * 0 = NaN in backward)
         w_floor = torch.exp(torch.where(f_hit, (f_zn - m) / st.gamma, torch.full_like(f_zn, -math.inf)))
         num = num + w_floor[..., None] * f_col
         den = den + w_floor
+    num = num.index_add(0, rows, color * w[..., None])
+    den = den.index_add(0, rows, w)
     out = num / den[..., None]  # (B * tiles, T, 3)
     img = out.view(b, st.tiles_y, st.tiles_x, st.tile_h, st.tile_w, 3).permute(0, 5, 1, 3, 2, 4)
     img = img.reshape(b, 3, st.tiles_y * st.tile_h, st.tiles_x * st.tile_w)

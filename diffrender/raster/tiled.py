@@ -32,12 +32,17 @@ __all__ = ["chunk_of", "measure_capacity", "rasterize_tiled", "tiled_static"]
 
 
 @functools.cache
-def _compiled_kernel():
-    return torch.compile(render_pairs, dynamic=False)
+def _compiled(fn):
+    # static shapes (bin capacity, chunk size) by construction: no dynamic-shape tracing
+    return torch.compile(fn, dynamic=False)
 
 
 def _kernel(compile_: bool):
-    return _compiled_kernel() if compile_ else render_pairs
+    return _compiled(render_pairs) if compile_ else render_pairs
+
+
+def _binner(compile_: bool):
+    return _compiled(bin_faces) if compile_ else bin_faces
 
 
 def tiled_static(settings: RasterSettings, camera: Camera) -> Static:
@@ -50,13 +55,13 @@ def _chunk_envs(settings: RasterSettings, st: Static, capacity: int) -> int:
     return max(1, settings.chunk_elems // max(1, capacity * st.tile_pixels))
 
 
-def _bins(verts, rotation, eye, faces, st: Static, slots: int) -> Bins:
+def _bins(verts, rotation, eye, faces, st: Static, slots: int, compile_: bool = False) -> Bins:
     if faces.shape[0] == 0 or slots == 0:
         b, dev = verts.shape[0], verts.device
         empty = torch.zeros(0, dtype=torch.long, device=dev)
         return Bins(env=empty, face=empty, tile=empty, valid=empty.bool(),
                     count=torch.zeros(b, dtype=torch.long, device=dev))
-    return bin_faces(verts, rotation, eye, faces, st, slots)
+    return _binner(compile_)(verts, rotation, eye, faces, st, slots)
 
 
 def _rows(x: torch.Tensor | None, sl: slice, *, shared_ok: bool = False) -> torch.Tensor | None:
@@ -81,7 +86,7 @@ class _TiledRasterize(torch.autograd.Function):
         need = torch.zeros(b, dtype=torch.long, device=verts.device)
         for sl in _chunks(b, chunk):
             nb = sl.stop - sl.start
-            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * nb)
+            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * nb, compile_)
             # slots are pooled over the chunk: report the chunk's demand per environment (rounded up)
             need[sl] = -(-bins.count.sum() // nb)
             out[sl] = kernel(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True), rotation[sl],
@@ -103,7 +108,7 @@ class _TiledRasterize(torch.autograd.Function):
         inputs = (verts, normals, colors, rotation, eye)
         grads = [torch.zeros_like(x) if (nd and x is not None) else None for x, nd in zip(inputs, need)]
         for sl in _chunks(verts.shape[0], chunk):
-            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * (sl.stop - sl.start))
+            bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * (sl.stop - sl.start), compile_)
             with torch.enable_grad():
                 leaves = [None if x is None
                           else _rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))

@@ -49,8 +49,8 @@ def hard_zbuffer(verts, faces, colors, camera: dr.Camera, settings: dr.RasterSet
     """Independent hard rasterizer: for each pixel centre, the nearest face whose (closed) screen triangle
     contains it, perspective-correct depth and attributes, Lambert shading with normalised interpolated
     normals; else the floor where the pixel's ray hits it (nearer than any face), else the background.
-    Written per pixel with explicit loops over faces, sharing no code with the soft rasterizer except the
-    floor texture (:func:`diffrender.floor.floor_candidate`). Returns (B, 3, H, W)."""
+    Evaluates every face at every pixel with its own edge functions, sharing no code with the soft
+    rasterizer except the floor texture (:func:`diffrender.floor.floor_candidate`). Returns (B, 3, H, W)."""
     b, h, w = verts.shape[0], camera.height, camera.width
     dt = verts.dtype
     if normals is None:
@@ -77,29 +77,36 @@ def hard_zbuffer(verts, faces, colors, camera: dr.Camera, settings: dr.RasterSet
         depth = settings.zfar - zn * (settings.zfar - settings.znear)
         best = torch.where(hit, depth, best)
         img = torch.where(hit[:, None], col.permute(0, 3, 1, 2), img)
+    # all faces at once per environment: (F, H, W) edge functions, depth, nearest covering face
+    f_idx = faces
     for bi in range(b):
-        for f in faces.tolist():
-            if (z[bi, f] <= settings.znear).any():
-                continue
-            (u0, u1, u2), (v0, v1, v2) = u[bi, f].tolist(), v[bi, f].tolist()
-            area = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
-            if area == 0 or (settings.cull_backfaces and area > 0):
-                continue
-            l0 = ((u2 - u1) * (ii - v1) - (v2 - v1) * (jj - u1)) / area
-            l1 = ((u0 - u2) * (ii - v2) - (v0 - v2) * (jj - u2)) / area
-            l2 = 1.0 - l0 - l1
-            inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
-            iz = 1.0 / z[bi, f]
-            q = torch.stack([l0 * iz[0], l1 * iz[1], l2 * iz[2]])
-            depth = 1.0 / q.sum(0)
-            bary = q * depth
-            take = inside & (depth < best[bi])
-            best[bi] = torch.where(take, depth, best[bi])
-            n = torch.einsum("khw,kc->hwc", bary, normals[bi, f])
-            n = n / n.norm(dim=-1, keepdim=True)
-            shade = settings.ambient + settings.diffuse * (n @ light).clamp(min=0)
-            albedo = torch.einsum("khw,kc->chw", bary, colors[f] if colors.ndim == 2 else colors[bi, f])
-            img[bi] = torch.where(take, albedo * shade, img[bi])
+        fz = z[bi, f_idx]  # (F, 3)
+        fu, fv = u[bi, f_idx], v[bi, f_idx]
+        (u0, u1, u2), (v0, v1, v2) = fu.unbind(1), fv.unbind(1)
+        area = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
+        ok = (fz > settings.znear).all(1) & (area != 0)
+        if settings.cull_backfaces:
+            ok &= area < 0
+        area = torch.where(area == 0, torch.ones_like(area), area)[:, None, None]
+        e = lambda a: a[:, None, None]  # noqa: E731
+        l0 = ((e(u2) - e(u1)) * (ii - e(v1)) - (e(v2) - e(v1)) * (jj - e(u1))) / area
+        l1 = ((e(u0) - e(u2)) * (ii - e(v2)) - (e(v0) - e(v2)) * (jj - e(u2))) / area
+        l2 = 1.0 - l0 - l1
+        inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & ok[:, None, None]
+        iz = 1.0 / fz.clamp(min=settings.znear)
+        q = torch.stack([l0 * e(iz[:, 0]), l1 * e(iz[:, 1]), l2 * e(iz[:, 2])])  # (3, F, H, W)
+        depth = torch.where(inside, 1.0 / q.sum(0), torch.full_like(l0, math.inf))
+        dmin, arg = depth.min(0)  # nearest face per pixel
+        take = dmin < best[bi]
+        best[bi] = torch.where(take, dmin, best[bi])
+        bary = (q * depth).gather(1, arg[None, None].expand(3, 1, h, w))[:, 0]  # (3, H, W)
+        fsel = f_idx[arg]  # (H, W, 3) vertex ids of the chosen face
+        n = (bary.permute(1, 2, 0)[..., None] * normals[bi][fsel]).sum(2)
+        n = n / n.norm(dim=-1, keepdim=True)
+        shade = settings.ambient + settings.diffuse * (n @ light).clamp(min=0)
+        cols = colors[fsel] if colors.ndim == 2 else colors[bi][fsel]
+        albedo = (bary.permute(1, 2, 0)[..., None] * cols).sum(2).permute(2, 0, 1)
+        img[bi] = torch.where(take, albedo * shade, img[bi])
     return img
 
 
