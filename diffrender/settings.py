@@ -71,6 +71,15 @@ class RasterSettings:
         ambient, diffuse: Lambert coefficients, ``ambient + diffuse <= 1`` keeps colours in [0, 1].
         cull_backfaces: drop faces whose projected winding shows their back. Halves the work on closed
             meshes; when a face turns edge-on its (hidden) soft tail appears/disappears.
+        blend: ``"softmax"`` (default, the image model above: floor and background are candidates of the
+            depth softmax) or ``"alpha"``: the depth softmax runs over the faces only and is composited over
+            the floor/background with the faces' joint coverage ``A = 1 - prod(1 - D)``. Why it exists: in
+            the softmax model a face's weight relative to a surface behind it is ``D exp(dz_n / gamma)``, so
+            wherever the depth gap is many gammas (a robot in front of the floor) the face owns every pixel
+            out to the coverage cut-off: its silhouette is dilated by ``cutoff_radius`` and is a hard edge
+            with no gradient (the image jumps at the cut-off instead). With ``"alpha"`` the silhouette over
+            the floor/background is the smooth sigmoid again, so it carries gradients; the floor then never
+            occludes faces (parts below z = 0 stay visible). Between faces both modes use the softmax.
         coverage_cutoff: pairs with ``D`` below this are dropped exactly (binning radius
             ``sigma * ln(1 / cutoff - 1)``); both backends drop the same pairs.
         backend: ``"tiled"`` (binned, memory-bounded custom backward), ``"dense"`` (every face at every
@@ -101,6 +110,7 @@ class RasterSettings:
     ambient: float = 0.4
     diffuse: float = 0.6
     cull_backfaces: bool = True
+    blend: str = "softmax"
     coverage_cutoff: float = 1e-4
     backend: str = "auto"
     tile_size: int = 4
@@ -125,6 +135,8 @@ class RasterSettings:
             raise ValueError(f"ambient and diffuse must be >= 0, got {self.ambient}, {self.diffuse}")
         if not 0 < self.coverage_cutoff < 0.5:
             raise ValueError(f"coverage_cutoff must be in (0, 0.5), got {self.coverage_cutoff}")
+        if self.blend not in ("softmax", "alpha"):
+            raise ValueError(f"blend must be 'softmax' or 'alpha', got {self.blend!r}")
         if self.backend not in ("auto", "dense", "tiled"):
             raise ValueError(f"backend must be 'auto', 'dense' or 'tiled', got {self.backend!r}")
         if not (isinstance(self.tile_size, int) and 1 <= self.tile_size <= 64):

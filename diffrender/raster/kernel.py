@@ -49,6 +49,7 @@ class Static:
     ambient: float
     diffuse: float
     cull_backfaces: bool
+    blend: str = "softmax"
 
     @property
     def tiles_x(self) -> int:
@@ -75,7 +76,8 @@ class Static:
                    cutoff_radius=float(settings.cutoff_radius),
                    background=tuple(float(c) for c in settings.background), floor=settings.floor,
                    light=unit_light(settings.light_dir), ambient=float(settings.ambient),
-                   diffuse=float(settings.diffuse), cull_backfaces=bool(settings.cull_backfaces))
+                   diffuse=float(settings.diffuse), cull_backfaces=bool(settings.cull_backfaces),
+                   blend=settings.blend)
 
 
 def project(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, st: Static) -> torch.Tensor:
@@ -230,28 +232,56 @@ def render_pairs(
         m0 = torch.where(f_hit, f_zn.detach(), torch.full_like(f_zn, bg_zn))
     else:
         m0 = verts.new_full((b * ntile, st.tile_pixels), bg_zn)
-    # detached per-pixel max of the candidates' normalised depth: it cancels in the blend and only keeps
-    # exp() <= 1; it must include every kept face so no weight overflows
-    with torch.no_grad():
-        cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
-        m = m0.scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand, reduce="amax", include_self=True)
-    coverage = torch.sigmoid(sd * (1.0 / st.sigma))
-    expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
-    w = coverage * torch.exp(expo)  # exactly 0 for dropped pairs (also in the backward)
-    # the floor and background start the per-pixel sums; the faces are scattered onto them (scattering into
-    # fresh zero buffers and adding the floor afterwards was mis-compiled by inductor 2.13 on the CPU: the
-    # scattered part went missing; tests/diffrender/test_raster.py::test_compiled_kernel_matches_eager)
-    w_bg = torch.exp((bg_zn - m) / st.gamma)
-    num = w_bg[..., None] * verts.new_tensor(st.background)
-    den = w_bg
+    # behind every face: the floor where the pixel's ray hits it, else the background (normalised depth 0)
     if st.floor is not None:
         # no-hit pixels carry a stand-in depth; mask before exp so no inf is formed (inf * 0 = NaN in backward)
-        w_floor = torch.exp(torch.where(f_hit, (f_zn - m) / st.gamma, torch.full_like(f_zn, -math.inf)))
-        num = num + w_floor[..., None] * f_col
-        den = den + w_floor
-    num = num.index_add(0, rows, color * w[..., None])
-    den = den.index_add(0, rows, w)
-    out = num / den[..., None]  # (B * tiles, T, 3)
+        f_expo = torch.where(f_hit, (f_zn - m0) / st.gamma, torch.full_like(f_zn, -math.inf))
+    coverage = torch.sigmoid(sd * (1.0 / st.sigma))
+    if st.blend == "softmax":
+        # the floor and the background are candidates of the depth softmax like the faces. Detached
+        # per-pixel max of the candidates' normalised depth: it cancels in the blend and only keeps
+        # exp() <= 1; it must include every kept face so no weight overflows
+        with torch.no_grad():
+            cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
+            m = m0.scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand, reduce="amax",
+                                  include_self=True)
+        expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
+        w = coverage * torch.exp(expo)  # exactly 0 for dropped pairs (also in the backward)
+        # the floor and background start the per-pixel sums; the faces are scattered onto them (scattering
+        # into fresh zero buffers and adding the floor afterwards was mis-compiled by inductor 2.13 on the
+        # CPU: the scattered part went missing; test_raster.py::test_compiled_kernel_matches_eager)
+        shift = torch.exp((m0 - m) / st.gamma)  # rescale floor/background weights from m0 to m
+        num = (shift * torch.exp((bg_zn - m0) / st.gamma))[..., None] * verts.new_tensor(st.background)
+        den = shift * torch.exp((bg_zn - m0) / st.gamma)
+        if st.floor is not None:
+            w_floor = shift * torch.exp(f_expo)
+            num = num + w_floor[..., None] * f_col
+            den = den + w_floor
+        num = num.index_add(0, rows, color * w[..., None])
+        den = den.index_add(0, rows, w)
+        out = num / den[..., None]  # (B * tiles, T, 3)
+    else:
+        # "alpha": the depth softmax runs over the faces only and its colour is composited over the floor /
+        # background with the faces' joint coverage A = 1 - prod(1 - D) = 1 - exp(-sum softplus(sd / sigma))
+        with torch.no_grad():
+            cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
+            m = torch.full_like(m0, -math.inf).scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand,
+                                                               reduce="amax", include_self=True)
+            m = torch.where(torch.isfinite(m), m, torch.zeros_like(m))  # pixels without faces
+        expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
+        w = coverage * torch.exp(expo)
+        log_t = torch.where(keep, torch.nn.functional.softplus(sd * (1.0 / st.sigma)), torch.zeros_like(sd))
+        behind = verts.new_tensor(st.background).expand((*m0.shape, 3))
+        if st.floor is not None:
+            w_floor = torch.exp(f_expo)  # relative to the background's exp((0 - m0) / gamma)
+            w_bg = torch.exp((bg_zn - m0) / st.gamma)
+            behind = (w_bg[..., None] * behind + w_floor[..., None] * f_col) / (w_bg + w_floor)[..., None]
+        zero = torch.zeros_like(m0)
+        num = zero[..., None].expand((*m0.shape, 3)).index_add(0, rows, color * w[..., None])
+        den = zero.index_add(0, rows, w)
+        alpha = 1.0 - torch.exp(-zero.index_add(0, rows, log_t))
+        faces_color = num / torch.where(den > 0, den, torch.ones_like(den))[..., None]
+        out = alpha[..., None] * faces_color + (1.0 - alpha[..., None]) * behind
     img = out.view(b, st.tiles_y, st.tiles_x, st.tile_h, st.tile_w, 3).permute(0, 5, 1, 3, 2, 4)
     img = img.reshape(b, 3, st.tiles_y * st.tile_h, st.tiles_x * st.tile_w)
     return img[:, :, : st.height, : st.width]

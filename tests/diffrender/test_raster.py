@@ -28,11 +28,11 @@ def ant64():
 
 # ------------------------------------------------------------------------------------------------ gradients
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("cull", [True, False])
-def test_gradcheck_vertices_and_colors(backend, cull):
+@pytest.mark.parametrize(("cull", "blend"), [(True, "softmax"), (False, "softmax"), (False, "alpha")])
+def test_gradcheck_vertices_and_colors(backend, cull, blend):
     verts, faces, colors = tiny_scene()
     _, _, cam = tiny_camera()
-    s = _settings(backend, cull_backfaces=cull)
+    s = _settings(backend, cull_backfaces=cull, blend=blend)
     per_env_colors = colors.expand(2, 9, 3).clone()
     for col in (colors, per_env_colors):
         torch.autograd.gradcheck(lambda v, c: dr.render(v, faces, c, cam, s),
@@ -41,12 +41,13 @@ def test_gradcheck_vertices_and_colors(backend, cull):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_gradcheck_camera_eye_target_and_normals(backend):
+@pytest.mark.parametrize("blend", ["softmax", "alpha"])
+def test_gradcheck_camera_eye_target_and_normals(backend, blend):
     verts, faces, colors = tiny_scene()
     eye, target, _ = tiny_camera()
     normals = torch.nn.functional.normalize(torch.randn(2, 9, 3, dtype=F64) + torch.tensor([0, -2.0, 0.5],
                                                                                           dtype=F64), dim=-1)
-    s = _settings(backend)
+    s = _settings(backend, blend=blend)
 
     def fn(e, t, n):
         cam = dr.Camera.look_at(e, t, (0.0, 0.0, 1.0), 40.0, 7, 6)
@@ -88,6 +89,8 @@ def _ant_inputs(robot, batch=2, size=20, seed=0):
         dict(tile_size=5, chunk_elems=1),  # ragged tiles, one environment per chunk
         dict(tile_size=16, cull_backfaces=False, floor=None),
         dict(tile_size=4, sigma=0.3, gamma=1e-3),
+        dict(blend="alpha", cull_backfaces=False, tile_size=3, chunk_elems=1),
+        dict(blend="alpha", floor=None),
     ],
 )
 def test_tiled_matches_dense_forward_and_backward(ant64, kw):
@@ -125,12 +128,12 @@ def test_tiled_matches_dense_with_given_normals_and_per_env_colors(ant64):
 
 
 # ------------------------------------------------------------------------------------------------ limits
-@pytest.mark.parametrize("floor", [True, False])
-def test_soft_approaches_hard_zbuffer_monotonically(ant64, floor):
+@pytest.mark.parametrize(("floor", "blend"), [(True, "softmax"), (False, "softmax"), (True, "alpha")])
+def test_soft_approaches_hard_zbuffer_monotonically(ant64, floor, blend):
     """As sigma, gamma -> 0 the fraction of pixels differing from an independent hard z-buffer decreases
     monotonically to (almost) nothing."""
     verts, normals, cam = _ant_inputs(ant64, batch=2, size=32, seed=2)
-    base = dict(znear=0.5, zfar=6.0, floor=dr.FloorSettings() if floor else None)
+    base = dict(znear=0.5, zfar=6.0, floor=dr.FloorSettings() if floor else None, blend=blend)
     hard = hard_zbuffer(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(**base), normals=normals)
     fractions = []
     for sigma, gamma in [(1.0, 1e-2), (0.3, 3e-3), (0.1, 1e-3), (0.03, 3e-4), (0.01, 1e-4), (0.003, 1e-5)]:
@@ -379,11 +382,13 @@ def test_compiled_kernel_matches_eager():
     It caught an inductor mis-fusion of a scatter-add into a zero buffer, see kernel.py.)"""
     verts, faces, colors = tiny_scene()
     _, _, cam = tiny_camera(height=12, width=10)
-    res = []
-    for comp in (False, True):
-        v = verts.clone().requires_grad_()
-        img = dr.render(v, faces, colors, cam, tiny_settings(compile=comp))
-        (img * torch.linspace(0, 1, img.numel(), dtype=F64).view_as(img)).sum().backward()
-        res.append((img.detach(), v.grad))
-    assert (res[0][0] - res[1][0]).abs().max() < 1e-12
-    assert res[0][1].abs().max() > 0 and (res[0][1] - res[1][1]).abs().max() < 1e-10 * res[0][1].abs().max()
+    for blend in ("softmax", "alpha"):
+        res = []
+        for comp in (False, True):
+            v = verts.clone().requires_grad_()
+            img = dr.render(v, faces, colors, cam, tiny_settings(compile=comp, blend=blend))
+            (img * torch.linspace(0, 1, img.numel(), dtype=F64).view_as(img)).sum().backward()
+            res.append((img.detach(), v.grad))
+        assert (res[0][0] - res[1][0]).abs().max() < 1e-12
+        assert res[0][1].abs().max() > 0
+        assert (res[0][1] - res[1][1]).abs().max() < 1e-10 * res[0][1].abs().max()
