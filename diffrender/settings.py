@@ -73,13 +73,15 @@ class RasterSettings:
             meshes; when a face turns edge-on its (hidden) soft tail appears/disappears.
         blend: ``"softmax"`` (default, the image model above: floor and background are candidates of the
             depth softmax) or ``"alpha"``: the depth softmax runs over the faces only and is composited over
-            the floor/background with the faces' joint coverage ``A = 1 - prod(1 - D)``. Why it exists: in
+            the floor/background with the faces' joint coverage ``A = min(1, sum D)``. Why it exists: in
             the softmax model a face's weight relative to a surface behind it is ``D exp(dz_n / gamma)``, so
             wherever the depth gap is many gammas (a robot in front of the floor) the face owns every pixel
             out to the coverage cut-off: its silhouette is dilated by ``cutoff_radius`` and is a hard edge
             with no gradient (the image jumps at the cut-off instead). With ``"alpha"`` the silhouette over
             the floor/background is the smooth sigmoid again, so it carries gradients; the floor then never
             occludes faces (parts below z = 0 stay visible). Between faces both modes use the softmax.
+            Use it with ``cull_backfaces=False``: culling makes the coverage jump where a silhouette face
+            turns edge-on.
         coverage_cutoff: pairs with ``D`` below this are dropped exactly (binning radius
             ``sigma * ln(1 / cutoff - 1)``); both backends drop the same pairs.
         backend: ``"tiled"`` (binned, memory-bounded custom backward), ``"dense"`` (every face at every

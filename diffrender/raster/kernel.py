@@ -262,7 +262,9 @@ def render_pairs(
         out = num / den[..., None]  # (B * tiles, T, 3)
     else:
         # "alpha": the depth softmax runs over the faces only and its colour is composited over the floor /
-        # background with the faces' joint coverage A = 1 - prod(1 - D) = 1 - exp(-sum softplus(sd / sigma))
+        # background with the faces' joint coverage A = min(1, sum D). (Not 1 - prod(1 - D): two triangles
+        # sharing an edge have complementary sigmoids there, D1 + D2 = 1, so the sum is exactly 1 across a
+        # mesh's internal edges, while the product form leaves A = 0.75 seams all over a tessellated surface.)
         with torch.no_grad():
             cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
             m = torch.full_like(m0, -math.inf).scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand,
@@ -270,7 +272,7 @@ def render_pairs(
             m = torch.where(torch.isfinite(m), m, torch.zeros_like(m))  # pixels without faces
         expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
         w = coverage * torch.exp(expo)
-        log_t = torch.where(keep, torch.nn.functional.softplus(sd * (1.0 / st.sigma)), torch.zeros_like(sd))
+        cov = torch.where(keep, coverage, torch.zeros_like(coverage))
         behind = verts.new_tensor(st.background).expand((*m0.shape, 3))
         if st.floor is not None:
             w_floor = torch.exp(f_expo)  # relative to the background's exp((0 - m0) / gamma)
@@ -279,7 +281,7 @@ def render_pairs(
         zero = torch.zeros_like(m0)
         num = zero[..., None].expand((*m0.shape, 3)).index_add(0, rows, color * w[..., None])
         den = zero.index_add(0, rows, w)
-        alpha = 1.0 - torch.exp(-zero.index_add(0, rows, log_t))
+        alpha = zero.index_add(0, rows, cov).clamp(max=1.0)
         faces_color = num / torch.where(den > 0, den, torch.ones_like(den))[..., None]
         out = alpha[..., None] * faces_color + (1.0 - alpha[..., None]) * behind
     img = out.view(b, st.tiles_y, st.tiles_x, st.tile_h, st.tile_w, 3).permute(0, 5, 1, 3, 2, 4)
