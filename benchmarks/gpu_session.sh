@@ -5,7 +5,7 @@
 # Stages: env, cuda-tests, sim, render, iter, iter-compiled, learn-cartpole, sweep, table1.
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
   || { echo "wheel install failed"; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 run() { local secs=$1; shift; echo "=== $* (limit ${secs}s)"; timeout "$secs" "$@" 2>&1 | tail -n 40; }

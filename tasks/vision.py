@@ -32,15 +32,24 @@ class TaskRenderer:
         settings: further :class:`diffrender.RasterSettings` fields.
     """
 
-    def __init__(self, task, *, height: int | None = None, width: int | None = None, detail: int = 1,
-                 extra_meshes: int = 0, extra_mesh_verts: int = 64, sigma: float | None = None,
-                 gamma: float | None = None, **settings):
+    def __init__(
+        self,
+        task,
+        *,
+        height: int | None = None,
+        width: int | None = None,
+        detail: int = 1,
+        extra_meshes: int = 0,
+        extra_mesh_verts: int = 64,
+        sigma: float | None = None,
+        gamma: float | None = None,
+        **settings,
+    ):
         spec = task.camera
         self.spec = spec
         self.height = height or spec.height
         self.width = width or spec.width
-        robot = diffrender.RobotModel.from_mjcf(task.mjcf_path, detail=detail, dtype=task.dtype,
-                                                device=task.device)
+        robot = diffrender.RobotModel.from_mjcf(task.mjcf_path, detail=detail, dtype=task.dtype, device=task.device)
         if extra_meshes:
             robot = robot.with_extra_meshes(extra_meshes, extra_mesh_verts, seed=0)
         self.robot = robot
@@ -67,14 +76,22 @@ class TaskRenderer:
         """The task camera for each environment of ``qpos: (B, nq)``."""
         spec = self.spec
         root = self.robot.link_poses(qpos)[:, self.root_index, :3, 3]
-        return diffrender.tracking_camera(root, eye_offset=spec.eye, target_offset=spec.target, track=spec.track,
-                                          fov_deg=spec.fov_deg, height=self.height, width=self.width)
+        return diffrender.tracking_camera(
+            root,
+            eye_offset=spec.eye,
+            target_offset=spec.target,
+            track=spec.track,
+            fov_deg=spec.fov_deg,
+            height=self.height,
+            width=self.width,
+        )
 
     def __call__(self, qpos: torch.Tensor) -> torch.Tensor:
         """qpos: (B, nq) -> images (B, 3, H, W) in [0, 1]."""
         verts, normals = self.robot.world_vertices_and_normals(qpos)
-        return diffrender.render(verts, self.robot.faces, self.robot.colors, self.camera(qpos), self.settings,
-                                 normals=normals)
+        return diffrender.render(
+            verts, self.robot.faces, self.robot.colors, self.camera(qpos), self.settings, normals=normals
+        )
 
 
 class FrameStack:
