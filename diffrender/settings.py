@@ -102,7 +102,7 @@ class RasterSettings:
             environment whose bins overflow renders as NaN instead, which downstream NaN guards catch.
     """
 
-    sigma: float = 0.2
+    sigma: float = 0.1
     gamma: float = 2e-4
     znear: float = 0.05
     zfar: float = 25.0

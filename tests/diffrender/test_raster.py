@@ -144,6 +144,67 @@ def test_soft_approaches_hard_zbuffer_monotonically(ant64, floor, blend):
     assert fractions[0] > 0.1 and fractions[-1] < 0.01, fractions
 
 
+@pytest.mark.parametrize("blend", ["softmax", "alpha"])
+def test_tessellated_surface_has_no_seams(blend):
+    """A square tessellated into many triangles renders like the same square as two triangles: the mesh's
+    internal edges leave no trace (in "alpha" mode the coverage of adjacent triangles must add up to 1)."""
+    n = 6
+    g = torch.linspace(-0.5, 0.5, n + 1, dtype=F64)
+    yy, xx = torch.meshgrid(g, g, indexing="ij")
+    verts = torch.stack([xx.flatten(), torch.zeros_like(xx.flatten()), yy.flatten() + 1.0], -1)[None]
+    idx = torch.arange((n + 1) ** 2).view(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].flatten(), idx[:-1, 1:].flatten(), idx[1:, :-1].flatten(), idx[1:, 1:].flatten()
+    fine = torch.cat([torch.stack([a, c, d], 1), torch.stack([a, d, b], 1)])  # faces -y (towards the camera)
+    coarse = torch.tensor([[0, n * (n + 1), (n + 1) ** 2 - 1], [0, (n + 1) ** 2 - 1, n]])
+    colors = torch.full((verts.shape[1], 3), 0.5, dtype=F64)
+    normals = torch.tensor([0.0, -1.0, 0.0], dtype=F64).expand_as(verts).contiguous()
+    cam = dr.Camera.look_at(torch.tensor([0.0, -2.0, 1.0], dtype=F64), torch.tensor([0.0, 0.0, 1.0], dtype=F64),
+                            (0.0, 0.0, 1.0), 40.0, 24, 24)
+    s = dr.RasterSettings(sigma=0.5, blend=blend, cull_backfaces=False)
+    imgs = [dr.render(verts, f, colors, cam, s, normals=normals) for f in (fine, coarse)]
+    uv = cam.project(verts)[0]
+    inner = (uv[:, 0].min() + 3, uv[:, 0].max() - 3, uv[:, 1].min() + 3, uv[:, 1].max() - 3)
+    jj, ii = torch.meshgrid(torch.arange(24) + 0.5, torch.arange(24) + 0.5, indexing="xy")
+    mask = (jj > inner[0]) & (jj < inner[1]) & (ii > inner[2]) & (ii < inner[3])
+    assert mask.sum() > 50
+    diff = (imgs[0] - imgs[1]).abs().amax(1)[0]
+    # softmax: exact; alpha: where more than two triangles meet the sigmoids add up to 1 only approximately
+    # (the product form 1 - prod(1 - D) left seams of ~0.1 here)
+    assert diff[mask].max() < (1e-9 if blend == "softmax" else 1e-3), diff[mask].max()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_perspective_correct_interpolation(backend):
+    """A quad receding from ~1 m to 5 m with albedo and normals varying along it: away from its edges every
+    pixel equals the independent hard z-buffer's perspective-correct interpolation (screen-space
+    barycentrics would be off by up to ~0.2 here)."""
+    verts = torch.tensor([[[-1.5, 0.6, 0.0], [1.5, 0.6, 0.0], [-1.5, 5.0, 0.0], [1.5, 5.0, 0.0]]], dtype=F64)
+    faces = torch.tensor([[0, 1, 3], [0, 3, 2]])  # facing up, towards the camera above it
+    colors = torch.tensor([[0.0, 0.1, 1.0], [0.0, 0.9, 0.5], [1.0, 0.1, 0.0], [1.0, 0.9, 0.5]], dtype=F64)
+    normals = torch.nn.functional.normalize(torch.tensor([[[0.0, -1, 0.3], [0.3, -1, 0.1], [-0.5, -1, 1],
+                                                           [0.2, -0.2, 1]]], dtype=F64), dim=-1)
+    cam = dr.Camera.look_at(torch.tensor([0.0, 0.0, 1.0], dtype=F64), torch.tensor([0.0, 2.0, 0.0], dtype=F64),
+                            (0.0, 0.0, 1.0), 70.0, 32, 32)
+    s = dr.RasterSettings(backend=backend, floor=None, sigma=0.1, cull_backfaces=True, znear=0.1, zfar=10.0)
+    soft = dr.render(verts, faces, colors, cam, s, normals=normals)
+    hard = hard_zbuffer(verts, faces, colors, cam, s, normals=normals)
+    # pixels farther than 1.5 px from every edge of both triangles (the diagonal included)
+    uv = cam.project(verts)[0, :, :2]
+    jj, ii = torch.meshgrid(torch.arange(32, dtype=F64) + 0.5, torch.arange(32, dtype=F64) + 0.5, indexing="xy")
+    p = torch.stack([jj, ii], -1)
+    dist = torch.full((32, 32), math.inf, dtype=F64)
+    for a, b in ((0, 1), (1, 3), (3, 2), (2, 0), (0, 3)):
+        e = uv[b] - uv[a]
+        t = (((p - uv[a]) @ e) / (e @ e)).clamp(0, 1)
+        dist = torch.minimum(dist, (p - uv[a] - t[..., None] * e).norm(dim=-1))
+    covered = (hard - torch.tensor(s.background, dtype=F64).view(1, 3, 1, 1)).abs().amax(1)[0] > 1e-6
+    mask = covered & (dist > 1.5)
+    assert mask.sum() > 100
+    assert (soft - hard).abs().amax(1)[0][mask].max() < 1e-9
+    # and the scene does exercise perspective: screen-space barycentrics differ
+    assert (hard[0, 0][mask].max() - hard[0, 0][mask].min()) > 0.5
+
+
 # ------------------------------------------------------------------------------------------------ symmetries
 def test_mirror_equivariance(ant64):
     """Mirroring the world about the camera's vertical plane x = s/2 (which maps the checker onto itself)
