@@ -105,7 +105,9 @@ class Camera:
             raise ValueError(f"look_at tensors must be floating point, got {dtype}")
 
         def vec(name, v):
-            t = torch.as_tensor(v, dtype=dtype, device=device)
+            if not isinstance(v, torch.Tensor) and len(v) != 3:
+                raise ValueError(f"look_at: {name} must have shape (3,) or (B, 3), got {v!r}")
+            t = v.to(dtype) if isinstance(v, torch.Tensor) else _const3(v, dtype, device)
             if t.ndim not in (1, 2) or t.shape[-1] != 3:
                 raise ValueError(f"look_at: {name} must have shape (3,) or (B, 3), got {tuple(t.shape)}")
             return t.reshape(-1, 3)
@@ -144,6 +146,14 @@ class Camera:
                       focal=self.focal, height=self.height, width=self.width)
 
 
+def _const3(values, dtype, device) -> torch.Tensor:
+    """A (3,) tensor from three numbers, filled on the device (no host-to-device copy)."""
+    vals = [float(x) for x in values]
+    if len(vals) != 3:
+        raise ValueError(f"expected three numbers, got {values!r}")
+    return torch.stack([torch.full((), x, dtype=dtype, device=device) for x in vals])
+
+
 def _normalize(v: torch.Tensor) -> torch.Tensor:
     # no epsilon: a degenerate look-at (eye == target, up parallel to the view) has no meaningful camera
     # and should show up as non-finite values, which render() rejects with a clear error
@@ -179,8 +189,8 @@ def tracking_camera(
         raise ValueError(f"track must be one of {sorted(_TRACK_MASKS)}, got {track!r}")
     if not isinstance(root_pos, torch.Tensor) or root_pos.ndim != 2 or root_pos.shape[1] != 3:
         raise ValueError(f"root_pos must be a (B, 3) tensor, got {getattr(root_pos, 'shape', type(root_pos))}")
-    kw = dict(dtype=root_pos.dtype, device=root_pos.device)
-    anchor = root_pos * torch.tensor(_TRACK_MASKS[track], **kw)
-    eye = anchor + torch.tensor(eye_offset, **kw)
-    target = anchor + torch.tensor(target_offset, **kw)
-    return Camera.look_at(eye, target, torch.tensor(up, **kw), fov_deg, height, width)
+    # component-wise with Python floats: no host-to-device copies (cheap, CUDA-graph capturable)
+    mask = _TRACK_MASKS[track]
+    eye = torch.stack([root_pos[:, k] * mask[k] + float(eye_offset[k]) for k in range(3)], dim=-1)
+    target = torch.stack([root_pos[:, k] * mask[k] + float(target_offset[k]) for k in range(3)], dim=-1)
+    return Camera.look_at(eye, target, _const3(up, root_pos.dtype, root_pos.device), fov_deg, height, width)

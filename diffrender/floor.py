@@ -69,8 +69,7 @@ def floor_candidate(
     footprint = t / (focal * dz_safe.abs())
     sharpness = (s / (math.pi * floor.edge_px * footprint)).clamp(max=_MAX_SHARPNESS)
     mix = 0.5 + 0.5 * torch.tanh(sharpness * torch.sin(math.pi * x / s) * torch.sin(math.pi * y / s))
-    ca = x.new_tensor(floor.color_a)
-    cb = x.new_tensor(floor.color_b)
-    color = (cb + (ca - cb) * mix[..., None]) * light_factor
+    ca, cb = floor.color_a, floor.color_b  # floats: no host-to-device copies
+    color = torch.stack([(cb[k] + (ca[k] - cb[k]) * mix) * light_factor for k in range(3)], dim=-1)
     z_n = ((zfar - t) / (zfar - znear)).clamp(min=_FAR_FLOOR_MARGIN * gamma)
     return z_n, color, hit

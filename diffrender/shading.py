@@ -24,12 +24,13 @@ def unit_light(light_dir: tuple[float, float, float]) -> tuple[float, float, flo
 def lambert(albedo: torch.Tensor, normal: torch.Tensor, light: tuple[float, float, float], *,
             ambient: float, diffuse: float) -> torch.Tensor:
     """Shade ``albedo: (..., 3)`` with (not necessarily unit) normals ``normal: (..., 3)``; returns (..., 3)."""
-    return albedo * lambert_shade(normal, normal.new_tensor(light), ambient=ambient, diffuse=diffuse)[..., None]
+    return albedo * lambert_shade(normal, light, ambient=ambient, diffuse=diffuse)[..., None]
 
 
-def lambert_shade(normal: torch.Tensor, light: torch.Tensor, *, ambient: float, diffuse: float) -> torch.Tensor:
+def lambert_shade(normal: torch.Tensor, light: tuple[float, float, float], *, ambient: float,
+                  diffuse: float) -> torch.Tensor:
     """Light factor ``ambient + diffuse * max(0, n . l / |n|)`` of (not necessarily unit) normals
-    ``normal: (..., 3)`` and a unit light direction ``light: (3,)``; returns (...)."""
-    n_dot_l = normal @ light
+    ``normal: (..., 3)`` and a unit light direction ``light`` (three floats); returns (...)."""
+    n_dot_l = normal[..., 0] * light[0] + normal[..., 1] * light[1] + normal[..., 2] * light[2]
     inv_len = torch.rsqrt((normal * normal).sum(-1) + 1e-20)
     return ambient + diffuse * (n_dot_l * inv_len).clamp(min=0.0)

@@ -112,6 +112,11 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return acc * torch.rsqrt((acc * acc).sum(-1, keepdim=True) + 1e-30)
 
 
+def _times_rgb(x: torch.Tensor, rgb: tuple[float, float, float]) -> torch.Tensor:
+    """x (...) times a constant colour -> (..., 3), without a host-to-device copy of the colour."""
+    return torch.stack([x * rgb[0], x * rgb[1], x * rgb[2]], dim=-1)
+
+
 def _tile_pixel_centres(tile: torch.Tensor, st: Static, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixel centres of tiles: tile (...,) long -> px, py (..., tile_h * tile_w)."""
     k = torch.arange(st.tile_pixels, device=tile.device)
@@ -156,15 +161,15 @@ def render_pairs(
         normals = vertex_normals(verts, faces)
     if colors.ndim == 2:
         colors = colors.expand(b, nv, 3)
-    light = verts.new_tensor(st.light)
     # one gather of everything a face needs: (u, v, z, pad, n (3), albedo (3)) per corner
     vdata = torch.cat([uvz, torch.zeros_like(uvz[..., :1]), normals, colors], dim=-1)  # (B, V, 10)
     vidx = faces[pair_face] + (pair_env * nv)[:, None]  # (N, 3)
     fd = vdata.reshape(b * nv, 10).index_select(0, vidx.reshape(-1)).view(n, 3, 10)
     valid = pair_valid
     # padding slots get a harmless unit triangle so no inf/NaN is ever formed (their weight is zero)
-    dummy = verts.new_tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
-    dummy = torch.cat([dummy, verts.new_zeros(3, 7)], dim=1)
+    # (constants are built on the device, never copied from host lists: no H2D copy, CUDA-graph capturable)
+    eye3 = torch.eye(3, dtype=dt, device=verts.device)
+    dummy = torch.cat([eye3[:, 1:3], eye3.new_ones(3, 1), eye3.new_zeros(3, 7)], dim=1)
     fd = torch.where(valid[:, None, None], fd, dummy)
 
     # ---- per-pair constants. Index k runs over the three edges, edge k being the one opposite vertex k
@@ -212,7 +217,7 @@ def render_pairs(
     # interpolate normal and albedo in one batched matmul: (N, T, 3) x (N, 3, 6)
     attr = torch.bmm(bary.transpose(1, 2), fd[:, :, 4:10])
     normal, albedo = attr[..., :3], attr[..., 3:]
-    color = albedo * lambert_shade(normal, light, ambient=st.ambient, diffuse=st.diffuse)[..., None]  # (N, T, 3)
+    color = albedo * lambert_shade(normal, st.light, ambient=st.ambient, diffuse=st.diffuse)[..., None]  # (N, T, 3)
     keep = valid[:, None] & (sd > -st.cutoff_radius)
 
     # ---- blend. Per-pixel buffers are laid out (B * tiles, T): a pair's pixels are one contiguous row.
@@ -251,8 +256,8 @@ def render_pairs(
         # into fresh zero buffers and adding the floor afterwards was mis-compiled by inductor 2.13 on the
         # CPU: the scattered part went missing; test_raster.py::test_compiled_kernel_matches_eager)
         shift = torch.exp((m0 - m) / st.gamma)  # rescale floor/background weights from m0 to m
-        num = (shift * torch.exp((bg_zn - m0) / st.gamma))[..., None] * verts.new_tensor(st.background)
         den = shift * torch.exp((bg_zn - m0) / st.gamma)
+        num = _times_rgb(den, st.background)
         if st.floor is not None:
             w_floor = shift * torch.exp(f_expo)
             num = num + w_floor[..., None] * f_col
@@ -273,11 +278,11 @@ def render_pairs(
         expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
         w = coverage * torch.exp(expo)
         cov = torch.where(keep, coverage, torch.zeros_like(coverage))
-        behind = verts.new_tensor(st.background).expand((*m0.shape, 3))
+        behind = _times_rgb(torch.ones_like(m0), st.background)
         if st.floor is not None:
             w_floor = torch.exp(f_expo)  # relative to the background's exp((0 - m0) / gamma)
             w_bg = torch.exp((bg_zn - m0) / st.gamma)
-            behind = (w_bg[..., None] * behind + w_floor[..., None] * f_col) / (w_bg + w_floor)[..., None]
+            behind = (_times_rgb(w_bg, st.background) + w_floor[..., None] * f_col) / (w_bg + w_floor)[..., None]
         zero = torch.zeros_like(m0)
         num = zero[..., None].expand((*m0.shape, 3)).index_add(0, rows, color * w[..., None])
         den = zero.index_add(0, rows, w)
