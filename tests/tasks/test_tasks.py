@@ -336,3 +336,13 @@ def test_mass_matrix_caching_is_a_small_approximation():
     assert err_every4 < err_cached  # refreshing more often approaches the exact path
     with pytest.raises(ValueError, match="mass_matrix_every"):
         tasks.make("humanoid", 1, mass_matrix_every=0)
+
+
+def test_contact_override_turns_the_ground_off():
+    env = tasks.make("ant", 1, contact=False, early_termination=False, reset_noise=False)
+    assert env.sim.contact is None
+    env.reset()
+    with torch.no_grad():
+        for _ in range(40):
+            env.step(torch.zeros(1, 8))
+    assert env.qpos[0, 2] < 0.0  # fell through where the floor would be
