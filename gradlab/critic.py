@@ -56,7 +56,7 @@ def fit_critic(critic: nn.Module, optimizer: torch.optim.Optimizer, obs: torch.T
         for start in range(0, n, size):
             o, y = obs[start:start + size], targets[start:start + size]
             loss = (critic(o) - y).square().mean()
-            optimizer.zero_grad(set_to_none=True)
+            optimizer.zero_grad(set_to_none=False)  # in place: the phase may be a captured CUDA graph
             loss.backward()
             for p in params:
                 if p.grad is not None:

@@ -31,14 +31,14 @@ class RunningMeanStd:
         delta = b_mean - self.mean
         tot = self.count + b_count
         w = (b_count / tot).to(self.mean.dtype)
-        self.mean = self.mean + delta * w
-        m2 = self.var * (self.count / tot).to(self.mean.dtype) + b_var * w + delta.square() * w * (
-            self.count / tot).to(self.mean.dtype)
-        self.var = m2
-        self.count = tot
+        w_old = (self.count / tot).to(self.mean.dtype)
+        # In place: a captured CUDA graph reads these tensors' memory, so they must never be rebound.
+        self.var.copy_(self.var * w_old + b_var * w + delta.square() * w * w_old)
+        self.mean.add_(delta * w)
+        self.count.copy_(tot)
 
     def snapshot(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean, std) frozen copies for one window."""
+        """(mean, std) frozen copies for one window (new tensors: later updates do not change them)."""
         return self.mean.clone(), torch.sqrt(self.var + 1e-5)
 
     @staticmethod
@@ -51,6 +51,6 @@ class RunningMeanStd:
         return {"mean": self.mean.clone(), "var": self.var.clone(), "count": self.count.clone()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.mean = state["mean"].to(self.mean)
-        self.var = state["var"].to(self.var)
-        self.count = state["count"].to(self.count)
+        self.mean.copy_(state["mean"])
+        self.var.copy_(state["var"])
+        self.count.copy_(state["count"])

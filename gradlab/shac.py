@@ -82,8 +82,13 @@ class SHAC:
         self.target_critic = copy.deepcopy(self.critic)
         for p in self.target_critic.parameters():
             p.requires_grad_(False)
+        # CUDA graphs (compile on a CUDA device): the critic phase is captured, so its Adam must be capturable
+        # and read its learning rate from a tensor that the decay updates in place.
+        self.graphs = cfg.compile and self.device.type == "cuda"
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=cfg.betas)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, betas=cfg.betas)
+        critic_lr = torch.tensor(cfg.critic_lr, device=self.device) if self.graphs else cfg.critic_lr
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=critic_lr, betas=cfg.betas,
+                                           capturable=self.graphs)
         self.obs_rms = RunningMeanStd(self.task.num_obs, device=self.device)
 
         self.frames = FrameStack(cfg.frames)
@@ -98,6 +103,9 @@ class SHAC:
         self.recent_returns: deque[float] = deque(maxlen=100)
         self.recent_lengths: deque[int] = deque(maxlen=100)
         self._started = False
+        self._live: dict[str, torch.Tensor] = {}  # the state a window starts from, in fixed tensors
+        self._actor_graph: _ActorGraph | None = None
+        self._critic_graph: _CriticGraph | None = None
 
     # ------------------------------------------------------------------ observation plumbing
     def _render(self, *, grad: bool) -> torch.Tensor:
@@ -114,6 +122,30 @@ class SHAC:
         if self.visual:
             self.frames.reset(self._render(grad=False))
         self._started = True
+        self._commit_state()
+
+    def _commit_state(self) -> None:
+        """Copy the state a window ended in into the fixed live-state tensors and point the task at them.
+
+        Every window starts from the same tensor objects, so a captured CUDA graph that reads them at the
+        start and writes them at the end (after its backward, which may still read the old values) carries
+        the state from one replay to the next. Eager iterations do the same, so both paths interleave freely.
+        """
+        task = self.task
+        current = {"qpos": task.qpos, "qvel": task.qvel, "progress": task.progress,
+                   "prev_actions": task.prev_actions}
+        if self.visual:
+            current.update({f"frame{i}": f for i, f in enumerate(self.frames.frames)})
+        with torch.no_grad():
+            for k, v in current.items():
+                if k not in self._live:
+                    self._live[k] = v.detach().clone()
+                elif v is not self._live[k]:
+                    self._live[k].copy_(v)
+        task.qpos, task.qvel = self._live["qpos"], self._live["qvel"]
+        task.progress, task.prev_actions = self._live["progress"], self._live["prev_actions"]
+        if self.visual:
+            self.frames.frames = [self._live[f"frame{i}"] for i in range(len(self.frames.frames))]
 
     # ------------------------------------------------------------------ the rollout and the actor loss
     def _rollout(self, *, render_grad: bool) -> tuple[torch.Tensor, dict]:
@@ -195,10 +227,18 @@ class SHAC:
         frac = min(self.iteration / self.cfg.iters, 1.0)
         return base + (1e-5 - base) * frac
 
+    def _zero_actor_grads(self) -> None:
+        """Zero the actor's gradients IN PLACE (captured graphs write into these very tensors)."""
+        for p in self.actor.parameters():
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+            else:
+                p.grad.zero_()
+
     def _backward(self, loss: torch.Tensor, probe: bool) -> dict:
         """Actor gradients into ``.grad`` for the training mode; on probes, both estimators of one rollout."""
-        params = [p for p in self.actor.parameters()]
-        self.actor_opt.zero_grad(set_to_none=True)
+        params = list(self.actor.parameters())
+        self._zero_actor_grads()
         out: dict = {}
         if probe:
             # The mode we do NOT train with goes first (graph retained); the training mode's gradient is
@@ -207,7 +247,7 @@ class SHAC:
             self.gate.open = other_full
             loss.backward(retain_graph=True)
             g_other = flat_grad(params)
-            self.actor_opt.zero_grad(set_to_none=True)
+            self._zero_actor_grads()
             self.gate.open = not other_full
             loss.backward()
             g_train = flat_grad(params)
@@ -224,6 +264,24 @@ class SHAC:
             loss.backward()
         return out
 
+    def _critic_phase(self, buf: dict) -> torch.Tensor:
+        """TD(lambda) targets of the window, the critic fit, the target update. Returns the critic loss."""
+        cfg = self.cfg
+        targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma, lam=cfg.lam)
+        loss = fit_critic(self.critic, self.critic_opt, buf["critic_obs"].flatten(0, 1), targets.flatten(),
+                          iterations=cfg.critic_iterations, batches=cfg.critic_batches, grad_clip=cfg.grad_clip)
+        polyak_update(self.target_critic, self.critic, cfg.target_alpha)
+        return loss
+
+    def _set_learning_rates(self) -> None:
+        for group in self.actor_opt.param_groups:
+            group["lr"] = self._lr(self.cfg.actor_lr)
+        for group in self.critic_opt.param_groups:
+            if isinstance(group["lr"], torch.Tensor):
+                group["lr"].fill_(self._lr(self.cfg.critic_lr))
+            else:
+                group["lr"] = self._lr(self.cfg.critic_lr)
+
     def train_iteration(self) -> dict:
         """Run one iteration; returns its metrics (Python scalars)."""
         cfg = self.cfg
@@ -233,18 +291,29 @@ class SHAC:
         probe = self.visual and cfg.cosine_every > 0 and self.iteration % cfg.cosine_every == 0
         render_grad = cfg.mode == "full" or probe
         self.timer.reset()
-
-        for group in self.actor_opt.param_groups:
-            group["lr"] = self._lr(cfg.actor_lr)
-        for group in self.critic_opt.param_groups:
-            group["lr"] = self._lr(cfg.critic_lr)
+        self._set_learning_rates()
+        # CUDA graphs replay the plain (non-probe) iteration; the first iterations run eagerly and warm up
+        # (torch.compile, cuBLAS/cuDNN handles, the allocator), then the window is captured once.
+        replay = self.graphs and not probe and self.iteration >= _GRAPH_WARMUP_ITERS
+        if replay and self._actor_graph is None:
+            self._actor_graph = _ActorGraph(self, render_grad=render_grad)
 
         # Actor: forward (rollout + render + loss) and backward, timed and memory-probed as one region.
         with MemoryProbe(self.device) as mem:
-            with self.timer("fwd"), SavedTensorBytes() as saved:
-                loss, buf = self._rollout(render_grad=render_grad)
-            with self.timer("bwd"):
-                probe_out = self._backward(loss, probe)
+            if replay:
+                graph = self._actor_graph
+                with self.timer("fwd"):
+                    graph.fwd.replay()
+                with self.timer("bwd"):
+                    graph.bwd.replay()
+                loss, buf, saved_bytes, probe_out = graph.loss, graph.buf, graph.saved_bytes, {}
+            else:
+                with self.timer("fwd"), SavedTensorBytes() as saved:
+                    loss, buf = self._rollout(render_grad=render_grad)
+                with self.timer("bwd"):
+                    probe_out = self._backward(loss, probe)
+                    self._commit_state()
+                saved_bytes = saved.bytes
         params = list(self.actor.parameters())
         gn = nn.utils.clip_grad_norm_(params, cfg.grad_clip)
         gn_clipped = flat_grad(params).norm()
@@ -258,12 +327,14 @@ class SHAC:
 
         # Critic on TD(lambda) targets of the window, then the target network.
         with self.timer("critic"):
-            targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma,
-                                        lam=cfg.lam)
-            critic_loss = fit_critic(self.critic, self.critic_opt, buf["critic_obs"].flatten(0, 1),
-                                     targets.flatten(), iterations=cfg.critic_iterations,
-                                     batches=cfg.critic_batches, grad_clip=cfg.grad_clip)
-            polyak_update(self.target_critic, self.critic, cfg.target_alpha)
+            if self.graphs:
+                if self._critic_graph is None:
+                    self._critic_graph = _CriticGraph(self, buf)  # runs this iteration's phase, then captures
+                    critic_loss = self._critic_graph.first_loss
+                else:
+                    critic_loss = self._critic_graph(buf)
+            else:
+                critic_loss = self._critic_phase(buf)
         self.obs_rms.update(buf["raw_obs"])
 
         # Episode statistics: one host transfer per iteration.
@@ -293,9 +364,10 @@ class SHAC:
             "iter_ms": iter_wall * 1e3,
             "peak_alloc_mb": mem.peak_alloc_mb,
             "peak_reserved_mb": mem.peak_reserved_mb,
-            "saved_mb": saved.mb,
+            "saved_mb": saved_bytes / 2**20,
             "actor_lr": self.actor_opt.param_groups[0]["lr"],
             "probed": probe,
+            "graph": replay,
         }
         metrics.update({k: float(v) for k, v in probe_out.items()})
         return metrics
@@ -383,3 +455,69 @@ class SHAC:
         self.recent_returns = deque(state["recent_returns"], maxlen=100)
         self.recent_lengths = deque(state["recent_lengths"], maxlen=100)
         set_rng_state(state["rng"])
+        if self._started:
+            self._commit_state()
+
+
+#: Eager iterations before the window is captured (compilation and library warm-up happen in them).
+_GRAPH_WARMUP_ITERS = 2
+
+
+class _ActorGraph:
+    """The plain iteration's rollout + loss (``fwd``) and backward (``bwd``) captured as two CUDA graphs.
+
+    Two graphs sharing one memory pool (as ``torch.cuda.make_graphed_callables`` does) so forward and backward
+    stay separately timed. The rollout reads the live-state tensors; ``bwd`` ends by writing the window's
+    final state into them (after the backward, which still reads the old values). ``loss`` and ``buf`` are
+    the graph's static outputs, overwritten by every replay. Capturing records work without doing it: the
+    caller replays both graphs afterwards, so the capture iteration is a real iteration too.
+    """
+
+    def __init__(self, trainer: SHAC, *, render_grad: bool):
+        # Graph-captured renders cannot raise on bin overflow (no host sync): freeze a generous capacity.
+        if trainer.renderer is not None:
+            trainer.renderer.freeze_capacity(trainer.task.qpos, headroom=2.0)
+        trainer._zero_actor_grads()
+        pool = torch.cuda.graph_pool_handle()
+        self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+        torch.cuda.synchronize(trainer.device)
+        with torch.cuda.graph(self.fwd, pool=pool):
+            with SavedTensorBytes() as saved:
+                self.loss, self.buf = trainer._rollout(render_grad=render_grad)
+        with torch.cuda.graph(self.bwd, pool=pool):
+            trainer._zero_actor_grads()
+            trainer.gate.open = trainer.cfg.mode == "full"
+            self.loss.backward()
+            trainer._commit_state()
+        self.saved_bytes = saved.bytes
+
+
+class _CriticGraph:
+    """The critic phase (targets, 16 x 4 minibatch steps, Polyak) captured as one CUDA graph.
+
+    Built at the first graph-mode iteration: the phase first runs eagerly (it is that iteration's real update
+    and warms up the capturable Adam's state), then is captured reading ``self.inputs``, which later
+    iterations fill from their window's buffers before replaying.
+    """
+
+    def __init__(self, trainer: SHAC, buf: dict):
+        keys = ("rewards", "next_values", "dones", "critic_obs")
+        self.inputs = {k: buf[k].detach().clone() for k in keys}
+        side = torch.cuda.Stream(trainer.device)
+        side.wait_stream(torch.cuda.current_stream(trainer.device))
+        with torch.cuda.stream(side):
+            self.first_loss = trainer._critic_phase(self.inputs).clone()
+        torch.cuda.current_stream(trainer.device).wait_stream(side)
+        for p in trainer.critic.parameters():  # capture needs existing gradient tensors, zeroed in place
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.loss = trainer._critic_phase(self.inputs)
+
+    def __call__(self, buf: dict) -> torch.Tensor:
+        for k, v in self.inputs.items():
+            if buf[k] is not v:
+                v.copy_(buf[k])
+        self.graph.replay()
+        return self.loss

@@ -72,6 +72,25 @@ class TaskRenderer:
     def num_vertices(self) -> int:
         return self.robot.num_vertices
 
+    def freeze_capacity(self, qpos: torch.Tensor, *, headroom: float = 2.0) -> int:
+        """Fix the tiled backend's bin capacity at ``headroom`` x what the frames of ``qpos (B, nq)`` need.
+
+        A render inside a captured CUDA graph cannot measure or grow its bins (no host synchronisation) and
+        an overflowing environment would render as NaN; a fixed, generous capacity keeps that from happening
+        as the robot moves. Returns the capacity (pairs per environment).
+        """
+        from diffrender.raster.tiled import measure_capacity, tiled_static
+
+        with torch.no_grad():
+            verts, _ = self.robot.world_vertices_and_normals(qpos)
+            cam = self.camera(qpos).expand(verts.shape[0])
+            _, capacity = measure_capacity(
+                verts, cam.rotation, cam.eye, self.robot.faces, self.settings, tiled_static(self.settings, cam)
+            )
+        capacity = int(capacity * headroom) + 64
+        self.settings = dataclasses.replace(self.settings, bin_capacity=capacity)
+        return capacity
+
     def camera(self, qpos: torch.Tensor) -> diffrender.Camera:
         """The task camera for each environment of ``qpos: (B, nq)``."""
         spec = self.spec
