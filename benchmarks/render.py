@@ -100,17 +100,19 @@ class Scene:
                                   track="xyz", fov_deg=90.0, height=self.res, width=self.res)
 
 
-def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int) -> dict:
+def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, compile: bool = False) -> dict:
     device = torch.device(args.device)
     dtype = torch.float64 if args.float64 else torch.float32
-    rec = dict(backend=backend, batch=batch, res=res, faces_target=faces, tile=tile, compile=args.compile)
+    rec = dict(backend=backend, batch=batch, res=res, faces_target=faces, tile=tile, compile=compile,
+               blend=args.blend, cull=not args.no_cull)
     scene = Scene(faces, batch, res, device, dtype)
     robot = scene.robot
     rec.update(faces=robot.num_faces, verts=robot.num_vertices)
     if backend == "dense" and batch * robot.num_faces * res * res > DENSE_MAX_ELEMS:
         rec["status"] = "skipped: too large for the dense reference"
         return rec
-    settings = dr.RasterSettings(backend=backend, tile_size=tile, compile=args.compile, sigma=args.sigma)
+    settings = dr.RasterSettings(backend=backend, tile_size=tile, compile=compile, sigma=args.sigma, blend=args.blend,
+                                 cull_backfaces=not args.no_cull, chunk_elems=args.chunk_elems)
     cam = scene.camera(scene.qpos)
     verts = scene.verts
     if backend == "tiled":
@@ -174,14 +176,23 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int) 
 
 
 def points(args) -> list[dict]:
-    """One-factor-at-a-time sweeps around the target point."""
+    """One-factor-at-a-time sweeps around the target point.
+
+    With ``--compile`` every point is measured eager; the target point (each tile size) also compiled, and in
+    the full (non-quick) sweep every point: each new shape compiles three graphs (binning, forward, and the
+    backward's recompute), tens of seconds each."""
     b0, r0, f0 = 64, 84, 0  # faces 0: the plain ant (detail 1, 1856 faces)
     if args.tiny:
-        return [dict(backend=be, batch=2, res=24, faces=f, tile=4) for be in ("tiled", "dense") for f in (0, 3000)]
-    tiles = args.tiles or [4]
+        pts = [dict(backend=be, batch=2, res=24, faces=f, tile=4) for be in ("tiled", "dense") for f in (0, 3000)]
+        if args.compile:
+            pts.insert(1, dict(backend="tiled", batch=2, res=24, faces=0, tile=4, compile=True))
+        return pts
+    tiles = args.tiles or [dr.RasterSettings().tile_size]
     pts = []
     for tile in tiles:
         pts.append(dict(backend="tiled", batch=b0, res=r0, faces=f0, tile=tile))
+        if args.compile:
+            pts.append(dict(backend="tiled", batch=b0, res=r0, faces=f0, tile=tile, compile=True))
     t0 = tiles[0]
     batches = [16, 64, 256]
     resolutions = [64, 84, 128]
@@ -199,16 +210,19 @@ def points(args) -> list[dict]:
     # the dense reference only where it fits
     pts.append(dict(backend="dense", batch=4, res=64, faces=1000, tile=t0))
     pts.append(dict(backend="tiled", batch=4, res=64, faces=1000, tile=t0))
+    if args.compile and not args.quick:
+        pts += [dict(p, compile=True) for p in pts if p["backend"] == "tiled" and not p.get("compile")
+                and not (p["batch"] == b0 and p["res"] == r0 and p["faces"] == f0)]
     return pts
 
 
 def table(records: list[dict]) -> str:
-    cols = [("backend", "{}"), ("batch", "{}"), ("res", "{}"), ("faces", "{}"), ("tile", "{}"),
+    cols = [("backend", "{}"), ("compile", "{}"), ("batch", "{}"), ("res", "{}"), ("faces", "{}"), ("tile", "{}"),
             ("pairs_mean", "{:.0f}"), ("fwd_ms", "{:.2f}"), ("fwdbwd_ms", "{:.2f}"), ("fk_fwdbwd_ms", "{:.2f}"),
             ("peak_alloc_above_start_mb", "{:.0f}"), ("peak_reserved_mb", "{:.0f}"), ("saved_mb", "{:.2f}"),
             ("status", "{}")]
-    head = ["backend", "B", "res", "faces", "tile", "pairs", "fwd ms", "f+b ms", "fk+f+b", "peak MB", "resv MB",
-            "saved MB", "status"]
+    head = ["backend", "compiled", "B", "res", "faces", "tile", "pairs", "fwd ms", "f+b ms", "fk+f+b", "peak MB",
+            "resv MB", "saved MB", "status"]
     rows = [head]
     for r in records:
         row = []
@@ -226,7 +240,10 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="the target point, batch/resolution/face sweeps (<4 min)")
     p.add_argument("--tiny", action="store_true", help="a few tiny points (CPU smoke test)")
     p.add_argument("--tiles", type=int, nargs="*", help="tile sizes to compare at the target point")
-    p.add_argument("--compile", action="store_true", help="torch.compile the per-chunk kernel")
+    p.add_argument("--compile", action="store_true", help="also measure with torch.compile (see points())")
+    p.add_argument("--blend", choices=["softmax", "alpha"], default="softmax")
+    p.add_argument("--no-cull", action="store_true", help="keep back faces (cull_backfaces=False)")
+    p.add_argument("--chunk-elems", type=int, default=dr.RasterSettings().chunk_elems)
     p.add_argument("--float64", action="store_true")
     p.add_argument("--sigma", type=float, default=dr.RasterSettings().sigma)
     p.add_argument("--warmup", type=int, default=None)
@@ -238,6 +255,9 @@ def main(argv=None) -> int:
     args.warmup = args.warmup if args.warmup is not None else (3 if args.compile else 2)
     args.repeats = args.repeats if args.repeats is not None else (3 if args.tiny else 7 if args.quick else 15)
     torch.manual_seed(0)
+    if args.compile:
+        # one compiled graph set per point shape; the default limit (8) would silently fall back to eager
+        torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
     records = []
     start = time.perf_counter()
     for pt in points(args):
@@ -247,11 +267,13 @@ def main(argv=None) -> int:
     info = dict(torch=torch.__version__, python=platform.python_version(), device=args.device,
                 device_name=torch.cuda.get_device_name() if args.device == "cuda" else platform.processor(),
                 threads=torch.get_num_threads(), compile=args.compile, dtype="float64" if args.float64 else "float32",
-                sigma=args.sigma, wall_s=time.perf_counter() - start, targets=TARGET)
-    target = next((r for r in records if r.get("status") == "ok" and r["backend"] == "tiled" and r["batch"] == 64
-                   and r["res"] == 84 and r["faces_target"] == 0), None)
+                sigma=args.sigma, blend=args.blend, cull=not args.no_cull, chunk_elems=args.chunk_elems,
+                wall_s=time.perf_counter() - start, targets=TARGET)
+    at_target = [r for r in records if r.get("status") == "ok" and r["backend"] == "tiled" and r["batch"] == 64
+                 and r["res"] == 84 and r["faces_target"] == 0]
+    target = min(at_target, key=lambda r: r["fwdbwd_ms"], default=None)  # best tile size / compile setting
     if target is not None:
-        info["target_point"] = {k: target.get(k) for k in ("fwd_ms", "fwdbwd_ms", "saved_mb")}
+        info["target_point"] = {k: target.get(k) for k in ("fwd_ms", "fwdbwd_ms", "saved_mb", "tile", "compile")}
         info["target_met"] = {k: target.get(k) is not None and target[k] <= v for k, v in TARGET.items()}
     args.out.write_text(json.dumps(dict(info=info, records=records), indent=2))
     print(f"\nwrote {args.out} ({len(records)} points, {info['wall_s']:.0f} s, {info['device_name']}, "
