@@ -321,6 +321,8 @@ class RobotModel:
         """(Re)create every tensor from the float64 numpy description."""
         self.dtype = dtype
         self.device = torch.device(device)
+        if self.device.type == "cuda" and self.device.index is None:  # 'cuda' and 'cuda:0' must compare equal
+            self.device = torch.device("cuda", torch.cuda.current_device())
         kw = dict(dtype=dtype, device=self.device)
         self._chain = None
         if self._chain64 is not None:
