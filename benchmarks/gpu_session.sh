@@ -19,7 +19,7 @@ for spec in "$@"; do
     render) run "$secs" python3 benchmarks/render.py --device cuda --quick --out "$OUT/render_quick.json";;
     iter) run "$secs" python3 benchmarks/iteration.py --device cuda --warmup 1 --iters 3 --out "$OUT/iter_eager.json" \
             --tasks ${TASKS:-cartpole hopper ant humanoid};;
-    iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 2 --iters 3 \
+    iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \
             --out "$OUT/iter_compiled.json" --tasks ${TASKS:-cartpole hopper ant humanoid};;
     *) echo "unknown stage $stage";;
   esac

@@ -234,6 +234,43 @@ def table(records: list[dict]) -> str:
     return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in rows)
 
 
+def jump_share(device: str) -> list[dict]:
+    """How much of the image's dependence on the pose autograd sees, per blend mode: for the ant at 84 x 84
+    under a fixed camera, 4 poses x 4 directions (root x, root y, two hinges), compare the image change under
+    a 1e-4 step (central difference) with the derivative (central difference at 1e-7, which equals autograd
+    where nothing jumps); the excess is jumps (coverage cut-off, culling). float64."""
+    dev = torch.device(device)
+    robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=1, dtype=torch.float64, device=dev)
+    f64 = dict(dtype=torch.float64, device=dev)
+    cam = dr.Camera.look_at(torch.tensor([0.5, -2.2, 1.6], **f64), torch.tensor([0.0, 0.0, 0.4], **f64),
+                            (0.0, 0.0, 1.0), 60.0, 84, 84)
+    out = []
+    for sigma in (0.1, 0.3):
+        for blend in ("softmax", "alpha"):
+            for cull in (True, False):
+                s = dr.RasterSettings(sigma=sigma, blend=blend, cull_backfaces=cull)
+                jump = visible = 0.0
+                for seed in range(4):
+                    q = Scene(0, 1, 84, dev, torch.float64, seed=seed).qpos
+                    for idx in (0, 1, 8, 11):
+                        d = torch.zeros_like(q)
+                        d[0, idx] = 1.0
+
+                        def img(x, s=s):
+                            v, n = robot.world_vertices_and_normals(x)
+                            return dr.render(v, robot.faces, robot.colors, cam, s, normals=n)
+
+                        deriv = (img(q + 1e-7 * d) - img(q - 1e-7 * d)) / 2e-7
+                        step = (img(q + 1e-4 * d) - img(q - 1e-4 * d)) / 2e-4
+                        jump += float((step - deriv).abs().sum())
+                        visible += float(deriv.abs().sum())
+                rec = dict(sigma=sigma, blend=blend, cull=cull, jump_share=jump / (jump + visible),
+                           autograd_visible=visible)
+                print(json.dumps(rec), flush=True)
+                out.append(rec)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", choices=["cpu", "cuda"], default="cuda" if torch.cuda.is_available() else "cpu")
@@ -249,7 +286,16 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=None)
     p.add_argument("--repeats", type=int, default=None)
     p.add_argument("--out", type=Path, default=Path("bench_render.json"))
+    p.add_argument("--jump-share", action="store_true",
+                   help="instead of timing: how much of the image's pose dependence is jumps, per blend mode")
     args = p.parse_args(argv)
+    if args.jump_share:
+        recs = jump_share(args.device)
+        args.out.write_text(json.dumps(recs, indent=2))
+        print("\nsigma  blend    cull   jump share  autograd-visible")
+        for r in recs:
+            print(f"{r['sigma']:5}  {r['blend']:7}  {r['cull']!s:5}  {r['jump_share']:10.2f}  {r['autograd_visible']:16.0f}")
+        return 0
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda but CUDA is not available")
     args.warmup = args.warmup if args.warmup is not None else (3 if args.compile else 2)

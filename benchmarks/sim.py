@@ -173,15 +173,19 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--iters", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (compiled/eager)")
+    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (CPU runs)")
     p.add_argument("--quick", action="store_true", help="ant and humanoid at 64 envs, ant at 4096; all modes")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = p.parse_args(argv)
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda but no CUDA device is available")
+    if args.threads:
+        torch.set_num_threads(args.threads)
     configs = QUICK if args.quick else [(t, n) for t in args.tasks for n in args.num_envs]
     meta = {
         "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.processor() or "cpu",
         "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "argv": sys.argv[1:] if argv is None else argv,
     }

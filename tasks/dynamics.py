@@ -7,7 +7,8 @@ and dtype and evaluates, for a batch of ``B`` states (``qpos: (B, nq)``, ``qvel:
 * the joint-space inertia matrix ``M (B, nv, nv)`` plus armature,
 * the bias forces (Coriolis, centrifugal, gravity) by Newton-Euler,
 * passive joint forces (damping, stiffness springs), joint-limit penalties and dflex's ground contact,
-* ``qacc = M^-1 (tau - bias)`` by a batched Cholesky solve,
+* ``qacc = M^-1 (tau - bias)`` with ``M^-1`` from a batched Cholesky factorisation (cached over substeps
+  as dflex did, so a substep is matrix-vector products only),
 * a semi-implicit Euler substep.
 
 Algorithm (why it looks the way it does). Everything is expressed in world-aligned spatial coordinates
@@ -90,18 +91,19 @@ class Frames(NamedTuple):
         return self.X[..., :3, 3] + self.origin[:, None]
 
 
-class _CholeskySolve(torch.autograd.Function):
-    """``x = M^-1 b`` given ``M (B, n, n)`` (SPD), its Cholesky factor ``L`` (computed without grad) and
-    ``b (B, n)``.
+class _InverseSolve(torch.autograd.Function):
+    """``x = M^-1 b`` given SPD ``M (B, n, n)``, its inverse ``Minv`` (computed without grad) and ``b (B, n)``.
 
-    Forward: two triangular solves with ``L``. Backward reuses the factor: ``gb = M^-1 gx``,
-    ``gM = -gb x^T``; cheaper than differentiating through the factorisation, and it lets a factor be
-    reused for several substeps (dflex's mass-matrix caching) while gradients still reach ``M``.
+    Forward and backward are batched matrix-vector products: ``x = Minv b``; ``gb = Minv gx`` and
+    ``gM = -gb x^T`` (the derivative of ``M^-1 b``), so gradients reach ``M`` although ``Minv`` was computed
+    outside autograd. With the inverse cached for several substeps (dflex's mass-matrix caching) a substep
+    contains no linear-algebra library call at all: everything fuses under ``torch.compile`` and nothing
+    in it can trip CUDA-graph capture.
     """
 
     @staticmethod
-    def forward(M: torch.Tensor, L: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        return _chol_solve(L, b)
+    def forward(M: torch.Tensor, Minv: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        return bmv(Minv, b)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -109,28 +111,41 @@ class _CholeskySolve(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gx):  # type: ignore[override]
-        x, L = ctx.saved_tensors
-        gb = _chol_solve(L, gx)
-        gM = -gb.unsqueeze(-1) * x.unsqueeze(-2)
-        return gM, None, gb
+        x, Minv = ctx.saved_tensors
+        gb = bmv(Minv, gx)  # Minv is symmetric
+        return -gb.unsqueeze(-1) * x.unsqueeze(-2), None, gb
 
 
-def _chol_solve(L: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Solve ``L L^T x = b``; L: (B, n, n) lower, b: (B, n) -> (B, n)."""
-    y = torch.linalg.solve_triangular(L, b.unsqueeze(-1), upper=False)
-    return torch.linalg.solve_triangular(L.mT, y, upper=True).squeeze(-1)
+def spd_inverse(M: torch.Tensor, *, method: Literal["library", "torch"] = "library") -> torch.Tensor:
+    """Inverse of SPD ``M (B, n, n)`` through its Cholesky factor, outside autograd (gradients reach ``M``
+    through :func:`spd_solve`).
 
-
-def cholesky(M: torch.Tensor) -> torch.Tensor:
-    """Lower Cholesky factor of SPD ``M (B, n, n)``, outside autograd (gradients reach ``M`` through
-    :func:`spd_solve`). ``cholesky_ex`` does not check for errors, so there is no host synchronisation."""
+    ``method="library"``: ``cholesky_ex`` (no error check, hence no host synchronisation) and a cuBLAS/LAPACK
+    triangular solve. ``method="torch"``: the same factorisation written as n column steps of plain tensor
+    ops, for back ends where a solver library cannot be captured in a CUDA graph.
+    """
     with torch.no_grad():
-        return torch.linalg.cholesky_ex(M.detach())[0]
+        M = M.detach()
+        n = M.shape[-1]
+        eye = torch.eye(n, dtype=M.dtype, device=M.device).expand_as(M)
+        if method == "library":
+            L = torch.linalg.cholesky_ex(M)[0]
+            Linv = torch.linalg.solve_triangular(L, eye, upper=False)
+        else:
+            L = torch.zeros_like(M)
+            for j in range(n):  # column j of L from the columns before it
+                v = M[:, j:, j] - (L[:, j:, :j] * L[:, j : j + 1, :j]).sum(-1)
+                L[:, j:, j] = v / torch.sqrt(v[:, :1])
+            Linv = torch.zeros_like(M)
+            for i in range(n):  # forward substitution, row by row: L Linv = I
+                row = eye[:, i] - (L[:, i, :i, None] * Linv[:, :i]).sum(1)
+                Linv[:, i] = row / L[:, i, i : i + 1]
+        return Linv.mT @ Linv
 
 
-def spd_solve(M: torch.Tensor, b: torch.Tensor, L: torch.Tensor | None = None) -> torch.Tensor:
-    """``M^-1 b`` for a batch of SPD matrices. M: (B, n, n), b: (B, n), optional factor L = cholesky(M)."""
-    return _CholeskySolve.apply(M, cholesky(M) if L is None else L, b)
+def spd_solve(M: torch.Tensor, b: torch.Tensor, Minv: torch.Tensor | None = None) -> torch.Tensor:
+    """``M^-1 b`` for a batch of SPD matrices. M: (B, n, n), b: (B, n), optional ``Minv = spd_inverse(M)``."""
+    return _InverseSolve.apply(M, spd_inverse(M) if Minv is None else Minv, b)
 
 
 def _index(arr: np.ndarray, device: torch.device) -> slice | torch.Tensor:
@@ -150,6 +165,8 @@ class Simulator:
         device, dtype: where and in which precision all tensors live (float32 or float64).
         contact: ground-contact parameters, or None for no contact.
         limits: joint-limit penalty, or None for no limits.
+        linalg: how the mass matrix is inverted (:func:`spd_inverse`): "library" (cuSOLVER/LAPACK Cholesky)
+            or "torch" (the same algorithm in plain tensor ops).
     """
 
     def __init__(
@@ -160,7 +177,11 @@ class Simulator:
         dtype: torch.dtype = torch.float32,
         contact: ContactParams | None = None,
         limits: LimitParams | None = None,
+        linalg: Literal["library", "torch"] = "library",
     ) -> None:
+        if linalg not in ("library", "torch"):
+            raise ValueError(f"linalg must be 'library' or 'torch', got {linalg!r}")
+        self.linalg = linalg
         self.model = model
         self.device = torch.device(device)
         self.dtype = dtype
@@ -481,10 +502,10 @@ class Simulator:
         return self.acceleration(qpos, qvel, tau, contact=False, limits=False)
 
     def factorize(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mass matrix ``M (B, nv, nv)`` (differentiable) and its Cholesky factor ``L`` (no grad), for reuse
-        over several substeps (dflex's mass-matrix caching). qpos: (B, nq)."""
+        """Mass matrix ``M (B, nv, nv)`` (differentiable) and its inverse (no grad), for reuse over several
+        substeps (dflex's mass-matrix caching). qpos: (B, nq)."""
         M = self.mass_matrix(qpos)
-        return M, cholesky(M)
+        return M, spd_inverse(M, method=self.linalg)
 
     def acceleration(
         self,
@@ -497,20 +518,20 @@ class Simulator:
         mass: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """Joint accelerations with generalized applied force ``tau (B, nv)``, including ground contact and
-        joint limits when enabled here and configured on the simulator. ``mass``: a cached (M, L) from
+        joint limits when enabled here and configured on the simulator. ``mass``: a cached (M, M^-1) from
         :meth:`factorize` (default: the mass matrix at ``qpos``). -> qacc (B, nv)."""
         fr = self.frames(qpos)
         I6 = self._spatial_inertia(fr.X)
         if mass is None:
             M = self._mass_matrix(fr.S, I6)
-            L = cholesky(M)
+            Minv = spd_inverse(M, method=self.linalg)
         else:
-            M, L = mass
+            M, Minv = mass
         Sq = fr.S * qvel.unsqueeze(-1)  # (B, nv, 6)
         vb = contract(self._body_dof_anc, Sq)  # body spatial velocities
         f_ext = self._contact_forces(fr, vb) if (contact and self.contact is not None) else None
         rhs = tau + self.passive_force(qpos, qvel, limits=limits) - self._bias(fr.S, I6, Sq, vb, f_ext)
-        return spd_solve(M, rhs, L)
+        return spd_solve(M, rhs, Minv)
 
     def integrate(self, qpos: torch.Tensor, qvel: torch.Tensor, dt: float) -> torch.Tensor:
         """Positions after ``dt`` [s] at constant velocity ``qvel`` (the second half of semi-implicit Euler).
@@ -540,7 +561,7 @@ class Simulator:
         """One semi-implicit Euler step: ``qvel += dt qacc`` then ``qpos`` from the new ``qvel``.
 
         qpos: (B, nq), qvel: (B, nv), tau: (B, nv) generalized applied force, dt [s], mass: optional cached
-        (M, L) from :meth:`factorize` -> (qpos, qvel).
+        (M, M^-1) from :meth:`factorize` -> (qpos, qvel).
         """
         qvel = qvel + dt * self.acceleration(qpos, qvel, tau, mass=mass)
         return self.integrate(qpos, qvel, dt), qvel

@@ -65,7 +65,9 @@ class TaskConfig:
     :class:`tasks.dynamics.LimitParams`; "always" is dflex's behaviour). action_scale: torque = clip(a, -1, 1)
     * gear * action_scale. mass_matrix_every: recompute the mass matrix and its factor every this many substeps
     and reuse it in between (dflex's "MM caching", which SHAC used once per control step; None = substeps,
-    1 = every substep). reset_noise: randomise reset states (False: the nominal start state).
+    1 = every substep). linalg: how the mass matrix is inverted ("library": cuSOLVER/LAPACK; "torch": the same
+    Cholesky in plain tensor ops, e.g. where a solver library cannot be captured in a CUDA graph).
+    reset_noise: randomise reset states (False: the nominal start state).
     validate: check actions for NaN/inf on every step (a host sync; default from env var TASKS_VALIDATE).
     """
 
@@ -82,6 +84,7 @@ class TaskConfig:
     limit_damping: Literal["always", "violated"] = "always"
     action_scale: float = 1.0
     mass_matrix_every: int | None = None
+    linalg: Literal["library", "torch"] = "library"
     reset_noise: bool = True
     validate: bool = field(default_factory=lambda: _env_flag("TASKS_VALIDATE"))
 
@@ -94,6 +97,8 @@ class TaskConfig:
             isinstance(self.mass_matrix_every, int) and self.mass_matrix_every >= 1
         ):
             raise ValueError(f"mass_matrix_every must be None or a positive int, got {self.mass_matrix_every!r}")
+        if self.linalg not in ("library", "torch"):
+            raise ValueError(f"linalg must be 'library' or 'torch', got {self.linalg!r}")
         if self.limit_damping not in ("always", "violated"):
             raise ValueError(f"limit_damping must be 'always' or 'violated', got {self.limit_damping!r}")
         for name in ("contact_ke", "contact_kd", "contact_kf", "contact_mu", "limit_ke", "limit_kd"):
@@ -156,7 +161,9 @@ class Task(abc.ABC):
         if cfg.contact and cfg.contact_ke > 0:
             contact = ContactParams(cfg.contact_ke, cfg.contact_kd, cfg.contact_kf, cfg.contact_mu)
         limits = LimitParams(cfg.limit_ke, cfg.limit_kd, cfg.limit_damping)
-        self.sim = Simulator(self.model, device=self.device, dtype=dtype, contact=contact, limits=limits)
+        self.sim = Simulator(
+            self.model, device=self.device, dtype=dtype, contact=contact, limits=limits, linalg=cfg.linalg
+        )
         self.num_act = self.model.nu
         self.episode_length = cfg.episode_length
         self.substeps = cfg.substeps
