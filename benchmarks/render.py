@@ -294,7 +294,8 @@ def main(argv=None) -> int:
         args.out.write_text(json.dumps(recs, indent=2))
         print("\nsigma  blend    cull   jump share  autograd-visible")
         for r in recs:
-            print(f"{r['sigma']:5}  {r['blend']:7}  {r['cull']!s:5}  {r['jump_share']:10.2f}  {r['autograd_visible']:16.0f}")
+            print(f"{r['sigma']:5}  {r['blend']:7}  {r['cull']!s:5}  {r['jump_share']:10.2f}  "
+                  f"{r['autograd_visible']:16.0f}")
         return 0
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda but CUDA is not available")
