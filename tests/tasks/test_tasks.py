@@ -346,3 +346,22 @@ def test_contact_override_turns_the_ground_off():
         for _ in range(40):
             env.step(torch.zeros(1, 8))
     assert env.qpos[0, 2] < 0.0  # fell through where the floor would be
+
+
+def test_counter_rng_is_uniform_reproducible_and_advances_in_place():
+    from tasks.rng import CounterRNG
+
+    rng = CounterRNG(1000, 7, seed=123, device="cpu")
+    state = rng.state
+    a = rng.uniform(torch.float64)
+    assert rng.state is state and int(state[1]) == 1  # advanced in place (CUDA-graph replays advance it)
+    b = rng.uniform(torch.float64)
+    assert a.shape == (1000, 7) and (a >= 0).all() and (a < 1).all()
+    assert abs(a.mean().item() - 0.5) < 0.01 and abs(a.var().item() - 1 / 12) < 0.005
+    assert not torch.equal(a, b)
+    assert abs(torch.corrcoef(torch.stack((a.flatten(), b.flatten())))[0, 1].item()) < 0.03
+    assert abs(torch.corrcoef(torch.stack((a[:, 0], a[:, 1])))[0, 1].item()) < 0.1  # columns independent
+    rng.set_state(torch.tensor([123, 0]))
+    assert torch.equal(rng.uniform(torch.float64), a)
+    other = CounterRNG(1000, 7, seed=124, device="cpu").uniform(torch.float64)
+    assert not torch.equal(other, a)
