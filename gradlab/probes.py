@@ -115,8 +115,9 @@ class FiniteFlags:
         j = self._index(name)
         flags = self.bwd
 
-        def hook(g: torch.Tensor):
-            flags[step, j] |= ~torch.isfinite(g).all()
+        def hook(g: torch.Tensor | None):
+            if g is not None:  # compiled graphs may pass an undefined (all-zero) gradient as None
+                flags[step, j] |= ~torch.isfinite(g).all()
 
         t.register_hook(hook)
 

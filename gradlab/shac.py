@@ -120,6 +120,10 @@ class SHAC:
         obs = self.task.reset()
         self.obs_rms.update(obs)
         if self.visual:
+            if self.graphs:
+                # A captured render cannot measure or grow its bins (no host sync): fix a generous capacity
+                # now, before the warm-up iterations compile the kernels for it.
+                self.renderer.freeze_capacity(self.task.qpos, headroom=2.0)
             self.frames.reset(self._render(grad=False))
         self._started = True
         self._commit_state()
@@ -450,8 +454,8 @@ class SHAC:
         self.obs_rms.load_state_dict(state["obs_rms"])
         self.task.set_state(state["task"])
         self.frames.load_state_dict(state["frames"], device=self.device)
-        self.episode_return = state["episode_return"].to(self.device)
-        self.episode_length = state["episode_length"].to(self.device)
+        self.episode_return.copy_(state["episode_return"])  # in place: graphs read these tensors
+        self.episode_length.copy_(state["episode_length"])
         self.recent_returns = deque(state["recent_returns"], maxlen=100)
         self.recent_lengths = deque(state["recent_lengths"], maxlen=100)
         set_rng_state(state["rng"])
@@ -474,9 +478,6 @@ class _ActorGraph:
     """
 
     def __init__(self, trainer: SHAC, *, render_grad: bool):
-        # Graph-captured renders cannot raise on bin overflow (no host sync): freeze a generous capacity.
-        if trainer.renderer is not None:
-            trainer.renderer.freeze_capacity(trainer.task.qpos, headroom=2.0)
         trainer._zero_actor_grads()
         pool = torch.cuda.graph_pool_handle()
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
