@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     p.add_argument("--horizon", type=int, default=32)
     p.add_argument("--warmup", type=int, default=2)
-    p.add_argument("--iters", type=int, default=5)
+    p.add_argument("--iters", type=int, default=None, help="measured iterations (default 5; 3 with --quick)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (compiled/eager)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (CPU runs)")
@@ -179,6 +179,8 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda but no CUDA device is available")
+    if args.iters is None:
+        args.iters = 3 if args.quick else 5
     if args.threads:
         torch.set_num_threads(args.threads)
     configs = QUICK if args.quick else [(t, n) for t in args.tasks for n in args.num_envs]
