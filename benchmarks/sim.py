@@ -173,7 +173,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--iters", type=int, default=None, help="measured iterations (default 5; 3 with --quick)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (compiled/eager)")
-    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (CPU runs)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch.set_num_threads; default 1 on the CPU: the tensors are tiny, and on a shared 2-core box two "
+        "OpenMP threads measured 40x slower than one",
+    )
     p.add_argument("--quick", action="store_true", help="ant and humanoid at 64 envs, ant at 4096; all modes")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = p.parse_args(argv)
@@ -181,8 +187,8 @@ def main(argv: list[str] | None = None) -> None:
         p.error("--device cuda but no CUDA device is available")
     if args.iters is None:
         args.iters = 3 if args.quick else 5
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    if args.threads or args.device == "cpu":
+        torch.set_num_threads(args.threads or 1)
     configs = QUICK if args.quick else [(t, n) for t in args.tasks for n in args.num_envs]
     meta = {
         "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.processor() or "cpu",
