@@ -12,10 +12,11 @@ and dtype and evaluates, for a batch of ``B`` states (``qpos: (B, nq)``, ``qvel:
 * a semi-implicit Euler substep.
 
 Algorithm (why it looks the way it does). Everything is expressed in world-aligned spatial coordinates
-with the reference point at the first body's origin (not the world origin: the numbers stay small however
-far the robot walks, which keeps float32 accurate). In that frame the motion subspace ``S_j (6,)`` of every
-dof, the velocity of every body and every body's spatial inertia are computed for all dofs/bodies at once;
-the recursions of CRBA and RNEA over the tree become products with constant 0/1 ancestor masks:
+with the reference point at the floating base (else the first body's origin), not the world origin: the
+numbers stay small however far the robot walks, which keeps float32 accurate. In that frame the motion
+subspace ``S_j (6,)`` of every dof, the velocity of every body and every body's spatial inertia are computed
+for all dofs/bodies at once; the recursions of CRBA and RNEA over the tree become products with constant 0/1
+ancestor masks:
 
 * composite inertias ``Ic = desc @ I`` (one matmul over bodies) and ``M_ij = S_i . Ic[body j] S_j`` for
   ``i`` an ancestor of ``j`` (the composite-rigid-body algorithm without its backward loop);
@@ -23,9 +24,12 @@ the recursions of CRBA and RNEA over the tree become products with constant 0/1 
 * Newton-Euler body forces ``f_b = I_b a_b + v_b x* I_b v_b - f_ext_b`` and joint forces
   ``tau_j = S_j . sum_{b desc j} f_b``.
 
-Only forward kinematics walks the tree, level by level (depth <= 6 here), vectorised over the bodies of a
-level. There are no data-dependent branches or host synchronisations, the shapes are static, and the whole
-substep is a few dozen batched kernels, so it compiles with ``torch.compile`` and captures in a CUDA graph.
+Only forward kinematics walks the tree: one 4x4 product per joint slot (at most 3 joints per body here) and
+one per tree level (depth <= 6 here), each over all bodies and joint frames at once. There are no
+data-dependent branches or host synchronisations, the shapes are static, and with the mass-matrix inverse
+cached a substep contains no library call, so it compiles with ``torch.compile`` and captures in a CUDA
+graph. The gradient of the solve goes to ``M`` analytically (``gM = -(M^-1 gx) x^T``), not through the
+factorisation.
 """
 
 from __future__ import annotations

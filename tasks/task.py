@@ -63,7 +63,7 @@ class TaskConfig:
     contact_ke [N/m], contact_kd [N s/m^2], contact_kf [N s/m], contact_mu: dflex contact parameters.
     limit_ke [N m/rad], limit_kd [N m s/rad], limit_damping: joint-limit penalty (see
     :class:`tasks.dynamics.LimitParams`; "always" is dflex's behaviour). action_scale: torque = clip(a, -1, 1)
-    * gear * action_scale. mass_matrix_every: recompute the mass matrix and its factor every this many substeps
+    * gear * action_scale. mass_matrix_every: recompute the mass matrix and its inverse every this many substeps
     and reuse it in between (dflex's "MM caching", which SHAC used once per control step; None = substeps,
     1 = every substep). linalg: how the mass matrix is inverted ("library": cuSOLVER/LAPACK; "torch": the same
     Cholesky in plain tensor ops, e.g. where a solver library cannot be captured in a CUDA graph).
