@@ -64,6 +64,11 @@ class SHAC:
         overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
         self.task = tasks.make(cfg.task, cfg.num_envs, device=self.device, seed=cfg.seed, **overrides)
         if cfg.compile:
+            # Probe iterations differentiate one graph twice (retain_graph=True), which AOTAutograd's donated
+            # buffers forbid in compiled backward functions.
+            import torch._functorch.config as functorch_config
+
+            functorch_config.donated_buffer = False
             self.task.compile()
         self.visual = cfg.mode in ("full", "decoupled")
         self.renderer = None
@@ -71,7 +76,9 @@ class SHAC:
             self.renderer = TaskRenderer(
                 self.task, height=cfg.image_size, width=cfg.image_size, detail=cfg.render_detail,
                 extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts, sigma=cfg.sigma,
-                gamma=cfg.render_gamma, compile=cfg.compile)
+                gamma=cfg.render_gamma)
+            # The rasterizer's torch.compile'd kernel is not used: on an H200 its backward produced NaN image
+            # gradients in full mode (2026-11-22); the eager kernel is captured in the CUDA graph instead.
             self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
                                      cfg.trunk_dim, cfg.actor_hidden)
         else:
