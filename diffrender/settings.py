@@ -115,7 +115,7 @@ class RasterSettings:
     blend: str = "softmax"
     coverage_cutoff: float = 1e-4
     backend: str = "auto"
-    tile_size: int = 4
+    tile_size: int = 2
     bin_capacity: int | None = None
     chunk_elems: int = 1 << 23
     compile: bool = False
