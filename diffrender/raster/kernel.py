@@ -203,10 +203,13 @@ def render_pairs(
     s_par = par_c[..., 0:1] + par_c[..., 1:2] * lx + par_c[..., 2:3] * ly
     overshoot = s_par - s_par.clamp(0.0, 1.0)  # beyond the ends the nearest point is an end point
     dseg2 = dline * dline + len2[..., None] * (overshoot * overshoot)  # squared distance to each segment
-    dmin = dline.amin(1)
+    # pairwise minimum, not amin: amin's backward divides by the number of entries equal to the minimum,
+    # which is 0 (NaN) when a fused compiled kernel recomputes the entries with different rounding
+    dmin = torch.minimum(torch.minimum(dline[:, 0], dline[:, 1]), dline[:, 2])
+    dsmin = torch.minimum(torch.minimum(dseg2[:, 0], dseg2[:, 1]), dseg2[:, 2])
     # exact signed Euclidean distance to the triangle (linear in the pixel offset at an edge):
     # inside, the nearest edge line; outside, the nearest point of the boundary
-    sd = torch.where(dmin >= 0, dmin, -torch.sqrt(dseg2.amin(1) + 1e-20))
+    sd = torch.where(dmin >= 0, dmin, -torch.sqrt(dsmin + 1e-20))
     # perspective-correct barycentrics from clamped screen barycentrics (1/z is affine in screen space)
     lc = lam.clamp(min=0.0)
     q = lc * iz
@@ -242,6 +245,11 @@ def render_pairs(
         # no-hit pixels carry a stand-in depth; mask before exp so no inf is formed (inf * 0 = NaN in backward)
         f_expo = torch.where(f_hit, (f_zn - m0) / st.gamma, torch.full_like(f_zn, -math.inf))
     coverage = torch.sigmoid(sd * (1.0 / st.sigma))
+    # Kept faces have (z_n - m) / gamma <= 0 up to rounding. The cap guards against the keep mask being
+    # re-evaluated with different rounding (a fused compiled backward recomputes sd): a pair dropped when m
+    # was formed, re-kept later, could otherwise have exp(+hundreds) = inf. Capped, it weighs at most its
+    # coverage (~ the cut-off), the same as the cut-off's own discontinuity; legitimate pairs never reach it.
+    cap = max(0.02, 100.0 * torch.finfo(dt).eps / st.gamma)
     if st.blend == "softmax":
         # the floor and the background are candidates of the depth softmax like the faces. Detached
         # per-pixel max of the candidates' normalised depth: it cancels in the blend and only keeps
@@ -250,7 +258,8 @@ def render_pairs(
             cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
             m = m0.scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand, reduce="amax",
                                   include_self=True)
-        expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
+        expo = torch.where(keep, ((z_n - m[rows]) * (1.0 / st.gamma)).clamp(max=cap),
+                           torch.full_like(z_n, -math.inf))
         w = coverage * torch.exp(expo)  # exactly 0 for dropped pairs (also in the backward)
         # the floor and background start the per-pixel sums; the faces are scattered onto them (scattering
         # into fresh zero buffers and adding the floor afterwards was mis-compiled by inductor 2.13 on the
@@ -275,7 +284,8 @@ def render_pairs(
             m = torch.full_like(m0, -math.inf).scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand,
                                                                reduce="amax", include_self=True)
             m = torch.where(torch.isfinite(m), m, torch.zeros_like(m))  # pixels without faces
-        expo = torch.where(keep, (z_n - m[rows]) * (1.0 / st.gamma), torch.full_like(z_n, -math.inf))
+        expo = torch.where(keep, ((z_n - m[rows]) * (1.0 / st.gamma)).clamp(max=cap),
+                           torch.full_like(z_n, -math.inf))
         w = coverage * torch.exp(expo)
         cov = torch.where(keep, coverage, torch.zeros_like(coverage))
         behind = _times_rgb(torch.ones_like(m0), st.background)
