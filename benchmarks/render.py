@@ -8,7 +8,8 @@ repeats; ``torch.cuda.reset_peak_memory_stats`` precedes every measured region.
 Reported per point: ``fwd_ms`` (render only, no graph), ``fwdbwd_ms`` (render with grad + backward of a
 weighted image sum into the vertices and camera eye), ``fk_fwdbwd_ms`` (the same including forward
 kinematics from qpos, the way a task renders), peak allocated / reserved memory of the fwd+bwd region
-[MB] and above the region's start, ``saved_mb`` (bytes autograd keeps for the backward of one render,
+[MB] and above the region's start, ``grad_finite`` (the qpos gradient is finite; compiled points also
+report ``grad_rel_err_vs_eager``), ``saved_mb`` (bytes autograd keeps for the backward of one render,
 measured with saved-tensor hooks; the faces tensor, which the caller owns anyway, is excluded),
 ``pairs`` (tile-face pairs per environment, mean) and ``capacity``.
 
@@ -19,6 +20,7 @@ measured with saved-tensor hooks; the faces tensor, which the caller owns anyway
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import platform
@@ -137,11 +139,26 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
         v, n = robot.world_vertices_and_normals(q)
         img = dr.render(v, robot.faces, robot.colors, scene.camera(q), settings, normals=n)
         (img * weights).sum().backward()
+        return q.grad
+
+    def check_grads():
+        """qpos gradient through FK, tracking camera and renderer: finite, and for compiled points the
+        relative deviation from the eager kernel's (compiled backward recomputes with other rounding)."""
+        g = fk_fwdbwd()
+        rec["grad_finite"] = bool(torch.isfinite(g).all())
+        if compile:
+            eager = dataclasses.replace(settings, compile=False)
+            q = scene.qpos.detach().requires_grad_()
+            v, n = robot.world_vertices_and_normals(q)
+            img = dr.render(v, robot.faces, robot.colors, scene.camera(q), eager, normals=n)
+            (img * weights).sum().backward()
+            rec["grad_rel_err_vs_eager"] = float((g - q.grad).abs().max() / q.grad.abs().max())
 
     try:
         rec["fwd_ms"], rec["first_call_ms"] = _time(fwd, device, warmup=args.warmup, repeats=args.repeats)
         rec["fwdbwd_ms"], _ = _time(fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
         rec["fk_fwdbwd_ms"], _ = _time(fk_fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
+        check_grads()
         # memory of one fwd+bwd
         if device.type == "cuda":
             _sync(device)
@@ -220,9 +237,9 @@ def table(records: list[dict]) -> str:
     cols = [("backend", "{}"), ("compile", "{}"), ("batch", "{}"), ("res", "{}"), ("faces", "{}"), ("tile", "{}"),
             ("pairs_mean", "{:.0f}"), ("fwd_ms", "{:.2f}"), ("fwdbwd_ms", "{:.2f}"), ("fk_fwdbwd_ms", "{:.2f}"),
             ("peak_alloc_above_start_mb", "{:.0f}"), ("peak_reserved_mb", "{:.0f}"), ("saved_mb", "{:.2f}"),
-            ("status", "{}")]
+            ("grad_finite", "{}"), ("status", "{}")]
     head = ["backend", "compiled", "B", "res", "faces", "tile", "pairs", "fwd ms", "f+b ms", "fk+f+b", "peak MB",
-            "resv MB", "saved MB", "status"]
+            "resv MB", "saved MB", "grad ok", "status"]
     rows = [head]
     for r in records:
         row = []
