@@ -61,6 +61,9 @@ class RunConfig(SHACConfig):
     """Iterations between evaluation videos (MP4 of the deterministic policy; also at the end); 0 disables."""
     video_steps: int | None = None
     """Steps per evaluation video (None: one episode)."""
+    time_limit_min: float | None = None
+    """Stop cleanly (final checkpoint, video and summary) once this many minutes of training have passed;
+    None: run all iterations."""
     warmup_iters: int = 2
     """Iterations excluded from the timing medians in summary.json (allocator and kernel warm-up)."""
     tensorboard: bool = False
@@ -79,6 +82,8 @@ class RunConfig(SHACConfig):
             raise ValueError("video_every and warmup_iters must be >= 0")
         if self.video_steps is not None and self.video_steps <= 0:
             raise ValueError(f"video_steps must be positive, got {self.video_steps}")
+        if self.time_limit_min is not None and self.time_limit_min <= 0:
+            raise ValueError(f"time_limit_min must be positive, got {self.time_limit_min}")
 
 
 def shac_part(cfg: RunConfig) -> SHACConfig:
@@ -298,10 +303,11 @@ def run(cfg: RunConfig) -> Path:
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
     try:
+        deadline = None if cfg.time_limit_min is None else time.monotonic() + 60.0 * cfg.time_limit_min
         while trainer.iteration < cfg.iters:
             m = trainer.train_iteration()
             it = m["iter"]
-            last = it == cfg.iters
+            last = it == cfg.iters or (deadline is not None and time.monotonic() >= deadline)
             if cfg.video_every and (it % cfg.video_every == 0 or last):
                 eval_return, frames = trainer.evaluate(steps=cfg.video_steps, record=True)
                 m["eval_return"] = eval_return
@@ -322,7 +328,9 @@ def run(cfg: RunConfig) -> Path:
             bar.set_postfix(ret="-" if ret is None else f"{ret:.1f}", ms=f"{m['iter_ms']:.0f}",
                             gn=f"{m['grad_norm']:.2g}")
             bar.update(1)
-        status = "finished"
+            if last:
+                break
+        status = "finished" if trainer.iteration >= cfg.iters else "time_limit"
     except NonFiniteError as e:
         status, error = "nonfinite", str(e)
         raise

@@ -66,9 +66,14 @@ class SHAC:
         if cfg.compile:
             # Probe iterations differentiate one graph twice (retain_graph=True), which AOTAutograd's donated
             # buffers forbid in compiled backward functions.
+            import torch._dynamo.config as dynamo_config
             import torch._functorch.config as functorch_config
 
             functorch_config.donated_buffer = False
+            # A window calls the substep with and without grad-requiring state and cached mass matrices (first
+            # step, probes, evaluation): more guard variants than dynamo's default 8, after which it silently
+            # falls back to eager (seen on the ant: 2.6x slower iterations).
+            dynamo_config.recompile_limit = max(getattr(dynamo_config, "recompile_limit", 8), 64)
             self.task.compile()
         self.visual = cfg.mode in ("full", "decoupled")
         self.renderer = None
@@ -111,7 +116,7 @@ class SHAC:
         self.recent_lengths: deque[int] = deque(maxlen=100)
         self._started = False
         self._live: dict[str, torch.Tensor] = {}  # the state a window starts from, in fixed tensors
-        self._actor_graph: _ActorGraph | None = None
+        self._actor_graphs: dict[bool, _ActorGraph] = {}  # plain and probe iterations, captured separately
         self._critic_graph: _CriticGraph | None = None
 
     # ------------------------------------------------------------------ observation plumbing
@@ -305,19 +310,19 @@ class SHAC:
         self._set_learning_rates()
         # CUDA graphs replay the plain (non-probe) iteration; the first iterations run eagerly and warm up
         # (torch.compile, cuBLAS/cuDNN handles, the allocator), then the window is captured once.
-        replay = self.graphs and not probe and self.iteration >= _GRAPH_WARMUP_ITERS
-        if replay and self._actor_graph is None:
-            self._actor_graph = _ActorGraph(self, render_grad=render_grad)
+        replay = self.graphs and self.iteration >= _GRAPH_WARMUP_ITERS
+        if replay and probe not in self._actor_graphs:
+            self._actor_graphs[probe] = _ActorGraph(self, probe=probe)
 
         # Actor: forward (rollout + render + loss) and backward, timed and memory-probed as one region.
         with MemoryProbe(self.device) as mem:
             if replay:
-                graph = self._actor_graph
+                graph = self._actor_graphs[probe]
                 with self.timer("fwd"):
                     graph.fwd.replay()
                 with self.timer("bwd"):
                     graph.bwd.replay()
-                loss, buf, saved_bytes, probe_out = graph.loss, graph.buf, graph.saved_bytes, {}
+                loss, buf, saved_bytes, probe_out = graph.loss, graph.buf, graph.saved_bytes, graph.probe_out
             else:
                 with self.timer("fwd"), SavedTensorBytes() as saved:
                     loss, buf = self._rollout(render_grad=render_grad)
@@ -475,27 +480,26 @@ _GRAPH_WARMUP_ITERS = 2
 
 
 class _ActorGraph:
-    """The plain iteration's rollout + loss (``fwd``) and backward (``bwd``) captured as two CUDA graphs.
+    """One iteration's rollout + loss (``fwd``) and backward (``bwd``) captured as two CUDA graphs.
 
     Two graphs sharing one memory pool (as ``torch.cuda.make_graphed_callables`` does) so forward and backward
     stay separately timed. The rollout reads the live-state tensors; ``bwd`` ends by writing the window's
-    final state into them (after the backward, which still reads the old values). ``loss`` and ``buf`` are
-    the graph's static outputs, overwritten by every replay. Capturing records work without doing it: the
-    caller replays both graphs afterwards, so the capture iteration is a real iteration too.
+    final state into them (after the backward, which still reads the old values). ``loss``, ``buf`` and
+    ``probe_out`` are the graphs' static outputs, overwritten by every replay. A probe graph renders with
+    grad and holds both backward passes (gate open and closed) and the norms and cosine. Capturing records
+    work without doing it: the caller replays both graphs afterwards, so the capture iteration is real.
     """
 
-    def __init__(self, trainer: SHAC, *, render_grad: bool):
+    def __init__(self, trainer: SHAC, *, probe: bool):
         trainer._zero_actor_grads()
         pool = torch.cuda.graph_pool_handle()
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         torch.cuda.synchronize(trainer.device)
         with torch.cuda.graph(self.fwd, pool=pool):
             with SavedTensorBytes() as saved:
-                self.loss, self.buf = trainer._rollout(render_grad=render_grad)
+                self.loss, self.buf = trainer._rollout(render_grad=probe or trainer.cfg.mode == "full")
         with torch.cuda.graph(self.bwd, pool=pool):
-            trainer._zero_actor_grads()
-            trainer.gate.open = trainer.cfg.mode == "full"
-            self.loss.backward()
+            self.probe_out = trainer._backward(self.loss, probe)
             trainer._commit_state()
         self.saved_bytes = saved.bytes
 

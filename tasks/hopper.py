@@ -46,7 +46,10 @@ class HopperTask(Task):
 
     name = "hopper"
     asset = "hopper.xml"
-    camera = CameraSpec(eye=(0.0, -2.8, 1.35), target=(0.0, 0.0, 1.25), fov_deg=45.0, track="xz", root_body="torso")
+    # D.Va's hopper camera, eye (0,-2.8,1.35) -> (0,0,1.25), is relative to SHAC's start-relative root height
+    # (0 at the start pose). Our torso's world height starts at 1.25 m, so the same view is these offsets from
+    # the torso: at the start the camera sits at z = 1.35 and looks at z = 1.25, as there.
+    camera = CameraSpec(eye=(0.0, -2.8, 0.1), target=(0.0, 0.0, 0.0), fov_deg=45.0, track="xz", root_body="torso")
     Config = HopperConfig
     num_obs = 11
     noise_dim = 12

@@ -110,3 +110,11 @@ def test_help_documents_every_flag():
                  "--cosine-every", "--resume", "--video-every", "--tensorboard"):
         assert flag in r.stdout
     assert "decoupled (D.Va)" in r.stdout.replace("\n", " ").replace("  ", " ") or "D.Va" in r.stdout
+
+
+def test_time_limit_stops_cleanly(tmp_path):
+    ablate("--task", "cartpole", "--mode", "state", "--iters", "1000", "--time-limit-min", "0.0001",
+           "--video-every", "0", "--out", str(tmp_path), "--name", "t", *TINY)
+    summary = json.loads((tmp_path / "t" / "summary.json").read_text())
+    assert summary["status"] == "time_limit" and summary["iterations"] == 1
+    assert (tmp_path / "t" / "checkpoints" / "ckpt_000001.pt").exists()

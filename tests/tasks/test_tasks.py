@@ -58,7 +58,7 @@ def test_cameras():
     cams = {n: tasks.make(n, 1).camera for n in tasks.TASKS}
     expected = {
         "cartpole": ((0, -2.8, 1.2), (0, 0, 1.2), 90, "none"),
-        "hopper": ((0, -2.8, 1.35), (0, 0, 1.25), 45, "xz"),
+        "hopper": ((0, -2.8, 0.1), (0, 0, 0), 45, "xz"),  # offsets from the torso (1.25 m at the start)
         "ant": ((0.5, -2, 1), (0, 0, 1), 90, "xyz"),
         "humanoid": ((-3, 0, 1), (0, 0, 0), 45, "xyz"),
     }
@@ -68,6 +68,15 @@ def test_cameras():
         assert cam.fov_deg == fov and cam.track == track
         with pytest.raises(AttributeError):
             cam.fov_deg = 10  # frozen
+
+
+def test_hopper_camera_sees_dvas_view_at_the_start():
+    # D.Va: eye (0,-2.8,1.35) -> (0,0,1.25) in world coordinates at the start pose.
+    from tasks.vision import TaskRenderer
+
+    env = tasks.make("hopper", 1, dtype=torch.float64)
+    cam = TaskRenderer(env).camera(env.qpos)
+    assert cam.eye[0].tolist() == pytest.approx([0.0, -2.8, 1.35])
 
 
 def test_cartpole_reward_and_obs_on_hand_made_states():
