@@ -17,6 +17,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -221,9 +222,10 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
 def _check_writable(folder: Path) -> None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / ".write-test"
-        probe.write_text("ok")
-        probe.unlink()
+        # A unique name: several runs may start in the same folder at once.
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-test.")
+        os.close(fd)
+        os.unlink(probe)
     except OSError as e:
         raise ValueError(f"output folder {folder} is not writable: {e}") from None
 

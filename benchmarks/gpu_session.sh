@@ -21,6 +21,17 @@ for spec in "$@"; do
             --tasks ${TASKS:-cartpole hopper ant humanoid};;
     iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \
             --out "$OUT/iter_compiled.json" --tasks ${TASKS:-cartpole hopper ant humanoid};;
+    graph-test) run "$secs" python3 -m pytest tests/test_cuda.py -q -x -p no:cacheprovider -k "captured and cartpole";;
+    learn) # LEARN="task:mode:seed ..." runs concurrently on the one GPU, each stopping after LEARN_MIN minutes;
+           # the run folders (without checkpoints) and ablate-plot's PNGs come back as one tarball.
+       mkdir -p /tmp/runs
+       for spec in ${LEARN:-cartpole:decoupled:0 cartpole:full:0}; do IFS=: read -r t m s <<< "$spec"
+         python3 -m ablations ablate --task "$t" --mode "$m" --seed "$s" --compile --device cuda --iters ${LEARN_ITERS:-4000} \
+           --time-limit-min "${LEARN_MIN:-6}" --cosine-every ${LEARN_K:-10} --video-every 100000 --out /tmp/runs \
+           --name "${t}_${m}_seed${s}" --no-progress > "/tmp/runs/${t}_${m}_seed${s}.log" 2>&1 &
+       done; wait
+       tail -n 3 /tmp/runs/*.log; python3 -m ablations plot /tmp/runs/*/ --out /tmp/runs/plots 2>&1 | tail -3
+       tar -C /tmp/runs --exclude=checkpoints -czf "$OUT/runs.tgz" . ;;
     *) echo "unknown stage $stage";;
   esac
 done
