@@ -107,7 +107,10 @@ def main() -> None:
             results.append(row)
             print(json.dumps(row), flush=True)
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps({"environment": env, "results": results}, indent=2))
+            # The format ablate-report reads: provenance at the top level, one row per (task, mode).
+            doc = {"date": env["date"], "command": env["command"], "device": args.device, "gpu": env.get("gpu"),
+                   "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
+            args.out.write_text(json.dumps(doc, indent=2))
 
     print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile} "

@@ -85,6 +85,11 @@ class SHACConfig:
     """Soft-rasterizer edge softness in pixels; None: the renderer's default."""
     render_gamma: float | None = None
     """Soft-rasterizer depth-blend temperature; None: the renderer's default."""
+    render_blend: Literal["softmax", "alpha"] = "softmax"
+    """How faces meet the floor: softmax (DESIGN's depth softmax with the floor as one more candidate) or
+    alpha (faces softmax-blended among themselves, then composited over floor and sky by coverage). alpha
+    passes 2-3x more of the image's change at silhouettes to the gradient (benchmarks/render.py
+    --jump-share) and renders without back-face culling."""
     episode_length: int | None = None
     """Override the task's episode length (None: 240 cartpole, 1000 others)."""
     cosine_every: int = 10

@@ -78,10 +78,8 @@ class SHAC:
         self.visual = cfg.mode in ("full", "decoupled")
         self.renderer = None
         if self.visual:
-            self.renderer = TaskRenderer(
-                self.task, height=cfg.image_size, width=cfg.image_size, detail=cfg.render_detail,
-                extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts, sigma=cfg.sigma,
-                gamma=cfg.render_gamma)
+            self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
+                                         **self._render_options())
             # The rasterizer's torch.compile'd kernel is not used: on an H200 its backward produced NaN image
             # gradients in full mode (2026-11-22); the eager kernel is captured in the CUDA graph instead.
             self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
@@ -118,6 +116,14 @@ class SHAC:
         self._live: dict[str, torch.Tensor] = {}  # the state a window starts from, in fixed tensors
         self._actor_graphs: dict[bool, _ActorGraph] = {}  # plain and probe iterations, captured separately
         self._critic_graph: _CriticGraph | None = None
+
+    def _render_options(self) -> dict:
+        cfg = self.cfg
+        options = dict(detail=cfg.render_detail, extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts,
+                       sigma=cfg.sigma, gamma=cfg.render_gamma, blend=cfg.render_blend)
+        if cfg.render_blend == "alpha":
+            options["cull_backfaces"] = False  # alpha coverage sums over all faces, hidden ones included
+        return options
 
     # ------------------------------------------------------------------ observation plumbing
     def _render(self, *, grad: bool) -> torch.Tensor:
@@ -406,9 +412,7 @@ class SHAC:
         renderer = video = None
         frames = FrameStack(cfg.frames)
         if self.visual:
-            renderer = TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, detail=cfg.render_detail,
-                                    extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts,
-                                    sigma=cfg.sigma, gamma=cfg.render_gamma)
+            renderer = TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options())
             frames.reset(renderer(task.qpos))
         if record:
             video = TaskRenderer(task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2),

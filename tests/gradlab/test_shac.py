@@ -131,3 +131,10 @@ def test_config_errors_are_clear():
     with pytest.raises(ValueError, match="horizon must be a positive integer"):
         SHAC(tiny(horizon=-1), device="cpu")
     assert "ant" in tasks.TASKS
+
+
+def test_render_blend_option_reaches_the_renderer():
+    trainer = SHAC(tiny(mode="full", render_blend="alpha"), device="cpu")
+    assert trainer.renderer.settings.blend == "alpha" and not trainer.renderer.settings.cull_backfaces
+    assert SHAC(tiny(mode="full"), device="cpu").renderer.settings.blend == "softmax"
+    assert trainer.train_iteration()["grad_norm"] > 0
