@@ -138,3 +138,20 @@ def test_render_blend_option_reaches_the_renderer():
     assert trainer.renderer.settings.blend == "alpha" and not trainer.renderer.settings.cull_backfaces
     assert SHAC(tiny(mode="full"), device="cpu").renderer.settings.blend == "softmax"
     assert trainer.train_iteration()["grad_norm"] > 0
+
+
+@pytest.mark.skipif(not (__import__("shutil").which("g++") or __import__("shutil").which("c++")),
+                    reason="torch.compile on the CPU needs a C++ compiler")
+def test_compile_matches_eager_on_cpu():
+    # --compile's non-graph part (torch.compile'd physics substep and reward/reset; CUDA graphs need a GPU and
+    # are tested in tests/test_cuda.py) gives the eager numbers within float tolerance, probes included.
+    def run(compile_: bool):
+        trainer = SHAC(tiny(mode="decoupled", cosine_every=2, compile=compile_), device="cpu")
+        return [trainer.train_iteration() for _ in range(3)]
+
+    eager, compiled = run(False), run(True)
+    for a, b in zip(eager, compiled):
+        for k in ("actor_loss", "grad_norm", "critic_loss", "grad_norm_full", "cos_full_decoupled"):
+            if k in a:
+                assert b[k] == pytest.approx(a[k], rel=1e-4, abs=1e-6), (k, a[k], b[k])
+        assert not b["graph"]
