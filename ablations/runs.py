@@ -60,8 +60,8 @@ class RunConfig(SHACConfig):
     """Checkpoints kept on disk (oldest deleted)."""
     video_every: int = 100
     """Iterations between evaluation videos (MP4 of the deterministic policy; also at the end); 0 disables."""
-    video_steps: int | None = None
-    """Steps per evaluation video (None: one episode)."""
+    video_steps: int | None = 300
+    """Steps per evaluation video (at most one episode; 300 steps = 5 s at 60 fps); None: one episode."""
     time_limit_min: float | None = None
     """Stop cleanly (final checkpoint, video and summary) once this many minutes of training have passed;
     None: run all iterations."""
@@ -311,8 +311,10 @@ def run(cfg: RunConfig) -> Path:
             it = m["iter"]
             last = it == cfg.iters or (deadline is not None and time.monotonic() >= deadline)
             if cfg.video_every and (it % cfg.video_every == 0 or last):
-                eval_return, frames = trainer.evaluate(steps=cfg.video_steps, record=True)
-                m["eval_return"] = eval_return
+                steps = min(cfg.video_steps or trainer.task.episode_length, trainer.task.episode_length)
+                eval_return, frames = trainer.evaluate(steps=steps, record=True)
+                m["eval_return"] = eval_return  # undiscounted, deterministic policy, over eval_steps steps
+                m["eval_steps"] = steps
                 write_video(run_dir / "videos" / f"iter_{it:06d}.mp4", frames)
             with open(metrics_path, "a") as f:
                 f.write(json.dumps(m) + "\n")

@@ -407,6 +407,8 @@ class SHAC:
         steps = steps or self.task.episode_length
         overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
         task = tasks.make(cfg.task, num_envs, device=self.device, seed=cfg.seed + 10_007, **overrides)
+        if cfg.compile:
+            task.compile()  # an eager ant episode is ~1000 x 16 unfused substeps: minutes on a GPU
         obs = task.reset()
         stats = self.obs_rms.snapshot()
         renderer = video = None
