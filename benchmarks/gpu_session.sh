@@ -2,7 +2,7 @@
 # One GPU-machine session: install the carried wheels, then run the named stages, each under its own time
 # limit, writing JSON under $OUT (the device tool brings $OUT back). Usage, from the repo root:
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
-# Stages: env, cuda-tests, sim, render, iter, iter-compiled, learn-cartpole, sweep, table1.
+# Stages: env, cuda-tests, graph-test, sim, render, iter, iter-compiled, learn, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
@@ -32,6 +32,11 @@ for spec in "$@"; do
        done; wait
        tail -n 3 /tmp/runs/*.log; python3 -m ablations plot /tmp/runs/*/ --out /tmp/runs/plots 2>&1 | tail -3
        tar -C /tmp/runs --exclude=checkpoints -czf "$OUT/runs.tgz" . ;;
+    sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs)
+       python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes decoupled full --meshes ${SWEEP_MESHES:-0 16 64} \
+         --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 --image-size 84 --warmup-iters 1 --iters 2 \
+         --device cuda --out /tmp/sweep --no-progress --timeout-s 240 2>&1 | tail -n 15
+       tar -C /tmp --exclude=logs -czf "$OUT/sweep.tgz" sweep ;;
     *) echo "unknown stage $stage";;
   esac
 done
