@@ -2,7 +2,7 @@
 # One GPU-machine session: install the carried wheels, then run the named stages, each under its own time
 # limit, writing JSON under $OUT (the device tool brings $OUT back). Usage, from the repo root:
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
-# Stages: env, cuda-tests, graph-test, sim, render, iter, iter-compiled, learn, sweep (see each case below).
+# Stages: env, cuda-tests, fused-tests, graph-test, sim, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
@@ -17,6 +17,11 @@ for spec in "$@"; do
     cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/diffrender -q -x -m "cuda" -p no:cacheprovider;;
     sim) run "$secs" python3 benchmarks/sim.py --device cuda --quick --out "$OUT/sim_quick.json";;
     render) run "$secs" python3 benchmarks/render.py --device cuda --quick --out "$OUT/render_quick.json";;
+    fused-tests) run "$secs" python3 -m pytest tests/diffrender/test_fused.py -q -x -p no:cacheprovider;;
+    render-fused) # the fused Triton backend: kernel shapes (FUSED_VARIANTS) and the tiled one at the target
+       # point, then batch / resolution / faces sweeps on the fused one
+       run "$secs" python3 benchmarks/render.py --device cuda --backends fused tiled \
+         --fused-variants ${FUSED_VARIANTS:-8x16} --out "$OUT/render_fused.json";;
     iter) run "$secs" python3 benchmarks/iteration.py --device cuda --warmup 1 --iters 3 --out "$OUT/iter_eager.json" \
             --tasks ${TASKS:-cartpole hopper ant humanoid};;
     iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \

@@ -38,6 +38,7 @@ from diffrender.profiling import SavedTensorMeter
 from diffrender.raster import count_pairs, tiled_static
 
 ASSETS = Path(__file__).resolve().parents[1] / "tasks" / "assets"
+DEFAULT_FUSED = (8, 16)  # (tile, face block) of diffrender.raster.fused
 TARGET = dict(fwd_ms=3.0, fwdbwd_ms=8.0, saved_mb=4.0)  # H100, 64 ant envs at 84 x 84
 DENSE_MAX_ELEMS = 3e7  # the dense reference materialises B * F * H * W pixel-face pairs (x ~100 floats)
 
@@ -102,11 +103,18 @@ class Scene:
                                   track="xyz", fov_deg=90.0, height=self.res, width=self.res)
 
 
-def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, compile: bool = False) -> dict:
+def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, compile: bool = False,
+            fused_tile: int | None = None, fused_block: int | None = None) -> dict:
     device = torch.device(args.device)
     dtype = torch.float64 if args.float64 else torch.float32
     rec = dict(backend=backend, batch=batch, res=res, faces_target=faces, tile=tile, compile=compile,
                blend=args.blend, cull=not args.no_cull)
+    if backend == "fused":
+        from diffrender.raster import fused
+
+        fused.TILE = fused_tile or DEFAULT_FUSED[0]
+        fused.FACE_BLOCK = fused_block or DEFAULT_FUSED[1]
+        rec.update(tile=fused.TILE, face_block=fused.FACE_BLOCK)
     scene = Scene(faces, batch, res, device, dtype)
     robot = scene.robot
     rec.update(faces=robot.num_faces, verts=robot.num_vertices)
@@ -142,10 +150,20 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
         return q.grad
 
     def check_grads():
-        """qpos gradient through FK, tracking camera and renderer: finite, and for compiled points the
-        relative deviation from the eager kernel's (compiled backward recomputes with other rounding)."""
+        """qpos gradient through FK, tracking camera and renderer: finite, and for compiled and fused points
+        the relative deviation (2-norm) from the eager tiled kernel's (other rounding and summation order)."""
         g = fk_fwdbwd()
         rec["grad_finite"] = bool(torch.isfinite(g).all())
+        if backend == "fused":
+            ref = dataclasses.replace(settings, backend="tiled", tile_size=2)
+            q = scene.qpos.detach().requires_grad_()
+            v, n = robot.world_vertices_and_normals(q)
+            img_ref = dr.render(v, robot.faces, robot.colors, scene.camera(q), ref, normals=n)
+            (img_ref * weights).sum().backward()
+            with torch.no_grad():
+                img = dr.render(v, robot.faces, robot.colors, scene.camera(q), settings, normals=n)
+            rec["img_max_abs_err_vs_tiled"] = float((img - img_ref).abs().max())
+            rec["grad_rel_err_vs_tiled"] = float((g - q.grad).norm() / q.grad.norm())
         if compile:
             eager = dataclasses.replace(settings, compile=False)
             q = scene.qpos.detach().requires_grad_()
@@ -199,6 +217,23 @@ def points(args) -> list[dict]:
     the full (non-quick) sweep every point: each new shape compiles three graphs (binning, forward, and the
     backward's recompute), tens of seconds each."""
     b0, r0, f0 = 64, 84, 0  # faces 0: the plain ant (detail 1, 1856 faces)
+    if args.backends:  # the fast backends: every variant at the target point, then the sweeps on the first
+        main = args.backends[0]
+        pts = []
+        for be in args.backends:
+            if be == "fused":
+                for var in args.fused_variants or ["x".join(map(str, DEFAULT_FUSED))]:
+                    t, fb = (int(x) for x in var.split("x"))
+                    pts.append(dict(backend=be, batch=b0, res=r0, faces=f0, tile=2, fused_tile=t, fused_block=fb))
+            else:
+                pts.append(dict(backend=be, batch=b0, res=r0, faces=f0, tile=2))
+        for b in (16, 256, 1024):
+            pts.append(dict(backend=main, batch=b, res=r0, faces=f0, tile=2))
+        for r in (64, 128):
+            pts.append(dict(backend=main, batch=b0, res=r, faces=f0, tile=2))
+        for f in (1000, 10_000, 30_000, 100_000):
+            pts.append(dict(backend=main, batch=b0, res=r0, faces=f, tile=2))
+        return pts
     if args.tiny:
         pts = [dict(backend=be, batch=2, res=24, faces=f, tile=4) for be in ("tiled", "dense") for f in (0, 3000)]
         if args.compile:
@@ -235,10 +270,12 @@ def points(args) -> list[dict]:
 
 def table(records: list[dict]) -> str:
     cols = [("backend", "{}"), ("compile", "{}"), ("batch", "{}"), ("res", "{}"), ("faces", "{}"), ("tile", "{}"),
+            ("face_block", "{}"), ("grad_rel_err_vs_tiled", "{:.1e}"),
             ("pairs_mean", "{:.0f}"), ("fwd_ms", "{:.2f}"), ("fwdbwd_ms", "{:.2f}"), ("fk_fwdbwd_ms", "{:.2f}"),
             ("peak_alloc_above_start_mb", "{:.0f}"), ("peak_reserved_mb", "{:.0f}"), ("saved_mb", "{:.2f}"),
             ("grad_finite", "{}"), ("status", "{}")]
-    head = ["backend", "compiled", "B", "res", "faces", "tile", "pairs", "fwd ms", "f+b ms", "fk+f+b", "peak MB",
+    head = ["backend", "compiled", "B", "res", "faces", "tile", "fblock", "grad err", "pairs", "fwd ms", "f+b ms",
+            "fk+f+b", "peak MB",
             "resv MB", "saved MB", "grad ok", "status"]
     rows = [head]
     for r in records:
@@ -293,6 +330,10 @@ def main(argv=None) -> int:
     p.add_argument("--device", choices=["cpu", "cuda"], default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--quick", action="store_true", help="the target point, batch/resolution/face sweeps (<4 min)")
     p.add_argument("--tiny", action="store_true", help="a few tiny points (CPU smoke test)")
+    p.add_argument("--backends", nargs="*", choices=["fused", "tiled", "dense"],
+                   help="compare these backends at the target point and sweep batch (16-1024), resolution and "
+                        "faces on the first (replaces the tiled-only --quick sweep)")
+    p.add_argument("--fused-variants", nargs="*", help="fused kernel shapes TILExFACE_BLOCK, e.g. 8x16 16x16")
     p.add_argument("--tiles", type=int, nargs="*", help="tile sizes to compare at the target point")
     p.add_argument("--compile", action="store_true", help="also measure with torch.compile (see points())")
     p.add_argument("--blend", choices=["softmax", "alpha"], default="softmax")

@@ -37,6 +37,22 @@ def _can_sync(device: torch.device) -> bool:
     return not (device.type == "cuda" and torch.cuda.is_current_stream_capturing())
 
 
+def _backend(settings: RasterSettings, device: torch.device) -> str:
+    if settings.backend != "auto":
+        return settings.backend
+    if device.type == "cuda" and settings.blend == "softmax" and _triton_installed():
+        return "fused"
+    return "tiled"
+
+
+def _triton_installed() -> bool:
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def render(
     verts: torch.Tensor,
     faces: torch.Tensor,
@@ -129,8 +145,13 @@ def render(
     if sync:
         nonfinite = torch.stack([(~torch.isfinite(x)).any() for _, x in named if x is not None])
 
-    backend = "tiled" if settings.backend == "auto" else settings.backend
-    if backend == "dense":
+    backend = _backend(settings, device)
+    if backend == "fused":
+        from .raster import fused  # imports triton: only when used
+
+        img = fused.rasterize_fused(verts, normals, colors, camera, faces, settings)
+        count = capacity = None
+    elif backend == "dense":
         img = rasterize_dense(verts, normals, colors, camera, faces, settings)
         count = capacity = None
     else:

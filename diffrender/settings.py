@@ -84,9 +84,12 @@ class RasterSettings:
             turns edge-on.
         coverage_cutoff: pairs with ``D`` below this are dropped exactly (binning radius
             ``sigma * ln(1 / cutoff - 1)``); both backends drop the same pairs.
-        backend: ``"tiled"`` (binned, memory-bounded custom backward), ``"dense"`` (every face at every
-            pixel, plain autograd; tiny scenes and tests only) or ``"auto"`` (= tiled).
-        tile_size: tile side [px] for binning.
+        backend: ``"fused"`` (two Triton kernels, forward and a recomputing backward; CUDA only, softmax
+            blend only; the fastest), ``"tiled"`` (binned PyTorch kernel with a memory-bounded custom
+            backward; any device), ``"dense"`` (every face at every pixel, plain autograd; tiny scenes and
+            tests only) or ``"auto"``: fused for CUDA tensors with the softmax blend when Triton is
+            installed, else tiled.
+        tile_size: tile side [px] for the tiled backend's binning (the fused backend has its own tiles).
         bin_capacity: (tile, face) pairs per environment the tiled backend can hold (its work is
             proportional to it). None (default): measured the first time a scene layout (faces, image and
             tile size, cut-off radius) is rendered, plus 25 % headroom, then fixed; if a later frame needs
@@ -139,8 +142,8 @@ class RasterSettings:
             raise ValueError(f"coverage_cutoff must be in (0, 0.5), got {self.coverage_cutoff}")
         if self.blend not in ("softmax", "alpha"):
             raise ValueError(f"blend must be 'softmax' or 'alpha', got {self.blend!r}")
-        if self.backend not in ("auto", "dense", "tiled"):
-            raise ValueError(f"backend must be 'auto', 'dense' or 'tiled', got {self.backend!r}")
+        if self.backend not in ("auto", "dense", "tiled", "fused"):
+            raise ValueError(f"backend must be 'auto', 'fused', 'tiled' or 'dense', got {self.backend!r}")
         if not (isinstance(self.tile_size, int) and 1 <= self.tile_size <= 64):
             raise ValueError(f"tile_size must be an int in [1, 64], got {self.tile_size!r}")
         if self.bin_capacity is not None and not (isinstance(self.bin_capacity, int) and self.bin_capacity > 0):

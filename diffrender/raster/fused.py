@@ -1,0 +1,589 @@
+"""Fused backend: the soft rasterizer as two Triton kernels (forward, and a recomputing backward).
+
+Same image model and the same per-pixel arithmetic as :mod:`.kernel` (the dense reference and the tiled
+backend), organised for the GPU:
+
+* **Per-face coefficients** (PyTorch, differentiable, O(B * F)): :func:`face_coefficients` turns the
+  projected triangles into the constants of every per-pixel quantity, each affine in the pixel centre
+  ``(x, y)`` [px]: screen barycentrics ``lambda_k = LA_k + LX_k x + LY_k y``, the position along each edge
+  ``s_k = PA_k + PX_k x + PY_k y``, edge heights ``H_k``, squared edge lengths, inverse corner depths and
+  the corners' normals and albedos: ``C = 45`` numbers per face, laid out (B, C, F) so a kernel reads one
+  coefficient of a block of consecutive faces with one coalesced load.
+* **Forward kernel**: one program per (tile of TILE x TILE pixels, environment). It walks the faces in
+  blocks of ``FACE_BLOCK``, skips a block whose screen bounding box misses the tile, evaluates the block's
+  faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online softmax
+  (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). Nothing but the
+  image is written: no pair lists, no bins, no capacity to overflow.
+* **Backward kernel**: the same walk twice: first to recompute the pixel's maximum, numerator and
+  denominator, then to form the gradient of every pixel-face pair in closed form and reduce it over the
+  tile's pixels into the face's 45 coefficient gradients (one atomic add per face, coefficient and tile).
+  Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to vertices,
+  normals, colours and the camera.
+
+Saved for backward: only the inputs (O(B * V)), as in the tiled backend. Only ``blend="softmax"`` is
+implemented here; ``"alpha"`` uses the tiled backend. Requires CUDA tensors, or, for testing on a CPU,
+``TRITON_INTERPRET=1`` in the environment before this module is imported (Triton's interpreter).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import torch
+
+from ..camera import Camera
+from ..floor import floor_candidate
+from ..settings import RasterSettings
+from .kernel import _BBOX_MARGIN, Static, face_validity, project, vertex_normals
+
+try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack it
+    import triton
+    import triton.language as tl
+except ImportError:  # pragma: no cover - exercised on machines without triton
+    triton = None
+
+__all__ = ["NUM_COEFFS", "available", "face_coefficients", "rasterize_fused"]
+
+NUM_COEFFS = 45
+# coefficient rows of the (B, C, F) layout; k is the edge (opposite vertex k) or the corner
+_LA, _LX, _LY, _PA, _PX, _PY, _H, _L2, _IZ, _N, _AL = 0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 36
+#: pixels per tile side and faces per block of the kernels (tuned on an H200, see BENCHMARKS.md)
+TILE = 8
+FACE_BLOCK = 16
+_BIG = 1e30  # empty bounding box of a dropped face
+
+
+def interpreting() -> bool:
+    return os.environ.get("TRITON_INTERPRET", "0") == "1"
+
+
+def available(device: torch.device) -> bool:
+    """Whether the fused kernels can run on ``device`` (CUDA with Triton, or Triton's CPU interpreter)."""
+    if triton is None:
+        return False
+    return device.type == "cuda" or (device.type == "cpu" and interpreting())
+
+
+def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor,
+                      rotation: torch.Tensor, eye: torch.Tensor, faces: torch.Tensor, st: Static,
+                      face_block: int = FACE_BLOCK) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-face constants of the per-pixel quantities, differentiable in every input.
+
+    Args:
+        verts: (B, V, 3) [m]; normals: (B, V, 3) or None (area-weighted mesh normals); colors: (V, 3) or
+            (B, V, 3); rotation (B, 3, 3), eye (B, 3): camera; faces (F, 3) long; st: static settings.
+    Returns:
+        coef: (B, 45, Fp) with Fp = F rounded up to ``face_block`` (padding faces are dropped faces);
+        face_box: (B, 4, Fp) (x_min, x_max, y_min, y_max) [px] of the pixel centres a face can touch
+            (its bounding box grown by the coverage cut-off; empty for dropped faces), no grad;
+        block_box: (B, 4, Fp // face_block), the union of each block's face boxes, no grad.
+    """
+    b, nv, _ = verts.shape
+    nf = faces.shape[0]
+    if nf == 0:  # one block of padding faces keeps the kernels' shapes valid
+        coef = verts.new_zeros(b, NUM_COEFFS, face_block)
+        box = torch.tensor([_BIG, -_BIG, _BIG, -_BIG], dtype=verts.dtype, device=verts.device)
+        box = box.view(1, 4, 1).expand(b, 4, face_block).contiguous()
+        return coef, box, box[:, :, :1].contiguous()
+    uvz = project(verts, rotation, eye, st)
+    if normals is None:
+        normals = vertex_normals(verts, faces)
+    if colors.ndim == 2:
+        colors = colors.expand(b, nv, 3)
+    fuvz = uvz[:, faces]  # (B, F, 3 corners, 3)
+    valid = face_validity(fuvz.detach(), st)  # (B, F)
+    # dropped faces get a harmless unit triangle so no inf/NaN is ever formed (they are never drawn)
+    dummy = torch.zeros(3, 3, dtype=verts.dtype, device=verts.device)
+    dummy[1, 0] = dummy[2, 1] = 1.0
+    dummy[:, 2] = 1.0
+    fuvz = torch.where(valid[..., None, None], fuvz, dummy)
+    u, v, z = fuvz.unbind(-1)  # (B, F, 3)
+    # edge k runs from vertex k+1 (ua, va) to vertex k+2, as in kernel.render_pairs
+    ua, va = u.roll(-1, -1), v.roll(-1, -1)
+    ex, ey = u.roll(-2, -1) - ua, v.roll(-2, -1) - va
+    area2 = ex[..., :1] * (v[..., :1] - va[..., :1]) - ey[..., :1] * (u[..., :1] - ua[..., :1])
+    area2 = torch.where(area2 == 0, torch.ones_like(area2), area2)
+    inv_area = 1.0 / area2
+    len2 = ex * ex + ey * ey
+    inv_len2 = 1.0 / len2
+    coef = torch.cat([
+        (ey * ua - ex * va) * inv_area, -ey * inv_area, ex * inv_area,  # lambda_k
+        -(ex * ua + ey * va) * inv_len2, ex * inv_len2, ey * inv_len2,  # s_k, position along edge k
+        area2.abs() * torch.sqrt(inv_len2), len2, 1.0 / z,  # H_k, |e_k|^2, 1 / z_k
+        normals[:, faces].reshape(b, nf, 9), colors[:, faces].reshape(b, nf, 9),
+    ], dim=-1)  # (B, F, 45)
+    nfp = -(-nf // face_block) * face_block
+    coef = torch.nn.functional.pad(coef, (0, 0, 0, nfp - nf)).transpose(1, 2).contiguous()
+    with torch.no_grad():
+        r = st.cutoff_radius + _BBOX_MARGIN
+        box = torch.stack([u.amin(-1) - r, u.amax(-1) + r, v.amin(-1) - r, v.amax(-1) + r], dim=1)  # (B, 4, F)
+        empty = torch.tensor([_BIG, -_BIG, _BIG, -_BIG], dtype=box.dtype, device=box.device).view(1, 4, 1)
+        box = torch.where(valid[:, None, :], box, empty)
+        box = torch.cat([box, empty.expand(b, 4, nfp - nf)], dim=2).contiguous()
+        blocks = box.view(b, 4, nfp // face_block, face_block)
+        block_box = torch.stack([blocks[:, 0].amin(-1), blocks[:, 1].amax(-1), blocks[:, 2].amin(-1),
+                                 blocks[:, 3].amax(-1)], dim=1).contiguous()
+    return coef, box, block_box
+
+
+def _params(st: Static, dtype, device) -> torch.Tensor:
+    """The kernels' float constants as a tensor of the images' dtype (Python floats would reach a Triton
+    kernel as float32, which would cost float64 tests their precision)."""
+    cap = max(0.02, 100.0 * torch.finfo(dtype).eps / st.gamma)
+    vals = [st.sigma, st.gamma, st.znear, st.zfar, st.cutoff_radius, cap, st.ambient, st.diffuse,
+            *st.light, *st.background]
+    return torch.tensor(vals, dtype=dtype, device=device)
+
+
+if triton is not None:
+
+    @triton.jit
+    def _load_params(prm):
+        return (tl.load(prm + 0), tl.load(prm + 1), tl.load(prm + 2), tl.load(prm + 3), tl.load(prm + 4),
+                tl.load(prm + 5), tl.load(prm + 6), tl.load(prm + 7), tl.load(prm + 8), tl.load(prm + 9),
+                tl.load(prm + 10))
+
+    @triton.jit
+    def _tile_pixels(tile, W, H, TX, TILE_: tl.constexpr):
+        ty = tile // TX
+        tx = tile % TX
+        k = tl.arange(0, TILE_ * TILE_)
+        px = tx * TILE_ + k % TILE_
+        py = ty * TILE_ + k // TILE_
+        inb = (px < W) & (py < H)
+        x_lo = (tx * TILE_).to(tl.float32) + 0.5
+        x_hi = (tl.minimum(tx * TILE_ + TILE_, W)).to(tl.float32) - 0.5
+        y_lo = (ty * TILE_).to(tl.float32) + 0.5
+        y_hi = (tl.minimum(ty * TILE_ + TILE_, H)).to(tl.float32) - 0.5
+        return px, py, inb, x_lo, x_hi, y_lo, y_hi
+
+    @triton.jit
+    def _face_mask(box_ptr, f, Fp, x_lo, x_hi, y_lo, y_hi):
+        """(FB,) faces of the block whose box touches the tile."""
+        bx0 = tl.load(box_ptr + f)
+        bx1 = tl.load(box_ptr + Fp + f)
+        by0 = tl.load(box_ptr + 2 * Fp + f)
+        by1 = tl.load(box_ptr + 3 * Fp + f)
+        return (bx1 >= x_lo) & (bx0 <= x_hi) & (by1 >= y_lo) & (by0 <= y_hi)
+
+    @triton.jit
+    def _edge(cp, Fp, k: tl.constexpr, xc, yc):
+        """Barycentric, signed line distance, position along the edge and squared segment distance of
+        edge k at the pixels: each (FB, P)."""
+        lam = tl.load(cp + (0 + k) * Fp) + tl.load(cp + (3 + k) * Fp) * xc + tl.load(cp + (6 + k) * Fp) * yc
+        s = tl.load(cp + (9 + k) * Fp) + tl.load(cp + (12 + k) * Fp) * xc + tl.load(cp + (15 + k) * Fp) * yc
+        h = tl.load(cp + (18 + k) * Fp)
+        l2 = tl.load(cp + (21 + k) * Fp)
+        dl = lam * h
+        ov = s - tl.minimum(tl.maximum(s, 0.0), 1.0)
+        ds = dl * dl + l2 * (ov * ov)
+        return lam, s, h, l2, dl, ov, ds
+
+    @triton.jit
+    def _candidate(cp, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse):
+        """Signed distance [px], normalised depth and shaded colour of every face-pixel pair: (FB, P)."""
+        lam0, _, _, _, dl0, _, ds0 = _edge(cp, Fp, 0, xc, yc)
+        lam1, _, _, _, dl1, _, ds1 = _edge(cp, Fp, 1, xc, yc)
+        lam2, _, _, _, dl2, _, ds2 = _edge(cp, Fp, 2, xc, yc)
+        dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
+        dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
+        sd = tl.where(dmin >= 0, dmin, -tl.sqrt(dsmin + 1e-20))
+        q0 = tl.maximum(lam0, 0.0) * tl.load(cp + 24 * Fp)
+        q1 = tl.maximum(lam1, 0.0) * tl.load(cp + 25 * Fp)
+        q2 = tl.maximum(lam2, 0.0) * tl.load(cp + 26 * Fp)
+        qs = q0 + q1 + q2
+        inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
+        depth = (tl.maximum(lam0, 0.0) + tl.maximum(lam1, 0.0) + tl.maximum(lam2, 0.0)) * inv_q
+        zn = (zfar - depth) / (zfar - znear)
+        b0 = q0 * inv_q
+        b1 = q1 * inv_q
+        b2 = q2 * inv_q
+        nx = b0 * tl.load(cp + 27 * Fp) + b1 * tl.load(cp + 30 * Fp) + b2 * tl.load(cp + 33 * Fp)
+        ny = b0 * tl.load(cp + 28 * Fp) + b1 * tl.load(cp + 31 * Fp) + b2 * tl.load(cp + 34 * Fp)
+        nz = b0 * tl.load(cp + 29 * Fp) + b1 * tl.load(cp + 32 * Fp) + b2 * tl.load(cp + 35 * Fp)
+        ar = b0 * tl.load(cp + 36 * Fp) + b1 * tl.load(cp + 39 * Fp) + b2 * tl.load(cp + 42 * Fp)
+        ag = b0 * tl.load(cp + 37 * Fp) + b1 * tl.load(cp + 40 * Fp) + b2 * tl.load(cp + 43 * Fp)
+        ab = b0 * tl.load(cp + 38 * Fp) + b1 * tl.load(cp + 41 * Fp) + b2 * tl.load(cp + 44 * Fp)
+        nl = nx * lx + ny * ly + nz * lz
+        il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
+        shade = ambient + diffuse * tl.maximum(nl * il, 0.0)
+        return sd, zn, ar * shade, ag * shade, ab * shade
+
+    @triton.jit
+    def _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b, den, m, env, Fp, NB,
+                    xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
+                    sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
+                    FB: tl.constexpr):
+        """Online depth softmax over all faces, starting from the floor/background sums."""
+        fo = tl.arange(0, FB)
+        cbase = coef_ptr + env * 45 * Fp
+        for blk in range(0, NB):
+            bb = bbox_ptr + env * 4 * NB + blk
+            hit = ((tl.load(bb + NB) >= x_lo) & (tl.load(bb) <= x_hi)
+                   & (tl.load(bb + 3 * NB) >= y_lo) & (tl.load(bb + 2 * NB) <= y_hi))
+            if hit:
+                f = blk * FB + fo
+                fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                cp = cbase + f[:, None]
+                sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                                ambient, diffuse)
+                keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
+                m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
+                scale = tl.exp((m - m_new) / gamma)
+                cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+                w = tl.where(keep, cov * tl.exp(tl.minimum((zn - m_new[None, :]) / gamma, cap)), 0.0)
+                num_r = num_r * scale + tl.sum(w * cr, axis=0)
+                num_g = num_g * scale + tl.sum(w * cg, axis=0)
+                num_b = num_b * scale + tl.sum(w * cb, axis=0)
+                den = den * scale + tl.sum(w, axis=0)
+                m = m_new
+        return num_r, num_g, num_b, den, m
+
+    @triton.jit
+    def _floor_start(floor_ptr, env, pix, inb, HW, bg_r, bg_g, bg_b, gamma):
+        """Per pixel: the floor's normalised depth, colour and hit flag, and the blend's starting sums
+        (floor and background) with the running maximum at the floor (or the background's 0)."""
+        fp = floor_ptr + env * 5 * HW + pix
+        fzn = tl.load(fp, mask=inb, other=0.0)
+        fr = tl.load(fp + HW, mask=inb, other=0.0)
+        fg = tl.load(fp + 2 * HW, mask=inb, other=0.0)
+        fb = tl.load(fp + 3 * HW, mask=inb, other=0.0)
+        fhit = tl.load(fp + 4 * HW, mask=inb, other=0.0) > 0.5
+        m = tl.where(fhit, fzn, 0.0)
+        w_bg = tl.exp(-m / gamma)
+        w_f = tl.where(fhit, 1.0, 0.0)
+        return fzn, fr, fg, fb, fhit, m, w_bg * bg_r + w_f * fr, w_bg * bg_g + w_f * fg, w_bg * bg_b + w_f * fb, \
+            w_bg + w_f
+
+    @triton.jit
+    def _fused_forward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, out_ptr, Fp, NB, H, W, TX,
+                       TILE_: tl.constexpr, FB: tl.constexpr):
+        tile = tl.program_id(0)
+        env = tl.program_id(1)
+        sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
+        bg_r = tl.load(prm + 11)
+        bg_g = tl.load(prm + 12)
+        bg_b = tl.load(prm + 13)
+        px, py, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, TILE_)
+        xc = px.to(sigma.dtype) + 0.5
+        yc = py.to(sigma.dtype) + 0.5
+        pix = py * W + px
+        HW = H * W
+        _, _, _, _, _, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, env, pix, inb, HW, bg_r, bg_g, bg_b,
+                                                                  gamma)
+        num_r, num_g, num_b, den, m = _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b,
+                                                  den, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
+                                                  sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse,
+                                                  lx, ly, lz, FB)
+        op = out_ptr + env * 3 * HW + pix
+        tl.store(op, num_r / den, mask=inb)
+        tl.store(op + HW, num_g / den, mask=inb)
+        tl.store(op + 2 * HW, num_b / den, mask=inb)
+
+    @triton.jit
+    def _affine_grad(gq, Fp, row: tl.constexpr, g, x, y, fm):
+        """Gradient of c0 + c1 x + c2 y (rows row, row + 3, row + 6) from the per-pixel gradient g."""
+        tl.atomic_add(gq + row * Fp, tl.sum(g, axis=1), mask=fm)
+        tl.atomic_add(gq + (row + 3) * Fp, tl.sum(g * x, axis=1), mask=fm)
+        tl.atomic_add(gq + (row + 6) * Fp, tl.sum(g * y, axis=1), mask=fm)
+
+    @triton.jit
+    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, gout_ptr, gcoef_ptr, gfloor_ptr,
+                        Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr):
+        tile = tl.program_id(0)
+        env = tl.program_id(1)
+        sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
+        bg_r = tl.load(prm + 11)
+        bg_g = tl.load(prm + 12)
+        bg_b = tl.load(prm + 13)
+        px, py, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, TILE_)
+        xc = px.to(sigma.dtype) + 0.5
+        yc = py.to(sigma.dtype) + 0.5
+        pix = py * W + px
+        HW = H * W
+        fzn, fr, fg, fb, fhit, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, env, pix, inb, HW,
+                                                                           bg_r, bg_g, bg_b, gamma)
+        # pass 1: recompute the pixel's blend (maximum, sums, colour)
+        num_r, num_g, num_b, den, m = _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b,
+                                                  den, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
+                                                  sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse,
+                                                  lx, ly, lz, FB)
+        inv_den = 1.0 / den
+        out_r = num_r * inv_den
+        out_g = num_g * inv_den
+        out_b = num_b * inv_den
+        gp = gout_ptr + env * 3 * HW + pix
+        gr = tl.load(gp, mask=inb, other=0.0)
+        gg = tl.load(gp + HW, mask=inb, other=0.0)
+        gb = tl.load(gp + 2 * HW, mask=inb, other=0.0)
+        # floor: weight exp((z_f - m) / gamma) where the ray hits it; the background is a constant
+        w_f = tl.where(fhit, tl.exp((fzn - m) / gamma), 0.0)
+        g_wf = (gr * (fr - out_r) + gg * (fg - out_g) + gb * (fb - out_b)) * inv_den
+        gfp = gfloor_ptr + env * 4 * HW + pix
+        tl.store(gfp, tl.where(fhit, g_wf * w_f / gamma, 0.0), mask=inb)
+        tl.store(gfp + HW, gr * w_f * inv_den, mask=inb)
+        tl.store(gfp + 2 * HW, gg * w_f * inv_den, mask=inb)
+        tl.store(gfp + 3 * HW, gb * w_f * inv_den, mask=inb)
+
+        # pass 2: every kept pair's gradient, reduced over the tile's pixels into its face's coefficients
+        fo = tl.arange(0, FB)
+        cbase = coef_ptr + env * 45 * Fp
+        gbase = gcoef_ptr + env * 45 * Fp
+        x = xc[None, :]
+        y = yc[None, :]
+        inv_zr = 1.0 / (zfar - znear)
+        for blk in range(0, NB):
+            bb = bbox_ptr + env * 4 * NB + blk
+            hit = ((tl.load(bb + NB) >= x_lo) & (tl.load(bb) <= x_hi)
+                   & (tl.load(bb + 3 * NB) >= y_lo) & (tl.load(bb + 2 * NB) <= y_hi))
+            if hit:
+                f = blk * FB + fo
+                fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                cp = cbase + f[:, None]
+                gq = gbase + f
+                # ---- forward recompute, keeping the intermediates
+                lam0, s0, h0, l20, dl0, ov0, ds0 = _edge(cp, Fp, 0, x, y)
+                lam1, s1, h1, l21, dl1, ov1, ds1 = _edge(cp, Fp, 1, x, y)
+                lam2, s2, h2, l22, dl2, ov2, ds2 = _edge(cp, Fp, 2, x, y)
+                dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
+                dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
+                inside = dmin >= 0
+                root = tl.sqrt(dsmin + 1e-20)
+                sd = tl.where(inside, dmin, -root)
+                iz0 = tl.load(cp + 24 * Fp)
+                iz1 = tl.load(cp + 25 * Fp)
+                iz2 = tl.load(cp + 26 * Fp)
+                lc0 = tl.maximum(lam0, 0.0)
+                lc1 = tl.maximum(lam1, 0.0)
+                lc2 = tl.maximum(lam2, 0.0)
+                q0 = lc0 * iz0
+                q1 = lc1 * iz1
+                q2 = lc2 * iz2
+                qs = q0 + q1 + q2
+                inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
+                lcs = lc0 + lc1 + lc2
+                depth = lcs * inv_q
+                zn = (zfar - depth) * inv_zr
+                b0 = q0 * inv_q
+                b1 = q1 * inv_q
+                b2 = q2 * inv_q
+                n0x = tl.load(cp + 27 * Fp)
+                n0y = tl.load(cp + 28 * Fp)
+                n0z = tl.load(cp + 29 * Fp)
+                n1x = tl.load(cp + 30 * Fp)
+                n1y = tl.load(cp + 31 * Fp)
+                n1z = tl.load(cp + 32 * Fp)
+                n2x = tl.load(cp + 33 * Fp)
+                n2y = tl.load(cp + 34 * Fp)
+                n2z = tl.load(cp + 35 * Fp)
+                a0r = tl.load(cp + 36 * Fp)
+                a0g = tl.load(cp + 37 * Fp)
+                a0b = tl.load(cp + 38 * Fp)
+                a1r = tl.load(cp + 39 * Fp)
+                a1g = tl.load(cp + 40 * Fp)
+                a1b = tl.load(cp + 41 * Fp)
+                a2r = tl.load(cp + 42 * Fp)
+                a2g = tl.load(cp + 43 * Fp)
+                a2b = tl.load(cp + 44 * Fp)
+                nx = b0 * n0x + b1 * n1x + b2 * n2x
+                ny = b0 * n0y + b1 * n1y + b2 * n2y
+                nz = b0 * n0z + b1 * n1z + b2 * n2z
+                ar = b0 * a0r + b1 * a1r + b2 * a2r
+                ag = b0 * a0g + b1 * a1g + b2 * a2g
+                ab = b0 * a0b + b1 * a1b + b2 * a2b
+                nl = nx * lx + ny * ly + nz * lz
+                il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
+                cosl = nl * il
+                shade = ambient + diffuse * tl.maximum(cosl, 0.0)
+                keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
+                cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+                e = (zn - m[None, :]) / gamma
+                ew = tl.exp(tl.minimum(e, cap))
+                w = tl.where(keep, cov * ew, 0.0)
+                # ---- backward: blend
+                gw = tl.where(keep, (gr[None, :] * (ar * shade - out_r[None, :])
+                                     + gg[None, :] * (ag * shade - out_g[None, :])
+                                     + gb[None, :] * (ab * shade - out_b[None, :])) * inv_den[None, :], 0.0)
+                wd = w * inv_den[None, :]
+                gcr = gr[None, :] * wd  # d loss / d colour of the pair
+                gcg = gg[None, :] * wd
+                gcb = gb[None, :] * wd
+                gzn = tl.where(e < cap, gw * w / gamma, 0.0)
+                gsd = gw * ew * cov * (1.0 - cov) / sigma
+                # ---- colour = albedo * shade(normal)
+                gar = gcr * shade
+                gag = gcg * shade
+                gab = gcb * shade
+                gsh = tl.where(cosl > 0, (gcr * ar + gcg * ag + gcb * ab) * diffuse, 0.0)
+                il3 = il * il * il
+                gnx = gsh * (lx * il - nl * nx * il3)
+                gny = gsh * (ly * il - nl * ny * il3)
+                gnz = gsh * (lz * il - nl * nz * il3)
+                tl.atomic_add(gq + 27 * Fp, tl.sum(gnx * b0, axis=1), mask=fm)
+                tl.atomic_add(gq + 28 * Fp, tl.sum(gny * b0, axis=1), mask=fm)
+                tl.atomic_add(gq + 29 * Fp, tl.sum(gnz * b0, axis=1), mask=fm)
+                tl.atomic_add(gq + 30 * Fp, tl.sum(gnx * b1, axis=1), mask=fm)
+                tl.atomic_add(gq + 31 * Fp, tl.sum(gny * b1, axis=1), mask=fm)
+                tl.atomic_add(gq + 32 * Fp, tl.sum(gnz * b1, axis=1), mask=fm)
+                tl.atomic_add(gq + 33 * Fp, tl.sum(gnx * b2, axis=1), mask=fm)
+                tl.atomic_add(gq + 34 * Fp, tl.sum(gny * b2, axis=1), mask=fm)
+                tl.atomic_add(gq + 35 * Fp, tl.sum(gnz * b2, axis=1), mask=fm)
+                tl.atomic_add(gq + 36 * Fp, tl.sum(gar * b0, axis=1), mask=fm)
+                tl.atomic_add(gq + 37 * Fp, tl.sum(gag * b0, axis=1), mask=fm)
+                tl.atomic_add(gq + 38 * Fp, tl.sum(gab * b0, axis=1), mask=fm)
+                tl.atomic_add(gq + 39 * Fp, tl.sum(gar * b1, axis=1), mask=fm)
+                tl.atomic_add(gq + 40 * Fp, tl.sum(gag * b1, axis=1), mask=fm)
+                tl.atomic_add(gq + 41 * Fp, tl.sum(gab * b1, axis=1), mask=fm)
+                tl.atomic_add(gq + 42 * Fp, tl.sum(gar * b2, axis=1), mask=fm)
+                tl.atomic_add(gq + 43 * Fp, tl.sum(gag * b2, axis=1), mask=fm)
+                tl.atomic_add(gq + 44 * Fp, tl.sum(gab * b2, axis=1), mask=fm)
+                # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
+                gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
+                gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
+                gb2 = gnx * n2x + gny * n2y + gnz * n2z + gar * a2r + gag * a2g + gab * a2b
+                gdep = -gzn * inv_zr
+                gbb = gb0 * b0 + gb1 * b1 + gb2 * b2
+                gq_common = -gbb * inv_q - gdep * lcs * inv_q * inv_q
+                gq0 = gb0 * inv_q + gq_common
+                gq1 = gb1 * inv_q + gq_common
+                gq2 = gb2 * inv_q + gq_common
+                tl.atomic_add(gq + 24 * Fp, tl.sum(gq0 * lc0, axis=1), mask=fm)
+                tl.atomic_add(gq + 25 * Fp, tl.sum(gq1 * lc1, axis=1), mask=fm)
+                tl.atomic_add(gq + 26 * Fp, tl.sum(gq2 * lc2, axis=1), mask=fm)
+                glc0 = gq0 * iz0 + gdep * inv_q
+                glc1 = gq1 * iz1 + gdep * inv_q
+                glc2 = gq2 * iz2 + gdep * inv_q
+                # ---- signed distance: inside the nearest edge line, outside the nearest segment
+                a0 = (dl0 <= dl1) & (dl0 <= dl2)
+                a1 = (~a0) & (dl1 <= dl2)
+                a2 = (~a0) & (~a1)
+                gsq = tl.where(inside, 0.0, -gsd * 0.5 / root)
+                c0 = (ds0 <= ds1) & (ds0 <= ds2)
+                c1 = (~c0) & (ds1 <= ds2)
+                c2 = (~c0) & (~c1)
+                gds0 = tl.where(c0, gsq, 0.0)
+                gds1 = tl.where(c1, gsq, 0.0)
+                gds2 = tl.where(c2, gsq, 0.0)
+                gdl0 = tl.where(inside & a0, gsd, 0.0) + 2.0 * dl0 * gds0
+                gdl1 = tl.where(inside & a1, gsd, 0.0) + 2.0 * dl1 * gds1
+                gdl2 = tl.where(inside & a2, gsd, 0.0) + 2.0 * dl2 * gds2
+                tl.atomic_add(gq + 18 * Fp, tl.sum(gdl0 * lam0, axis=1), mask=fm)
+                tl.atomic_add(gq + 19 * Fp, tl.sum(gdl1 * lam1, axis=1), mask=fm)
+                tl.atomic_add(gq + 20 * Fp, tl.sum(gdl2 * lam2, axis=1), mask=fm)
+                tl.atomic_add(gq + 21 * Fp, tl.sum(gds0 * ov0 * ov0, axis=1), mask=fm)
+                tl.atomic_add(gq + 22 * Fp, tl.sum(gds1 * ov1 * ov1, axis=1), mask=fm)
+                tl.atomic_add(gq + 23 * Fp, tl.sum(gds2 * ov2 * ov2, axis=1), mask=fm)
+                gs0 = tl.where((s0 < 0) | (s0 > 1), 2.0 * l20 * ov0 * gds0, 0.0)
+                gs1 = tl.where((s1 < 0) | (s1 > 1), 2.0 * l21 * ov1 * gds1, 0.0)
+                gs2 = tl.where((s2 < 0) | (s2 > 1), 2.0 * l22 * ov2 * gds2, 0.0)
+                glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
+                glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
+                glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
+                _affine_grad(gq, Fp, 0, glam0, x, y, fm)
+                _affine_grad(gq, Fp, 1, glam1, x, y, fm)
+                _affine_grad(gq, Fp, 2, glam2, x, y, fm)
+                _affine_grad(gq, Fp, 9, gs0, x, y, fm)
+                _affine_grad(gq, Fp, 10, gs1, x, y, fm)
+                _affine_grad(gq, Fp, 11, gs2, x, y, fm)
+
+
+def _floor_planes(rotation, eye, st: Static, dtype, device) -> torch.Tensor:
+    """(B, 5, H, W): the floor's normalised depth, lit colour (3) and hit flag (1.0 / 0.0) per pixel;
+    differentiable in the camera except the flag. Without a floor: never hit."""
+    b = rotation.shape[0]
+    if st.floor is None:
+        return torch.zeros(b, 5, st.height, st.width, dtype=dtype, device=device)
+    py, px = torch.meshgrid(torch.arange(st.height, dtype=dtype, device=device) + 0.5,
+                            torch.arange(st.width, dtype=dtype, device=device) + 0.5, indexing="ij")
+    light_factor = st.ambient + st.diffuse * max(0.0, st.light[2])
+    zn, col, hit = floor_candidate(rotation, eye, px, py, focal=st.focal, cx=st.cx, cy=st.cy, znear=st.znear,
+                                   zfar=st.zfar, gamma=st.gamma, floor=st.floor, light_factor=light_factor)
+    return torch.cat([zn[:, None], col.permute(0, 3, 1, 2), hit[:, None].to(dtype)], dim=1).contiguous()
+
+
+def _launch_grid(st: Static, b: int, tile: int) -> tuple[tuple[int, int], int]:
+    tx = -(-st.width // tile)
+    ty = -(-st.height // tile)
+    return (tx * ty, b), tx
+
+
+@functools.cache
+def _warps(tile: int, fb: int) -> int:
+    return 4 if tile * tile * fb <= 1024 else 8
+
+
+class _FusedRasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, tile: int, fb: int):
+        b = verts.shape[0]
+        dt, dev = verts.dtype, verts.device
+        coef, box, bbox = face_coefficients(verts, normals, colors, rotation, eye, faces, st, fb)
+        floor = _floor_planes(rotation, eye, st, dt, dev)
+        out = torch.empty(b, 3, st.height, st.width, dtype=dt, device=dev)
+        grid, tx = _launch_grid(st, b, tile)
+        _fused_forward[grid](coef, box, bbox, floor, _params(st, dt, dev), out, coef.shape[2], bbox.shape[2],
+                             st.height, st.width, tx, TILE_=tile, FB=fb, num_warps=_warps(tile, fb))
+        ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
+        ctx.cfg = (st, tile, fb)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_img):
+        verts, normals, colors, rotation, eye, faces = ctx.saved_tensors
+        st, tile, fb = ctx.cfg
+        need = ctx.needs_input_grad[:5]
+        inputs = (verts, normals, colors, rotation, eye)
+        with torch.enable_grad():
+            leaves = [None if x is None else x.detach().requires_grad_(bool(nd)) for x, nd in zip(inputs, need)]
+            coef, box, bbox = face_coefficients(*leaves, faces, st, fb)
+            floor = _floor_planes(leaves[3], leaves[4], st, verts.dtype, verts.device)
+            floor_diff = floor[:, :4]  # depth and colour (the hit flag has no gradient)
+        b = verts.shape[0]
+        gcoef = torch.zeros_like(coef)
+        gfloor = torch.empty(b, 4, st.height, st.width, dtype=verts.dtype, device=verts.device)
+        grid, tx = _launch_grid(st, b, tile)
+        _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, verts.dtype, verts.device),
+                              grad_img.contiguous(), gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height,
+                              st.width, tx, TILE_=tile, FB=fb, num_warps=_warps(tile, fb))
+        wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
+        grads = [None] * 5
+        if wanted:
+            outs, gouts = [], []
+            if coef.requires_grad:
+                outs.append(coef)
+                gouts.append(gcoef)
+            if floor.requires_grad:
+                outs.append(floor_diff)
+                gouts.append(gfloor)
+            parts = (torch.autograd.grad(outs, [leaves[i] for i in wanted], gouts, allow_unused=True) if outs
+                     else [None] * len(wanted))
+            for i, g in zip(wanted, parts):
+                grads[i] = torch.zeros_like(inputs[i]) if g is None else g
+        return (*grads, None, None, None, None)
+
+
+def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
+                    faces: torch.Tensor, settings: RasterSettings, *, tile: int | None = None,
+                    face_block: int | None = None) -> torch.Tensor:
+    """Render (B, 3, H, W) with the fused Triton kernels (see :func:`diffrender.render` for the arguments;
+    ``settings.blend`` must be ``"softmax"``). ``tile`` (pixels per tile side) and ``face_block`` (faces
+    per block) are powers of two; None reads the module's ``TILE`` and ``FACE_BLOCK``."""
+    tile = TILE if tile is None else tile
+    face_block = FACE_BLOCK if face_block is None else face_block
+    if triton is None:
+        raise RuntimeError("the fused backend needs triton (it ships with CUDA builds of PyTorch)")
+    if settings.blend != "softmax":
+        raise ValueError(f"the fused backend implements blend='softmax' only, got {settings.blend!r}; "
+                         "use backend='tiled'")
+    if not available(verts.device):
+        raise ValueError(f"the fused backend runs on CUDA tensors (or on the CPU under TRITON_INTERPRET=1), "
+                         f"got {verts.device}")
+    for name, n in (("tile", tile), ("face_block", face_block)):
+        if n < 1 or n & (n - 1):
+            raise ValueError(f"{name} must be a power of two, got {n}")
+    st = Static.make(settings, focal=camera.focal, height=camera.height, width=camera.width, tile_h=tile,
+                     tile_w=tile)
+    return _FusedRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st, tile,
+                                 face_block)
+

@@ -1,0 +1,140 @@
+"""The fused Triton backend against the dense reference: forward and backward, float64.
+
+Runs on CUDA where there is a GPU, else on the CPU through Triton's interpreter (slow: tiny scenes only).
+Skipped where Triton is not installed (CPU-only PyTorch does not bring it; CI's CPU machine has none).
+"""
+
+import os
+
+import pytest
+import torch
+
+if not torch.cuda.is_available():  # must be set before the kernels are defined (import of the module)
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+pytest.importorskip("triton")
+
+import diffrender as dr
+from diffrender.profiling import SavedTensorMeter
+from diffrender.raster import fused
+
+from .helpers import F64, ant_camera, ant_pose, asset, tiny_camera, tiny_scene, tiny_settings
+
+DEV = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+pytestmark = pytest.mark.skipif(not fused.available(DEV), reason="fused kernels cannot run here")
+
+
+@pytest.fixture(scope="module")
+def ant64():
+    return dr.RobotModel.from_mjcf(asset("ant"), dtype=F64, detail=0, device=DEV)
+
+
+def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
+    """Render with dense and fused, backpropagate one random-weighted loss; compare image and the gradients
+    w.r.t. vertices, colours, camera eye (and normals when given)."""
+    out, grads = {}, {}
+    for backend in ("dense", "fused"):
+        v = verts.clone().requires_grad_()
+        c = colors.clone().requires_grad_()
+        e = cam.eye.clone().requires_grad_()
+        n = None if normals is None else normals.clone().requires_grad_()
+        camera = dr.Camera(rotation=cam.rotation, eye=e, focal=cam.focal, height=cam.height, width=cam.width)
+        img = dr.render(v, faces, c, camera, dr.RasterSettings(backend=backend, **kw), normals=n)
+        w = torch.linspace(-1, 1, img.numel(), dtype=img.dtype, device=img.device).view_as(img)
+        (img * w).sum().backward()
+        out[backend] = img.detach()
+        grads[backend] = [x.grad for x in (v, c, e, n) if x is not None and x.shape[-2] > 0]
+    assert (out["dense"] - out["fused"]).abs().max() < 1e3 * tol * max(1.0, float(out["dense"].abs().max()))
+    for gd, gf in zip(grads["dense"], grads["fused"]):
+        assert gd.abs().max() > 0
+        assert (gd - gf).abs().max() <= tol * gd.abs().max()
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(cull_backfaces=False, floor=None), dict(sigma=0.3, gamma=1e-3)])
+def test_fused_matches_dense_on_the_ant(ant64, kw):
+    q = ant_pose(2, seed=1).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
+
+
+def test_fused_matches_dense_with_given_normals_and_per_env_colors(ant64):
+    q = ant_pose(2, seed=5).to(DEV)
+    verts, normals = ant64.world_vertices_and_normals(q)
+    colors = torch.rand(2, ant64.num_vertices, 3, dtype=F64, device=DEV)
+    _compare(verts, ant64.faces, colors, ant_camera(q, size=12), dict(), normals=normals)
+
+
+def test_fused_gradcheck_tiny_scene():
+    verts, faces, colors = (x.to(DEV) for x in tiny_scene())
+    eye, target, _ = (x.to(DEV) if isinstance(x, torch.Tensor) else x for x in tiny_camera())
+    s = tiny_settings(backend="fused", cull_backfaces=False)
+
+    def fn(v, c, e):
+        cam = dr.Camera.look_at(e, target, (0.0, 0.0, 1.0), 40.0, 7, 6)
+        return dr.render(v, faces, c, cam, s)
+
+    torch.autograd.gradcheck(fn, (verts.clone().requires_grad_(), colors.clone().requires_grad_(),
+                                  eye.clone().requires_grad_()), eps=1e-6, atol=1e-7, rtol=1e-5, fast_mode=True)
+
+
+def test_fused_floor_only_scene_matches_dense():
+    eye, target, _ = tiny_camera()
+    cam = dr.Camera.look_at(eye.to(DEV), target.to(DEV), (0.0, 0.0, 1.0), 40.0, 7, 6)
+    faces = torch.zeros(0, 3, dtype=torch.long, device=DEV)
+    verts = torch.zeros(2, 0, 3, dtype=F64, device=DEV)
+    _compare(verts, faces, torch.zeros(0, 3, dtype=F64, device=DEV), cam, dict(sigma=1.0, gamma=0.05))
+
+
+def test_fused_saves_only_inputs_flat_in_faces(ant64):
+    q = ant_pose(2, seed=0).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=8)
+    more = torch.cat([ant64.faces] + [ant64.faces.roll(k, 0) for k in range(1, 10)])  # 10x the faces
+    saved = []
+    for faces in (ant64.faces, more):
+        v = verts.clone().requires_grad_()
+        with SavedTensorMeter(exclude=[faces]) as meter:
+            img = dr.render(v, faces, ant64.colors, cam, dr.RasterSettings(backend="fused"))
+        img.sum().backward()
+        assert torch.isfinite(v.grad).all() and v.grad.abs().sum() > 0
+        saved.append(meter.bytes)
+    assert saved[0] == saved[1]
+
+
+def test_fused_refuses_what_it_does_not_implement(ant64):
+    q = ant_pose(1).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    with pytest.raises(ValueError, match="softmax"):
+        dr.render(verts, ant64.faces, ant64.colors, ant_camera(q, size=8),
+                  dr.RasterSettings(backend="fused", blend="alpha"))
+    with pytest.raises(ValueError, match="power of two"):
+        fused.rasterize_fused(verts, None, ant64.colors, ant_camera(q, size=8), ant64.faces, dr.RasterSettings(),
+                              tile=6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only: the task-size point")
+def test_fused_matches_tiled_at_task_size_float32():
+    """64 ants at 84 x 84 in float32 (what training renders): fused and tiled agree to float32 rounding."""
+    robot = dr.RobotModel.from_mjcf(asset("ant"), detail=1, device=DEV)
+    q = ant_pose(64, dtype=torch.float32, seed=3).to(DEV)
+    res = {}
+    for backend in ("tiled", "fused"):
+        qq = q.clone().requires_grad_()
+        v, n = robot.world_vertices_and_normals(qq)
+        img = dr.render(v, robot.faces, robot.colors, ant_camera(qq, size=84), dr.RasterSettings(backend=backend),
+                        normals=n)
+        w = torch.rand(img.shape, generator=torch.Generator(device=DEV).manual_seed(0), device=DEV)
+        (img * w).sum().backward()
+        res[backend] = (img.detach(), qq.grad)
+    assert (res["tiled"][0] - res["fused"][0]).abs().max() < 1e-4
+    g_t, g_f = res["tiled"][1], res["fused"][1]
+    assert torch.isfinite(g_f).all()
+    assert (g_t - g_f).norm() <= 1e-3 * g_t.norm()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only")
+def test_auto_backend_is_fused_on_cuda_and_tiled_for_alpha():
+    from diffrender.render import _backend
+
+    assert _backend(dr.RasterSettings(), DEV) == "fused"
+    assert _backend(dr.RasterSettings(blend="alpha"), DEV) == "tiled"
+    assert _backend(dr.RasterSettings(), torch.device("cpu")) == "tiled"
