@@ -83,8 +83,7 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
     nf = faces.shape[0]
     if nf == 0:  # one block of padding faces keeps the kernels' shapes valid
         coef = verts.new_zeros(b, NUM_COEFFS, face_block)
-        box = torch.tensor([_BIG, -_BIG, _BIG, -_BIG], dtype=verts.dtype, device=verts.device)
-        box = box.view(1, 4, 1).expand(b, 4, face_block).contiguous()
+        box = _empty_box(b, verts.dtype, verts.device).expand(b, 4, face_block).contiguous()
         return coef, box, box[:, :, :1].contiguous()
     uvz = project(verts, rotation, eye, st)
     if normals is None:
@@ -118,7 +117,7 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
     with torch.no_grad():
         r = st.cutoff_radius + _BBOX_MARGIN
         box = torch.stack([u.amin(-1) - r, u.amax(-1) + r, v.amin(-1) - r, v.amax(-1) + r], dim=1)  # (B, 4, F)
-        empty = torch.tensor([_BIG, -_BIG, _BIG, -_BIG], dtype=box.dtype, device=box.device).view(1, 4, 1)
+        empty = _empty_box(b, box.dtype, box.device)
         box = torch.where(valid[:, None, :], box, empty)
         box = torch.cat([box, empty.expand(b, 4, nfp - nf)], dim=2).contiguous()
         blocks = box.view(b, 4, nfp // face_block, face_block)
@@ -127,9 +126,19 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
     return coef, box, block_box
 
 
+def _empty_box(b: int, dtype, device) -> torch.Tensor:
+    """(1, 4, 1) box that touches no pixel, built on the device (a host list would be a host-to-device copy,
+    which a CUDA graph cannot capture)."""
+    box = torch.full((1, 4, 1), _BIG, dtype=dtype, device=device)
+    box[:, 1::2] = -_BIG
+    return box
+
+
+@functools.cache
 def _params(st: Static, dtype, device) -> torch.Tensor:
     """The kernels' float constants as a tensor of the images' dtype (Python floats would reach a Triton
-    kernel as float32, which would cost float64 tests their precision)."""
+    kernel as float32, which would cost float64 tests their precision). Cached: made once, outside any CUDA
+    graph capture, and only read afterwards."""
     cap = max(0.02, 100.0 * torch.finfo(dtype).eps / st.gamma)
     vals = [st.sigma, st.gamma, st.znear, st.zfar, st.cutoff_radius, cap, st.ambient, st.diffuse,
             *st.light, *st.background]
