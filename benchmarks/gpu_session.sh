@@ -20,7 +20,7 @@ for spec in "$@"; do
     fused-tests) run "$secs" python3 -m pytest tests/diffrender/test_fused.py -q -x -p no:cacheprovider;;
     render-fused) # the fused Triton backend: kernel shapes (FUSED_VARIANTS) and the tiled one at the target
        # point, then batch / resolution / faces sweeps on the fused one
-       run "$secs" python3 benchmarks/render.py --device cuda --backends fused tiled \
+       run "$secs" python3 benchmarks/render.py --device cuda --backends fused tiled --graphs \
          --fused-variants ${FUSED_VARIANTS:-8x16} --out "$OUT/render_fused.json";;
     iter) run "$secs" python3 benchmarks/iteration.py --device cuda --warmup 1 --iters 3 --out "$OUT/iter_eager.json" \
             --tasks ${TASKS:-cartpole hopper ant humanoid};;

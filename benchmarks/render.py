@@ -67,6 +67,21 @@ def _time(fn, device, *, warmup: int, repeats: int) -> tuple[float, float]:
     return statistics.median(times), first
 
 
+def _graphed(fn, device):
+    """``fn`` captured in a CUDA graph (after two warm-up calls on a side stream); returns its replay.
+    This is how the trainer runs the renderer under ``--compile``: kernel-launch overhead disappears."""
+    side = torch.cuda.Stream(device)
+    side.wait_stream(torch.cuda.current_stream(device))
+    with torch.cuda.stream(side):
+        for _ in range(2):
+            fn()
+    torch.cuda.current_stream(device).wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        fn()
+    return graph.replay
+
+
 class Scene:
     """The ant at random poses: ``faces`` 0 is the plain ant (detail 1, 1,856 faces), fewer than that its
     detail-0 model (944), more adds extra sphere meshes (480 or 960 faces each) up to about ``faces``."""
@@ -176,6 +191,11 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
         rec["fwd_ms"], rec["first_call_ms"] = _time(fwd, device, warmup=args.warmup, repeats=args.repeats)
         rec["fwdbwd_ms"], _ = _time(fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
         rec["fk_fwdbwd_ms"], _ = _time(fk_fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
+        if device.type == "cuda" and args.graphs and backend != "dense" and not compile:
+            rec["fwd_graph_ms"], _ = _time(_graphed(fwd, device), device, warmup=args.warmup,
+                                           repeats=args.repeats)
+            rec["fwdbwd_graph_ms"], _ = _time(_graphed(fwdbwd, device), device, warmup=args.warmup,
+                                              repeats=args.repeats)
         check_grads()
         # memory of one fwd+bwd
         if device.type == "cuda":
@@ -270,11 +290,13 @@ def points(args) -> list[dict]:
 
 def table(records: list[dict]) -> str:
     cols = [("backend", "{}"), ("compile", "{}"), ("batch", "{}"), ("res", "{}"), ("faces", "{}"), ("tile", "{}"),
-            ("face_block", "{}"), ("grad_rel_err_vs_tiled", "{:.1e}"),
+            ("face_block", "{}"), ("grad_rel_err_vs_tiled", "{:.1e}"), ("fwd_graph_ms", "{:.2f}"),
+            ("fwdbwd_graph_ms", "{:.2f}"),
             ("pairs_mean", "{:.0f}"), ("fwd_ms", "{:.2f}"), ("fwdbwd_ms", "{:.2f}"), ("fk_fwdbwd_ms", "{:.2f}"),
             ("peak_alloc_above_start_mb", "{:.0f}"), ("peak_reserved_mb", "{:.0f}"), ("saved_mb", "{:.2f}"),
             ("grad_finite", "{}"), ("status", "{}")]
-    head = ["backend", "compiled", "B", "res", "faces", "tile", "fblock", "grad err", "pairs", "fwd ms", "f+b ms",
+    head = ["backend", "compiled", "B", "res", "faces", "tile", "fblock", "grad err", "fwd graph", "f+b graph",
+            "pairs", "fwd ms", "f+b ms",
             "fk+f+b", "peak MB",
             "resv MB", "saved MB", "grad ok", "status"]
     rows = [head]
@@ -333,6 +355,8 @@ def main(argv=None) -> int:
     p.add_argument("--backends", nargs="*", choices=["fused", "tiled", "dense"],
                    help="compare these backends at the target point and sweep batch (16-1024), resolution and "
                         "faces on the first (replaces the tiled-only --quick sweep)")
+    p.add_argument("--graphs", action="store_true",
+                   help="CUDA: also time fwd and fwd+bwd replayed from a captured CUDA graph (as the trainer runs)")
     p.add_argument("--fused-variants", nargs="*", help="fused kernel shapes TILExFACE_BLOCK, e.g. 8x16 16x16")
     p.add_argument("--tiles", type=int, nargs="*", help="tile sizes to compare at the target point")
     p.add_argument("--compile", action="store_true", help="also measure with torch.compile (see points())")

@@ -93,9 +93,9 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
     fuvz = uvz[:, faces]  # (B, F, 3 corners, 3)
     valid = face_validity(fuvz.detach(), st)  # (B, F)
     # dropped faces get a harmless unit triangle so no inf/NaN is ever formed (they are never drawn)
-    dummy = torch.zeros(3, 3, dtype=verts.dtype, device=verts.device)
-    dummy[1, 0] = dummy[2, 1] = 1.0
-    dummy[:, 2] = 1.0
+    # (corners (0, 0), (1, 0), (0, 1) at depth 1, built from eye(3): item assignment would copy from the host)
+    eye3 = torch.eye(3, dtype=verts.dtype, device=verts.device)
+    dummy = torch.stack([eye3[:, 1], eye3[:, 2], torch.ones_like(eye3[:, 0])], dim=-1)
     fuvz = torch.where(valid[..., None, None], fuvz, dummy)
     u, v, z = fuvz.unbind(-1)  # (B, F, 3)
     # edge k runs from vertex k+1 (ua, va) to vertex k+2, as in kernel.render_pairs
@@ -127,11 +127,10 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
 
 
 def _empty_box(b: int, dtype, device) -> torch.Tensor:
-    """(1, 4, 1) box that touches no pixel, built on the device (a host list would be a host-to-device copy,
-    which a CUDA graph cannot capture)."""
-    box = torch.full((1, 4, 1), _BIG, dtype=dtype, device=device)
-    box[:, 1::2] = -_BIG
-    return box
+    """(1, 4, 1) box that touches no pixel, built on the device (a host list or item assignment would be a
+    host-to-device copy, which a CUDA graph cannot capture)."""
+    sign = 1 - 2 * (torch.arange(4, device=device) % 2)  # (1, -1, 1, -1)
+    return (_BIG * sign.to(dtype)).view(1, 4, 1)
 
 
 @functools.cache
