@@ -9,7 +9,7 @@ backend), organised for the GPU:
   ``s_k = PA_k + PX_k x + PY_k y``, edge heights ``H_k``, squared edge lengths, inverse corner depths and
   the corners' normals and albedos: ``C = 45`` numbers per face, laid out (B, C, F) so a kernel reads one
   coefficient of a block of consecutive faces with one coalesced load.
-* **Forward kernel**: one program per (tile of TILE x TILE pixels, environment). It walks the faces in
+* **Forward kernel**: one program per (tile of TILE x TILE pixels, environment; 4 x 4 by default). It walks the faces in
   blocks of ``FACE_BLOCK``, skips a block whose screen bounding box misses the tile, evaluates the block's
   faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online softmax
   (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). Nothing but the
@@ -49,8 +49,8 @@ NUM_COEFFS = 45
 # coefficient rows of the (B, C, F) layout; k is the edge (opposite vertex k) or the corner
 _LA, _LX, _LY, _PA, _PX, _PY, _H, _L2, _IZ, _N, _AL = 0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 36
 #: pixels per tile side and faces per block of the kernels (tuned on an H200, see BENCHMARKS.md)
-TILE = 8
-FACE_BLOCK = 16
+TILE = 4
+FACE_BLOCK = 64
 _BIG = 1e30  # empty bounding box of a dropped face
 
 
