@@ -17,7 +17,7 @@ for spec in "$@"; do
     cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/diffrender -q -x -m "cuda" -p no:cacheprovider;;
     sim) run "$secs" python3 benchmarks/sim.py --device cuda --quick --out "$OUT/sim_quick.json";;
     render) run "$secs" python3 benchmarks/render.py --device cuda --quick --out "$OUT/render_quick.json";;
-    fused-tests) run "$secs" python3 -m pytest tests/diffrender/test_fused.py -q -x -p no:cacheprovider;;
+    fused-tests) run "$secs" python3 -m pytest tests/diffrender/test_fused.py -q -x -p no:cacheprovider ${FUSED_K:+-k "$FUSED_K"};;
     render-fused) # the fused Triton backend: kernel shapes (FUSED_VARIANTS) and the tiled one at the target
        # point, then batch / resolution / faces sweeps on the fused one
        run "$secs" python3 benchmarks/render.py --device cuda --backends fused tiled --graphs \
@@ -38,7 +38,7 @@ for spec in "$@"; do
        tail -n 3 /tmp/runs/*.log; python3 -m ablations plot /tmp/runs/*/ --out /tmp/runs/plots 2>&1 | tail -3
        tar -C /tmp/runs --exclude=checkpoints -czf "$OUT/runs.tgz" . ;;
     sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs)
-       python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes decoupled full --meshes ${SWEEP_MESHES:-0 16 64} \
+       timeout "$secs" python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes decoupled full --meshes ${SWEEP_MESHES:-0 16 64} \
          --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 --image-size 84 --warmup-iters 1 --iters 2 \
          --device cuda --out /tmp/sweep --no-progress --timeout-s 240 2>&1 | tail -n 15
        tar -C /tmp --exclude=logs -czf "$OUT/sweep.tgz" sweep ;;
