@@ -52,6 +52,9 @@ _LA, _LX, _LY, _PA, _PX, _PY, _H, _L2, _IZ, _N, _AL = 0, 3, 6, 9, 12, 15, 18, 21
 TILE = 4
 FACE_BLOCK = 64
 _BIG = 1e30  # empty bounding box of a dropped face
+#: per-face coefficients held at once (environments are rendered in chunks of at most this many
+#: coefficients): bounds the renderer's working set, ~5x this in bytes at float32, at any face count
+COEF_ELEMS = 1 << 24
 
 
 def interpreting() -> bool:
@@ -521,54 +524,81 @@ def _warps(tile: int, fb: int) -> int:
     return 4 if tile * tile * fb <= 1024 else 8
 
 
+def _chunks(b: int, chunk: int):
+    for b0 in range(0, b, chunk):
+        yield slice(b0, min(b, b0 + chunk))
+
+
+def _rows(x: torch.Tensor | None, sl: slice, *, shared_ok: bool = False) -> torch.Tensor | None:
+    """A per-environment tensor's rows; shared (V, 3) colours (``shared_ok``) whole."""
+    if x is None or (shared_ok and x.ndim == 2):
+        return x
+    return x[sl]
+
+
 class _FusedRasterize(torch.autograd.Function):
+    """Environments are processed ``chunk`` at a time: the per-face coefficients of a chunk (and the
+    temporaries that form them) are the renderer's whole working set, so it is bounded by
+    ``COEF_ELEMS`` however many faces there are."""
+
     @staticmethod
-    def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, tile: int, fb: int):
+    def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, tile: int, fb: int, chunk: int):
         b = verts.shape[0]
         dt, dev = verts.dtype, verts.device
-        coef, box, bbox = face_coefficients(verts, normals, colors, rotation, eye, faces, st, fb)
-        floor = _floor_planes(rotation, eye, st, dt, dev)
         out = torch.empty(b, 3, st.height, st.width, dtype=dt, device=dev)
-        grid, tx = _launch_grid(st, b, tile)
-        _fused_forward[grid](coef, box, bbox, floor, _params(st, dt, dev), out, coef.shape[2], bbox.shape[2],
-                             st.height, st.width, tx, TILE_=tile, FB=fb, num_warps=_warps(tile, fb))
+        for sl in _chunks(b, chunk):
+            coef, box, bbox = face_coefficients(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True),
+                                                rotation[sl], eye[sl], faces, st, fb)
+            floor = _floor_planes(rotation[sl], eye[sl], st, dt, dev)
+            grid, tx = _launch_grid(st, sl.stop - sl.start, tile)
+            _fused_forward[grid](coef, box, bbox, floor, _params(st, dt, dev), out[sl], coef.shape[2],
+                                 bbox.shape[2], st.height, st.width, tx, TILE_=tile, FB=fb,
+                                 num_warps=_warps(tile, fb))
         ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
-        ctx.cfg = (st, tile, fb)
+        ctx.cfg = (st, tile, fb, chunk)
         return out
 
     @staticmethod
     def backward(ctx, grad_img):
         verts, normals, colors, rotation, eye, faces = ctx.saved_tensors
-        st, tile, fb = ctx.cfg
+        st, tile, fb, chunk = ctx.cfg
         need = ctx.needs_input_grad[:5]
         inputs = (verts, normals, colors, rotation, eye)
-        with torch.enable_grad():
-            leaves = [None if x is None else x.detach().requires_grad_(bool(nd)) for x, nd in zip(inputs, need)]
-            coef, box, bbox = face_coefficients(*leaves, faces, st, fb)
-            floor = _floor_planes(leaves[3], leaves[4], st, verts.dtype, verts.device)
-            floor_diff = floor[:, :4]  # depth and colour (the hit flag has no gradient)
-        b = verts.shape[0]
-        gcoef = torch.zeros_like(coef)
-        gfloor = torch.empty(b, 4, st.height, st.width, dtype=verts.dtype, device=verts.device)
-        grid, tx = _launch_grid(st, b, tile)
-        _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, verts.dtype, verts.device),
-                              grad_img.contiguous(), gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height,
-                              st.width, tx, TILE_=tile, FB=fb, num_warps=_warps(tile, fb))
-        wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
-        grads = [None] * 5
-        if wanted:
+        grads = [torch.zeros_like(x) if (nd and x is not None) else None for x, nd in zip(inputs, need)]
+        grad_img = grad_img.contiguous()
+        dt, dev = verts.dtype, verts.device
+        for sl in _chunks(verts.shape[0], chunk):
+            with torch.enable_grad():
+                leaves = [None if x is None else _rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
+                          for i, (x, nd) in enumerate(zip(inputs, need))]
+                coef, box, bbox = face_coefficients(*leaves, faces, st, fb)
+                floor = _floor_planes(leaves[3], leaves[4], st, dt, dev)
+                floor_diff = floor[:, :4]  # depth and colour (the hit flag has no gradient)
+            wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
             outs, gouts = [], []
             if coef.requires_grad:
                 outs.append(coef)
-                gouts.append(gcoef)
+                gouts.append(torch.zeros_like(coef))
             if floor.requires_grad:
                 outs.append(floor_diff)
-                gouts.append(gfloor)
-            parts = (torch.autograd.grad(outs, [leaves[i] for i in wanted], gouts, allow_unused=True) if outs
-                     else [None] * len(wanted))
+                gouts.append(torch.empty(floor_diff.shape, dtype=dt, device=dev))
+            if not (wanted and outs):
+                continue
+            gcoef = gouts[0] if coef.requires_grad else torch.zeros_like(coef)
+            gfloor = gouts[-1] if floor.requires_grad else torch.empty(floor_diff.shape, dtype=dt, device=dev)
+            grid, tx = _launch_grid(st, sl.stop - sl.start, tile)
+            _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, dt, dev), grad_img[sl],
+                                  gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height, st.width, tx,
+                                  TILE_=tile, FB=fb, num_warps=_warps(tile, fb))
+            parts = torch.autograd.grad(outs, [leaves[i] for i in wanted], gouts, allow_unused=True)
             for i, g in zip(wanted, parts):
-                grads[i] = torch.zeros_like(inputs[i]) if g is None else g
-        return (*grads, None, None, None, None)
+                if g is None:
+                    continue
+                if i == 2 and inputs[i].ndim == 2:  # shared colours: summed over the chunks
+                    grads[i] += g
+                else:
+                    grads[i][sl] += g
+        return (*grads, None, None, None, None, None)
 
 
 def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
@@ -592,6 +622,8 @@ def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: t
             raise ValueError(f"{name} must be a power of two, got {n}")
     st = Static.make(settings, focal=camera.focal, height=camera.height, width=camera.width, tile_h=tile,
                      tile_w=tile)
+    nfp = max(1, -(-faces.shape[0] // face_block)) * face_block
+    chunk = max(1, COEF_ELEMS // (NUM_COEFFS * nfp))
     return _FusedRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st, tile,
-                                 face_block)
+                                 face_block, chunk)
 

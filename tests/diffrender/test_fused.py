@@ -100,6 +100,25 @@ def test_fused_saves_only_inputs_flat_in_faces(ant64):
     assert saved[0] == saved[1]
 
 
+@pytest.mark.parametrize("shared_colors", [True, False])
+def test_fused_chunks_over_environments_change_nothing(ant64, monkeypatch, shared_colors):
+    """Rendering 3 environments 2 at a time (a ragged last chunk) gives the image and gradients of one pass."""
+    q = ant_pose(3, seed=2).to(DEV)
+    verts, normals = ant64.world_vertices_and_normals(q)
+    colors = ant64.colors if shared_colors else torch.rand(3, ant64.num_vertices, 3, dtype=F64, device=DEV)
+    cam = ant_camera(q, size=8)
+    res = []
+    for elems in (fused.COEF_ELEMS, 2 * fused.NUM_COEFFS * 960):  # 944 faces -> 960 padded (64-face blocks)
+        monkeypatch.setattr(fused, "COEF_ELEMS", elems)
+        v, n, c, e = (x.clone().requires_grad_() for x in (verts, normals, colors, cam.eye))
+        camera = dr.Camera(rotation=cam.rotation, eye=e, focal=cam.focal, height=cam.height, width=cam.width)
+        img = fused.rasterize_fused(v, n, c, camera, ant64.faces, dr.RasterSettings(), face_block=64)
+        (img * torch.linspace(-1, 1, img.numel(), dtype=F64, device=DEV).view_as(img)).sum().backward()
+        res.append((img.detach(), v.grad, n.grad, c.grad, e.grad))
+    for a, b in zip(*res):
+        assert a.abs().max() > 0 and (a - b).abs().max() <= 1e-12 * a.abs().max()
+
+
 def test_fused_refuses_what_it_does_not_implement(ant64):
     q = ant_pose(1).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
