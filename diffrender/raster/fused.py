@@ -556,12 +556,16 @@ class _FusedRasterize(torch.autograd.Function):
                                  num_warps=_warps(tile, fb))
         ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
         ctx.cfg = (st, tile, fb, chunk)
+        # an undefined incoming gradient (e.g. gradlab's closed ImageGate) stays None: no recompute at all
+        ctx.set_materialize_grads(False)
         return out
 
     @staticmethod
     def backward(ctx, grad_img):
         verts, normals, colors, rotation, eye, faces = ctx.saved_tensors
         st, tile, fb, chunk = ctx.cfg
+        if grad_img is None:
+            return (None,) * 10
         need = ctx.needs_input_grad[:5]
         inputs = (verts, normals, colors, rotation, eye)
         grads = [torch.zeros_like(x) if (nd and x is not None) else None for x, nd in zip(inputs, need)]

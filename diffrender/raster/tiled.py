@@ -97,12 +97,16 @@ class _TiledRasterize(torch.autograd.Function):
         ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
         ctx.cfg = (st, capacity, chunk, compile_)
         ctx.mark_non_differentiable(need)
+        # an undefined incoming gradient (e.g. gradlab's closed ImageGate) stays None: no recompute at all
+        ctx.set_materialize_grads(False)
         return out, need
 
     @staticmethod
     def backward(ctx, grad_img, _grad_need):
         verts, normals, colors, rotation, eye, faces = ctx.saved_tensors
         st, capacity, chunk, compile_ = ctx.cfg
+        if grad_img is None:
+            return (None,) * 10
         kernel = _kernel(compile_)
         need = ctx.needs_input_grad[:5]
         inputs = (verts, normals, colors, rotation, eye)

@@ -119,6 +119,29 @@ def test_fused_chunks_over_environments_change_nothing(ant64, monkeypatch, share
         assert a.abs().max() > 0 and (a - b).abs().max() <= 1e-12 * a.abs().max()
 
 
+def test_fused_backward_skips_an_undefined_gradient(ant64, monkeypatch):
+    """A gradient that never reaches the image (like gradlab's closed ImageGate, which returns None) costs no
+    recompute."""
+
+    class Cut(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.view_as(x)
+
+        @staticmethod
+        def backward(ctx, grad):
+            return None
+
+    calls = []
+    coefficients = fused.face_coefficients
+    monkeypatch.setattr(fused, "face_coefficients", lambda *a, **k: (calls.append(1), coefficients(*a, **k))[1])
+    q = ant_pose(1).to(DEV)
+    verts = ant64.world_vertices(q).detach().requires_grad_()
+    img = dr.render(verts, ant64.faces, ant64.colors, ant_camera(q, size=8), dr.RasterSettings(backend="fused"))
+    (Cut.apply(img).sum() + verts.sum()).backward()
+    assert len(calls) == 1 and torch.equal(verts.grad, torch.ones_like(verts))
+
+
 def test_fused_refuses_what_it_does_not_implement(ant64):
     q = ant_pose(1).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)

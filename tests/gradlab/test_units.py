@@ -82,6 +82,32 @@ def test_image_gate_switches_gradient_at_backward_time():
     torch.testing.assert_close(g_closed, g_detach)
 
 
+def test_closed_gate_skips_the_renderers_recompute(monkeypatch):
+    """A probe's decoupled pass must not pay for a render backward: with the gate closed the tiled
+    renderer's backward gets no gradient and recomputes nothing (it used to recompute against zeros)."""
+    import diffrender as dr
+    from diffrender.raster import tiled
+
+    calls = []
+    kernel = tiled.render_pairs
+    monkeypatch.setattr(tiled, "render_pairs", lambda *a, **k: (calls.append(1), kernel(*a, **k))[1])
+    verts = (torch.tensor([[-0.5, 0.0, 0.3], [0.5, 0.0, 0.3], [0.0, 0.0, 1.0]], dtype=torch.float64)[None]
+             .repeat(2, 1, 1).requires_grad_())
+    cam = dr.Camera.look_at(torch.tensor([[0.0, -3.0, 0.7]], dtype=torch.float64),
+                            torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64), (0.0, 0.0, 1.0), 40.0, 6, 6)
+    img = dr.render(verts, torch.tensor([[0, 1, 2]]), torch.full((3, 3), 0.5, dtype=torch.float64), cam,
+                    dr.RasterSettings(backend="tiled", sigma=1.0, gamma=0.05, cull_backfaces=False))
+    assert len(calls) == 1
+    gate = ImageGate(open=False)
+    loss = gate(img).square().sum() + verts.square().sum()
+    loss.backward(retain_graph=True)
+    assert len(calls) == 1 and torch.equal(verts.grad, 2 * verts.detach())
+    verts.grad = None
+    gate.open = True
+    loss.backward()
+    assert len(calls) == 2 and not torch.equal(verts.grad, 2 * verts.detach())
+
+
 def test_cosine_and_flat_grad():
     a = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
     assert float(cosine(a, a)) == pytest.approx(1.0)
