@@ -44,6 +44,10 @@ def measure(task: str, mode: str, args) -> dict:
         t0 = time.perf_counter()
         trainer = SHAC(cfg, device=args.device)
         row["setup_s"] = time.perf_counter() - t0
+        if trainer.renderer is not None:  # which rasterizer backend "auto" resolved to (fused / tiled)
+            from diffrender.render import _backend
+
+            row["render_backend"] = _backend(trainer.renderer.settings, trainer.device)
         t0 = time.perf_counter()
         for _ in range(args.warmup):
             trainer.train_iteration()

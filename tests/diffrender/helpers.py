@@ -33,6 +33,28 @@ def tiny_scene(batch: int = 2, *, dtype=F64, seed: int = 0):
     return verts, faces, colors
 
 
+def degenerate_scene():
+    """One good face among zero-area, collinear, edge-on, behind-camera and near-plane-straddling faces and
+    one with a vertex at the eye, seen by a 16x16 camera. Returns verts (1, 21, 3), faces (7, 3), colors
+    (21, 3), camera; vertices 12..17 belong to faces every backend must drop."""
+    eye = torch.tensor([0.0, -3.0, 1.0], dtype=F64)
+    good = [[-0.5, 0.0, 0.5], [0.5, 0.0, 0.5], [0.0, 0.0, 1.3]]
+    tris = [
+        good,
+        [[0.1, 0.0, 0.8], [0.1, 0.0, 0.8], [0.3, 0.1, 0.9]],  # two identical vertices
+        [[-0.2, 0.0, 0.7], [0.0, 0.0, 0.8], [0.2, 0.0, 0.9]],  # collinear
+        [[0.0, -3.0 + 1.0, 1.0], [0.0, 0.5, 1.0], [0.0, 0.5, 0.5]],  # edge-on: its plane x = 0 holds the eye
+        [[-0.5, -4.0, 1.0], [0.5, -4.0, 1.0], [0.0, -4.0, 1.5]],  # behind the camera
+        [[-0.2, -3.5, 0.9], [0.2, -2.0, 0.9], [0.0, -2.5, 1.2]],  # straddles z = 0 and znear
+        [eye.tolist(), [0.4, 0.5, 0.5], [-0.4, 0.5, 0.6]],  # a vertex exactly at the eye
+    ]
+    verts = torch.tensor(tris, dtype=F64).view(1, -1, 3)
+    faces = torch.arange(verts.shape[1]).view(-1, 3)
+    colors = torch.rand(verts.shape[1], 3, dtype=F64, generator=torch.Generator().manual_seed(0))
+    cam = dr.Camera.look_at(eye, torch.tensor([0.0, 0.0, 0.8]).double(), (0, 0, 1.0), 50.0, 16, 16)
+    return verts, faces, colors, cam
+
+
 def tiny_camera(batch: int = 2, *, height: int = 7, width: int = 6, dtype=F64):
     eye = torch.tensor([[0.0, -3.0, 1.0], [0.2, -3.0, 1.1]], dtype=dtype)[:batch]
     target = torch.tensor([0.0, 0.0, 0.7], dtype=dtype)

@@ -9,7 +9,17 @@ import torch
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
 
-from .helpers import F64, ant_camera, ant_pose, asset, hard_zbuffer, tiny_camera, tiny_scene, tiny_settings
+from .helpers import (
+    F64,
+    ant_camera,
+    ant_pose,
+    asset,
+    degenerate_scene,
+    hard_zbuffer,
+    tiny_camera,
+    tiny_scene,
+    tiny_settings,
+)
 
 BACKENDS = ("dense", "tiled")
 
@@ -244,21 +254,7 @@ def test_integer_pixel_shift_equivariance(ant64):
 # ------------------------------------------------------------------------------------------------ robustness
 def test_degenerate_faces_give_finite_images_and_gradients():
     """Zero-area, collinear, edge-on, behind-camera, near-plane-straddling faces and a vertex at the eye."""
-    eye = torch.tensor([0.0, -3.0, 1.0], dtype=F64)
-    good = [[-0.5, 0.0, 0.5], [0.5, 0.0, 0.5], [0.0, 0.0, 1.3]]
-    tris = [
-        good,
-        [[0.1, 0.0, 0.8], [0.1, 0.0, 0.8], [0.3, 0.1, 0.9]],  # two identical vertices
-        [[-0.2, 0.0, 0.7], [0.0, 0.0, 0.8], [0.2, 0.0, 0.9]],  # collinear
-        [[0.0, -3.0 + 1.0, 1.0], [0.0, 0.5, 1.0], [0.0, 0.5, 0.5]],  # edge-on: its plane x = 0 holds the eye
-        [[-0.5, -4.0, 1.0], [0.5, -4.0, 1.0], [0.0, -4.0, 1.5]],  # behind the camera
-        [[-0.2, -3.5, 0.9], [0.2, -2.0, 0.9], [0.0, -2.5, 1.2]],  # straddles z = 0 and znear
-        [eye.tolist(), [0.4, 0.5, 0.5], [-0.4, 0.5, 0.6]],  # a vertex exactly at the eye
-    ]
-    verts = torch.tensor(tris, dtype=F64).view(1, -1, 3)
-    faces = torch.arange(verts.shape[1]).view(-1, 3)
-    colors = torch.rand(verts.shape[1], 3, dtype=F64)
-    cam = dr.Camera.look_at(eye, torch.tensor([0.0, 0.0, 0.8]).double(), (0, 0, 1.0), 50.0, 16, 16)
+    verts, faces, colors, cam = degenerate_scene()
     for backend in BACKENDS:
         for cull in (True, False):
             v = verts.clone().requires_grad_()
