@@ -329,7 +329,7 @@ if triton is not None:
         gg = tl.load(gp + HW, mask=inb, other=0.0)
         gb = tl.load(gp + 2 * HW, mask=inb, other=0.0)
         # floor: weight exp((z_f - m) / gamma) where the ray hits it; the background is a constant
-        w_f = tl.where(fhit, tl.exp((fzn - m) / gamma), 0.0)
+        w_f = tl.where(fhit, tl.exp(tl.minimum((fzn - m) / gamma, 0.0)), 0.0)  # m >= fzn; no-hit: no inf
         g_wf = (gr * (fr - out_r) + gg * (fg - out_g) + gb * (fb - out_b)) * inv_den
         gfp = gfloor_ptr + env * 4 * HW + pix
         tl.store(gfp, tl.where(fhit, g_wf * w_f / gamma, 0.0), mask=inb)
