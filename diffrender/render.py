@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import torch
@@ -45,6 +46,7 @@ def _backend(settings: RasterSettings, device: torch.device) -> str:
     return "tiled"
 
 
+@functools.cache
 def _triton_installed() -> bool:
     try:
         import triton  # noqa: F401

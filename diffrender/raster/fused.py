@@ -36,6 +36,7 @@ from ..camera import Camera
 from ..floor import floor_candidate
 from ..settings import RasterSettings
 from .kernel import _BBOX_MARGIN, Static, face_validity, project, vertex_normals
+from .tiled import _chunks, _rows
 
 try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack it
     import triton
@@ -46,8 +47,8 @@ except ImportError:  # pragma: no cover - exercised on machines without triton
 __all__ = ["NUM_COEFFS", "available", "face_coefficients", "rasterize_fused"]
 
 NUM_COEFFS = 45
-# coefficient rows of the (B, C, F) layout; k is the edge (opposite vertex k) or the corner
-_LA, _LX, _LY, _PA, _PX, _PY, _H, _L2, _IZ, _N, _AL = 0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 36
+# Rows of the (B, C, F) layout (k: the edge opposite vertex k, or corner k): LA_k 0-2, LX_k 3-5, LY_k 6-8,
+# PA_k 9-11, PX_k 12-14, PY_k 15-17, H_k 18-20, |e_k|^2 21-23, 1/z_k 24-26, normal_k 27-35, albedo_k 36-44.
 #: pixels per tile side and faces per block of the kernels (tuned on an H200, see BENCHMARKS.md)
 TILE = 4
 FACE_BLOCK = 64
@@ -156,7 +157,8 @@ if triton is not None:
                 tl.load(prm + 10))
 
     @triton.jit
-    def _tile_pixels(tile, W, H, TX, TILE_: tl.constexpr):
+    def _tile_pixels(tile, W, H, TX, like, TILE_: tl.constexpr):
+        """The tile's pixel centres (in ``like``'s dtype), flat indices, in-image mask and centre range."""
         ty = tile // TX
         tx = tile % TX
         k = tl.arange(0, TILE_ * TILE_)
@@ -167,7 +169,14 @@ if triton is not None:
         x_hi = (tl.minimum(tx * TILE_ + TILE_, W)).to(tl.float32) - 0.5
         y_lo = (ty * TILE_).to(tl.float32) + 0.5
         y_hi = (tl.minimum(ty * TILE_ + TILE_, H)).to(tl.float32) - 0.5
-        return px, py, inb, x_lo, x_hi, y_lo, y_hi
+        return px.to(like.dtype) + 0.5, py.to(like.dtype) + 0.5, py * W + px, inb, x_lo, x_hi, y_lo, y_hi
+
+    @triton.jit
+    def _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
+        """Whether face block ``blk``'s box touches the tile (a scalar)."""
+        bb = bbox_ptr + env * 4 * NB + blk
+        return ((tl.load(bb + NB) >= x_lo) & (tl.load(bb) <= x_hi)
+                & (tl.load(bb + 3 * NB) >= y_lo) & (tl.load(bb + 2 * NB) <= y_hi))
 
     @triton.jit
     def _face_mask(box_ptr, f, Fp, x_lo, x_hi, y_lo, y_hi):
@@ -230,10 +239,7 @@ if triton is not None:
         fo = tl.arange(0, FB)
         cbase = coef_ptr + env * 45 * Fp
         for blk in range(0, NB):
-            bb = bbox_ptr + env * 4 * NB + blk
-            hit = ((tl.load(bb + NB) >= x_lo) & (tl.load(bb) <= x_hi)
-                   & (tl.load(bb + 3 * NB) >= y_lo) & (tl.load(bb + 2 * NB) <= y_hi))
-            if hit:
+            if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
                 f = blk * FB + fo
                 fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
                 cp = cbase + f[:, None]
@@ -252,9 +258,12 @@ if triton is not None:
         return num_r, num_g, num_b, den, m
 
     @triton.jit
-    def _floor_start(floor_ptr, env, pix, inb, HW, bg_r, bg_g, bg_b, gamma):
+    def _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma):
         """Per pixel: the floor's normalised depth, colour and hit flag, and the blend's starting sums
         (floor and background) with the running maximum at the floor (or the background's 0)."""
+        bg_r = tl.load(prm + 11)
+        bg_g = tl.load(prm + 12)
+        bg_b = tl.load(prm + 13)
         fp = floor_ptr + env * 5 * HW + pix
         fzn = tl.load(fp, mask=inb, other=0.0)
         fr = tl.load(fp + HW, mask=inb, other=0.0)
@@ -273,16 +282,9 @@ if triton is not None:
         tile = tl.program_id(0)
         env = tl.program_id(1)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
-        bg_r = tl.load(prm + 11)
-        bg_g = tl.load(prm + 12)
-        bg_b = tl.load(prm + 13)
-        px, py, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, TILE_)
-        xc = px.to(sigma.dtype) + 0.5
-        yc = py.to(sigma.dtype) + 0.5
-        pix = py * W + px
+        xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
-        _, _, _, _, _, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, env, pix, inb, HW, bg_r, bg_g, bg_b,
-                                                                  gamma)
+        _, _, _, _, _, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma)
         num_r, num_g, num_b, den, m = _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b,
                                                   den, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
                                                   sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse,
@@ -305,16 +307,9 @@ if triton is not None:
         tile = tl.program_id(0)
         env = tl.program_id(1)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
-        bg_r = tl.load(prm + 11)
-        bg_g = tl.load(prm + 12)
-        bg_b = tl.load(prm + 13)
-        px, py, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, TILE_)
-        xc = px.to(sigma.dtype) + 0.5
-        yc = py.to(sigma.dtype) + 0.5
-        pix = py * W + px
+        xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
-        fzn, fr, fg, fb, fhit, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, env, pix, inb, HW,
-                                                                           bg_r, bg_g, bg_b, gamma)
+        fzn, fr, fg, fb, fhit, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma)
         # pass 1: recompute the pixel's blend (maximum, sums, colour)
         num_r, num_g, num_b, den, m = _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b,
                                                   den, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
@@ -345,10 +340,7 @@ if triton is not None:
         y = yc[None, :]
         inv_zr = 1.0 / (zfar - znear)
         for blk in range(0, NB):
-            bb = bbox_ptr + env * 4 * NB + blk
-            hit = ((tl.load(bb + NB) >= x_lo) & (tl.load(bb) <= x_hi)
-                   & (tl.load(bb + 3 * NB) >= y_lo) & (tl.load(bb + 2 * NB) <= y_hi))
-            if hit:
+            if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
                 f = blk * FB + fo
                 fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
                 cp = cbase + f[:, None]
@@ -519,21 +511,8 @@ def _launch_grid(st: Static, b: int, tile: int) -> tuple[tuple[int, int], int]:
     return (tx * ty, b), tx
 
 
-@functools.cache
 def _warps(tile: int, fb: int) -> int:
     return 4 if tile * tile * fb <= 1024 else 8
-
-
-def _chunks(b: int, chunk: int):
-    for b0 in range(0, b, chunk):
-        yield slice(b0, min(b, b0 + chunk))
-
-
-def _rows(x: torch.Tensor | None, sl: slice, *, shared_ok: bool = False) -> torch.Tensor | None:
-    """A per-environment tensor's rows; shared (V, 3) colours (``shared_ok``) whole."""
-    if x is None or (shared_ok and x.ndim == 2):
-        return x
-    return x[sl]
 
 
 class _FusedRasterize(torch.autograd.Function):
@@ -579,22 +558,17 @@ class _FusedRasterize(torch.autograd.Function):
                 floor = _floor_planes(leaves[3], leaves[4], st, dt, dev)
                 floor_diff = floor[:, :4]  # depth and colour (the hit flag has no gradient)
             wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
-            outs, gouts = [], []
-            if coef.requires_grad:
-                outs.append(coef)
-                gouts.append(torch.zeros_like(coef))
-            if floor.requires_grad:
-                outs.append(floor_diff)
-                gouts.append(torch.empty(floor_diff.shape, dtype=dt, device=dev))
+            gcoef = torch.zeros_like(coef)
+            gfloor = torch.empty(floor_diff.shape, dtype=dt, device=dev)
+            outs = [(t, g) for t, g in ((coef, gcoef), (floor_diff, gfloor)) if t.requires_grad]
             if not (wanted and outs):
                 continue
-            gcoef = gouts[0] if coef.requires_grad else torch.zeros_like(coef)
-            gfloor = gouts[-1] if floor.requires_grad else torch.empty(floor_diff.shape, dtype=dt, device=dev)
             grid, tx = _launch_grid(st, sl.stop - sl.start, tile)
             _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, dt, dev), grad_img[sl],
                                   gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height, st.width, tx,
                                   TILE_=tile, FB=fb, num_warps=_warps(tile, fb))
-            parts = torch.autograd.grad(outs, [leaves[i] for i in wanted], gouts, allow_unused=True)
+            parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
+                                        allow_unused=True)
             for i, g in zip(wanted, parts):
                 if g is None:
                     continue
