@@ -65,15 +65,11 @@ class SHAC:
         self.task = tasks.make(cfg.task, cfg.num_envs, device=self.device, seed=cfg.seed, **overrides)
         if cfg.compile:
             # Probe iterations differentiate one graph twice (retain_graph=True), which AOTAutograd's donated
-            # buffers forbid in compiled backward functions.
-            import torch._dynamo.config as dynamo_config
+            # buffers forbid in compiled backward functions. (Task.compile raises dynamo's recompile limit: a
+            # window calls the substep with and without grad-requiring state and cached mass matrices.)
             import torch._functorch.config as functorch_config
 
             functorch_config.donated_buffer = False
-            # A window calls the substep with and without grad-requiring state and cached mass matrices (first
-            # step, probes, evaluation): more guard variants than dynamo's default 8, after which it silently
-            # falls back to eager (seen on the ant: 2.6x slower iterations).
-            dynamo_config.recompile_limit = max(getattr(dynamo_config, "recompile_limit", 8), 64)
             self.task.compile()
         self.visual = cfg.mode in ("full", "decoupled")
         self.renderer = None
