@@ -49,10 +49,11 @@ def _sync(device: torch.device) -> None:
 class Rollout:
     """The measured computation for one (task, batch, mode): state restore, horizon, loss, backward."""
 
-    def __init__(self, name: str, num_envs: int, horizon: int, device: torch.device, mode: str, seed: int):
+    def __init__(self, name: str, num_envs: int, horizon: int, device: torch.device, mode: str, seed: int,
+                 inductor: dict | None = None):
         self.task = tasks.make(name, num_envs, device=device, seed=seed)
         if mode in ("compiled", "graph"):
-            self.task.compile()
+            self.task.compile(**({"options": inductor} if inductor else {}))
         self.task.reset()
         self.start = {k: v.clone() for k, v in self.task.get_state().items()}
         gen = torch.Generator(device="cpu").manual_seed(seed)
@@ -76,6 +77,8 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
     (task, batch), so the graph mode captures the already compiled code instead of compiling again."""
     device = torch.device(args.device)
     row: dict = {"task": name, "num_envs": num_envs, "mode": mode, "horizon": args.horizon, "status": "ok"}
+    if args.inductor:
+        row["inductor"] = args.inductor
     if mode == "graph" and device.type != "cuda":
         row["status"] = "skipped (CUDA graphs need a CUDA device)"
         return row
@@ -84,7 +87,7 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
         key = (name, num_envs)
         roll = cache.pop(key, None) if mode == "graph" else None
         if roll is None:
-            roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed)
+            roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed, args.inductor)
         if mode == "compiled":
             cache[key] = roll
         row["substeps"] = roll.task.substeps
@@ -125,21 +128,35 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
         if device.type == "cuda":
             row["peak_alloc_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
             row["peak_reserved_mb"] = round(torch.cuda.max_memory_reserved(device) / 2**20, 1)
-            if args.kernels and mode != "graph":
-                row["kernels_per_substep"] = _kernels_per_substep(roll, args.horizon * roll.task.substeps)
+            if args.kernels:
+                row["kernels_per_substep"] = _kernels_per_substep(fn, args.horizon * roll.task.substeps)
     except Exception as e:  # a failing configuration is a row, not the end of the sweep
         row["status"] = f"error: {type(e).__name__}: {e}"[:400]
     return row
 
 
-def _kernels_per_substep(roll: Rollout, n_substeps: int) -> float:
+def _kernels_per_substep(fn, n_substeps: int) -> float:
+    """GPU kernels per substep (forward + backward) of one call; kernels inside a replayed graph count too."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        roll()
+        fn()
         torch.cuda.synchronize()
     n = sum(e.count for e in prof.key_averages() if e.device_type.name == "CUDA")
     return round(n / n_substeps, 1)
+
+
+def _setting(kv: str, p: argparse.ArgumentParser) -> tuple[str, object]:
+    key, sep, value = kv.partition("=")
+    if not sep:
+        p.error(f"--inductor takes KEY=VALUE, got {kv!r}")
+    low = value.lower()
+    if low in ("true", "false"):
+        return key, low == "true"
+    try:
+        return key, int(value)
+    except ValueError:
+        return key, value
 
 
 def table(rows: list[dict]) -> str:
@@ -154,6 +171,7 @@ def table(rows: list[dict]) -> str:
         "peak_reserved_mb",
         "kernels_per_substep",
         "warmup_s",
+        "inductor",
         "status",
     )
     lines = [" | ".join(cols)]
@@ -172,7 +190,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--iters", type=int, default=None, help="measured iterations (default 5; 3 with --quick)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (compiled/eager)")
+    p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (forward + backward)")
     p.add_argument(
         "--threads",
         type=int,
@@ -181,8 +199,16 @@ def main(argv: list[str] | None = None) -> None:
         "OpenMP threads measured 40x slower than one",
     )
     p.add_argument("--quick", action="store_true", help="ant and humanoid at 64 envs, ant at 4096; all modes")
+    p.add_argument(
+        "--inductor",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="inductor settings for the compiled modes, e.g. combo_kernels=true aggressive_fusion=true",
+    )
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = p.parse_args(argv)
+    args.inductor = dict(_setting(kv, p) for kv in args.inductor)
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda but no CUDA device is available")
     if args.iters is None:
