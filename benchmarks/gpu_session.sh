@@ -2,7 +2,7 @@
 # One GPU-machine session: install the carried wheels, then run the named stages, each under its own time
 # limit, writing JSON under $OUT (the device tool brings $OUT back). Usage, from the repo root:
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
-# Stages: env, cuda-tests, fused-tests, graph-test, sim, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
+# Stages: env, cuda-tests, fused-tests, graph-test, sim, sim-variants, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
@@ -15,13 +15,22 @@ for spec in "$@"; do
     env) nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv
          python3 -c "import torch, mujoco, pytorch_kinematics, trimesh, tyro; print(torch.__version__, torch.version.cuda, mujoco.__version__)";;
     cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/diffrender -q -x -m "cuda" -p no:cacheprovider;;
-    sim) run "$secs" python3 benchmarks/sim.py --device cuda --quick --out "$OUT/sim_quick.json";;
+    sim) run "$secs" python3 benchmarks/sim.py --device cuda --quick --modes ${SIM_MODES:-eager compiled graph} \
+           --out "$OUT/sim_quick.json";;
+    profile) # kernels of the captured forward / backward graphs by category, and the encoder alone
+       run "$secs" python3 benchmarks/profile_iteration.py --tasks ${TASKS:-ant} --modes ${MODES:-decoupled full} \
+         --encoder --out "$OUT/profile.json";;
     render) run "$secs" python3 benchmarks/render.py --device cuda --quick --out "$OUT/render_quick.json";;
     fused-tests) run "$secs" python3 -m pytest tests/diffrender/test_fused.py -q -x -p no:cacheprovider ${FUSED_K:+-k "$FUSED_K"};;
     render-fused) # the fused Triton backend: kernel shapes (FUSED_VARIANTS) and the tiled one at the target
        # point, then batch / resolution / faces sweeps on the fused one
        run "$secs" python3 benchmarks/render.py --device cuda --backends fused tiled --graphs \
-         --fused-variants ${FUSED_VARIANTS:-8x16} --out "$OUT/render_fused.json";;
+         --fused-variants ${FUSED_VARIANTS:-4x64} ${RENDER_TARGET_ONLY:+--target-only} --out "$OUT/render_fused.json";;
+    sim-variants) # inductor settings for the simulator: ant, 64 envs, graph mode, one process per setting
+       # (SIM_VARIANTS="base combo_kernels=true,aggressive_fusion=true ..."; commas separate settings)
+       for v in ${SIM_VARIANTS:-base}; do opts=""; [ "$v" != base ] && opts="--inductor ${v//,/ }"
+         run "$secs" python3 benchmarks/sim.py --device cuda --tasks ${SIM_TASK:-ant} --num-envs ${SIM_ENVS:-64} \
+           --modes graph --kernels $opts --out "$OUT/sim_${v//[=,]/_}.json"; done;;
     iter) run "$secs" python3 benchmarks/iteration.py --device cuda --warmup 1 --iters 3 --out "$OUT/iter_eager.json" \
             --tasks ${TASKS:-cartpole hopper ant humanoid};;
     iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \

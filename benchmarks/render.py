@@ -247,6 +247,8 @@ def points(args) -> list[dict]:
                     pts.append(dict(backend=be, batch=b0, res=r0, faces=f0, tile=2, fused_tile=t, fused_block=fb))
             else:
                 pts.append(dict(backend=be, batch=b0, res=r0, faces=f0, tile=2))
+        if args.target_only:
+            return pts
         for b in (16, 256, 1024):
             pts.append(dict(backend=main, batch=b, res=r0, faces=f0, tile=2))
         for r in (64, 128):
@@ -358,6 +360,8 @@ def main(argv=None) -> int:
     p.add_argument("--graphs", action="store_true",
                    help="CUDA: also time fwd and fwd+bwd replayed from a captured CUDA graph (as the trainer runs)")
     p.add_argument("--fused-variants", nargs="*", help="fused kernel shapes TILExFACE_BLOCK, e.g. 8x16 16x16")
+    p.add_argument("--target-only", action="store_true",
+                   help="with --backends: only the target point (64 ant images, 84x84), no sweeps")
     p.add_argument("--tiles", type=int, nargs="*", help="tile sizes to compare at the target point")
     p.add_argument("--compile", action="store_true", help="also measure with torch.compile (see points())")
     p.add_argument("--blend", choices=["softmax", "alpha"], default="softmax")
