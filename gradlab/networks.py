@@ -72,11 +72,15 @@ class PixelEncoder(nn.Module):
         self.trunk = nn.Sequential(nn.Linear(flat, trunk_dim), nn.LayerNorm(trunk_dim), nn.Tanh())
         orthogonal_init(self.convs, gain=nn.init.calculate_gain("relu"))
         orthogonal_init(self.trunk)
+        # Channels-last (NHWC) weights and activations: cuDNN's tensor-core convolutions work in NHWC and
+        # otherwise transpose every input and gradient (measured: ~6 ms of layout copies per ant iteration on
+        # an H100). Same values; only the memory layout differs.
+        self.convs.to(memory_format=torch.channels_last)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """images: (B, C, H, W) in [0, 1] -> (B, trunk_dim)."""
-        h = self.convs(images - 0.5)
-        return self.trunk(h.flatten(1))
+        """images: (B, C, H, W) in [0, 1] (any memory layout) -> (B, trunk_dim)."""
+        h = self.convs((images - 0.5).contiguous(memory_format=torch.channels_last))
+        return self.trunk(h.flatten(1))  # flatten in (C, H, W) order whatever the layout
 
 
 class _GaussianTanhPolicy(nn.Module):

@@ -162,6 +162,29 @@ def test_networks_shapes_and_action_range():
         VisualActor(9, 8, 8, act_dim=1, trunk_dim=4, hidden=(4,))
 
 
+def test_encoder_channels_last_equals_plain_convolutions():
+    """The encoder runs NHWC for cuDNN; values and gradients must be those of the plain NCHW network."""
+    torch.manual_seed(0)
+    enc = VisualActor(9, 21, 21, act_dim=2, trunk_dim=8, hidden=(4,)).encoder.double()
+    images = torch.rand(3, 9, 21, 21, dtype=torch.float64, requires_grad=True)
+
+    def plain(x):
+        h = x - 0.5
+        for m in enc.convs:
+            h = torch.relu(h) if isinstance(m, torch.nn.ReLU) else torch.nn.functional.conv2d(
+                h, m.weight.contiguous(), m.bias, m.stride)
+        return enc.trunk(h.reshape(h.shape[0], -1))
+
+    assert enc.convs[0].weight.is_contiguous(memory_format=torch.channels_last)
+    out, ref = enc(images), plain(images.contiguous())
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    w = torch.randn_like(out)
+    g = torch.autograd.grad((out * w).sum(), [images, enc.convs[2].weight])
+    g_ref = torch.autograd.grad((ref * w).sum(), [images, enc.convs[2].weight])
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
 def test_fit_critic_reduces_loss_and_polyak():
     torch.manual_seed(0)
     critic = Critic(3, (32, 32))
