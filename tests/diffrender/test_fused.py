@@ -56,6 +56,17 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
 
 
+def test_fused_float32_hidden_faces_match_dense(ant64):
+    """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
+    the backward uses to skip them (no atomics, blocks skipped); the gradients must still equal dense's."""
+    q = ant_pose(2, seed=3).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=16)
+    cam32 = dr.Camera(rotation=cam.rotation.float(), eye=cam.eye.float(), focal=cam.focal, height=cam.height,
+                      width=cam.width)
+    _compare(verts.float(), ant64.faces, ant64.colors.float(), cam32, dict(cull_backfaces=False), tol=2e-3)
+
+
 def test_fused_matches_dense_with_given_normals_and_per_env_colors(ant64):
     q = ant_pose(2, seed=5).to(DEV)
     verts, normals = ant64.world_vertices_and_normals(q)
