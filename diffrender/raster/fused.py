@@ -52,6 +52,9 @@ NUM_COEFFS = 45
 #: pixels per tile side and faces per block of the kernels (tuned on an H200, see BENCHMARKS.md)
 TILE = 4
 FACE_BLOCK = 64
+#: Faces per step of the backward kernel's inner loop (<= FACE_BLOCK), and its warps (None: by size).
+BWD_SUB_BLOCK = 64
+BWD_WARPS: int | None = None
 _BIG = 1e30  # empty bounding box of a dropped face
 #: per-face coefficients held at once (environments are rendered in chunks of at most this many
 #: coefficients): bounds the renderer's working set, ~5x this in bytes at float32, at any face count
@@ -303,7 +306,7 @@ if triton is not None:
 
     @triton.jit
     def _fused_backward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, gout_ptr, gcoef_ptr, gfloor_ptr,
-                        Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr):
+                        Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SUB: tl.constexpr):
         tile = tl.program_id(0)
         env = tl.program_id(1)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
@@ -333,7 +336,7 @@ if triton is not None:
         tl.store(gfp + 3 * HW, gb * w_f * inv_den, mask=inb)
 
         # pass 2: every kept pair's gradient, reduced over the tile's pixels into its face's coefficients
-        fo = tl.arange(0, FB)
+        fo = tl.arange(0, SUB)
         cbase = coef_ptr + env * 45 * Fp
         gbase = gcoef_ptr + env * 45 * Fp
         x = xc[None, :]
@@ -341,160 +344,163 @@ if triton is not None:
         inv_zr = 1.0 / (zfar - znear)
         for blk in range(0, NB):
             if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                f = blk * FB + fo
-                fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
-                cp = cbase + f[:, None]
-                gq = gbase + f
-                # ---- forward recompute, keeping the intermediates
-                lam0, s0, h0, l20, dl0, ov0, ds0 = _edge(cp, Fp, 0, x, y)
-                lam1, s1, h1, l21, dl1, ov1, ds1 = _edge(cp, Fp, 1, x, y)
-                lam2, s2, h2, l22, dl2, ov2, ds2 = _edge(cp, Fp, 2, x, y)
-                dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
-                dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
-                inside = dmin >= 0
-                root = tl.sqrt(dsmin + 1e-20)
-                sd = tl.where(inside, dmin, -root)
-                iz0 = tl.load(cp + 24 * Fp)
-                iz1 = tl.load(cp + 25 * Fp)
-                iz2 = tl.load(cp + 26 * Fp)
-                lc0 = tl.maximum(lam0, 0.0)
-                lc1 = tl.maximum(lam1, 0.0)
-                lc2 = tl.maximum(lam2, 0.0)
-                q0 = lc0 * iz0
-                q1 = lc1 * iz1
-                q2 = lc2 * iz2
-                qs = q0 + q1 + q2
-                inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
-                lcs = lc0 + lc1 + lc2
-                depth = lcs * inv_q
-                zn = (zfar - depth) * inv_zr
-                keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
-                cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
-                e = (zn - m[None, :]) / gamma
-                ew = tl.exp(tl.minimum(e, cap))
-                w = tl.where(keep, cov * ew, 0.0)
-                # Every term of a pair's gradient carries its weight w (coverage x depth softmax): faces whose
-                # weight underflows to exactly 0 on all of the tile's pixels (hidden behind nearer surfaces,
-                # or only within the box margin) add nothing, so they issue no atomics, and a block without
-                # any such face skips the rest of its work.
-                live = fm & (tl.max(w, axis=1) > 0.0)
-                if tl.max(live.to(tl.int32), axis=0) > 0:
-                    b0 = q0 * inv_q
-                    b1 = q1 * inv_q
-                    b2 = q2 * inv_q
-                    n0x = tl.load(cp + 27 * Fp)
-                    n0y = tl.load(cp + 28 * Fp)
-                    n0z = tl.load(cp + 29 * Fp)
-                    n1x = tl.load(cp + 30 * Fp)
-                    n1y = tl.load(cp + 31 * Fp)
-                    n1z = tl.load(cp + 32 * Fp)
-                    n2x = tl.load(cp + 33 * Fp)
-                    n2y = tl.load(cp + 34 * Fp)
-                    n2z = tl.load(cp + 35 * Fp)
-                    a0r = tl.load(cp + 36 * Fp)
-                    a0g = tl.load(cp + 37 * Fp)
-                    a0b = tl.load(cp + 38 * Fp)
-                    a1r = tl.load(cp + 39 * Fp)
-                    a1g = tl.load(cp + 40 * Fp)
-                    a1b = tl.load(cp + 41 * Fp)
-                    a2r = tl.load(cp + 42 * Fp)
-                    a2g = tl.load(cp + 43 * Fp)
-                    a2b = tl.load(cp + 44 * Fp)
-                    nx = b0 * n0x + b1 * n1x + b2 * n2x
-                    ny = b0 * n0y + b1 * n1y + b2 * n2y
-                    nz = b0 * n0z + b1 * n1z + b2 * n2z
-                    ar = b0 * a0r + b1 * a1r + b2 * a2r
-                    ag = b0 * a0g + b1 * a1g + b2 * a2g
-                    ab = b0 * a0b + b1 * a1b + b2 * a2b
-                    nl = nx * lx + ny * ly + nz * lz
-                    il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
-                    cosl = nl * il
-                    shade = ambient + diffuse * tl.maximum(cosl, 0.0)
-                    # ---- backward: blend
-                    gw = tl.where(keep, (gr[None, :] * (ar * shade - out_r[None, :])
-                                         + gg[None, :] * (ag * shade - out_g[None, :])
-                                         + gb[None, :] * (ab * shade - out_b[None, :])) * inv_den[None, :], 0.0)
-                    wd = w * inv_den[None, :]
-                    gcr = gr[None, :] * wd  # d loss / d colour of the pair
-                    gcg = gg[None, :] * wd
-                    gcb = gb[None, :] * wd
-                    gzn = tl.where(e < cap, gw * w / gamma, 0.0)
-                    gsd = gw * ew * cov * (1.0 - cov) / sigma
-                    # ---- colour = albedo * shade(normal)
-                    gar = gcr * shade
-                    gag = gcg * shade
-                    gab = gcb * shade
-                    gsh = tl.where(cosl > 0, (gcr * ar + gcg * ag + gcb * ab) * diffuse, 0.0)
-                    il3 = il * il * il
-                    gnx = gsh * (lx * il - nl * nx * il3)
-                    gny = gsh * (ly * il - nl * ny * il3)
-                    gnz = gsh * (lz * il - nl * nz * il3)
-                    tl.atomic_add(gq + 27 * Fp, tl.sum(gnx * b0, axis=1), mask=live)
-                    tl.atomic_add(gq + 28 * Fp, tl.sum(gny * b0, axis=1), mask=live)
-                    tl.atomic_add(gq + 29 * Fp, tl.sum(gnz * b0, axis=1), mask=live)
-                    tl.atomic_add(gq + 30 * Fp, tl.sum(gnx * b1, axis=1), mask=live)
-                    tl.atomic_add(gq + 31 * Fp, tl.sum(gny * b1, axis=1), mask=live)
-                    tl.atomic_add(gq + 32 * Fp, tl.sum(gnz * b1, axis=1), mask=live)
-                    tl.atomic_add(gq + 33 * Fp, tl.sum(gnx * b2, axis=1), mask=live)
-                    tl.atomic_add(gq + 34 * Fp, tl.sum(gny * b2, axis=1), mask=live)
-                    tl.atomic_add(gq + 35 * Fp, tl.sum(gnz * b2, axis=1), mask=live)
-                    tl.atomic_add(gq + 36 * Fp, tl.sum(gar * b0, axis=1), mask=live)
-                    tl.atomic_add(gq + 37 * Fp, tl.sum(gag * b0, axis=1), mask=live)
-                    tl.atomic_add(gq + 38 * Fp, tl.sum(gab * b0, axis=1), mask=live)
-                    tl.atomic_add(gq + 39 * Fp, tl.sum(gar * b1, axis=1), mask=live)
-                    tl.atomic_add(gq + 40 * Fp, tl.sum(gag * b1, axis=1), mask=live)
-                    tl.atomic_add(gq + 41 * Fp, tl.sum(gab * b1, axis=1), mask=live)
-                    tl.atomic_add(gq + 42 * Fp, tl.sum(gar * b2, axis=1), mask=live)
-                    tl.atomic_add(gq + 43 * Fp, tl.sum(gag * b2, axis=1), mask=live)
-                    tl.atomic_add(gq + 44 * Fp, tl.sum(gab * b2, axis=1), mask=live)
-                    # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
-                    gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
-                    gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
-                    gb2 = gnx * n2x + gny * n2y + gnz * n2z + gar * a2r + gag * a2g + gab * a2b
-                    gdep = -gzn * inv_zr
-                    gbb = gb0 * b0 + gb1 * b1 + gb2 * b2
-                    gq_common = -gbb * inv_q - gdep * lcs * inv_q * inv_q
-                    gq0 = gb0 * inv_q + gq_common
-                    gq1 = gb1 * inv_q + gq_common
-                    gq2 = gb2 * inv_q + gq_common
-                    tl.atomic_add(gq + 24 * Fp, tl.sum(gq0 * lc0, axis=1), mask=live)
-                    tl.atomic_add(gq + 25 * Fp, tl.sum(gq1 * lc1, axis=1), mask=live)
-                    tl.atomic_add(gq + 26 * Fp, tl.sum(gq2 * lc2, axis=1), mask=live)
-                    glc0 = gq0 * iz0 + gdep * inv_q
-                    glc1 = gq1 * iz1 + gdep * inv_q
-                    glc2 = gq2 * iz2 + gdep * inv_q
-                    # ---- signed distance: inside the nearest edge line, outside the nearest segment
-                    a0 = (dl0 <= dl1) & (dl0 <= dl2)
-                    a1 = (~a0) & (dl1 <= dl2)
-                    a2 = (~a0) & (~a1)
-                    gsq = tl.where(inside, 0.0, -gsd * 0.5 / root)
-                    c0 = (ds0 <= ds1) & (ds0 <= ds2)
-                    c1 = (~c0) & (ds1 <= ds2)
-                    c2 = (~c0) & (~c1)
-                    gds0 = tl.where(c0, gsq, 0.0)
-                    gds1 = tl.where(c1, gsq, 0.0)
-                    gds2 = tl.where(c2, gsq, 0.0)
-                    gdl0 = tl.where(inside & a0, gsd, 0.0) + 2.0 * dl0 * gds0
-                    gdl1 = tl.where(inside & a1, gsd, 0.0) + 2.0 * dl1 * gds1
-                    gdl2 = tl.where(inside & a2, gsd, 0.0) + 2.0 * dl2 * gds2
-                    tl.atomic_add(gq + 18 * Fp, tl.sum(gdl0 * lam0, axis=1), mask=live)
-                    tl.atomic_add(gq + 19 * Fp, tl.sum(gdl1 * lam1, axis=1), mask=live)
-                    tl.atomic_add(gq + 20 * Fp, tl.sum(gdl2 * lam2, axis=1), mask=live)
-                    tl.atomic_add(gq + 21 * Fp, tl.sum(gds0 * ov0 * ov0, axis=1), mask=live)
-                    tl.atomic_add(gq + 22 * Fp, tl.sum(gds1 * ov1 * ov1, axis=1), mask=live)
-                    tl.atomic_add(gq + 23 * Fp, tl.sum(gds2 * ov2 * ov2, axis=1), mask=live)
-                    gs0 = tl.where((s0 < 0) | (s0 > 1), 2.0 * l20 * ov0 * gds0, 0.0)
-                    gs1 = tl.where((s1 < 0) | (s1 > 1), 2.0 * l21 * ov1 * gds1, 0.0)
-                    gs2 = tl.where((s2 < 0) | (s2 > 1), 2.0 * l22 * ov2 * gds2, 0.0)
-                    glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
-                    glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
-                    glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
-                    _affine_grad(gq, Fp, 0, glam0, x, y, live)
-                    _affine_grad(gq, Fp, 1, glam1, x, y, live)
-                    _affine_grad(gq, Fp, 2, glam2, x, y, live)
-                    _affine_grad(gq, Fp, 9, gs0, x, y, live)
-                    _affine_grad(gq, Fp, 10, gs1, x, y, live)
-                    _affine_grad(gq, Fp, 11, gs2, x, y, live)
+                # The block's faces in sub-blocks of SUB: the gradient keeps ~60 (faces, pixels) arrays live,
+                # which spill out of registers at a whole block of faces.
+                for sub in range(0, FB // SUB):
+                    f = blk * FB + sub * SUB + fo
+                    fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                    cp = cbase + f[:, None]
+                    gq = gbase + f
+                    # ---- forward recompute, keeping the intermediates
+                    lam0, s0, h0, l20, dl0, ov0, ds0 = _edge(cp, Fp, 0, x, y)
+                    lam1, s1, h1, l21, dl1, ov1, ds1 = _edge(cp, Fp, 1, x, y)
+                    lam2, s2, h2, l22, dl2, ov2, ds2 = _edge(cp, Fp, 2, x, y)
+                    dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
+                    dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
+                    inside = dmin >= 0
+                    root = tl.sqrt(dsmin + 1e-20)
+                    sd = tl.where(inside, dmin, -root)
+                    iz0 = tl.load(cp + 24 * Fp)
+                    iz1 = tl.load(cp + 25 * Fp)
+                    iz2 = tl.load(cp + 26 * Fp)
+                    lc0 = tl.maximum(lam0, 0.0)
+                    lc1 = tl.maximum(lam1, 0.0)
+                    lc2 = tl.maximum(lam2, 0.0)
+                    q0 = lc0 * iz0
+                    q1 = lc1 * iz1
+                    q2 = lc2 * iz2
+                    qs = q0 + q1 + q2
+                    inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
+                    lcs = lc0 + lc1 + lc2
+                    depth = lcs * inv_q
+                    zn = (zfar - depth) * inv_zr
+                    keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
+                    cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+                    e = (zn - m[None, :]) / gamma
+                    ew = tl.exp(tl.minimum(e, cap))
+                    w = tl.where(keep, cov * ew, 0.0)
+                    # Every term of a pair's gradient carries its weight w (coverage x depth softmax): faces whose
+                    # weight underflows to exactly 0 on all of the tile's pixels (hidden behind nearer surfaces,
+                    # or only within the box margin) add nothing, so they issue no atomics, and a block without
+                    # any such face skips the rest of its work.
+                    live = fm & (tl.max(w, axis=1) > 0.0)
+                    if tl.max(live.to(tl.int32), axis=0) > 0:
+                        b0 = q0 * inv_q
+                        b1 = q1 * inv_q
+                        b2 = q2 * inv_q
+                        n0x = tl.load(cp + 27 * Fp)
+                        n0y = tl.load(cp + 28 * Fp)
+                        n0z = tl.load(cp + 29 * Fp)
+                        n1x = tl.load(cp + 30 * Fp)
+                        n1y = tl.load(cp + 31 * Fp)
+                        n1z = tl.load(cp + 32 * Fp)
+                        n2x = tl.load(cp + 33 * Fp)
+                        n2y = tl.load(cp + 34 * Fp)
+                        n2z = tl.load(cp + 35 * Fp)
+                        a0r = tl.load(cp + 36 * Fp)
+                        a0g = tl.load(cp + 37 * Fp)
+                        a0b = tl.load(cp + 38 * Fp)
+                        a1r = tl.load(cp + 39 * Fp)
+                        a1g = tl.load(cp + 40 * Fp)
+                        a1b = tl.load(cp + 41 * Fp)
+                        a2r = tl.load(cp + 42 * Fp)
+                        a2g = tl.load(cp + 43 * Fp)
+                        a2b = tl.load(cp + 44 * Fp)
+                        nx = b0 * n0x + b1 * n1x + b2 * n2x
+                        ny = b0 * n0y + b1 * n1y + b2 * n2y
+                        nz = b0 * n0z + b1 * n1z + b2 * n2z
+                        ar = b0 * a0r + b1 * a1r + b2 * a2r
+                        ag = b0 * a0g + b1 * a1g + b2 * a2g
+                        ab = b0 * a0b + b1 * a1b + b2 * a2b
+                        nl = nx * lx + ny * ly + nz * lz
+                        il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
+                        cosl = nl * il
+                        shade = ambient + diffuse * tl.maximum(cosl, 0.0)
+                        # ---- backward: blend
+                        gw = tl.where(keep, (gr[None, :] * (ar * shade - out_r[None, :])
+                                             + gg[None, :] * (ag * shade - out_g[None, :])
+                                             + gb[None, :] * (ab * shade - out_b[None, :])) * inv_den[None, :], 0.0)
+                        wd = w * inv_den[None, :]
+                        gcr = gr[None, :] * wd  # d loss / d colour of the pair
+                        gcg = gg[None, :] * wd
+                        gcb = gb[None, :] * wd
+                        gzn = tl.where(e < cap, gw * w / gamma, 0.0)
+                        gsd = gw * ew * cov * (1.0 - cov) / sigma
+                        # ---- colour = albedo * shade(normal)
+                        gar = gcr * shade
+                        gag = gcg * shade
+                        gab = gcb * shade
+                        gsh = tl.where(cosl > 0, (gcr * ar + gcg * ag + gcb * ab) * diffuse, 0.0)
+                        il3 = il * il * il
+                        gnx = gsh * (lx * il - nl * nx * il3)
+                        gny = gsh * (ly * il - nl * ny * il3)
+                        gnz = gsh * (lz * il - nl * nz * il3)
+                        tl.atomic_add(gq + 27 * Fp, tl.sum(gnx * b0, axis=1), mask=live)
+                        tl.atomic_add(gq + 28 * Fp, tl.sum(gny * b0, axis=1), mask=live)
+                        tl.atomic_add(gq + 29 * Fp, tl.sum(gnz * b0, axis=1), mask=live)
+                        tl.atomic_add(gq + 30 * Fp, tl.sum(gnx * b1, axis=1), mask=live)
+                        tl.atomic_add(gq + 31 * Fp, tl.sum(gny * b1, axis=1), mask=live)
+                        tl.atomic_add(gq + 32 * Fp, tl.sum(gnz * b1, axis=1), mask=live)
+                        tl.atomic_add(gq + 33 * Fp, tl.sum(gnx * b2, axis=1), mask=live)
+                        tl.atomic_add(gq + 34 * Fp, tl.sum(gny * b2, axis=1), mask=live)
+                        tl.atomic_add(gq + 35 * Fp, tl.sum(gnz * b2, axis=1), mask=live)
+                        tl.atomic_add(gq + 36 * Fp, tl.sum(gar * b0, axis=1), mask=live)
+                        tl.atomic_add(gq + 37 * Fp, tl.sum(gag * b0, axis=1), mask=live)
+                        tl.atomic_add(gq + 38 * Fp, tl.sum(gab * b0, axis=1), mask=live)
+                        tl.atomic_add(gq + 39 * Fp, tl.sum(gar * b1, axis=1), mask=live)
+                        tl.atomic_add(gq + 40 * Fp, tl.sum(gag * b1, axis=1), mask=live)
+                        tl.atomic_add(gq + 41 * Fp, tl.sum(gab * b1, axis=1), mask=live)
+                        tl.atomic_add(gq + 42 * Fp, tl.sum(gar * b2, axis=1), mask=live)
+                        tl.atomic_add(gq + 43 * Fp, tl.sum(gag * b2, axis=1), mask=live)
+                        tl.atomic_add(gq + 44 * Fp, tl.sum(gab * b2, axis=1), mask=live)
+                        # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
+                        gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
+                        gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
+                        gb2 = gnx * n2x + gny * n2y + gnz * n2z + gar * a2r + gag * a2g + gab * a2b
+                        gdep = -gzn * inv_zr
+                        gbb = gb0 * b0 + gb1 * b1 + gb2 * b2
+                        gq_common = -gbb * inv_q - gdep * lcs * inv_q * inv_q
+                        gq0 = gb0 * inv_q + gq_common
+                        gq1 = gb1 * inv_q + gq_common
+                        gq2 = gb2 * inv_q + gq_common
+                        tl.atomic_add(gq + 24 * Fp, tl.sum(gq0 * lc0, axis=1), mask=live)
+                        tl.atomic_add(gq + 25 * Fp, tl.sum(gq1 * lc1, axis=1), mask=live)
+                        tl.atomic_add(gq + 26 * Fp, tl.sum(gq2 * lc2, axis=1), mask=live)
+                        glc0 = gq0 * iz0 + gdep * inv_q
+                        glc1 = gq1 * iz1 + gdep * inv_q
+                        glc2 = gq2 * iz2 + gdep * inv_q
+                        # ---- signed distance: inside the nearest edge line, outside the nearest segment
+                        a0 = (dl0 <= dl1) & (dl0 <= dl2)
+                        a1 = (~a0) & (dl1 <= dl2)
+                        a2 = (~a0) & (~a1)
+                        gsq = tl.where(inside, 0.0, -gsd * 0.5 / root)
+                        c0 = (ds0 <= ds1) & (ds0 <= ds2)
+                        c1 = (~c0) & (ds1 <= ds2)
+                        c2 = (~c0) & (~c1)
+                        gds0 = tl.where(c0, gsq, 0.0)
+                        gds1 = tl.where(c1, gsq, 0.0)
+                        gds2 = tl.where(c2, gsq, 0.0)
+                        gdl0 = tl.where(inside & a0, gsd, 0.0) + 2.0 * dl0 * gds0
+                        gdl1 = tl.where(inside & a1, gsd, 0.0) + 2.0 * dl1 * gds1
+                        gdl2 = tl.where(inside & a2, gsd, 0.0) + 2.0 * dl2 * gds2
+                        tl.atomic_add(gq + 18 * Fp, tl.sum(gdl0 * lam0, axis=1), mask=live)
+                        tl.atomic_add(gq + 19 * Fp, tl.sum(gdl1 * lam1, axis=1), mask=live)
+                        tl.atomic_add(gq + 20 * Fp, tl.sum(gdl2 * lam2, axis=1), mask=live)
+                        tl.atomic_add(gq + 21 * Fp, tl.sum(gds0 * ov0 * ov0, axis=1), mask=live)
+                        tl.atomic_add(gq + 22 * Fp, tl.sum(gds1 * ov1 * ov1, axis=1), mask=live)
+                        tl.atomic_add(gq + 23 * Fp, tl.sum(gds2 * ov2 * ov2, axis=1), mask=live)
+                        gs0 = tl.where((s0 < 0) | (s0 > 1), 2.0 * l20 * ov0 * gds0, 0.0)
+                        gs1 = tl.where((s1 < 0) | (s1 > 1), 2.0 * l21 * ov1 * gds1, 0.0)
+                        gs2 = tl.where((s2 < 0) | (s2 > 1), 2.0 * l22 * ov2 * gds2, 0.0)
+                        glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
+                        glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
+                        glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
+                        _affine_grad(gq, Fp, 0, glam0, x, y, live)
+                        _affine_grad(gq, Fp, 1, glam1, x, y, live)
+                        _affine_grad(gq, Fp, 2, glam2, x, y, live)
+                        _affine_grad(gq, Fp, 9, gs0, x, y, live)
+                        _affine_grad(gq, Fp, 10, gs1, x, y, live)
+                        _affine_grad(gq, Fp, 11, gs2, x, y, live)
 
 
 def _floor_planes(rotation, eye, st: Static, dtype, device) -> torch.Tensor:
@@ -572,7 +578,8 @@ class _FusedRasterize(torch.autograd.Function):
             grid, tx = _launch_grid(st, sl.stop - sl.start, tile)
             _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, dt, dev), grad_img[sl],
                                   gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height, st.width, tx,
-                                  TILE_=tile, FB=fb, num_warps=_warps(tile, fb))
+                                  TILE_=tile, FB=fb, SUB=min(fb, BWD_SUB_BLOCK),
+                                  num_warps=BWD_WARPS or _warps(tile, min(fb, BWD_SUB_BLOCK)))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
             for i, g in zip(wanted, parts):

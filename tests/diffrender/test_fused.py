@@ -56,9 +56,12 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
 
 
-def test_fused_float32_hidden_faces_match_dense(ant64):
+@pytest.mark.parametrize("sub_block", [64, 16])
+def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, sub_block):
     """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
-    the backward uses to skip them (no atomics, blocks skipped); the gradients must still equal dense's."""
+    the backward uses to skip them (no atomics, blocks skipped); the gradients must still equal dense's, with
+    the backward walking each face block whole or in sub-blocks."""
+    monkeypatch.setattr(fused, "BWD_SUB_BLOCK", sub_block)
     q = ant_pose(2, seed=3).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=16)
