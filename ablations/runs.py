@@ -129,6 +129,10 @@ def environment_info(device: torch.device) -> dict:
     if device.type == "cuda":
         info["gpu"] = torch.cuda.get_device_name(device)
         info["cuda"] = torch.version.cuda
+        # The precision the encoder's convolutions and the linear layers ran in: PyTorch lets cuDNN use TF32
+        # for float32 convolutions by default (matmuls stay full float32), which changes gradient bits.
+        info["cudnn_allow_tf32"] = torch.backends.cudnn.allow_tf32
+        info["float32_matmul_precision"] = torch.get_float32_matmul_precision()
     try:
         import mujoco
         import pytorch_kinematics

@@ -36,7 +36,7 @@ from gradlab.networks import PixelEncoder
 
 def category(name: str) -> str:
     n = name.lower()
-    if "_fwd_kernel" in n or "_bwd_kernel" in n or "raster" in n:
+    if n.startswith("_fused_") or "raster" in n:  # diffrender.raster.fused's two kernels
         return "rasterizer (fused triton)"
     if n.startswith("triton_"):
         return "inductor triton (sim, elementwise)"

@@ -17,7 +17,9 @@ backend), organised for the GPU:
 * **Backward kernel**: the same walk twice: first to recompute the pixel's maximum, numerator and
   denominator, then to form the gradient of every pixel-face pair in closed form and reduce it over the
   tile's pixels into the face's 45 coefficient gradients (one atomic add per face, coefficient and tile).
-  Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to vertices,
+  The second walk takes each block in sub-blocks of ``BWD_SUB_BLOCK`` faces (register pressure), and a face
+  whose blend weight is exactly 0 on all of the tile's pixels (hidden, or only inside its box's margin)
+  issues no atomics: every term of its gradient carries that weight. Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to vertices,
   normals, colours and the camera.
 
 Saved for backward: only the inputs (O(B * V)), as in the tiled backend. Only ``blend="softmax"`` is
