@@ -19,8 +19,8 @@ backend), organised for the GPU:
   tile's pixels into the face's 45 coefficient gradients (one atomic add per face, coefficient and tile).
   The second walk takes each block in sub-blocks of ``BWD_SUB_BLOCK`` faces (register pressure), and a face
   whose blend weight is exactly 0 on all of the tile's pixels (hidden, or only inside its box's margin)
-  issues no atomics: every term of its gradient carries that weight. Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to vertices,
-  normals, colours and the camera.
+  issues no atomics: every term of its gradient carries that weight. Floor gradients are per pixel.
+  PyTorch's autograd maps the coefficient gradients back to vertices, normals, colours and the camera.
 
 Saved for backward: only the inputs (O(B * V)), as in the tiled backend. Only ``blend="softmax"`` is
 implemented here; ``"alpha"`` uses the tiled backend. Requires CUDA tensors, or, for testing on a CPU,
