@@ -2,6 +2,8 @@
 # One GPU-machine session: install the carried wheels, then run the named stages, each under its own time
 # limit, writing JSON under $OUT (the device tool brings $OUT back). Usage, from the repo root:
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
+# Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
+# in ~95 s (H100) before a stage prints its first row.
 # Stages: env, cuda-tests, fused-tests, graph-test, sim, sim-variants, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"

@@ -316,8 +316,8 @@ class Task(abc.ABC):
         """Compile the physics substep, the mass-matrix factorisation and the per-step reward/reset with
         ``torch.compile`` (static shapes).
 
-        Keyword arguments go to ``torch.compile`` (default ``dynamic=False``, inductor ``options`` merged over
-        ``{"combo_kernels": True}``). The substep is compiled on
+        Keyword arguments go to ``torch.compile`` (default ``dynamic=False``; inductor ``options`` are merged over
+        ``{"combo_kernels": True}`` unless a ``mode`` is given). The substep is compiled on
         its own (not the whole control step) so compile time does not grow with ``substeps``. Returns self.
         """
         import torch._dynamo.config as dynamo_config
@@ -329,8 +329,9 @@ class Task(abc.ABC):
         # Inductor's combo kernels launch independent small kernels as one: a substep of 64 ants is ~100 tiny
         # kernels whose launch latency, not their work, is the time (H100: 113 -> 69 kernels per substep,
         # 100 -> 67 ms for a 32 x 16-substep ant horizon forward + backward in one CUDA graph).
-        options = {"combo_kernels": True, **compile_kwargs.pop("options", {})}
-        kw = {"dynamic": False, "options": options, **compile_kwargs}
+        kw = {"dynamic": False, **compile_kwargs}
+        if "mode" not in kw:  # torch.compile takes a mode or options, not both
+            kw["options"] = {"combo_kernels": True, **(kw.get("options") or {})}
         self._substep = torch.compile(self.sim.substep, **kw)
         self._factorize = torch.compile(self.sim.factorize, **kw)
         self._finish = torch.compile(self._finish_impl, **kw)
