@@ -307,6 +307,14 @@ if triton is not None:
         tl.atomic_add(gq + (row + 6) * Fp, tl.sum(g * y, axis=1), mask=fm)
 
     @triton.jit
+    def _corner_grad(gq, Fp, row: tl.constexpr, gx, gy, gz, b, fm):
+        """Gradient of a corner's 3-vector (rows row .. row + 2) interpolated with barycentric b, from the
+        per-pixel gradients of the interpolated vector (gx, gy, gz)."""
+        tl.atomic_add(gq + row * Fp, tl.sum(gx * b, axis=1), mask=fm)
+        tl.atomic_add(gq + (row + 1) * Fp, tl.sum(gy * b, axis=1), mask=fm)
+        tl.atomic_add(gq + (row + 2) * Fp, tl.sum(gz * b, axis=1), mask=fm)
+
+    @triton.jit
     def _fused_backward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, gout_ptr, gcoef_ptr, gfloor_ptr,
                         Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SUB: tl.constexpr):
         tile = tl.program_id(0)
@@ -437,24 +445,13 @@ if triton is not None:
                         gnx = gsh * (lx * il - nl * nx * il3)
                         gny = gsh * (ly * il - nl * ny * il3)
                         gnz = gsh * (lz * il - nl * nz * il3)
-                        tl.atomic_add(gq + 27 * Fp, tl.sum(gnx * b0, axis=1), mask=live)
-                        tl.atomic_add(gq + 28 * Fp, tl.sum(gny * b0, axis=1), mask=live)
-                        tl.atomic_add(gq + 29 * Fp, tl.sum(gnz * b0, axis=1), mask=live)
-                        tl.atomic_add(gq + 30 * Fp, tl.sum(gnx * b1, axis=1), mask=live)
-                        tl.atomic_add(gq + 31 * Fp, tl.sum(gny * b1, axis=1), mask=live)
-                        tl.atomic_add(gq + 32 * Fp, tl.sum(gnz * b1, axis=1), mask=live)
-                        tl.atomic_add(gq + 33 * Fp, tl.sum(gnx * b2, axis=1), mask=live)
-                        tl.atomic_add(gq + 34 * Fp, tl.sum(gny * b2, axis=1), mask=live)
-                        tl.atomic_add(gq + 35 * Fp, tl.sum(gnz * b2, axis=1), mask=live)
-                        tl.atomic_add(gq + 36 * Fp, tl.sum(gar * b0, axis=1), mask=live)
-                        tl.atomic_add(gq + 37 * Fp, tl.sum(gag * b0, axis=1), mask=live)
-                        tl.atomic_add(gq + 38 * Fp, tl.sum(gab * b0, axis=1), mask=live)
-                        tl.atomic_add(gq + 39 * Fp, tl.sum(gar * b1, axis=1), mask=live)
-                        tl.atomic_add(gq + 40 * Fp, tl.sum(gag * b1, axis=1), mask=live)
-                        tl.atomic_add(gq + 41 * Fp, tl.sum(gab * b1, axis=1), mask=live)
-                        tl.atomic_add(gq + 42 * Fp, tl.sum(gar * b2, axis=1), mask=live)
-                        tl.atomic_add(gq + 43 * Fp, tl.sum(gag * b2, axis=1), mask=live)
-                        tl.atomic_add(gq + 44 * Fp, tl.sum(gab * b2, axis=1), mask=live)
+                        # per-corner normals (rows 27-35) and albedos (36-44) enter through the barycentrics
+                        _corner_grad(gq, Fp, 27, gnx, gny, gnz, b0, live)
+                        _corner_grad(gq, Fp, 30, gnx, gny, gnz, b1, live)
+                        _corner_grad(gq, Fp, 33, gnx, gny, gnz, b2, live)
+                        _corner_grad(gq, Fp, 36, gar, gag, gab, b0, live)
+                        _corner_grad(gq, Fp, 39, gar, gag, gab, b1, live)
+                        _corner_grad(gq, Fp, 42, gar, gag, gab, b2, live)
                         # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
                         gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
                         gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
