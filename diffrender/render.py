@@ -13,7 +13,7 @@ from .raster.dense import rasterize_dense
 from .raster.tiled import chunk_of, measure_capacity, rasterize_tiled, tiled_static
 from .settings import RasterSettings
 
-__all__ = ["render"]
+__all__ = ["backend_for", "render"]
 
 # Automatic bin capacities (settings.bin_capacity None), per scene layout: measured once (one sync), then
 # static, so later calls neither sync to size buffers nor change shapes (compile / CUDA-graph friendly).
@@ -36,6 +36,12 @@ def _can_sync(device: torch.device) -> bool:
     if torch.compiler.is_compiling():
         return False
     return not (device.type == "cuda" and torch.cuda.is_current_stream_capturing())
+
+
+def backend_for(settings: RasterSettings, device: torch.device | str) -> str:
+    """The backend :func:`render` uses for ``settings`` on ``device``: ``settings.backend`` unless it is
+    ``"auto"``, which picks ``"fused"`` on CUDA (softmax blend, Triton installed) and ``"tiled"`` elsewhere."""
+    return _backend(settings, torch.device(device))
 
 
 def _backend(settings: RasterSettings, device: torch.device) -> str:

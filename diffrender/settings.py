@@ -97,9 +97,10 @@ class RasterSettings:
             limit: overflow raises a RuntimeError with the numbers. Never an incomplete image.
         chunk_elems: pixel-face evaluations per chunk (bounds transient memory); environments are
             processed ``max(1, chunk_elems // (bin_capacity * tile_size**2))`` at a time.
-        compile: run binning and the per-chunk kernel through ``torch.compile`` (the first call per shape
-            compiles; forward and the recompute-backward compile separately). Needed for the GPU speed
-            targets: eager mode launches several hundred small kernels per chunk.
+        compile: run the PyTorch parts of the rasterizer through ``torch.compile`` (the first call per shape
+            compiles; forward and the recompute-backward compile separately): the tiled backend's binning
+            and per-chunk kernel, the fused backend's per-face setup (coefficients, floor planes). Eager,
+            they launch several hundred small kernels per render.
         sync_checks: check bin overflow, face indices and finiteness with one host synchronisation per
             render and raise errors. When False (needed inside CUDA-graph capture) nothing syncs and an
             environment whose bins overflow renders as NaN instead, which downstream NaN guards catch.

@@ -96,9 +96,10 @@ class SHACConfig:
     """Every K-th iteration, compute both gradients (full and decoupled) of the SAME rollout and log their
     norms and cosine; 0 disables. Visual modes only."""
     compile: bool = False
-    """torch.compile the physics substep and the per-step reward/reset and, on a CUDA device, capture the
-    window (forward and backward) and the critic phase as CUDA graphs replayed every iteration (probe
-    iterations stay eager). The first iterations pay the compilation; worth it on a GPU."""
+    """torch.compile the physics substep, the per-step reward/reset and the renderer's PyTorch work (forward
+    kinematics, camera, the fused rasterizer's per-face setup) and, on a CUDA device, capture the window
+    (forward and backward; plain and probe iterations separately) and the critic phase as CUDA graphs
+    replayed every iteration. The first iterations pay the compilation; worth it on a GPU."""
     abort_grad_norm: float = 1e8
     """Stop (as D.Va does) when the actor's pre-clip gradient norm exceeds this."""
 

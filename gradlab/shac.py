@@ -76,8 +76,12 @@ class SHAC:
         if self.visual:
             self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
                                          **self._render_options())
-            # The rasterizer's torch.compile'd kernel is not used: on an H200 its backward produced NaN image
-            # gradients in full mode (2026-11-22); the eager kernel is captured in the CUDA graph instead.
+            if cfg.compile:
+                # forward kinematics, vertices, camera and the fused rasterizer's per-face setup: eager, these
+                # are ~500 small kernels per frame in forward and again in backward. (The tiled backend's
+                # compiled kernel stays off: on an H200 its backward produced NaN image gradients in full
+                # mode, 2026-11-22.)
+                self.renderer.compile()
             self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
                                      cfg.trunk_dim, cfg.actor_hidden)
         else:

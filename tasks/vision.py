@@ -63,6 +63,9 @@ class TaskRenderer:
             fields["gamma"] = gamma
         fields.update(settings)
         self.settings = dataclasses.replace(defaults, **fields)
+        self._scene = self.scene
+        probe = torch.zeros(1, robot.nq, dtype=robot.dtype, device=robot.device)
+        self.focal = self.camera(probe).focal  # a Python float of the spec's field of view and size
 
     @property
     def num_faces(self) -> int:
@@ -105,12 +108,39 @@ class TaskRenderer:
             width=self.width,
         )
 
+    def scene(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What the rasterizer takes, from ``qpos: (B, nq)``: world vertices (B, V, 3) [m], unit normals
+        (B, V, 3), camera rotation (B, 3, 3) and eye (B, 3) [m]; one forward-kinematics pass."""
+        verts, normals = self.robot.world_vertices_and_normals(qpos)
+        cam = self.camera(qpos)
+        return verts, normals, cam.rotation, cam.eye
+
+    def compile(self, **compile_kwargs) -> TaskRenderer:
+        """Run the renderer's PyTorch work through ``torch.compile`` (static shapes): :meth:`scene` (forward
+        kinematics, posed vertices and normals, the tracking camera) and, where the fused rasterizer is used
+        (CUDA), its per-face setup (``RasterSettings.compile``). Eager, these are several hundred small
+        kernels per frame and again in backward; the tiled backend's own kernels stay eager (their
+        compiled backward was not trusted on a GPU, see gradlab.shac). Same images and gradients up to
+        float rounding (tested on CUDA). Keyword arguments go to ``torch.compile``. Returns self.
+
+        On the CPU :meth:`scene` stays eager: inductor's C++ code for the backward of pytorch-kinematics'
+        forward kinematics corrupts the heap (torch 2.13, 2026-11-22; the process aborts), and the CPU is
+        not where the kernel launches cost anything."""
+        kw = {"dynamic": False, **compile_kwargs}
+        if self.robot.device.type == "cuda":
+            self._scene = torch.compile(self.scene, **kw)
+        if diffrender.backend_for(self.settings, self.robot.device) == "fused":
+            self.settings = dataclasses.replace(self.settings, compile=True)
+        return self
+
     def __call__(self, qpos: torch.Tensor) -> torch.Tensor:
         """qpos: (B, nq) -> images (B, 3, H, W) in [0, 1]."""
-        verts, normals = self.robot.world_vertices_and_normals(qpos)
-        return diffrender.render(
-            verts, self.robot.faces, self.robot.colors, self.camera(qpos), self.settings, normals=normals
-        )
+        self.robot._check_qpos(qpos)  # a clear error before any (compiled) work
+        verts, normals, rotation, eye = self._scene(qpos)
+        camera = diffrender.Camera(rotation=rotation, eye=eye, focal=self.focal, height=self.height,
+                                   width=self.width)
+        return diffrender.render(verts, self.robot.faces, self.robot.colors, camera, self.settings,
+                                 normals=normals)
 
 
 class FrameStack:

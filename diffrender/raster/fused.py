@@ -526,26 +526,41 @@ def _warps(tile: int, fb: int) -> int:
     return 4 if tile * tile * fb <= 1024 else 8
 
 
+def _setup(verts, normals, colors, rotation, eye, faces, st: Static, fb: int):
+    """Everything the kernels read for one chunk of environments: :func:`face_coefficients` (coef, face_box,
+    block_box) and the floor planes (B, 5, H, W). Differentiable PyTorch, O(B * F + B * H * W)."""
+    coef, box, bbox = face_coefficients(verts, normals, colors, rotation, eye, faces, st, fb)
+    return coef, box, bbox, _floor_planes(rotation, eye, st, verts.dtype, verts.device)
+
+
+@functools.cache
+def _setup_fn(compile_: bool):
+    """:func:`_setup`, or its ``torch.compile``'d version (``RasterSettings.compile``): eager, the setup is a
+    few hundred small kernels per render and as many in its backward (launch-bound at task sizes)."""
+    return torch.compile(_setup, dynamic=False) if compile_ else _setup
+
+
 class _FusedRasterize(torch.autograd.Function):
     """Environments are processed ``chunk`` at a time: the per-face coefficients of a chunk (and the
     temporaries that form them) are the renderer's whole working set, so it is bounded by
     ``COEF_ELEMS`` however many faces there are."""
 
     @staticmethod
-    def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, tile: int, fb: int, chunk: int):
+    def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, tile: int, fb: int, chunk: int,
+                compile_: bool):
         b = verts.shape[0]
         dt, dev = verts.dtype, verts.device
+        setup = _setup_fn(compile_)
         out = torch.empty(b, 3, st.height, st.width, dtype=dt, device=dev)
         for sl in _chunks(b, chunk):
-            coef, box, bbox = face_coefficients(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True),
-                                                rotation[sl], eye[sl], faces, st, fb)
-            floor = _floor_planes(rotation[sl], eye[sl], st, dt, dev)
+            coef, box, bbox, floor = setup(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True),
+                                           rotation[sl], eye[sl], faces, st, fb)
             grid, tx = _launch_grid(st, sl.stop - sl.start, tile)
             _fused_forward[grid](coef, box, bbox, floor, _params(st, dt, dev), out[sl], coef.shape[2],
                                  bbox.shape[2], st.height, st.width, tx, TILE_=tile, FB=fb,
                                  num_warps=_warps(tile, fb))
         ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
-        ctx.cfg = (st, tile, fb, chunk)
+        ctx.cfg = (st, tile, fb, chunk, compile_)
         # an undefined incoming gradient (e.g. gradlab's closed ImageGate) stays None: no recompute at all
         ctx.set_materialize_grads(False)
         return out
@@ -553,9 +568,10 @@ class _FusedRasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_img):
         verts, normals, colors, rotation, eye, faces = ctx.saved_tensors
-        st, tile, fb, chunk = ctx.cfg
+        st, tile, fb, chunk, compile_ = ctx.cfg
         if grad_img is None:
-            return (None,) * 10
+            return (None,) * 11
+        setup = _setup_fn(compile_)
         need = ctx.needs_input_grad[:5]
         inputs = (verts, normals, colors, rotation, eye)
         grads = [torch.zeros_like(x) if (nd and x is not None) else None for x, nd in zip(inputs, need)]
@@ -565,8 +581,7 @@ class _FusedRasterize(torch.autograd.Function):
             with torch.enable_grad():
                 leaves = [None if x is None else _rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
                           for i, (x, nd) in enumerate(zip(inputs, need))]
-                coef, box, bbox = face_coefficients(*leaves, faces, st, fb)
-                floor = _floor_planes(leaves[3], leaves[4], st, dt, dev)
+                coef, box, bbox, floor = setup(*leaves, faces, st, fb)
                 floor_diff = floor[:, :4]  # depth and colour (the hit flag has no gradient)
             wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
             gcoef = torch.zeros_like(coef)
@@ -588,7 +603,7 @@ class _FusedRasterize(torch.autograd.Function):
                     grads[i] += g
                 else:
                     grads[i][sl] += g
-        return (*grads, None, None, None, None, None)
+        return (*grads, None, None, None, None, None, None)
 
 
 def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
@@ -615,5 +630,5 @@ def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: t
     nfp = max(1, -(-faces.shape[0] // face_block)) * face_block
     chunk = max(1, COEF_ELEMS // (NUM_COEFFS * nfp))
     return _FusedRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st, tile,
-                                 face_block, chunk)
+                                 face_block, chunk, settings.compile)
 

@@ -149,6 +149,24 @@ def test_fused_chunks_over_environments_change_nothing(ant64, monkeypatch, share
         assert a.abs().max() > 0 and (a - b).abs().max() <= 1e-12 * a.abs().max()
 
 
+def test_fused_compiled_setup_matches_eager(ant64):
+    """settings.compile runs the per-face setup (coefficients, floor planes) through torch.compile, in
+    forward and in the backward's recompute: the same image and gradients (float64)."""
+    q = ant_pose(2, seed=4).to(DEV)
+    verts, normals = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=12)
+    res = []
+    for comp in (False, True):
+        v, n, e = (x.clone().requires_grad_() for x in (verts, normals, cam.eye))
+        camera = dr.Camera(rotation=cam.rotation, eye=e, focal=cam.focal, height=cam.height, width=cam.width)
+        img = dr.render(v, ant64.faces, ant64.colors, camera, dr.RasterSettings(backend="fused", compile=comp),
+                        normals=n)
+        (img * torch.linspace(-1, 1, img.numel(), dtype=F64, device=DEV).view_as(img)).sum().backward()
+        res.append((img.detach(), v.grad, n.grad, e.grad))
+    for a, b in zip(*res):
+        assert a.abs().max() > 0 and (a - b).abs().max() <= 1e-10 * a.abs().max()
+
+
 def test_fused_backward_skips_an_undefined_gradient(ant64, monkeypatch):
     """A gradient that never reaches the image (like gradlab's closed ImageGate, which returns None) costs no
     recompute."""
