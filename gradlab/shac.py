@@ -115,6 +115,7 @@ class SHAC:
         self._started = False
         self._live: dict[str, torch.Tensor] = {}  # the state a window starts from, in fixed tensors
         self._actor_graphs: dict[bool, _ActorGraph] = {}  # plain and probe iterations, captured separately
+        self._eager_runs = {False: 0, True: 0}  # eager (warm-up) iterations run, plain and probe
         self._critic_graph: _CriticGraph | None = None
 
     def _render_options(self) -> dict:
@@ -314,9 +315,13 @@ class SHAC:
         render_grad = cfg.mode == "full" or probe
         self.timer.reset()
         self._set_learning_rates()
-        # CUDA graphs replay the plain (non-probe) iteration; the first iterations run eagerly and warm up
-        # (torch.compile, cuBLAS/cuDNN handles, the allocator), then the window is captured once.
-        replay = self.graphs and self.iteration >= _GRAPH_WARMUP_ITERS
+        # CUDA graphs replay the iteration; the first iterations run eagerly and warm up (torch.compile,
+        # cuBLAS/cuDNN handles, the allocator), then the window is captured once. Plain and probe windows run
+        # different code (a probe renders with grad, differentiates twice), so each kind runs eagerly at
+        # least once before its capture: compiling inside a capture would invalidate it.
+        replay = self.graphs and self.iteration >= _GRAPH_WARMUP_ITERS and self._eager_runs[probe] > 0
+        if not replay:
+            self._eager_runs[probe] += 1
         if replay and probe not in self._actor_graphs:
             self._actor_graphs[probe] = _ActorGraph(self, probe=probe)
 

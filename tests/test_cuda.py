@@ -120,3 +120,17 @@ def test_captured_iterations_match_eager(task, mode):
         tol = 1e-3 * (1 + i)  # compiled kernels round differently and Adam carries the differences forward
         for k in ("actor_loss", "grad_norm", "critic_loss"):
             assert b[k] == pytest.approx(a[k], rel=tol, abs=1e-5), (i, k, a[k], b[k])
+
+
+def test_probe_window_runs_eagerly_once_before_its_capture():
+    """Probes switched on after the plain window is captured (as benchmarks/iteration.py does): the first
+    probe iteration runs eagerly (compiling the grad-mode render), the next is captured and replayed."""
+    cfg = SHACConfig(task="cartpole", mode="decoupled", num_envs=8, horizon=4, iters=100, cosine_every=0,
+                     critic_iterations=2, image_size=48, seed=1, compile=True)
+    trainer = SHAC(cfg, device="cuda")
+    plain = [trainer.train_iteration() for _ in range(3)]
+    trainer.cfg.cosine_every = 1
+    probed = [trainer.train_iteration() for _ in range(3)]
+    assert [m["graph"] for m in plain + probed] == [False, False, True, False, True, True]
+    assert all(m["probed"] for m in probed)
+    assert all(np.isfinite(m["cos_full_decoupled"]) and np.isfinite(m["grad_norm"]) for m in probed)
