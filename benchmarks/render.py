@@ -39,7 +39,7 @@ from diffrender.raster import count_pairs, tiled_static
 
 ASSETS = Path(__file__).resolve().parents[1] / "tasks" / "assets"
 # (tile, face block, backward sub-block, backward warps) of diffrender.raster.fused
-DEFAULT_FUSED = (4, 64, 32, None)
+DEFAULT_FUSED = (4, 64, 8, 32, None)  # tile, face block, backward tile, sub-block, warps
 TARGET = dict(fwd_ms=3.0, fwdbwd_ms=8.0, saved_mb=4.0)  # H100, 64 ant envs at 84 x 84
 DENSE_MAX_ELEMS = 3e7  # the dense reference materialises B * F * H * W pixel-face pairs (x ~100 floats)
 
@@ -120,8 +120,8 @@ class Scene:
 
 
 def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, compile: bool = False,
-            fused_tile: int | None = None, fused_block: int | None = None, fused_sub: int | None = None,
-            fused_warps: int | None = None) -> dict:
+            fused_tile: int | None = None, fused_block: int | None = None, fused_bwd_tile: int | None = None,
+            fused_sub: int | None = None, fused_warps: int | None = None) -> dict:
     device = torch.device(args.device)
     dtype = torch.float64 if args.float64 else torch.float32
     rec = dict(backend=backend, batch=batch, res=res, faces_target=faces, tile=tile, compile=compile,
@@ -131,10 +131,11 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
 
         fused.TILE = fused_tile or DEFAULT_FUSED[0]
         fused.FACE_BLOCK = fused_block or DEFAULT_FUSED[1]
-        fused.BWD_SUB_BLOCK = fused_sub or DEFAULT_FUSED[2]
-        fused.BWD_WARPS = fused_warps or DEFAULT_FUSED[3]
-        rec.update(tile=fused.TILE, face_block=fused.FACE_BLOCK, bwd_sub_block=fused.BWD_SUB_BLOCK,
-                   bwd_warps=fused.BWD_WARPS)
+        fused.BWD_TILE = fused_bwd_tile or DEFAULT_FUSED[2]
+        fused.BWD_SUB_BLOCK = fused_sub or DEFAULT_FUSED[3]
+        fused.BWD_WARPS = fused_warps or DEFAULT_FUSED[4]
+        rec.update(tile=fused.TILE, face_block=fused.FACE_BLOCK, bwd_tile=fused.BWD_TILE,
+                   bwd_sub_block=fused.BWD_SUB_BLOCK, bwd_warps=fused.BWD_WARPS)
     scene = Scene(faces, batch, res, device, dtype)
     robot = scene.robot
     rec.update(faces=robot.num_faces, verts=robot.num_vertices)
@@ -249,9 +250,9 @@ def points(args) -> list[dict]:
             if be == "fused":
                 for var in args.fused_variants or ["x".join(map(str, DEFAULT_FUSED[:2]))]:
                     t, fb, *rest = (int(x) for x in var.split("x"))
-                    sub, warps = [*rest, None, None][:2]
+                    bt, sub, warps = [*rest, None, None, None][:3]
                     pts.append(dict(backend=be, batch=b0, res=r0, faces=f0, tile=2, fused_tile=t, fused_block=fb,
-                                    fused_sub=sub, fused_warps=warps))
+                                    fused_bwd_tile=bt, fused_sub=sub, fused_warps=warps))
             else:
                 pts.append(dict(backend=be, batch=b0, res=r0, faces=f0, tile=2))
         if args.target_only:
@@ -300,13 +301,13 @@ def points(args) -> list[dict]:
 def table(records: list[dict]) -> str:
     cols = [("backend", "{}"), ("compile", "{}"), ("batch", "{}"), ("res", "{}"), ("faces", "{}"), ("tile", "{}"),
             ("face_block", "{}"),
-            ("bwd_sub_block", "{}"), ("bwd_warps", "{}"), ("grad_rel_err_vs_tiled", "{:.1e}"),
+            ("bwd_tile", "{}"), ("bwd_sub_block", "{}"), ("bwd_warps", "{}"), ("grad_rel_err_vs_tiled", "{:.1e}"),
             ("fwd_graph_ms", "{:.2f}"),
             ("fwdbwd_graph_ms", "{:.2f}"),
             ("pairs_mean", "{:.0f}"), ("fwd_ms", "{:.2f}"), ("fwdbwd_ms", "{:.2f}"), ("fk_fwdbwd_ms", "{:.2f}"),
             ("peak_alloc_above_start_mb", "{:.0f}"), ("peak_reserved_mb", "{:.0f}"), ("saved_mb", "{:.2f}"),
             ("grad_finite", "{}"), ("status", "{}")]
-    head = ["backend", "compiled", "B", "res", "faces", "tile", "fblock", "bsub", "bwarps", "grad err",
+    head = ["backend", "compiled", "B", "res", "faces", "tile", "fblock", "btile", "bsub", "bwarps", "grad err",
             "fwd graph", "f+b graph",
             "pairs", "fwd ms", "f+b ms",
             "fk+f+b", "peak MB",
@@ -370,7 +371,8 @@ def main(argv=None) -> int:
     p.add_argument("--graphs", action="store_true",
                    help="CUDA: also time fwd and fwd+bwd replayed from a captured CUDA graph (as the trainer runs)")
     p.add_argument("--fused-variants", nargs="*",
-                   help="fused kernel shapes TILExFACE_BLOCK[xBWD_SUB_BLOCK[xBWD_WARPS]], e.g. 4x64 4x64x16x4")
+                   help="fused kernel shapes TILExFACE_BLOCK[xBWD_TILE[xBWD_SUB_BLOCK[xBWD_WARPS]]], e.g. 4x64 "
+                        "4x64x8x32 4x64x4x64x2")
     p.add_argument("--target-only", action="store_true",
                    help="with --backends: only the target point (64 ant images, 84x84), no sweeps")
     p.add_argument("--tiles", type=int, nargs="*", help="tile sizes to compare at the target point")

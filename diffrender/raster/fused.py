@@ -9,21 +9,25 @@ backend), organised for the GPU:
   ``s_k = PA_k + PX_k x + PY_k y``, edge heights ``H_k``, squared edge lengths, inverse corner depths and
   the corners' normals and albedos: ``C = 45`` numbers per face, laid out (B, C, F) so a kernel reads one
   coefficient of a block of consecutive faces with one coalesced load.
-* **Forward kernel**: one program per (tile of TILE x TILE pixels, environment; 4 x 4 by default). It walks the faces in
-  blocks of ``FACE_BLOCK``, skips a block whose screen bounding box misses the tile, evaluates the block's
-  faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online softmax
-  (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). Nothing but the
-  image is written: no pair lists, no bins, no capacity to overflow.
-* **Backward kernel**: the same walk twice: first to recompute the pixel's maximum, numerator and
-  denominator, then to form the gradient of every pixel-face pair in closed form and reduce it over the
-  tile's pixels into the face's 45 coefficient gradients (one atomic add per face, coefficient and tile).
-  The second walk takes each block in sub-blocks of ``BWD_SUB_BLOCK`` faces (register pressure), and a face
-  whose blend weight is exactly 0 on all of the tile's pixels (hidden, or only inside its box's margin)
-  issues no atomics: every term of its gradient carries that weight. Floor gradients are per pixel.
-  PyTorch's autograd maps the coefficient gradients back to vertices, normals, colours and the camera.
+* **Forward kernel**: one program per (tile of TILE x TILE pixels, environment; 4 x 4 by default). It walks
+  the faces in blocks of ``FACE_BLOCK``, skips a block whose screen bounding box misses the tile, evaluates
+  the block's faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online
+  softmax (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). It writes
+  the image and, when a gradient is wanted, each pixel's final maximum and denominator: no pair lists, no
+  bins, no capacity to overflow.
+* **Backward kernel**: one program per (tile of BWD_TILE x BWD_TILE pixels, environment). From the saved
+  maximum, denominator and image, it forms the gradient of every pixel-face pair in closed form. Faces are
+  taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane: the face's 45 coefficients stay in
+  registers while a loop over the tile's pixels accumulates its 45 coefficient gradients (no cross-lane
+  reductions), then one atomic add per face, coefficient and tile. A pixel where none of the sub-block's
+  faces is kept is skipped, and a face whose blend weight is exactly 0 on all of the tile's pixels
+  (hidden, or only inside its box's margin) issues no atomics: every term of its gradient carries that
+  weight. Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to
+  vertices, normals, colours and the camera (recomputing the per-face setup from the saved inputs).
 
-Saved for backward: only the inputs (O(B * V)), as in the tiled backend. Only ``blend="softmax"`` is
-implemented here; ``"alpha"`` uses the tiled backend. Requires CUDA tensors, or, for testing on a CPU,
+Saved for backward: the inputs (O(B * V)) and the image, maximum and denominator per pixel (5 numbers,
+O(B * H * W)); flat in the number of faces. Only ``blend="softmax"`` is implemented here; ``"alpha"`` uses
+the tiled backend. Requires CUDA tensors, or, for testing on a CPU,
 ``TRITON_INTERPRET=1`` in the environment before this module is imported (Triton's interpreter).
 """
 
@@ -54,8 +58,10 @@ NUM_COEFFS = 45
 #: pixels per tile side and faces per block of the kernels (tuned on an H200, see BENCHMARKS.md)
 TILE = 4
 FACE_BLOCK = 64
-#: Faces per step of the backward kernel's inner loop (<= FACE_BLOCK), and its warps (None: by size).
-BWD_SUB_BLOCK = 32  # H100, 64 ants at 84 px: 6.85 ms forward + backward (64: 7.13, 16: 9.50)
+#: The backward kernel's tile side [px] (its own: it reads the forward's per-pixel state, not its tiling),
+#: faces per sub-block (one face per lane, <= FACE_BLOCK) and warps (None: one per 32 faces).
+BWD_TILE = 8
+BWD_SUB_BLOCK = 32
 BWD_WARPS: int | None = None
 _BIG = 1e30  # empty bounding box of a dropped face
 #: per-face coefficients held at once (environments are rendered in chunks of at most this many
@@ -282,8 +288,8 @@ if triton is not None:
             w_bg + w_f
 
     @triton.jit
-    def _fused_forward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, out_ptr, Fp, NB, H, W, TX,
-                       TILE_: tl.constexpr, FB: tl.constexpr):
+    def _fused_forward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, out_ptr, state_ptr, Fp, NB, H, W, TX,
+                       TILE_: tl.constexpr, FB: tl.constexpr, SAVE: tl.constexpr):
         tile = tl.program_id(0)
         env = tl.program_id(1)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
@@ -298,208 +304,269 @@ if triton is not None:
         tl.store(op, num_r / den, mask=inb)
         tl.store(op + HW, num_g / den, mask=inb)
         tl.store(op + 2 * HW, num_b / den, mask=inb)
+        if SAVE:  # the blend's running maximum and denominator per pixel: the backward's first pass, done
+            sp = state_ptr + env * 2 * HW + pix
+            tl.store(sp, m, mask=inb)
+            tl.store(sp + HW, den, mask=inb)
 
     @triton.jit
-    def _affine_grad(gq, Fp, row: tl.constexpr, g, x, y, fm):
-        """Gradient of c0 + c1 x + c2 y (rows row, row + 3, row + 6) from the per-pixel gradient g."""
-        tl.atomic_add(gq + row * Fp, tl.sum(g, axis=1), mask=fm)
-        tl.atomic_add(gq + (row + 3) * Fp, tl.sum(g * x, axis=1), mask=fm)
-        tl.atomic_add(gq + (row + 6) * Fp, tl.sum(g * y, axis=1), mask=fm)
+    def _store_grads(gq, Fp, row: tl.constexpr, g0, g1, g2, g3, g4, g5, g6, g7, g8, live):
+        """Atomically add nine consecutive coefficient rows' gradients (rows row .. row + 8) of the live faces."""
+        tl.atomic_add(gq + row * Fp, g0, mask=live)
+        tl.atomic_add(gq + (row + 1) * Fp, g1, mask=live)
+        tl.atomic_add(gq + (row + 2) * Fp, g2, mask=live)
+        tl.atomic_add(gq + (row + 3) * Fp, g3, mask=live)
+        tl.atomic_add(gq + (row + 4) * Fp, g4, mask=live)
+        tl.atomic_add(gq + (row + 5) * Fp, g5, mask=live)
+        tl.atomic_add(gq + (row + 6) * Fp, g6, mask=live)
+        tl.atomic_add(gq + (row + 7) * Fp, g7, mask=live)
+        tl.atomic_add(gq + (row + 8) * Fp, g8, mask=live)
 
     @triton.jit
-    def _corner_grad(gq, Fp, row: tl.constexpr, gx, gy, gz, b, fm):
-        """Gradient of a corner's 3-vector (rows row .. row + 2) interpolated with barycentric b, from the
-        per-pixel gradients of the interpolated vector (gx, gy, gz)."""
-        tl.atomic_add(gq + row * Fp, tl.sum(gx * b, axis=1), mask=fm)
-        tl.atomic_add(gq + (row + 1) * Fp, tl.sum(gy * b, axis=1), mask=fm)
-        tl.atomic_add(gq + (row + 2) * Fp, tl.sum(gz * b, axis=1), mask=fm)
-
-    @triton.jit
-    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, gout_ptr, gcoef_ptr, gfloor_ptr,
-                        Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SUB: tl.constexpr):
+    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gcoef_ptr,
+                        gfloor_ptr, Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SUB: tl.constexpr):
+        """One program per (tile, environment). Floor gradients per pixel; then, per sub-block of SUB faces
+        (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
+        registers, and one atomic add per face and coefficient at the end (no cross-lane reductions)."""
         tile = tl.program_id(0)
         env = tl.program_id(1)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
-        xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
+        _, _, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
-        fzn, fr, fg, fb, fhit, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma)
-        # pass 1: recompute the pixel's blend (maximum, sums, colour)
-        num_r, num_g, num_b, den, m = _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b,
-                                                  den, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
-                                                  sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse,
-                                                  lx, ly, lz, FB)
-        inv_den = 1.0 / den
-        out_r = num_r * inv_den
-        out_g = num_g * inv_den
-        out_b = num_b * inv_den
+        # ---- floor: weight exp((z_f - m) / gamma) where the ray hits it; the background is a constant
+        fzn, fr, fg, fb, fhit, _, _, _, _, _ = _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma)
+        sp = state_ptr + env * 2 * HW + pix
+        m_t = tl.load(sp, mask=inb, other=0.0)
+        inv_den_t = 1.0 / tl.load(sp + HW, mask=inb, other=1.0)
+        ip = img_ptr + env * 3 * HW + pix
         gp = gout_ptr + env * 3 * HW + pix
-        gr = tl.load(gp, mask=inb, other=0.0)
-        gg = tl.load(gp + HW, mask=inb, other=0.0)
-        gb = tl.load(gp + 2 * HW, mask=inb, other=0.0)
-        # floor: weight exp((z_f - m) / gamma) where the ray hits it; the background is a constant
-        w_f = tl.where(fhit, tl.exp(tl.minimum((fzn - m) / gamma, 0.0)), 0.0)  # m >= fzn; no-hit: no inf
-        g_wf = (gr * (fr - out_r) + gg * (fg - out_g) + gb * (fb - out_b)) * inv_den
+        gr_t = tl.load(gp, mask=inb, other=0.0)
+        gg_t = tl.load(gp + HW, mask=inb, other=0.0)
+        gb_t = tl.load(gp + 2 * HW, mask=inb, other=0.0)
+        w_f = tl.where(fhit, tl.exp(tl.minimum((fzn - m_t) / gamma, 0.0)), 0.0)  # m >= fzn; no-hit: no inf
+        g_wf = (gr_t * (fr - tl.load(ip, mask=inb, other=0.0)) + gg_t * (fg - tl.load(ip + HW, mask=inb, other=0.0))
+                + gb_t * (fb - tl.load(ip + 2 * HW, mask=inb, other=0.0))) * inv_den_t
         gfp = gfloor_ptr + env * 4 * HW + pix
         tl.store(gfp, tl.where(fhit, g_wf * w_f / gamma, 0.0), mask=inb)
-        tl.store(gfp + HW, gr * w_f * inv_den, mask=inb)
-        tl.store(gfp + 2 * HW, gg * w_f * inv_den, mask=inb)
-        tl.store(gfp + 3 * HW, gb * w_f * inv_den, mask=inb)
+        tl.store(gfp + HW, gr_t * w_f * inv_den_t, mask=inb)
+        tl.store(gfp + 2 * HW, gg_t * w_f * inv_den_t, mask=inb)
+        tl.store(gfp + 3 * HW, gb_t * w_f * inv_den_t, mask=inb)
 
-        # pass 2: every kept pair's gradient, reduced over the tile's pixels into its face's coefficients
+        # ---- faces
+        ty0 = (tile // TX) * TILE_
+        tx0 = (tile % TX) * TILE_
         fo = tl.arange(0, SUB)
         cbase = coef_ptr + env * 45 * Fp
         gbase = gcoef_ptr + env * 45 * Fp
-        x = xc[None, :]
-        y = yc[None, :]
         inv_zr = 1.0 / (zfar - znear)
         for blk in range(0, NB):
             if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                # The block's faces in sub-blocks of SUB: the gradient keeps ~60 (faces, pixels) arrays live,
-                # which spill out of registers at a whole block of faces.
                 for sub in range(0, FB // SUB):
                     f = blk * FB + sub * SUB + fo
                     fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
-                    cp = cbase + f[:, None]
-                    gq = gbase + f
-                    # ---- forward recompute, keeping the intermediates
-                    lam0, s0, h0, l20, dl0, ov0, ds0 = _edge(cp, Fp, 0, x, y)
-                    lam1, s1, h1, l21, dl1, ov1, ds1 = _edge(cp, Fp, 1, x, y)
-                    lam2, s2, h2, l22, dl2, ov2, ds2 = _edge(cp, Fp, 2, x, y)
-                    dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
-                    dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
-                    inside = dmin >= 0
-                    root = tl.sqrt(dsmin + 1e-20)
-                    sd = tl.where(inside, dmin, -root)
-                    iz0 = tl.load(cp + 24 * Fp)
-                    iz1 = tl.load(cp + 25 * Fp)
-                    iz2 = tl.load(cp + 26 * Fp)
-                    lc0 = tl.maximum(lam0, 0.0)
-                    lc1 = tl.maximum(lam1, 0.0)
-                    lc2 = tl.maximum(lam2, 0.0)
-                    q0 = lc0 * iz0
-                    q1 = lc1 * iz1
-                    q2 = lc2 * iz2
-                    qs = q0 + q1 + q2
-                    inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
-                    lcs = lc0 + lc1 + lc2
-                    depth = lcs * inv_q
-                    zn = (zfar - depth) * inv_zr
-                    keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
-                    cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
-                    e = (zn - m[None, :]) / gamma
-                    ew = tl.exp(tl.minimum(e, cap))
-                    w = tl.where(keep, cov * ew, 0.0)
-                    # Every term of a pair's gradient carries its weight w (coverage x depth softmax): faces whose
-                    # weight underflows to exactly 0 on all of the tile's pixels (hidden behind nearer surfaces,
-                    # or only within the box margin) add nothing, so they issue no atomics, and a block without
-                    # any such face skips the rest of its work.
-                    live = fm & (tl.max(w, axis=1) > 0.0)
-                    if tl.max(live.to(tl.int32), axis=0) > 0:
-                        b0 = q0 * inv_q
-                        b1 = q1 * inv_q
-                        b2 = q2 * inv_q
-                        n0x = tl.load(cp + 27 * Fp)
-                        n0y = tl.load(cp + 28 * Fp)
-                        n0z = tl.load(cp + 29 * Fp)
-                        n1x = tl.load(cp + 30 * Fp)
-                        n1y = tl.load(cp + 31 * Fp)
-                        n1z = tl.load(cp + 32 * Fp)
-                        n2x = tl.load(cp + 33 * Fp)
-                        n2y = tl.load(cp + 34 * Fp)
-                        n2z = tl.load(cp + 35 * Fp)
-                        a0r = tl.load(cp + 36 * Fp)
-                        a0g = tl.load(cp + 37 * Fp)
-                        a0b = tl.load(cp + 38 * Fp)
-                        a1r = tl.load(cp + 39 * Fp)
-                        a1g = tl.load(cp + 40 * Fp)
-                        a1b = tl.load(cp + 41 * Fp)
-                        a2r = tl.load(cp + 42 * Fp)
-                        a2g = tl.load(cp + 43 * Fp)
-                        a2b = tl.load(cp + 44 * Fp)
-                        nx = b0 * n0x + b1 * n1x + b2 * n2x
-                        ny = b0 * n0y + b1 * n1y + b2 * n2y
-                        nz = b0 * n0z + b1 * n1z + b2 * n2z
-                        ar = b0 * a0r + b1 * a1r + b2 * a2r
-                        ag = b0 * a0g + b1 * a1g + b2 * a2g
-                        ab = b0 * a0b + b1 * a1b + b2 * a2b
-                        nl = nx * lx + ny * ly + nz * lz
-                        il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
-                        cosl = nl * il
-                        shade = ambient + diffuse * tl.maximum(cosl, 0.0)
-                        # ---- backward: blend
-                        gw = tl.where(keep, (gr[None, :] * (ar * shade - out_r[None, :])
-                                             + gg[None, :] * (ag * shade - out_g[None, :])
-                                             + gb[None, :] * (ab * shade - out_b[None, :])) * inv_den[None, :], 0.0)
-                        wd = w * inv_den[None, :]
-                        gcr = gr[None, :] * wd  # d loss / d colour of the pair
-                        gcg = gg[None, :] * wd
-                        gcb = gb[None, :] * wd
-                        gzn = tl.where(e < cap, gw * w / gamma, 0.0)
-                        gsd = gw * ew * cov * (1.0 - cov) / sigma
-                        # ---- colour = albedo * shade(normal)
-                        gar = gcr * shade
-                        gag = gcg * shade
-                        gab = gcb * shade
-                        gsh = tl.where(cosl > 0, (gcr * ar + gcg * ag + gcb * ab) * diffuse, 0.0)
-                        il3 = il * il * il
-                        gnx = gsh * (lx * il - nl * nx * il3)
-                        gny = gsh * (ly * il - nl * ny * il3)
-                        gnz = gsh * (lz * il - nl * nz * il3)
-                        # per-corner normals (rows 27-35) and albedos (36-44) enter through the barycentrics
-                        _corner_grad(gq, Fp, 27, gnx, gny, gnz, b0, live)
-                        _corner_grad(gq, Fp, 30, gnx, gny, gnz, b1, live)
-                        _corner_grad(gq, Fp, 33, gnx, gny, gnz, b2, live)
-                        _corner_grad(gq, Fp, 36, gar, gag, gab, b0, live)
-                        _corner_grad(gq, Fp, 39, gar, gag, gab, b1, live)
-                        _corner_grad(gq, Fp, 42, gar, gag, gab, b2, live)
-                        # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
-                        gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
-                        gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
-                        gb2 = gnx * n2x + gny * n2y + gnz * n2z + gar * a2r + gag * a2g + gab * a2b
-                        gdep = -gzn * inv_zr
-                        gbb = gb0 * b0 + gb1 * b1 + gb2 * b2
-                        gq_common = -gbb * inv_q - gdep * lcs * inv_q * inv_q
-                        gq0 = gb0 * inv_q + gq_common
-                        gq1 = gb1 * inv_q + gq_common
-                        gq2 = gb2 * inv_q + gq_common
-                        tl.atomic_add(gq + 24 * Fp, tl.sum(gq0 * lc0, axis=1), mask=live)
-                        tl.atomic_add(gq + 25 * Fp, tl.sum(gq1 * lc1, axis=1), mask=live)
-                        tl.atomic_add(gq + 26 * Fp, tl.sum(gq2 * lc2, axis=1), mask=live)
-                        glc0 = gq0 * iz0 + gdep * inv_q
-                        glc1 = gq1 * iz1 + gdep * inv_q
-                        glc2 = gq2 * iz2 + gdep * inv_q
-                        # ---- signed distance: inside the nearest edge line, outside the nearest segment
-                        a0 = (dl0 <= dl1) & (dl0 <= dl2)
-                        a1 = (~a0) & (dl1 <= dl2)
-                        a2 = (~a0) & (~a1)
-                        gsq = tl.where(inside, 0.0, -gsd * 0.5 / root)
-                        c0 = (ds0 <= ds1) & (ds0 <= ds2)
-                        c1 = (~c0) & (ds1 <= ds2)
-                        c2 = (~c0) & (~c1)
-                        gds0 = tl.where(c0, gsq, 0.0)
-                        gds1 = tl.where(c1, gsq, 0.0)
-                        gds2 = tl.where(c2, gsq, 0.0)
-                        gdl0 = tl.where(inside & a0, gsd, 0.0) + 2.0 * dl0 * gds0
-                        gdl1 = tl.where(inside & a1, gsd, 0.0) + 2.0 * dl1 * gds1
-                        gdl2 = tl.where(inside & a2, gsd, 0.0) + 2.0 * dl2 * gds2
-                        tl.atomic_add(gq + 18 * Fp, tl.sum(gdl0 * lam0, axis=1), mask=live)
-                        tl.atomic_add(gq + 19 * Fp, tl.sum(gdl1 * lam1, axis=1), mask=live)
-                        tl.atomic_add(gq + 20 * Fp, tl.sum(gdl2 * lam2, axis=1), mask=live)
-                        tl.atomic_add(gq + 21 * Fp, tl.sum(gds0 * ov0 * ov0, axis=1), mask=live)
-                        tl.atomic_add(gq + 22 * Fp, tl.sum(gds1 * ov1 * ov1, axis=1), mask=live)
-                        tl.atomic_add(gq + 23 * Fp, tl.sum(gds2 * ov2 * ov2, axis=1), mask=live)
-                        gs0 = tl.where((s0 < 0) | (s0 > 1), 2.0 * l20 * ov0 * gds0, 0.0)
-                        gs1 = tl.where((s1 < 0) | (s1 > 1), 2.0 * l21 * ov1 * gds1, 0.0)
-                        gs2 = tl.where((s2 < 0) | (s2 > 1), 2.0 * l22 * ov2 * gds2, 0.0)
-                        glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
-                        glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
-                        glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
-                        _affine_grad(gq, Fp, 0, glam0, x, y, live)
-                        _affine_grad(gq, Fp, 1, glam1, x, y, live)
-                        _affine_grad(gq, Fp, 2, glam2, x, y, live)
-                        _affine_grad(gq, Fp, 9, gs0, x, y, live)
-                        _affine_grad(gq, Fp, 10, gs1, x, y, live)
-                        _affine_grad(gq, Fp, 11, gs2, x, y, live)
+                    if tl.max(fm.to(tl.int32), axis=0) > 0:
+                        cp = cbase + f
+                        la0, la1, la2 = tl.load(cp), tl.load(cp + Fp), tl.load(cp + 2 * Fp)
+                        lx0, lx1, lx2 = tl.load(cp + 3 * Fp), tl.load(cp + 4 * Fp), tl.load(cp + 5 * Fp)
+                        ly0, ly1, ly2 = tl.load(cp + 6 * Fp), tl.load(cp + 7 * Fp), tl.load(cp + 8 * Fp)
+                        pa0, pa1, pa2 = tl.load(cp + 9 * Fp), tl.load(cp + 10 * Fp), tl.load(cp + 11 * Fp)
+                        px0, px1, px2 = tl.load(cp + 12 * Fp), tl.load(cp + 13 * Fp), tl.load(cp + 14 * Fp)
+                        py0, py1, py2 = tl.load(cp + 15 * Fp), tl.load(cp + 16 * Fp), tl.load(cp + 17 * Fp)
+                        h0, h1, h2 = tl.load(cp + 18 * Fp), tl.load(cp + 19 * Fp), tl.load(cp + 20 * Fp)
+                        l20, l21, l22 = tl.load(cp + 21 * Fp), tl.load(cp + 22 * Fp), tl.load(cp + 23 * Fp)
+                        iz0, iz1, iz2 = tl.load(cp + 24 * Fp), tl.load(cp + 25 * Fp), tl.load(cp + 26 * Fp)
+                        n0x, n0y, n0z = tl.load(cp + 27 * Fp), tl.load(cp + 28 * Fp), tl.load(cp + 29 * Fp)
+                        n1x, n1y, n1z = tl.load(cp + 30 * Fp), tl.load(cp + 31 * Fp), tl.load(cp + 32 * Fp)
+                        n2x, n2y, n2z = tl.load(cp + 33 * Fp), tl.load(cp + 34 * Fp), tl.load(cp + 35 * Fp)
+                        a0r, a0g, a0b = tl.load(cp + 36 * Fp), tl.load(cp + 37 * Fp), tl.load(cp + 38 * Fp)
+                        a1r, a1g, a1b = tl.load(cp + 39 * Fp), tl.load(cp + 40 * Fp), tl.load(cp + 41 * Fp)
+                        a2r, a2g, a2b = tl.load(cp + 42 * Fp), tl.load(cp + 43 * Fp), tl.load(cp + 44 * Fp)
+                        zero = tl.zeros([SUB], dtype=la0.dtype)
+                        # the 45 coefficient gradients of the sub-block's faces, summed over the pixels
+                        gla0, gla1, gla2, glx0, glx1, glx2, gly0, gly1, gly2 = (zero, zero, zero, zero, zero, zero,
+                                                                               zero, zero, zero)
+                        gpa0, gpa1, gpa2, gpx0, gpx1, gpx2, gpy0, gpy1, gpy2 = (zero, zero, zero, zero, zero, zero,
+                                                                               zero, zero, zero)
+                        gh0, gh1, gh2, gl20, gl21, gl22, giz0, giz1, giz2 = (zero, zero, zero, zero, zero, zero,
+                                                                             zero, zero, zero)
+                        gn0x, gn0y, gn0z, gn1x, gn1y, gn1z, gn2x, gn2y, gn2z = (zero, zero, zero, zero, zero, zero,
+                                                                               zero, zero, zero)
+                        ga0r, ga0g, ga0b, ga1r, ga1g, ga1b, ga2r, ga2g, ga2b = (zero, zero, zero, zero, zero, zero,
+                                                                               zero, zero, zero)
+                        wmax = zero
+                        for p in range(0, TILE_ * TILE_):
+                            pxi = tx0 + p % TILE_
+                            pyi = ty0 + p // TILE_
+                            pin = (pxi < W) & (pyi < H)
+                            x = pxi.to(sigma.dtype) + 0.5
+                            y = pyi.to(sigma.dtype) + 0.5
+                            # ---- forward recompute of the pairs (face, this pixel)
+                            lam0 = la0 + lx0 * x + ly0 * y
+                            lam1 = la1 + lx1 * x + ly1 * y
+                            lam2 = la2 + lx2 * x + ly2 * y
+                            s0 = pa0 + px0 * x + py0 * y
+                            s1 = pa1 + px1 * x + py1 * y
+                            s2 = pa2 + px2 * x + py2 * y
+                            dl0 = lam0 * h0
+                            dl1 = lam1 * h1
+                            dl2 = lam2 * h2
+                            ov0 = s0 - tl.minimum(tl.maximum(s0, 0.0), 1.0)
+                            ov1 = s1 - tl.minimum(tl.maximum(s1, 0.0), 1.0)
+                            ov2 = s2 - tl.minimum(tl.maximum(s2, 0.0), 1.0)
+                            ds0 = dl0 * dl0 + l20 * (ov0 * ov0)
+                            ds1 = dl1 * dl1 + l21 * (ov1 * ov1)
+                            ds2 = dl2 * dl2 + l22 * (ov2 * ov2)
+                            dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
+                            dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
+                            inside = dmin >= 0
+                            root = tl.sqrt(dsmin + 1e-20)
+                            sd = tl.where(inside, dmin, -root)
+                            keep = fm & pin & (sd > -cutoff)
+                            if tl.max(keep.to(tl.int32), axis=0) > 0:
+                                q_off = env * 3 * HW + pyi * W + pxi
+                                gr = tl.load(gout_ptr + q_off)
+                                gg = tl.load(gout_ptr + q_off + HW)
+                                gb = tl.load(gout_ptr + q_off + 2 * HW)
+                                out_r = tl.load(img_ptr + q_off)
+                                out_g = tl.load(img_ptr + q_off + HW)
+                                out_b = tl.load(img_ptr + q_off + 2 * HW)
+                                m = tl.load(state_ptr + env * 2 * HW + pyi * W + pxi)
+                                inv_den = 1.0 / tl.load(state_ptr + env * 2 * HW + HW + pyi * W + pxi)
+                                lc0 = tl.maximum(lam0, 0.0)
+                                lc1 = tl.maximum(lam1, 0.0)
+                                lc2 = tl.maximum(lam2, 0.0)
+                                q0 = lc0 * iz0
+                                q1 = lc1 * iz1
+                                q2 = lc2 * iz2
+                                qs = q0 + q1 + q2
+                                inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
+                                lcs = lc0 + lc1 + lc2
+                                zn = (zfar - lcs * inv_q) * inv_zr
+                                cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+                                e = (zn - m) / gamma
+                                ew = tl.exp(tl.minimum(e, cap))
+                                w = tl.where(keep, cov * ew, 0.0)
+                                wmax = tl.maximum(wmax, w)
+                                b0 = q0 * inv_q
+                                b1 = q1 * inv_q
+                                b2 = q2 * inv_q
+                                nx = b0 * n0x + b1 * n1x + b2 * n2x
+                                ny = b0 * n0y + b1 * n1y + b2 * n2y
+                                nz = b0 * n0z + b1 * n1z + b2 * n2z
+                                ar = b0 * a0r + b1 * a1r + b2 * a2r
+                                ag = b0 * a0g + b1 * a1g + b2 * a2g
+                                ab = b0 * a0b + b1 * a1b + b2 * a2b
+                                nl = nx * lx + ny * ly + nz * lz
+                                il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
+                                cosl = nl * il
+                                shade = ambient + diffuse * tl.maximum(cosl, 0.0)
+                                # ---- backward: blend
+                                gw = tl.where(keep, (gr * (ar * shade - out_r) + gg * (ag * shade - out_g)
+                                                     + gb * (ab * shade - out_b)) * inv_den, 0.0)
+                                wd = w * inv_den
+                                gcr = gr * wd  # d loss / d colour of the pair
+                                gcg = gg * wd
+                                gcb = gb * wd
+                                gzn = tl.where(e < cap, gw * w / gamma, 0.0)
+                                gsd = gw * ew * cov * (1.0 - cov) / sigma
+                                # ---- colour = albedo * shade(normal)
+                                gar = gcr * shade
+                                gag = gcg * shade
+                                gab = gcb * shade
+                                gsh = tl.where(cosl > 0, (gcr * ar + gcg * ag + gcb * ab) * diffuse, 0.0)
+                                il3 = il * il * il
+                                gnx = gsh * (lx * il - nl * nx * il3)
+                                gny = gsh * (ly * il - nl * ny * il3)
+                                gnz = gsh * (lz * il - nl * nz * il3)
+                                # per-corner normals and albedos enter through the barycentrics
+                                gn0x += gnx * b0
+                                gn0y += gny * b0
+                                gn0z += gnz * b0
+                                gn1x += gnx * b1
+                                gn1y += gny * b1
+                                gn1z += gnz * b1
+                                gn2x += gnx * b2
+                                gn2y += gny * b2
+                                gn2z += gnz * b2
+                                ga0r += gar * b0
+                                ga0g += gag * b0
+                                ga0b += gab * b0
+                                ga1r += gar * b1
+                                ga1g += gag * b1
+                                ga1b += gab * b1
+                                ga2r += gar * b2
+                                ga2g += gag * b2
+                                ga2b += gab * b2
+                                # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
+                                gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
+                                gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
+                                gb2 = gnx * n2x + gny * n2y + gnz * n2z + gar * a2r + gag * a2g + gab * a2b
+                                gdep = -gzn * inv_zr
+                                gbb = gb0 * b0 + gb1 * b1 + gb2 * b2
+                                gq_common = -gbb * inv_q - gdep * lcs * inv_q * inv_q
+                                gq0 = gb0 * inv_q + gq_common
+                                gq1 = gb1 * inv_q + gq_common
+                                gq2 = gb2 * inv_q + gq_common
+                                giz0 += gq0 * lc0
+                                giz1 += gq1 * lc1
+                                giz2 += gq2 * lc2
+                                glc0 = gq0 * iz0 + gdep * inv_q
+                                glc1 = gq1 * iz1 + gdep * inv_q
+                                glc2 = gq2 * iz2 + gdep * inv_q
+                                # ---- signed distance: inside the nearest edge line, outside the nearest segment
+                                a0 = (dl0 <= dl1) & (dl0 <= dl2)
+                                a1 = (~a0) & (dl1 <= dl2)
+                                a2 = (~a0) & (~a1)
+                                gsq = tl.where(inside, 0.0, -gsd * 0.5 / root)
+                                c0 = (ds0 <= ds1) & (ds0 <= ds2)
+                                c1 = (~c0) & (ds1 <= ds2)
+                                c2 = (~c0) & (~c1)
+                                gds0 = tl.where(c0, gsq, 0.0)
+                                gds1 = tl.where(c1, gsq, 0.0)
+                                gds2 = tl.where(c2, gsq, 0.0)
+                                gdl0 = tl.where(inside & a0, gsd, 0.0) + 2.0 * dl0 * gds0
+                                gdl1 = tl.where(inside & a1, gsd, 0.0) + 2.0 * dl1 * gds1
+                                gdl2 = tl.where(inside & a2, gsd, 0.0) + 2.0 * dl2 * gds2
+                                gh0 += gdl0 * lam0
+                                gh1 += gdl1 * lam1
+                                gh2 += gdl2 * lam2
+                                gl20 += gds0 * ov0 * ov0
+                                gl21 += gds1 * ov1 * ov1
+                                gl22 += gds2 * ov2 * ov2
+                                gs0 = tl.where((s0 < 0) | (s0 > 1), 2.0 * l20 * ov0 * gds0, 0.0)
+                                gs1 = tl.where((s1 < 0) | (s1 > 1), 2.0 * l21 * ov1 * gds1, 0.0)
+                                gs2 = tl.where((s2 < 0) | (s2 > 1), 2.0 * l22 * ov2 * gds2, 0.0)
+                                glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
+                                glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
+                                glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
+                                gla0 += glam0
+                                gla1 += glam1
+                                gla2 += glam2
+                                glx0 += glam0 * x
+                                glx1 += glam1 * x
+                                glx2 += glam2 * x
+                                gly0 += glam0 * y
+                                gly1 += glam1 * y
+                                gly2 += glam2 * y
+                                gpa0 += gs0
+                                gpa1 += gs1
+                                gpa2 += gs2
+                                gpx0 += gs0 * x
+                                gpx1 += gs1 * x
+                                gpx2 += gs2 * x
+                                gpy0 += gs0 * y
+                                gpy1 += gs1 * y
+                                gpy2 += gs2 * y
+                        # Every term of a pair's gradient carries its weight w (coverage x depth softmax): a face
+                        # whose weight is exactly 0 at all of the tile's pixels (hidden behind nearer surfaces,
+                        # or only within the box margin) adds nothing, so it issues no atomics.
+                        live = fm & (wmax > 0.0)
+                        gq = gbase + f
+                        _store_grads(gq, Fp, 0, gla0, gla1, gla2, glx0, glx1, glx2, gly0, gly1, gly2, live)
+                        _store_grads(gq, Fp, 9, gpa0, gpa1, gpa2, gpx0, gpx1, gpx2, gpy0, gpy1, gpy2, live)
+                        _store_grads(gq, Fp, 18, gh0, gh1, gh2, gl20, gl21, gl22, giz0, giz1, giz2, live)
+                        _store_grads(gq, Fp, 27, gn0x, gn0y, gn0z, gn1x, gn1y, gn1z, gn2x, gn2y, gn2z, live)
+                        _store_grads(gq, Fp, 36, ga0r, ga0g, ga0b, ga1r, ga1g, ga1b, ga2r, ga2g, ga2b, live)
 
 
 def _floor_planes(rotation, eye, st: Static, dtype, device) -> torch.Tensor:
@@ -552,31 +619,37 @@ class _FusedRasterize(torch.autograd.Function):
         dt, dev = verts.dtype, verts.device
         setup = _setup_fn(compile_)
         out = torch.empty(b, 3, st.height, st.width, dtype=dt, device=dev)
+        # per pixel: the blend's running maximum and denominator, kept for the backward (O(B * H * W), flat
+        # in faces); not written when no gradient is wanted
+        save = any(ctx.needs_input_grad[:5])
+        state = torch.empty(b, 2, st.height, st.width, dtype=dt, device=dev) if save else out
         for sl in _chunks(b, chunk):
             coef, box, bbox, floor = setup(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True),
                                            rotation[sl], eye[sl], faces, st, fb)
             grid, tx = _launch_grid(st, sl.stop - sl.start, tile)
-            _fused_forward[grid](coef, box, bbox, floor, _params(st, dt, dev), out[sl], coef.shape[2],
-                                 bbox.shape[2], st.height, st.width, tx, TILE_=tile, FB=fb,
+            _fused_forward[grid](coef, box, bbox, floor, _params(st, dt, dev), out[sl], state[sl], coef.shape[2],
+                                 bbox.shape[2], st.height, st.width, tx, TILE_=tile, FB=fb, SAVE=save,
                                  num_warps=_warps(tile, fb))
-        ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
-        ctx.cfg = (st, tile, fb, chunk, compile_)
+        if save:
+            ctx.save_for_backward(verts, normals, colors, rotation, eye, faces, out, state)
+        ctx.cfg = (st, fb, chunk, compile_)
         # an undefined incoming gradient (e.g. gradlab's closed ImageGate) stays None: no recompute at all
         ctx.set_materialize_grads(False)
         return out
 
     @staticmethod
     def backward(ctx, grad_img):
-        verts, normals, colors, rotation, eye, faces = ctx.saved_tensors
-        st, tile, fb, chunk, compile_ = ctx.cfg
+        st, fb, chunk, compile_ = ctx.cfg
         if grad_img is None:
             return (None,) * 11
+        verts, normals, colors, rotation, eye, faces, out, state = ctx.saved_tensors
         setup = _setup_fn(compile_)
         need = ctx.needs_input_grad[:5]
         inputs = (verts, normals, colors, rotation, eye)
         grads = [torch.zeros_like(x) if (nd and x is not None) else None for x, nd in zip(inputs, need)]
         grad_img = grad_img.contiguous()
         dt, dev = verts.dtype, verts.device
+        sub = min(fb, BWD_SUB_BLOCK)
         for sl in _chunks(verts.shape[0], chunk):
             with torch.enable_grad():
                 leaves = [None if x is None else _rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
@@ -589,11 +662,11 @@ class _FusedRasterize(torch.autograd.Function):
             outs = [(t, g) for t, g in ((coef, gcoef), (floor_diff, gfloor)) if t.requires_grad]
             if not (wanted and outs):
                 continue
-            grid, tx = _launch_grid(st, sl.stop - sl.start, tile)
-            _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, dt, dev), grad_img[sl],
-                                  gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height, st.width, tx,
-                                  TILE_=tile, FB=fb, SUB=min(fb, BWD_SUB_BLOCK),
-                                  num_warps=BWD_WARPS or _warps(tile, min(fb, BWD_SUB_BLOCK)))
+            grid, tx = _launch_grid(st, sl.stop - sl.start, BWD_TILE)
+            _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, dt, dev), out[sl],
+                                  state[sl], grad_img[sl], gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height,
+                                  st.width, tx, TILE_=BWD_TILE, FB=fb, SUB=sub,
+                                  num_warps=BWD_WARPS or max(1, sub // 32))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
             for i, g in zip(wanted, parts):

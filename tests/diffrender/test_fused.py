@@ -56,11 +56,12 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
 
 
-@pytest.mark.parametrize("sub_block", [64, 16])
-def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, sub_block):
+@pytest.mark.parametrize(("bwd_tile", "sub_block"), [(8, 64), (4, 16)])
+def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, sub_block):
     """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
-    the backward uses to skip them (no atomics, blocks skipped); the gradients must still equal dense's, with
-    the backward walking each face block whole or in sub-blocks."""
+    the backward uses to skip them (no atomics, pixels skipped); the gradients must still equal dense's, with
+    the backward walking each face block whole or in sub-blocks, over tiles of either size."""
+    monkeypatch.setattr(fused, "BWD_TILE", bwd_tile)
     monkeypatch.setattr(fused, "BWD_SUB_BLOCK", sub_block)
     q = ant_pose(2, seed=3).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
@@ -114,11 +115,13 @@ def test_fused_degenerate_faces_match_dense(cull):
     assert v.grad[0, :3].abs().sum() > 0 and v.grad[0, 12:18].abs().sum() == 0
 
 
-def test_fused_saves_only_inputs_flat_in_faces(ant64):
+def test_fused_saved_memory_is_flat_in_faces(ant64):
+    """Saved for backward: the inputs and 5 numbers per pixel (image, blend maximum and denominator), the
+    same bytes for 3x the faces."""
     q = ant_pose(2, seed=0).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=8)
-    more = torch.cat([ant64.faces] + [ant64.faces.roll(k, 0) for k in range(1, 10)])  # 10x the faces
+    more = torch.cat([ant64.faces] + [ant64.faces.roll(k, 0) for k in range(1, 3)])  # 3x the faces
     saved = []
     for faces in (ant64.faces, more):
         v = verts.clone().requires_grad_()
@@ -128,6 +131,9 @@ def test_fused_saves_only_inputs_flat_in_faces(ant64):
         assert torch.isfinite(v.grad).all() and v.grad.abs().sum() > 0
         saved.append(meter.bytes)
     assert saved[0] == saved[1]
+    per_pixel = 5 * 2 * cam.height * cam.width * verts.element_size()
+    inputs = sum(x.numel() * x.element_size() for x in (verts, ant64.colors, cam.rotation, cam.eye))
+    assert saved[0] <= inputs + per_pixel
 
 
 @pytest.mark.parametrize("shared_colors", [True, False])
