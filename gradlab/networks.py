@@ -97,13 +97,20 @@ class _GaussianTanhPolicy(nn.Module):
     def features(self, obs: torch.Tensor) -> torch.Tensor:
         return obs
 
+    def mean(self, obs: torch.Tensor) -> torch.Tensor:
+        """obs -> the action distribution's pre-tanh mean ``mu`` (B, act_dim): deterministic (no sampling),
+        which is what gradlab compiles (the noise stays on PyTorch's generator, so compiled and eager runs
+        draw the same actions)."""
+        return self.mu(self.features(obs))
+
+    def sample(self, mu: torch.Tensor) -> torch.Tensor:
+        """mu (B, act_dim) -> ``tanh(mu + std * eps)`` in [-1, 1], reparameterised (rsample)."""
+        return torch.tanh(mu + self.log_std.exp() * torch.randn_like(mu))
+
     def forward(self, obs: torch.Tensor, *, deterministic: bool = False) -> torch.Tensor:
         """obs -> action in [-1, 1]: ``tanh(mu + std * eps)`` (rsample), or ``tanh(mu)`` if deterministic."""
-        mu = self.mu(self.features(obs))
-        if deterministic:
-            return torch.tanh(mu)
-        eps = torch.randn_like(mu)
-        return torch.tanh(mu + self.log_std.exp() * eps)
+        mu = self.mean(obs)
+        return torch.tanh(mu) if deterministic else self.sample(mu)
 
 
 class StateActor(_GaussianTanhPolicy):

@@ -92,6 +92,13 @@ class SHAC:
         self.target_critic = copy.deepcopy(self.critic)
         for p in self.target_critic.parameters():
             p.requires_grad_(False)
+        # What the rollout calls every step: the actor's mean and the target critic (both differentiated
+        # through). Compiled, their small layers (bias, ReLU, LayerNorm, ELU and their backward) fuse; the
+        # convolutions and GEMMs stay cuDNN/cuBLAS calls. The action noise stays eager (same draws).
+        self._actor_mean, self._target_value = self.actor.mean, self.target_critic
+        if cfg.compile:
+            self._actor_mean = torch.compile(self.actor.mean, dynamic=False)
+            self._target_value = torch.compile(self.target_critic, dynamic=False)
         # CUDA graphs (compile on a CUDA device): the critic phase is captured, so its Adam must be capturable
         # and read its learning rate from a tensor that the decay updates in place.
         self.graphs = cfg.compile and self.device.type == "cuda"
@@ -204,7 +211,7 @@ class SHAC:
                 actor_in = images
             else:
                 actor_in = RunningMeanStd.apply(obs, stats)
-            action = self.actor(actor_in)
+            action = self.actor.sample(self._actor_mean(actor_in))
             self.flags.watch_grad(t, "action", action)
 
             obs, reward, done, info = task.step(action)
@@ -214,7 +221,7 @@ class SHAC:
             self.flags.check(t, "reward", reward)
 
             # Value of the state reached by this step (before any reset); zero after an early termination.
-            v_next = self.target_critic(RunningMeanStd.apply(info["obs_before_reset"], stats))
+            v_next = self._target_value(RunningMeanStd.apply(info["obs_before_reset"], stats))
             v_next = torch.where(info["terminated"], torch.zeros_like(v_next), v_next)
             self.flags.check(t, "terminal_value", v_next)
 
