@@ -49,7 +49,8 @@ def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
         assert (gd - gf).abs().max() <= tol * gd.abs().max()
 
 
-@pytest.mark.parametrize("kw", [dict(), dict(cull_backfaces=False, floor=None), dict(sigma=0.3, gamma=1e-3)])
+@pytest.mark.parametrize("kw", [dict(), dict(cull_backfaces=False, floor=None, save_blend_state=True),
+                                dict(sigma=0.3, gamma=1e-3)])
 def test_fused_matches_dense_on_the_ant(ant64, kw):
     q = ant_pose(2, seed=1).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
@@ -68,7 +69,8 @@ def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, su
     cam = ant_camera(q, size=16)
     cam32 = dr.Camera(rotation=cam.rotation.float(), eye=cam.eye.float(), focal=cam.focal, height=cam.height,
                       width=cam.width)
-    _compare(verts.float(), ant64.faces, ant64.colors.float(), cam32, dict(cull_backfaces=False), tol=2e-3)
+    _compare(verts.float(), ant64.faces, ant64.colors.float(), cam32,
+             dict(cull_backfaces=False, save_blend_state=bwd_tile == 8), tol=2e-3)
 
 
 def test_fused_matches_dense_with_given_normals_and_per_env_colors(ant64):
@@ -115,9 +117,10 @@ def test_fused_degenerate_faces_match_dense(cull):
     assert v.grad[0, :3].abs().sum() > 0 and v.grad[0, 12:18].abs().sum() == 0
 
 
-def test_fused_saved_memory_is_flat_in_faces(ant64):
-    """Saved for backward: the inputs and 5 numbers per pixel (image, blend maximum and denominator), the
-    same bytes for 3x the faces."""
+@pytest.mark.parametrize("keep_state", [False, True])
+def test_fused_saved_memory_is_flat_in_faces(ant64, keep_state):
+    """Saved for backward: the inputs (and with save_blend_state 5 numbers per pixel: image, blend maximum
+    and denominator), the same bytes for 3x the faces."""
     q = ant_pose(2, seed=0).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=8)
@@ -126,14 +129,16 @@ def test_fused_saved_memory_is_flat_in_faces(ant64):
     for faces in (ant64.faces, more):
         v = verts.clone().requires_grad_()
         with SavedTensorMeter(exclude=[faces]) as meter:
-            img = dr.render(v, faces, ant64.colors, cam, dr.RasterSettings(backend="fused"))
+            img = dr.render(v, faces, ant64.colors, cam,
+                            dr.RasterSettings(backend="fused", save_blend_state=keep_state))
         img.sum().backward()
         assert torch.isfinite(v.grad).all() and v.grad.abs().sum() > 0
         saved.append(meter.bytes)
     assert saved[0] == saved[1]
     per_pixel = 5 * 2 * cam.height * cam.width * verts.element_size()
     inputs = sum(x.numel() * x.element_size() for x in (verts, ant64.colors, cam.rotation, cam.eye))
-    assert saved[0] <= inputs + per_pixel
+    assert saved[0] <= inputs + per_pixel * keep_state
+    assert saved[0] > per_pixel * keep_state
 
 
 @pytest.mark.parametrize("shared_colors", [True, False])
