@@ -143,7 +143,9 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
         rec["status"] = "skipped: too large for the dense reference"
         return rec
     settings = dr.RasterSettings(backend=backend, tile_size=tile, compile=compile, sigma=args.sigma, blend=args.blend,
-                                 cull_backfaces=not args.no_cull, chunk_elems=args.chunk_elems)
+                                 cull_backfaces=not args.no_cull, chunk_elems=args.chunk_elems,
+                                 save_blend_state=args.save_blend_state)
+    rec["save_blend_state"] = args.save_blend_state
     cam = scene.camera(scene.qpos)
     verts = scene.verts
     if backend == "tiled":
@@ -368,6 +370,9 @@ def main(argv=None) -> int:
     p.add_argument("--backends", nargs="*", choices=["fused", "tiled", "dense"],
                    help="compare these backends at the target point and sweep batch (16-1024), resolution and "
                         "faces on the first (replaces the tiled-only --quick sweep)")
+    p.add_argument("--save-blend-state", action="store_true",
+                   help="fused: keep the per-pixel blend state for the backward (as the trainer does) instead of "
+                        "a second forward pass in backward")
     p.add_argument("--graphs", action="store_true",
                    help="CUDA: also time fwd and fwd+bwd replayed from a captured CUDA graph (as the trainer runs)")
     p.add_argument("--fused-variants", nargs="*",
