@@ -377,15 +377,17 @@ def test_counter_rng_is_uniform_reproducible_and_advances_in_place():
 
 
 def test_compile_settings_combo_kernels_unless_a_mode_is_given(monkeypatch):
-    """Task.compile's defaults (static shapes, inductor combo kernels) reach torch.compile; a user's mode
-    replaces the options (torch.compile refuses both), a user's options are merged over the default."""
+    """Task.compile's defaults (static shapes, inductor combo kernels, small reductions unrolled) reach
+    torch.compile; a user's mode replaces the options (torch.compile refuses both), a user's options are merged
+    over the default."""
     calls = []
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: calls.append(kw) or fn)
     task = tasks.make("cartpole", 2)
     task.compile()
-    assert calls[-1] == {"dynamic": False, "options": {"combo_kernels": True}}
-    task.compile(options={"max_autotune": True})
-    assert calls[-1]["options"] == {"combo_kernels": True, "max_autotune": True}
+    assert calls[-1] == {"dynamic": False,
+                         "options": {"combo_kernels": True, "unroll_reductions_threshold": 32}}
+    task.compile(options={"max_autotune": True, "unroll_reductions_threshold": 8})
+    assert calls[-1]["options"] == {"combo_kernels": True, "unroll_reductions_threshold": 8, "max_autotune": True}
     task.compile(mode="max-autotune-no-cudagraphs")
     assert calls[-1] == {"dynamic": False, "mode": "max-autotune-no-cudagraphs"}
     import torch._dynamo.config as dynamo_config
