@@ -39,7 +39,7 @@ from diffrender.raster import count_pairs, tiled_static
 
 ASSETS = Path(__file__).resolve().parents[1] / "tasks" / "assets"
 # (tile, face block, backward sub-block, backward warps) of diffrender.raster.fused
-DEFAULT_FUSED = (4, 64, 8, 32, None)  # tile, face block, backward tile, sub-block, warps
+DEFAULT_FUSED = (4, 64, 8, 64, None)  # tile, face block, backward tile, sub-block, warps: fused.py's defaults
 TARGET = dict(fwd_ms=3.0, fwdbwd_ms=8.0, saved_mb=4.0)  # H100, 64 ant envs at 84 x 84
 DENSE_MAX_ELEMS = 3e7  # the dense reference materialises B * F * H * W pixel-face pairs (x ~100 floats)
 
