@@ -311,6 +311,11 @@ if triton is not None:
             tl.store(sp + HW, den, mask=inb)
 
     @triton.jit
+    def _affine_acc(ga, gx, gy, g, x, y):
+        """Add one pixel's gradient ``g`` of ``c0 + c1 x + c2 y`` to the running gradients of (c0, c1, c2)."""
+        return ga + g, gx + g * x, gy + g * y
+
+    @triton.jit
     def _store_grads(gq, Fp, row: tl.constexpr, g0, g1, g2, g3, g4, g5, g6, g7, g8, live):
         """Atomically add nine consecutive coefficient rows' gradients (rows row .. row + 8) of the live faces."""
         tl.atomic_add(gq + row * Fp, g0, mask=live)
@@ -540,24 +545,12 @@ if triton is not None:
                                 glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
                                 glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
                                 glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
-                                gla0 += glam0
-                                gla1 += glam1
-                                gla2 += glam2
-                                glx0 += glam0 * x
-                                glx1 += glam1 * x
-                                glx2 += glam2 * x
-                                gly0 += glam0 * y
-                                gly1 += glam1 * y
-                                gly2 += glam2 * y
-                                gpa0 += gs0
-                                gpa1 += gs1
-                                gpa2 += gs2
-                                gpx0 += gs0 * x
-                                gpx1 += gs1 * x
-                                gpx2 += gs2 * x
-                                gpy0 += gs0 * y
-                                gpy1 += gs1 * y
-                                gpy2 += gs2 * y
+                                gla0, glx0, gly0 = _affine_acc(gla0, glx0, gly0, glam0, x, y)
+                                gla1, glx1, gly1 = _affine_acc(gla1, glx1, gly1, glam1, x, y)
+                                gla2, glx2, gly2 = _affine_acc(gla2, glx2, gly2, glam2, x, y)
+                                gpa0, gpx0, gpy0 = _affine_acc(gpa0, gpx0, gpy0, gs0, x, y)
+                                gpa1, gpx1, gpy1 = _affine_acc(gpa1, gpx1, gpy1, gs1, x, y)
+                                gpa2, gpx2, gpy2 = _affine_acc(gpa2, gpx2, gpy2, gs2, x, y)
                         # Every term of a pair's gradient carries its weight w (coverage x depth softmax): a face
                         # whose weight is exactly 0 at all of the tile's pixels (hidden behind nearer surfaces,
                         # or only within the box margin) adds nothing, so it issues no atomics.
