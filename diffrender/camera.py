@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Camera", "tracking_camera"]
+__all__ = ["Camera", "focal_length", "tracking_camera"]
 
 _Vec = torch.Tensor | Sequence[float]
 
@@ -123,8 +123,8 @@ class Camera:
         right = _normalize(torch.linalg.cross(forward, u))
         down = torch.linalg.cross(forward, right)
         rotation = torch.stack([right, down, forward], dim=1)
-        focal = 0.5 * int(height) / math.tan(math.radians(float(fov_deg)) / 2.0)
-        return cls(rotation=rotation, eye=e, focal=focal, height=int(height), width=int(width))
+        return cls(rotation=rotation, eye=e, focal=focal_length(fov_deg, height), height=int(height),
+                   width=int(width))
 
     def world_to_camera(self, points: torch.Tensor) -> torch.Tensor:
         """(B, N, 3) world points [m] -> (B, N, 3) camera-frame points [m] (z is depth)."""
@@ -144,6 +144,11 @@ class Camera:
             raise ValueError(f"cannot expand a batch of {self.batch_size} cameras to {batch_size}")
         return Camera(rotation=self.rotation.expand(batch_size, 3, 3), eye=self.eye.expand(batch_size, 3),
                       focal=self.focal, height=self.height, width=self.width)
+
+
+def focal_length(fov_deg: float, height: int) -> float:
+    """Focal length [px] of a pinhole camera with vertical field of view ``fov_deg`` [deg] over ``height`` px."""
+    return 0.5 * int(height) / math.tan(math.radians(float(fov_deg)) / 2.0)
 
 
 def _const3(values, dtype, device) -> torch.Tensor:

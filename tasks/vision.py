@@ -11,6 +11,7 @@ import dataclasses
 import torch
 
 import diffrender
+from diffrender.camera import focal_length
 
 __all__ = ["FrameStack", "TaskRenderer"]
 
@@ -64,8 +65,7 @@ class TaskRenderer:
         fields.update(settings)
         self.settings = dataclasses.replace(defaults, **fields)
         self._scene = self.scene
-        probe = torch.zeros(1, robot.nq, dtype=robot.dtype, device=robot.device)
-        self.focal = self.camera(probe).focal  # a Python float of the spec's field of view and size
+        self.focal = focal_length(spec.fov_deg, self.height)  # [px], as the tracking camera computes it
 
     @property
     def num_faces(self) -> int:
