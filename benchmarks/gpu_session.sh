@@ -4,7 +4,7 @@
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
 # Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
 # in ~95 s (H100) before a stage prints its first row.
-# Stages: env, cuda-tests, fused-tests, graph-test, sim, sim-variants, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
+# Stages: env, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
@@ -37,6 +37,16 @@ for spec in "$@"; do
             --tasks ${TASKS:-cartpole hopper ant humanoid};;
     iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \
             --out "$OUT/iter_compiled.json" --tasks ${TASKS:-cartpole hopper ant humanoid};;
+    sim-par) # inductor settings and cases in concurrent processes that compile together and then time one at a
+       # time (benchmarks/sim.py --gpu-lock); SIM_JOBS="task:envs:setting ..." (setting "base" or k=v,k=v)
+       rm -rf /tmp/sim.lock* /tmp/simpar; mkdir -p /tmp/simpar; jobs=(${SIM_JOBS:-ant:64:base})
+       for j in "${jobs[@]}"; do IFS=: read -r t e v <<< "$j"; opts=""; [ "$v" != base ] && opts="--inductor ${v//,/ }"
+         tag="${t}${e}_${v//[=,.]/_}"
+         timeout "$secs" python3 benchmarks/sim.py --device cuda --tasks "$t" --num-envs "$e" --modes graph --kernels \
+           $opts --gpu-lock /tmp/sim.lock --parties ${#jobs[@]} --out "/tmp/simpar/$tag.json" > "/tmp/simpar/$tag.log" 2>&1 &
+       done; wait; tail -n 2 /tmp/simpar/*.log
+       python3 -c "import json,sys; json.dump([json.load(open(f)) for f in sys.argv[2:]], open(sys.argv[1], 'w'), indent=1)" \
+         "$OUT/sim_par.json" /tmp/simpar/*.json;;
     graph-test) run "$secs" python3 -m pytest tests/test_cuda.py -q -x -p no:cacheprovider -k "captured and cartpole";;
     learn) # LEARN="task:mode:seed ..." runs concurrently on the one GPU, each stopping after LEARN_MIN minutes;
            # the run folders (without checkpoints) and ablate-plot's PNGs come back as one tarball.

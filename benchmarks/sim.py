@@ -24,6 +24,8 @@ Not a test. Examples::
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import json
 import platform
 import statistics
@@ -82,16 +84,31 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
     if mode == "graph" and device.type != "cuda":
         row["status"] = "skipped (CUDA graphs need a CUDA device)"
         return row
+    lock = _GpuLock(args.gpu_lock)
     try:
         t0 = time.perf_counter()
         key = (name, num_envs)
         roll = cache.pop(key, None) if mode == "graph" else None
         if roll is None:
-            roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed, args.inductor)
+            try:
+                roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed, args.inductor)
+            except Exception:
+                if args.gpu_lock is not None:
+                    _barrier(args.gpu_lock, args.parties)
+                raise
         if mode == "compiled":
             cache[key] = roll
         row["substeps"] = roll.task.substeps
         fn = roll
+        if args.gpu_lock is not None:
+            # compile (the first call) concurrently with the other processes, wait for all of them, then take
+            # turns: no measurement overlaps another process's GPU work
+            try:
+                roll()
+                _sync(device)
+            finally:  # a failing setting still arrives, or the others would wait for it forever
+                _barrier(args.gpu_lock, args.parties)
+        lock.__enter__()
         if mode == "graph":
             side = torch.cuda.Stream(device)
             side.wait_stream(torch.cuda.current_stream(device))
@@ -110,6 +127,11 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
             for _ in range(max(1, args.warmup)):
                 fn()
         _sync(device)
+        # replay for a while before timing: the GPU idled through the compilation
+        settle = time.perf_counter()
+        while time.perf_counter() - settle < args.settle_s:
+            fn()
+            _sync(device)
         row["warmup_s"] = round(time.perf_counter() - t0, 2)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
@@ -125,25 +147,66 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
         row["ms_per_substep"] = round(row["ms"] / (args.horizon * roll.task.substeps), 4)
         row["loss"] = float(loss)
         row["grad_finite"] = bool(torch.isfinite(grad).all())
+        row["grad_norm"] = float(grad.double().norm())  # to compare settings: same maths, same gradient
         if device.type == "cuda":
             row["peak_alloc_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
             row["peak_reserved_mb"] = round(torch.cuda.max_memory_reserved(device) / 2**20, 1)
             if args.kernels:
-                row["kernels_per_substep"] = _kernels_per_substep(fn, args.horizon * roll.task.substeps)
+                row["kernels_per_substep"], row["kernel_table"] = _kernels_per_substep(
+                    fn, args.horizon * roll.task.substeps)
     except Exception as e:  # a failing configuration is a row, not the end of the sweep
         row["status"] = f"error: {type(e).__name__}: {e}"[:400]
+    finally:
+        lock.__exit__(None, None, None)
     return row
 
 
-def _kernels_per_substep(fn, n_substeps: int) -> float:
-    """GPU kernels per substep (forward + backward) of one call; kernels inside a replayed graph count too."""
+class _GpuLock(contextlib.AbstractContextManager):
+    """An exclusive file lock (``--gpu-lock PATH``) held from warm-up to the end of a row's measurement, so that
+    several benchmark processes can compile concurrently on the host's cores while their GPU timings never
+    overlap. Re-entrant exits are harmless; without a path it does nothing."""
+
+    def __init__(self, path: Path | None):
+        self.path, self.fd = path, None
+
+    def __enter__(self):
+        if self.path is not None and self.fd is None:
+            self.fd = open(self.path, "a")
+            fcntl.flock(self.fd, fcntl.LOCK_EX)
+        return self
+
+    def __exit__(self, *exc):
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            self.fd.close()
+            self.fd = None
+        return False
+
+
+def _barrier(lock: Path, parties: int) -> None:
+    """Wait until ``parties`` processes sharing ``lock`` have arrived here (one marker file each)."""
+    marker = lock.with_name(f"{lock.name}.ready.{time.time_ns()}.{id(lock)}")
+    marker.touch()
+    while len(list(lock.parent.glob(f"{lock.name}.ready.*"))) < parties:
+        time.sleep(0.5)
+
+
+def _kernels_per_substep(fn, n_substeps: int) -> tuple[float, list[dict]]:
+    """GPU kernels per substep (forward + backward) of one call, kernels inside a replayed graph included, and
+    the per-kernel table (name, launches and microseconds per substep), most time first."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         fn()
         torch.cuda.synchronize()
-    n = sum(e.count for e in prof.key_averages() if e.device_type.name == "CUDA")
-    return round(n / n_substeps, 1)
+    events = [e for e in prof.key_averages() if e.device_type.name == "CUDA"]
+    n = sum(e.count for e in events)
+    per = [
+        {"name": e.key[:120], "per_substep": round(e.count / n_substeps, 2),
+         "us_per_substep": round(e.device_time_total / n_substeps, 2)}
+        for e in sorted(events, key=lambda e: -e.device_time_total)
+    ]
+    return round(n / n_substeps, 1), per
 
 
 def _setting(kv: str, p: argparse.ArgumentParser) -> tuple[str, object]:
@@ -190,6 +253,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--iters", type=int, default=None, help="measured iterations (default 5; 3 with --quick)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--settle-s", type=float, default=2.0, help="untimed iterations for this long before timing")
     p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (forward + backward)")
     p.add_argument(
         "--threads",
@@ -206,6 +270,14 @@ def main(argv: list[str] | None = None) -> None:
         metavar="KEY=VALUE",
         help="inductor settings for the compiled modes, e.g. combo_kernels=true aggressive_fusion=true",
     )
+    p.add_argument(
+        "--gpu-lock",
+        type=Path,
+        default=None,
+        help="a lock file shared by concurrent benchmark processes: each compiles freely but holds the lock while "
+        "it warms up, captures and times, so that no two measurements overlap on the GPU",
+    )
+    p.add_argument("--parties", type=int, default=1, help="with --gpu-lock: how many processes share it")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = p.parse_args(argv)
     args.inductor = dict(_setting(kv, p) for kv in args.inductor)
