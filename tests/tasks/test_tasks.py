@@ -377,19 +377,66 @@ def test_counter_rng_is_uniform_reproducible_and_advances_in_place():
 
 
 def test_compile_settings_combo_kernels_unless_a_mode_is_given(monkeypatch):
-    """Task.compile's defaults (static shapes, inductor combo kernels, small reductions unrolled) reach
-    torch.compile; a user's mode replaces the options (torch.compile refuses both), a user's options are merged
-    over the default."""
+    """Task.compile's defaults (static shapes, inductor combo kernels, small reductions unrolled, programmatic
+    dependent launch made race-free) reach torch.compile; a user's mode replaces the options (torch.compile
+    refuses both), a user's options are merged over the default."""
     calls = []
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: calls.append(kw) or fn)
     task = tasks.make("cartpole", 2)
     task.compile()
-    assert calls[-1] == {"dynamic": False,
-                         "options": {"combo_kernels": True, "unroll_reductions_threshold": 32}}
+    opts = dict(calls[-1]["options"])
+    marker = opts.pop("post_grad_custom_post_pass")  # puts the PDL wait placement into inductor's cache key
+    assert calls[-1]["dynamic"] is False and marker.uuid() == "pixelgrad-pdl-wait-first-v1"
+    assert opts == {"combo_kernels": True, "unroll_reductions_threshold": 32, "triton.enable_pdl": True}
     task.compile(options={"max_autotune": True, "unroll_reductions_threshold": 8})
-    assert calls[-1]["options"] == {"combo_kernels": True, "unroll_reductions_threshold": 8, "max_autotune": True}
+    opts = {k: v for k, v in calls[-1]["options"].items() if k != "post_grad_custom_post_pass"}
+    assert opts == {"combo_kernels": True, "unroll_reductions_threshold": 8, "triton.enable_pdl": True,
+                    "max_autotune": True}
+    task.compile(options={"triton.enable_pdl": False})
+    assert calls[-1]["options"]["triton.enable_pdl"] is False
+    assert "post_grad_custom_post_pass" not in calls[-1]["options"]
     task.compile(mode="max-autotune-no-cudagraphs")
     assert calls[-1] == {"dynamic": False, "mode": "max-autotune-no-cudagraphs"}
     import torch._dynamo.config as dynamo_config
 
     assert dynamo_config.recompile_limit >= 64
+
+
+def test_pdl_kernels_wait_before_their_first_access():
+    """tasks._pdl replaces inductor's PDL wait placement (a wait only before reading what the previous kernel
+    wrote) with a wait before any access: a kernel touching none of its predecessor's buffers, here a store to
+    "buf7", still waits; a kernel without PDL gets nothing; inside a looped reduction the wait goes before the
+    loop."""
+    from torch._inductor.codegen.triton import TritonKernel
+
+    from tasks import _pdl
+
+    assert _pdl.install() and _pdl.install()  # idempotent
+
+    class Buffer:
+        def __init__(self):
+            self.lines = []
+
+        def writeline(self, line):
+            self.lines.append(line)
+
+    class Tree:
+        is_loop = True
+
+    class Kernel:  # the attributes the code generator's method reads
+        GDC_WAIT = TritonKernel.GDC_WAIT
+
+        def __init__(self, pdl, looped=False):
+            self.pdl, self.inside_reduction, self.range_trees, self.body = pdl, looped, [Tree()], Buffer()
+
+        def _enable_pdl_codegen(self):
+            return self.pdl
+
+    for kernel, where in ((Kernel(True), "buffer"), (Kernel(True, looped=True), "body")):
+        buf = Buffer()
+        TritonKernel._handle_pdl_before_access(kernel, buf, "buf7", consider_reads=True)
+        target = buf if where == "buffer" else kernel.body
+        assert target.lines == [TritonKernel.GDC_WAIT]
+    off, buf = Kernel(False), Buffer()
+    TritonKernel._handle_pdl_before_access(off, buf, "buf7")
+    assert buf.lines == [] and off.body.lines == []
