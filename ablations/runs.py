@@ -133,6 +133,7 @@ def environment_info(device: torch.device) -> dict:
         # for float32 convolutions by default (matmuls stay full float32), which changes gradient bits.
         info["cudnn_allow_tf32"] = torch.backends.cudnn.allow_tf32
         info["float32_matmul_precision"] = torch.get_float32_matmul_precision()
+        info["cudnn_benchmark"] = torch.backends.cudnn.benchmark
     try:
         import mujoco
         import pytorch_kinematics

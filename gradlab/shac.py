@@ -102,6 +102,11 @@ class SHAC:
         # CUDA graphs (compile on a CUDA device): the critic phase is captured, so its Adam must be capturable
         # and read its learning rate from a tensor that the decay updates in place.
         self.graphs = cfg.compile and self.device.type == "cuda"
+        if self.graphs:
+            # The encoder's convolutions have one static shape per run: let cuDNN time its algorithms once (in
+            # the eager warm-up iterations, before any capture) instead of taking its heuristic's choice. A
+            # process-wide switch; the run's info.json records it.
+            torch.backends.cudnn.benchmark = True
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=cfg.betas)
         critic_lr = torch.tensor(cfg.critic_lr, device=self.device) if self.graphs else cfg.critic_lr
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=critic_lr, betas=cfg.betas,
