@@ -99,6 +99,28 @@ def test_gradients_finite_1000_steps_64_envs(name):
         assert torch.isfinite(g).all(), f"{name}: non-finite action gradient"
 
 
+def test_chained_substep_copies_give_the_fan_out_gradients():
+    """The compiled path hands tau and the cached mass matrix from substep to substep as copies (so that their
+    gradient sums happen inside each compiled backward); without compiling, that chain must give the plain
+    fan-out's return and action gradients (float64, the ant through contact, mass matrix cached over 4
+    substeps so that M is both handed on and refactorised)."""
+    import functools
+
+    results = []
+    for copy in (False, True):
+        task = tasks.make("ant", 3, dtype=torch.float64, seed=5, substeps=8, mass_matrix_every=4)
+        task.reset()
+        task._substep = functools.partial(task._chained_substep, copy=copy)
+        acts = torch.linspace(-0.9, 0.9, 4 * 3 * task.num_act, dtype=torch.float64).reshape(4, 3, task.num_act)
+        acts.requires_grad_(True)
+        total = sum(task.step(a)[1].sum() for a in acts)
+        (g,) = torch.autograd.grad(total, acts)
+        results.append((total.detach(), g))
+    assert torch.equal(results[0][0], results[1][0])
+    torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-12, atol=1e-12)
+    assert results[0][1].abs().max() > 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["cartpole", "ant"])
 def test_compiled_step_matches_eager(name):
