@@ -23,6 +23,7 @@ wait to a process that has it (the cache key includes the pass's uuid).
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 __all__ = ["install", "options"]
@@ -75,6 +76,11 @@ def options(opts: dict[str, Any]) -> dict[str, Any]:
     if not opts.get("triton.enable_pdl"):
         return opts
     if not install():
+        warnings.warn(
+            "this torch's inductor has no hook for PDL wait placement (tasks._pdl): compiling without "
+            "programmatic dependent launch",
+            stacklevel=2,
+        )
         return {**opts, "triton.enable_pdl": False}
     if "post_grad_custom_post_pass" in opts:
         return opts
