@@ -254,7 +254,7 @@ class Task(abc.ABC):
         the next substep; with ``copy`` (the compiled path) as new tensors of the same values. Every substep of
         a control step reads the same ``tau`` and ``M``: passed along a chain instead of fanned out, their
         gradients add up inside each substep's compiled backward rather than in one more autograd
-        accumulation kernel per substep and tensor (two of the ~64 kernels of a compiled ant substep)."""
+        accumulation kernel per substep and tensor (H100: 64.3 -> 62.6 kernels per compiled ant substep)."""
         qpos, qvel = self.sim.substep(qpos, qvel, tau, h, (M, Minv))
         if copy:
             tau, M = tau.clone(), M.clone()
@@ -347,8 +347,9 @@ class Task(abc.ABC):
         # around them instead of launching their own kernels (H100: 68.6 -> 64.3 kernels per ant substep,
         # 67.4 -> 62.7 ms for that horizon, the same loss). Programmatic dependent launch (Hopper and newer; a
         # no-op elsewhere) lets each kernel start while the one before it drains and wait for its data on the
-        # device: at ~2 us per dependent kernel that latency is most of the time (H100, same process set-up:
-        # 51.1 -> 41.8 ms for that horizon, identical loss).
+        # device: at ~2 us per dependent kernel that latency is most of the time (H100, that horizon: 51.1 ->
+        # 41.8 ms within one run of the multi-process runner, identical loss; standalone 62.7 ms in session 4,
+        # 51.7-52.1 ms now; BENCHMARKS.md section 3).
         kw = {"dynamic": False, **compile_kwargs}
         if "mode" not in kw:  # torch.compile takes a mode or options, not both
             # PDL with every kernel waiting before its first access (see tasks._pdl for the race it avoids)
