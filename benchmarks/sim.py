@@ -84,31 +84,27 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
     if mode == "graph" and device.type != "cuda":
         row["status"] = "skipped (CUDA graphs need a CUDA device)"
         return row
-    lock = _GpuLock(args.gpu_lock)
+    held = contextlib.ExitStack()  # the GPU lock, once taken
     try:
         t0 = time.perf_counter()
         key = (name, num_envs)
-        roll = cache.pop(key, None) if mode == "graph" else None
-        if roll is None:
-            try:
+        try:
+            roll = cache.pop(key, None) if mode == "graph" else None
+            if roll is None:
                 roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed, args.inductor)
-            except Exception:
-                if args.gpu_lock is not None:
-                    _barrier(args.gpu_lock, args.parties)
-                raise
+            if args.gpu_lock is not None:
+                # compile (the first call) concurrently with the other processes, wait for all of them, then
+                # take turns: no measurement overlaps another process's GPU work
+                roll()
+                _sync(device)
+        finally:
+            if args.gpu_lock is not None:  # a failing setting still arrives, or the others would wait forever
+                _barrier(args.gpu_lock, args.parties)
         if mode == "compiled":
             cache[key] = roll
         row["substeps"] = roll.task.substeps
         fn = roll
-        if args.gpu_lock is not None:
-            # compile (the first call) concurrently with the other processes, wait for all of them, then take
-            # turns: no measurement overlaps another process's GPU work
-            try:
-                roll()
-                _sync(device)
-            finally:  # a failing setting still arrives, or the others would wait for it forever
-                _barrier(args.gpu_lock, args.parties)
-        lock.__enter__()
+        held.enter_context(_gpu_lock(args.gpu_lock))
         if mode == "graph":
             side = torch.cuda.Stream(device)
             side.wait_stream(torch.cuda.current_stream(device))
@@ -157,30 +153,24 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
     except Exception as e:  # a failing configuration is a row, not the end of the sweep
         row["status"] = f"error: {type(e).__name__}: {e}"[:400]
     finally:
-        lock.__exit__(None, None, None)
+        held.close()
     return row
 
 
-class _GpuLock(contextlib.AbstractContextManager):
+@contextlib.contextmanager
+def _gpu_lock(path: Path | None):
     """An exclusive file lock (``--gpu-lock PATH``) held from warm-up to the end of a row's measurement, so that
     several benchmark processes can compile concurrently on the host's cores while their GPU timings never
-    overlap. Re-entrant exits are harmless; without a path it does nothing."""
-
-    def __init__(self, path: Path | None):
-        self.path, self.fd = path, None
-
-    def __enter__(self):
-        if self.path is not None and self.fd is None:
-            self.fd = open(self.path, "a")
-            fcntl.flock(self.fd, fcntl.LOCK_EX)
-        return self
-
-    def __exit__(self, *exc):
-        if self.fd is not None:
-            fcntl.flock(self.fd, fcntl.LOCK_UN)
-            self.fd.close()
-            self.fd = None
-        return False
+    overlap. Without a path it does nothing."""
+    if path is None:
+        yield
+        return
+    with open(path, "a") as fd:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
 
 
 def _barrier(lock: Path, parties: int) -> None:
