@@ -25,7 +25,7 @@ ancestor masks:
   ``tau_j = S_j . sum_{b desc j} f_b``.
 
 Only forward kinematics walks the tree: one 4x4 product per joint slot (at most 3 joints per body here) and
-one per tree level (depth <= 6 here), each over all bodies and joint frames at once. There are no
+one per tree level (depth <= 6 here), each over that level's bodies and joint frames. There are no
 data-dependent branches or host synchronisations, the shapes are static, and with the mass-matrix inverse
 cached a substep contains no library call, so it compiles with ``torch.compile`` and captures in a CUDA
 graph. The gradient of the solve goes to ``M`` analytically (``gM = -(M^-1 gx) x^T``), not through the
@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .model import ArticulatedModel
-from .spatial import bmm, bmv, contract, cross, cross_force, cross_motion, quat_mul, quat_to_mat, skew
+from .spatial import RowGather, bmm, bmv, contract, cross, cross_force, cross_motion, quat_mul, quat_to_mat, skew
 
 __all__ = ["ContactParams", "Frames", "LimitParams", "Simulator"]
 
@@ -241,7 +241,7 @@ class Simulator:
         self._has_stiffness = bool(np.any(model.hs_stiffness != 0))
 
         # --- free joints
-        self._free_body = i(model.free_body)
+        self._free_body = RowGather(model.free_body, nb + nh, device=self.device)  # rows of all entries
         self._root_free = int(model.body_free[0]) if nb else -1
         self._free_pos = free_idx(model.free_qadr, 0, 3)
         self._free_quat = free_idx(model.free_qadr, 3, 4)
@@ -252,42 +252,52 @@ class Simulator:
         self._eye4 = f(np.eye(4))
 
         # --- kinematic "entries": the nb bodies, then one pre-joint frame per hinge/slide joint (the joint's
-        # frame just before it moves, where its axis and anchor are constant). Local frames come from prefix
-        # products of the body offset and the body's joint transforms ("slot rounds", one per joint slot);
-        # world frames from products along the ancestor chain ("depth rounds", one per tree level), all
-        # entries at once - no per-level concatenation or permutation.
+        # frame just before it moves, where its axis and anchor are constant). They are kept sorted by tree
+        # level (the depth of the owning body). Local frames come from prefix products of the body offset and
+        # the body's joint transforms ("slot rounds", one per joint slot); world frames from one product per
+        # tree level, each entry's parent-body frame times its local frame, so every entry is multiplied
+        # once. Gathers are RowGathers: their compiled backward sums without atomics.
         off = np.tile(np.eye(4), (nb, 1, 1))
         off[:, :3, :3], off[:, :3, 3] = model.body_rot, model.body_pos
         owner = np.concatenate([np.arange(nb), model.hs_body]).astype(np.int64)
         n_prefix = np.concatenate([(model.body_slots < nh).sum(1), model.hs_slot]).astype(np.int64)
         n_prefix[:nb][model.body_free >= 0] = 0
-        self._n_slots = int(n_prefix.max()) if len(n_prefix) else 0
-        self._slot_chain = [
-            i(np.where(r < n_prefix, model.body_slots[owner, min(r, model.body_slots.shape[1] - 1)], nh))
-            for r in range(self._n_slots)
-        ]
         E = nb + nh
-        off_src = np.arange(E)  # initial local frame: the owner's offset, or its free joint's pose
-        for fj, b in enumerate(model.free_body):
-            off_src[b] = E + fj
-        self._entry_off = f(off[owner])
-        self._off_src = i(off_src)
         depth = np.zeros(nb, dtype=np.int64)
         for b in range(nb):
             depth[b] = 0 if model.body_parent[b] < 0 else depth[model.body_parent[b]] + 1
+        level = depth[owner]
+        order = np.argsort(level, kind="stable")  # sorted slot k holds entry order[k]
+        pos = np.empty(E, dtype=np.int64)
+        pos[order] = np.arange(E)
+        owner_s, n_prefix_s, level_s = owner[order], n_prefix[order], level[order]
+        self._n_slots = int(n_prefix.max()) if len(n_prefix) else 0
+        self._slot_take = [
+            RowGather(
+                np.where(r < n_prefix_s, model.body_slots[owner_s, min(r, model.body_slots.shape[1] - 1)], nh),
+                nh + 1,
+                device=self.device,
+                no_grad_rows=(nh,),  # the identity "joint" is a constant
+            )
+            for r in range(self._n_slots)
+        ]
+        off_src = np.arange(E)  # initial local frame: the owner's offset, or its free joint's pose
+        for fj, b in enumerate(model.free_body):
+            off_src[pos[b]] = E + fj
+        self._entry_off = f(off[owner_s])
+        self._off_take = RowGather(off_src, E + nf, device=self.device, no_grad_rows=range(E))
         n_depth = int(depth.max()) + 1 if nb else 0
-        chain = np.full((n_depth, E), E, dtype=np.int64)  # E indexes an appended identity
-        for e in range(E):
-            b = owner[e]
-            ancestors = []
-            a = model.body_parent[b]
-            while a >= 0:
-                ancestors.append(a)
-                a = model.body_parent[a]
-            for r, a in enumerate(reversed(ancestors)):
-                chain[r, e] = a
-            chain[depth[b], e] = e
-        self._depth_chain = [i(c) for c in chain]
+        bounds = np.searchsorted(level_s, np.arange(n_depth + 1))
+        self._levels: list[tuple[int, int, RowGather | None]] = []
+        for lv in range(n_depth):
+            start, end = int(bounds[lv]), int(bounds[lv + 1])
+            parent = None
+            if lv:  # parent bodies, indexed within the previous level's block
+                prev = int(bounds[lv - 1])
+                parents = pos[model.body_parent[owner_s[start:end]]] - prev
+                parent = RowGather(parents, start - prev, device=self.device)
+            self._levels.append((start, end, parent))
+        self._unsort = RowGather(pos, E, device=self.device)  # back to model order: bodies, then joints
         self._body_mass = f(model.body_mass)
         self._body_ipos_h = f(np.concatenate([model.body_ipos, np.ones((nb, 1))], axis=1))  # homogeneous
         self._body_inertia = f(model.body_inertia)
@@ -306,7 +316,7 @@ class Simulator:
         for fj, a in enumerate(model.free_qadr):
             qpos_src[a : a + 7] = 7 * fj + np.arange(7)
         self._qpos_src = None if np.array_equal(qpos_src, np.arange(model.nq)) else i(qpos_src)
-        self._dof_body = i(model.dof_body)
+        self._dof_body = RowGather(model.dof_body, nb, device=self.device)
         self._armature = f(np.diag(model.dof_armature))
         self._damping = f(model.dof_damping)
         self._body_dof_anc = f(model.body_dof_anc)  # (nb, nv)
@@ -318,7 +328,7 @@ class Simulator:
         self._a0 = f(np.concatenate([np.zeros(3), -model.gravity]))  # gravity as an upward base acceleration
 
         # --- contact points (homogeneous, body frame) and their body
-        self._c_body = i(model.contact_body)
+        self._c_body = RowGather(model.contact_body, nb, device=self.device)
         self._c_pos_h = f(np.concatenate([model.contact_pos, np.ones((model.nc, 1))], axis=1))
         c_off = np.zeros((model.nc, 3))
         c_off[:, 2] = model.contact_dist
@@ -353,7 +363,8 @@ class Simulator:
         A1, A2, A3 = self._J_tables
         J = eye4 + torch.sin(theta) * A1 + (1.0 - torch.cos(theta)) * A2 + theta * A3  # (B, nh + 1, 4, 4)
 
-        # local frames of all entries: offset (or free pose) x the owner's joints before the entry's slot
+        # local frames of all entries (level order): offset (or free pose) x the owner's joints before the
+        # entry's slot
         P = self._entry_off.expand(B, -1, -1, -1)
         if self._nf:
             free_p = self._free_take(qpos, self._free_pos)  # (B, nf, 3)
@@ -363,15 +374,16 @@ class Simulator:
                 origin = free_p[:, self._root_free]
                 free_p = free_p - origin[:, None]
             free_T = self._homogeneous(quat_to_mat(self._free_take(qpos, self._free_quat)), free_p)
-            P = torch.cat((P, free_T), dim=1)[:, self._off_src]
-        for idx in self._slot_chain:
-            P = bmm(P, J[:, idx])
+            P = self._off_take(torch.cat((P, free_T), dim=1))
+        for take in self._slot_take:
+            P = bmm(P, take(J))
 
-        # world frames: products along the ancestor chains, one tree level per round
-        P = torch.cat((P, eye4.expand(B, 1, 4, 4)), dim=1)
-        X = P[:, self._depth_chain[0]]
-        for idx in self._depth_chain[1:]:
-            X = bmm(X, P[:, idx])
+        # world frames, one tree level at a time: the parent body's world frame times the local frame
+        parts = []
+        for start, end, parent in self._levels:
+            local = P[:, start:end]
+            parts.append(local if parent is None else bmm(parent(parts[-1]), local))
+        X = self._unsort(torch.cat(parts, dim=1) if len(parts) > 1 else parts[0])
         if self._root_free < 0:  # fixed or planar base: reference point = first body's origin
             origin = X[:, 0, :3, 3]
             X = X - torch.nn.functional.pad(origin[:, None, :, None], (3, 0, 0, 1))  # translations -= origin
@@ -381,7 +393,7 @@ class Simulator:
         parts = []
         if self._nf:
             # free joints: world-frame translation, then rotation about the body axes through the body origin
-            Xf = X[:, self._free_body]
+            Xf = self._free_body(X)
             axes = Xf[..., :3, :3].mT  # (B, nf, 3, 3): rows are the body axes
             S_rot = torch.cat((axes, cross(Xf[..., None, :3, 3], axes)), dim=-1)  # (B, nf, 3, 6)
             S_free = torch.cat((self._free_S_trans.expand(B, self._nf, 3, 6), S_rot), dim=2)
@@ -420,7 +432,7 @@ class Simulator:
     def _mass_matrix(self, S: torch.Tensor, I6: torch.Tensor) -> torch.Tensor:
         B, nb = I6.shape[:2]
         Ic = contract(self._body_desc, I6.reshape(B, nb, 36)).reshape(B, nb, 6, 6)  # composite inertias
-        F = bmv(Ic[:, self._dof_body], S)  # (B, nv, 6)
+        F = bmv(self._dof_body(Ic), S)  # (B, nv, 6)
         G = bmm(S, F.mT)  # G[i, j] = S_i . Ic[body j] S_j = M_ij when i is an ancestor-or-self of j
         return G * self._upper + (G * self._strict_upper).mT + self._armature
 
@@ -449,9 +461,9 @@ class Simulator:
         """dflex ground contact at every contact point; returns body spatial forces (B, nb, 6)."""
         cp = self.contact
         assert cp is not None
-        p = bmv(fr.X[:, self._c_body], self._c_pos_h)[..., :3] - self._c_offset  # p = X c - n dist
+        p = bmv(self._c_body(fr.X), self._c_pos_h)[..., :3] - self._c_offset  # p = X c - n dist
         height = p[..., 2] + (fr.origin[:, None, 2] - self._ground)
-        v6 = vb[:, self._c_body]
+        v6 = self._c_body(vb)
         vel = v6[..., 3:] + cross(v6[..., :3], p)  # velocity of the point p
         depth = torch.clamp(-height, min=0.0)
         fn = (cp.ke - cp.kd * torch.clamp(vel[..., 2], max=0.0)) * depth

@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 
 __all__ = [
+    "RowGather",
     "bmm",
     "bmv",
     "contract",
@@ -50,6 +51,62 @@ def contract(mask: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     if _compiling():
         return (mask[None, :, :, None] * x[:, None, :, :]).sum(2)
     return torch.matmul(mask, x)
+
+
+class _GatherRows(torch.autograd.Function):
+    """``x[:, idx]`` whose backward is a gather-and-sum, not a scatter.
+
+    The gradient of a row gather adds every output row into its source row. PyTorch does that with
+    ``index_put(accumulate=True)``, which Inductor lowers to a zero fill plus one atomic add per element: it
+    cannot know which outputs share a source. Here the sharing is static, so the backward reads, for every
+    source row, the at most ``F`` output rows that came from it (``inv (n, F)``, padded with the index of an
+    appended zero row) and sums them: plain loads and one store, fused into the kernels around it.
+    """
+
+    @staticmethod
+    def forward(x: torch.Tensor, idx: torch.Tensor, inv: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        return x[:, idx]
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.save_for_backward(inputs[2])
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        (inv,) = ctx.saved_tensors
+        g = torch.cat((g, g.new_zeros(g.shape[0], 1, *g.shape[2:])), dim=1)
+        return g[:, inv].sum(2), None, None
+
+
+class RowGather:
+    """A constant row selection ``x[:, idx]`` for ``x (B, n, ...)`` -> ``(B, len(idx), ...)``.
+
+    Eager it is plain indexing. Compiled, its backward gathers and sums the output rows of each source row
+    (:class:`_GatherRows`) instead of scattering them with atomics. ``no_grad_rows``: source rows whose
+    gradient is never needed (constants such as an appended identity); they get none, so a constant row
+    that many outputs share does not widen the backward's sum for every row.
+    """
+
+    def __init__(self, idx, n: int, *, device: torch.device, no_grad_rows=()) -> None:
+        import numpy as np
+
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        if len(idx) and (idx.min() < 0 or idx.max() >= n):
+            raise ValueError(f"RowGather: indices must lie in [0, {n}), got {idx.tolist()}")
+        skip = set(int(r) for r in no_grad_rows)
+        users = [[] if r in skip else np.flatnonzero(idx == r).tolist() for r in range(n)]
+        width = max(1, max((len(u) for u in users), default=1))
+        inv = np.full((n, width), len(idx), dtype=np.int64)  # len(idx): the appended zero row
+        for r, u in enumerate(users):
+            inv[r, : len(u)] = u
+        self.idx = torch.as_tensor(idx, device=device)
+        self.inv = torch.as_tensor(inv, device=device)
+        self.width = width
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        if _compiling():
+            return _GatherRows.apply(x, self.idx, self.inv)
+        return x[:, self.idx]
 
 
 # Levi-Civita tensors as (9, 3) and (36, 6) matrices: cross products become one outer product and one matmul
