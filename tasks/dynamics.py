@@ -414,20 +414,34 @@ class Simulator:
 
     # ------------------------------------------------------------------------------------------------------
     # inertia
-    def _spatial_inertia(self, X: torch.Tensor) -> torch.Tensor:
-        """Body spatial inertias about the reference point, world-aligned. X: (B, nb, 4, 4) -> (B, nb, 6, 6).
+    def _inertia_parts(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotational inertias about the centres of mass, world-aligned, ``I_c (B, nb, 3, 3)`` [kg m^2], and the
+        centres of mass relative to the reference point ``c (B, nb, 3)`` [m]. X: (B, nb, 4, 4)."""
+        R = X[..., :3, :3]
+        c = bmv(X, self._body_ipos_h)[..., :3]
+        return bmm(bmm(R, self._body_inertia), R.mT), c
+
+    def _spatial_inertia(self, I_c: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+        """Body spatial inertias about the reference point, world-aligned, from :meth:`_inertia_parts`
+        -> (B, nb, 6, 6).
 
         [[I_c + m ([c]x [c]x^T), m [c]x], [m [c]x^T, m 1]] with c the centre of mass relative to the
         reference point and I_c the rotational inertia about the centre of mass.
         """
-        R = X[..., :3, :3]
-        c = bmv(X, self._body_ipos_h)[..., :3]
         m = self._body_mass[:, None, None]
-        I_c = bmm(bmm(R, self._body_inertia), R.mT)
         cx = skew(c)
         top = torch.cat((I_c - m * bmm(cx, cx), m * cx), dim=-1)
         bottom = torch.cat((-m * cx, self._mass_eye.expand_as(cx)), dim=-1)
         return torch.cat((top, bottom), dim=-2)
+
+    def _inertia_times(self, I_c: torch.Tensor, c: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Spatial inertia times motion, ``I6 v``, without forming ``I6``: for ``v = (w, u)``, with
+        ``h = m (u - c x w)`` (the momentum of the centre of mass), ``I6 v = (I_c w + c x h, h)``.
+        I_c: (B, nb, 3, 3), c: (B, nb, 3), v: (B, nb, 6) -> (B, nb, 6). Per body it reads 12 numbers instead
+        of 36, and nothing of size (nb, 6, 6) is saved for the backward."""
+        w, u = v[..., :3], v[..., 3:]
+        h = self._body_mass[:, None] * (u - cross(c, w))
+        return torch.cat((bmv(I_c, w) + cross(c, h), h), dim=-1)
 
     def _mass_matrix(self, S: torch.Tensor, I6: torch.Tensor) -> torch.Tensor:
         B, nb = I6.shape[:2]
@@ -439,20 +453,21 @@ class Simulator:
     def mass_matrix(self, qpos: torch.Tensor) -> torch.Tensor:
         """Joint-space inertia including armature (MuJoCo's ``qM``, dense). qpos: (B, nq) -> (B, nv, nv)."""
         fr = self.frames(qpos)
-        return self._mass_matrix(fr.S, self._spatial_inertia(fr.X))
+        return self._mass_matrix(fr.S, self._spatial_inertia(*self._inertia_parts(fr.X)))
 
     # ------------------------------------------------------------------------------------------------------
     # forces
-    def _bias(self, S, I6, Sq, vb, f_ext):
+    def _bias(self, S, inertia, Sq, vb, f_ext):
         """Newton-Euler: generalized bias force minus generalized external force (B, nv).
 
-        Sq: (B, nv, 6) S_j qd_j; vb: (B, nb, 6) body spatial velocities; f_ext: (B, nb, 6) spatial forces
-        about the reference point, or None. Body accelerations use dS_j/dt = v_j x S_j with v_j the velocity
-        of the frame that carries S_j (the dof_vel mask).
+        inertia: ``(I_c, c)`` from :meth:`_inertia_parts`; Sq: (B, nv, 6) S_j qd_j; vb: (B, nb, 6) body
+        spatial velocities; f_ext: (B, nb, 6) spatial forces about the reference point, or None. Body
+        accelerations use dS_j/dt = v_j x S_j with v_j the velocity of the frame that carries S_j (the dof_vel
+        mask).
         """
         vd = contract(self._dof_vel, Sq)
         ab = contract(self._body_dof_anc, cross_motion(vd, Sq)) + self._a0
-        fb = bmv(I6, ab) + cross_force(vb, bmv(I6, vb))
+        fb = self._inertia_times(*inertia, ab) + cross_force(vb, self._inertia_times(*inertia, vb))
         if f_ext is not None:
             fb = fb - f_ext
         return (S * contract(self._dof_body_anc, fb)).sum(-1)
@@ -537,16 +552,16 @@ class Simulator:
         joint limits when enabled here and configured on the simulator. ``mass``: a cached (M, M^-1) from
         :meth:`factorize` (default: the mass matrix at ``qpos``). -> qacc (B, nv)."""
         fr = self.frames(qpos)
-        I6 = self._spatial_inertia(fr.X)
+        inertia = self._inertia_parts(fr.X)
         if mass is None:
-            M = self._mass_matrix(fr.S, I6)
+            M = self._mass_matrix(fr.S, self._spatial_inertia(*inertia))
             Minv = spd_inverse(M, method=self.linalg)
         else:
             M, Minv = mass
         Sq = fr.S * qvel.unsqueeze(-1)  # (B, nv, 6)
         vb = contract(self._body_dof_anc, Sq)  # body spatial velocities
         f_ext = self._contact_forces(fr, vb) if (contact and self.contact is not None) else None
-        rhs = tau + self.passive_force(qpos, qvel, limits=limits) - self._bias(fr.S, I6, Sq, vb, f_ext)
+        rhs = tau + self.passive_force(qpos, qvel, limits=limits) - self._bias(fr.S, inertia, Sq, vb, f_ext)
         return spd_solve(M, rhs, Minv)
 
     def integrate(self, qpos: torch.Tensor, qvel: torch.Tensor, dt: float) -> torch.Tensor:
