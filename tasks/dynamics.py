@@ -383,7 +383,7 @@ class Simulator:
         for start, end, parent in self._levels:
             local = P[:, start:end]
             parts.append(local if parent is None else bmm(parent(parts[-1]), local))
-        X = self._unsort(torch.cat(parts, dim=1) if len(parts) > 1 else parts[0])
+        X = self._unsort(torch.cat(parts, dim=1))
         if self._root_free < 0:  # fixed or planar base: reference point = first body's origin
             origin = X[:, 0, :3, 3]
             X = X - torch.nn.functional.pad(origin[:, None, :, None], (3, 0, 0, 1))  # translations -= origin

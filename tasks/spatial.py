@@ -14,6 +14,7 @@ and the force. All functions take any leading batch shape, are differentiable an
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -88,14 +89,12 @@ class RowGather:
     """
 
     def __init__(self, idx, n: int, *, device: torch.device, no_grad_rows=()) -> None:
-        import numpy as np
-
         idx = np.asarray(idx, dtype=np.int64).reshape(-1)
         if len(idx) and (idx.min() < 0 or idx.max() >= n):
             raise ValueError(f"RowGather: indices must lie in [0, {n}), got {idx.tolist()}")
         skip = set(int(r) for r in no_grad_rows)
         users = [[] if r in skip else np.flatnonzero(idx == r).tolist() for r in range(n)]
-        width = max(1, max((len(u) for u in users), default=1))
+        width = max([1, *map(len, users)])
         inv = np.full((n, width), len(idx), dtype=np.int64)  # len(idx): the appended zero row
         for r, u in enumerate(users):
             inv[r, : len(u)] = u
