@@ -25,7 +25,7 @@ ancestor masks:
   ``tau_j = S_j . sum_{b desc j} f_b``.
 
 Only forward kinematics walks the tree: one 4x4 product per joint slot (at most 3 joints per body here) and
-one per tree level (depth <= 6 here), each over that level's bodies and joint frames. There are no
+one per tree level (depth <= 6 here), each over all bodies and joint frames at once. There are no
 data-dependent branches or host synchronisations, the shapes are static, and with the mass-matrix inverse
 cached a substep contains no library call, so it compiles with ``torch.compile`` and captures in a CUDA
 graph. The gradient of the solve goes to ``M`` analytically (``gM = -(M^-1 gx) x^T``), not through the
@@ -93,6 +93,53 @@ class Frames(NamedTuple):
     def pos(self) -> torch.Tensor:
         """(B, nb, 3) [m] body origins in the world frame, MuJoCo's ``xpos``."""
         return self.X[..., :3, 3] + self.origin[:, None]
+
+
+class _WorldFrames(torch.autograd.Function):
+    """World frames of a kinematic tree from its local frames, with a backward that has no tree recursion.
+
+    Forward, the depth rounds: ``X_e = P_a0 P_a1 ... P_e`` over the entry's ancestor chain (``chain (D, E)``,
+    row ``d`` the ancestor at depth ``d`` or ``E``, an appended identity). Every round reads only the local frames,
+    so the rounds fuse into one compiled kernel however deep the tree.
+
+    Backward, subtree sums instead of a leaf-to-root sweep. Entry ``d`` in the subtree of ``k`` has
+    ``X_d = X_k (X_k^-1 X_d)``, so everything below ``k`` sends ``k`` the gradient
+    ``G_k = sum_{d in subtree(k)} gX_d X_d^T X_k^-T``: one constant-mask contraction (``subtree (E, E)``) of
+    ``gX X^T`` for every entry at once, then ``gP_k = X_parent(k)^T G_k`` (``parent (E,)``, ``E`` for the
+    identity). A level-by-level backward needs one dependent kernel per tree level; this needs two, and no
+    atomics. It requires rigid frames (``X^-1`` from ``R^T``), which the simulator's always are: quaternions
+    are normalised and hinge transforms are rotations.
+    """
+
+    @staticmethod
+    def forward(P: torch.Tensor, chain: torch.Tensor, parent: torch.Tensor, subtree: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        P = torch.cat((P, _identity_like(P)), dim=1)
+        X = P[:, chain[0]]
+        for r in range(1, chain.shape[0]):
+            X = bmm(X, P[:, chain[r]])
+        return X
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.save_for_backward(output, inputs[2], inputs[3])
+
+    @staticmethod
+    def backward(ctx, gX):  # type: ignore[override]
+        X, parent, subtree = ctx.saved_tensors
+        B, E = X.shape[:2]
+        below = contract(subtree, bmm(gX, X.mT).reshape(B, E, 16)).reshape(B, E, 4, 4)
+        # X^-T of a rigid X = [[R, t], [0, 1]] is [[R, 0], [-t^T R, 1]]
+        R, t = X[..., :3, :3], X[..., :3, 3:]
+        ones = torch.ones_like(t[..., :1, :])
+        top, bottom = torch.cat((R, torch.zeros_like(t)), dim=-1), torch.cat((-bmm(t.mT, R), ones), dim=-1)
+        inv_T = torch.cat((top, bottom), dim=-2)
+        X_parent = torch.cat((X, _identity_like(X)), dim=1)[:, parent]
+        return bmm(X_parent.mT, bmm(below, inv_T)), None, None, None
+
+
+def _identity_like(x: torch.Tensor) -> torch.Tensor:
+    """(B, ...) -> (B, 1, 4, 4): one identity transform per batch row, in x's dtype and on its device."""
+    return torch.eye(4, dtype=x.dtype, device=x.device).expand(x.shape[0], 1, 4, 4)
 
 
 class _InverseSolve(torch.autograd.Function):
@@ -252,29 +299,21 @@ class Simulator:
         self._eye4 = f(np.eye(4))
 
         # --- kinematic "entries": the nb bodies, then one pre-joint frame per hinge/slide joint (the joint's
-        # frame just before it moves, where its axis and anchor are constant). They are kept sorted by tree
-        # level (the depth of the owning body). Local frames come from prefix products of the body offset and
-        # the body's joint transforms ("slot rounds", one per joint slot); world frames from one product per
-        # tree level, each entry's parent-body frame times its local frame, so every entry is multiplied
-        # once. Gathers are RowGathers: their compiled backward sums without atomics.
+        # frame just before it moves, where its axis and anchor are constant). Local frames come from prefix
+        # products of the body offset and the body's joint transforms ("slot rounds", one per joint slot);
+        # world frames from products along the ancestor chain ("depth rounds", one per tree level) for all
+        # entries at once (:class:`_WorldFrames`, whose backward sums over subtrees instead of walking the tree).
+        # Gathers are RowGathers: their compiled backward sums without atomics.
         off = np.tile(np.eye(4), (nb, 1, 1))
         off[:, :3, :3], off[:, :3, 3] = model.body_rot, model.body_pos
         owner = np.concatenate([np.arange(nb), model.hs_body]).astype(np.int64)
         n_prefix = np.concatenate([(model.body_slots < nh).sum(1), model.hs_slot]).astype(np.int64)
         n_prefix[:nb][model.body_free >= 0] = 0
         E = nb + nh
-        depth = np.zeros(nb, dtype=np.int64)
-        for b in range(nb):
-            depth[b] = 0 if model.body_parent[b] < 0 else depth[model.body_parent[b]] + 1
-        level = depth[owner]
-        order = np.argsort(level, kind="stable")  # sorted slot k holds entry order[k]
-        pos = np.empty(E, dtype=np.int64)
-        pos[order] = np.arange(E)
-        owner_s, n_prefix_s, level_s = owner[order], n_prefix[order], level[order]
         self._n_slots = int(n_prefix.max()) if len(n_prefix) else 0
         self._slot_take = [
             RowGather(
-                np.where(r < n_prefix_s, model.body_slots[owner_s, min(r, model.body_slots.shape[1] - 1)], nh),
+                np.where(r < n_prefix, model.body_slots[owner, min(r, model.body_slots.shape[1] - 1)], nh),
                 nh + 1,
                 device=self.device,
                 no_grad_rows=(nh,),  # the identity "joint" is a constant
@@ -283,21 +322,26 @@ class Simulator:
         ]
         off_src = np.arange(E)  # initial local frame: the owner's offset, or its free joint's pose
         for fj, b in enumerate(model.free_body):
-            off_src[pos[b]] = E + fj
-        self._entry_off = f(off[owner_s])
+            off_src[b] = E + fj
+        self._entry_off = f(off[owner])
         self._off_take = RowGather(off_src, E + nf, device=self.device, no_grad_rows=range(E))
+        depth = np.zeros(nb, dtype=np.int64)
+        for b in range(nb):
+            depth[b] = 0 if model.body_parent[b] < 0 else depth[model.body_parent[b]] + 1
         n_depth = int(depth.max()) + 1 if nb else 0
-        bounds = np.searchsorted(level_s, np.arange(n_depth + 1))
-        self._levels: list[tuple[int, int, RowGather | None]] = []
-        for lv in range(n_depth):
-            start, end = int(bounds[lv]), int(bounds[lv + 1])
-            parent = None
-            if lv:  # parent bodies, indexed within the previous level's block
-                prev = int(bounds[lv - 1])
-                parents = pos[model.body_parent[owner_s[start:end]]] - prev
-                parent = RowGather(parents, start - prev, device=self.device)
-            self._levels.append((start, end, parent))
-        self._unsort = RowGather(pos, E, device=self.device)  # back to model order: bodies, then joints
+        chain = np.full((n_depth, E), E, dtype=np.int64)  # E: an appended identity
+        for e in range(E):
+            b, d = owner[e], depth[owner[e]]
+            chain[d, e] = e
+            for r in range(d - 1, -1, -1):
+                b = model.body_parent[b]
+                chain[r, e] = b
+        parent = np.where(depth[owner] > 0, chain[np.maximum(depth[owner] - 1, 0), np.arange(E)], E)
+        subtree = np.zeros((E, E))  # [k, e] = 1: entry k is on e's chain (e itself included)
+        for r in range(n_depth):
+            on = chain[r] < E
+            subtree[chain[r][on], np.arange(E)[on]] = 1.0
+        self._chain, self._entry_parent, self._subtree = i(chain), i(parent), f(subtree)
         self._body_mass = f(model.body_mass)
         self._body_ipos_h = f(np.concatenate([model.body_ipos, np.ones((nb, 1))], axis=1))  # homogeneous
         self._body_inertia = f(model.body_inertia)
@@ -363,8 +407,7 @@ class Simulator:
         A1, A2, A3 = self._J_tables
         J = eye4 + torch.sin(theta) * A1 + (1.0 - torch.cos(theta)) * A2 + theta * A3  # (B, nh + 1, 4, 4)
 
-        # local frames of all entries (level order): offset (or free pose) x the owner's joints before the
-        # entry's slot
+        # local frames of all entries: offset (or free pose) x the owner's joints before the entry's slot
         P = self._entry_off.expand(B, -1, -1, -1)
         if self._nf:
             free_p = self._free_take(qpos, self._free_pos)  # (B, nf, 3)
@@ -377,13 +420,7 @@ class Simulator:
             P = self._off_take(torch.cat((P, free_T), dim=1))
         for take in self._slot_take:
             P = bmm(P, take(J))
-
-        # world frames, one tree level at a time: the parent body's world frame times the local frame
-        parts = []
-        for start, end, parent in self._levels:
-            local = P[:, start:end]
-            parts.append(local if parent is None else bmm(parent(parts[-1]), local))
-        X = self._unsort(torch.cat(parts, dim=1))
+        X = _WorldFrames.apply(P, self._chain, self._entry_parent, self._subtree)  # (B, E, 4, 4)
         if self._root_free < 0:  # fixed or planar base: reference point = first body's origin
             origin = X[:, 0, :3, 3]
             X = X - torch.nn.functional.pad(origin[:, None, :, None], (3, 0, 0, 1))  # translations -= origin
@@ -437,8 +474,8 @@ class Simulator:
     def _inertia_times(self, I_c: torch.Tensor, c: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Spatial inertia times motion, ``I6 v``, without forming ``I6``: for ``v = (w, u)``, with
         ``h = m (u - c x w)`` (the momentum of the centre of mass), ``I6 v = (I_c w + c x h, h)``.
-        I_c: (B, nb, 3, 3), c: (B, nb, 3), v: (B, nb, 6) -> (B, nb, 6). Per body it reads 12 numbers instead
-        of 36, and nothing of size (nb, 6, 6) is saved for the backward."""
+        I_c: (B, nb, 3, 3), c: (B, nb, 3), v: (..., B, nb, 6) (leading dims: several motions) -> (..., B, nb, 6).
+        Per body it reads 12 numbers instead of 36, and nothing of size (nb, 6, 6) is saved for the backward."""
         w, u = v[..., :3], v[..., 3:]
         h = self._body_mass[:, None] * (u - cross(c, w))
         return torch.cat((bmv(I_c, w) + cross(c, h), h), dim=-1)
@@ -467,7 +504,9 @@ class Simulator:
         """
         vd = contract(self._dof_vel, Sq)
         ab = contract(self._body_dof_anc, cross_motion(vd, Sq)) + self._a0
-        fb = self._inertia_times(*inertia, ab) + cross_force(vb, self._inertia_times(*inertia, vb))
+        # both products in one call: one pass over the body inertias, one fused kernel (not two) under compile
+        I_ab, I_vb = self._inertia_times(*inertia, torch.stack((ab, vb))).unbind(0)
+        fb = I_ab + cross_force(vb, I_vb)
         if f_ext is not None:
             fb = fb - f_ext
         return (S * contract(self._dof_body_anc, fb)).sum(-1)
