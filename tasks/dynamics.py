@@ -25,7 +25,8 @@ ancestor masks:
   ``tau_j = S_j . sum_{b desc j} f_b``.
 
 Only forward kinematics walks the tree: one 4x4 product per joint slot (at most 3 joints per body here) and
-one per tree level (depth <= 6 here), each over all bodies and joint frames at once. There are no
+one per tree level (depth <= 6 here), each over all bodies and joint frames at once; its backward does not
+walk the tree but sums over subtrees with one constant mask (:class:`_WorldFrames`). There are no
 data-dependent branches or host synchronisations, the shapes are static, and with the mass-matrix inverse
 cached a substep contains no library call, so it compiles with ``torch.compile`` and captures in a CUDA
 graph. The gradient of the solve goes to ``M`` analytically (``gM = -(M^-1 gx) x^T``), not through the
