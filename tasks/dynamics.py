@@ -100,8 +100,8 @@ class _WorldFrames(torch.autograd.Function):
     """World frames of a kinematic tree from its local frames, with a backward that has no tree recursion.
 
     Forward, the depth rounds: ``X_e = P_a0 P_a1 ... P_e`` over the entry's ancestor chain (``chain (D, E)``,
-    row ``d`` the ancestor at depth ``d`` or ``E``, an appended identity). Every round reads only the local frames,
-    so the rounds fuse into one compiled kernel however deep the tree.
+    row ``d`` the ancestor at depth ``d`` or ``E``, the appended identity ``eye4``). Every round reads only the
+    local frames, so the rounds fuse into one compiled kernel however deep the tree.
 
     Backward, subtree sums instead of a leaf-to-root sweep. Entry ``d`` in the subtree of ``k`` has
     ``X_d = X_k (X_k^-1 X_d)``, so everything below ``k`` sends ``k`` the gradient
@@ -113,8 +113,10 @@ class _WorldFrames(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(P: torch.Tensor, chain: torch.Tensor, parent: torch.Tensor, subtree: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        P = torch.cat((P, _identity_like(P)), dim=1)
+    def forward(  # type: ignore[override]
+        P: torch.Tensor, chain: torch.Tensor, parent: torch.Tensor, subtree: torch.Tensor, eye4: torch.Tensor
+    ) -> torch.Tensor:
+        P = torch.cat((P, eye4.expand(P.shape[0], 1, 4, 4)), dim=1)
         X = P[:, chain[0]]
         for r in range(1, chain.shape[0]):
             X = bmm(X, P[:, chain[r]])
@@ -122,11 +124,11 @@ class _WorldFrames(torch.autograd.Function):
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        ctx.save_for_backward(output, inputs[2], inputs[3])
+        ctx.save_for_backward(output, *inputs[2:])
 
     @staticmethod
     def backward(ctx, gX):  # type: ignore[override]
-        X, parent, subtree = ctx.saved_tensors
+        X, parent, subtree, eye4 = ctx.saved_tensors
         B, E = X.shape[:2]
         below = contract(subtree, bmm(gX, X.mT).reshape(B, E, 16)).reshape(B, E, 4, 4)
         # X^-T of a rigid X = [[R, t], [0, 1]] is [[R, 0], [-t^T R, 1]]
@@ -134,13 +136,8 @@ class _WorldFrames(torch.autograd.Function):
         ones = torch.ones_like(t[..., :1, :])
         top, bottom = torch.cat((R, torch.zeros_like(t)), dim=-1), torch.cat((-bmm(t.mT, R), ones), dim=-1)
         inv_T = torch.cat((top, bottom), dim=-2)
-        X_parent = torch.cat((X, _identity_like(X)), dim=1)[:, parent]
-        return bmm(X_parent.mT, bmm(below, inv_T)), None, None, None
-
-
-def _identity_like(x: torch.Tensor) -> torch.Tensor:
-    """(B, ...) -> (B, 1, 4, 4): one identity transform per batch row, in x's dtype and on its device."""
-    return torch.eye(4, dtype=x.dtype, device=x.device).expand(x.shape[0], 1, 4, 4)
+        X_parent = torch.cat((X, eye4.expand(B, 1, 4, 4)), dim=1)[:, parent]
+        return bmm(X_parent.mT, bmm(below, inv_T)), None, None, None, None
 
 
 class _InverseSolve(torch.autograd.Function):
@@ -421,7 +418,7 @@ class Simulator:
             P = self._off_take(torch.cat((P, free_T), dim=1))
         for take in self._slot_take:
             P = bmm(P, take(J))
-        X = _WorldFrames.apply(P, self._chain, self._entry_parent, self._subtree)  # (B, E, 4, 4)
+        X = _WorldFrames.apply(P, self._chain, self._entry_parent, self._subtree, eye4)  # (B, E, 4, 4)
         if self._root_free < 0:  # fixed or planar base: reference point = first body's origin
             origin = X[:, 0, :3, 3]
             X = X - torch.nn.functional.pad(origin[:, None, :, None], (3, 0, 0, 1))  # translations -= origin

@@ -187,6 +187,9 @@ def test_world_frames_backward_by_subtree_sums_equals_the_tree_walk(name):
     gen = torch.Generator().manual_seed(1)
     B = 2
 
+    def world(P):
+        return _WorldFrames.apply(P, chain, parent, subtree, sim._eye4)
+
     def rigid(n):
         T = torch.eye(4, dtype=torch.float64).repeat(B, n, 1, 1)
         T[..., :3, :3] = quat_to_mat(torch.randn(B, n, 4, generator=gen, dtype=torch.float64))
@@ -204,14 +207,14 @@ def test_world_frames_backward_by_subtree_sums_equals_the_tree_walk(name):
         return torch.stack(X, dim=1)
 
     X_ref = reference(P)
-    X = _WorldFrames.apply(P, chain, parent, subtree)
+    X = world(P)
     torch.testing.assert_close(X, X_ref, rtol=1e-12, atol=1e-12)
     (g_ref,) = torch.autograd.grad((X_ref * w).sum(), P)
     (g,) = torch.autograd.grad((X * w).sum(), P)
     torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-10)
     assert int((chain < E).sum(0).max()) >= 4  # a tree deep enough for the subtree sums to matter
     P0 = rigid(E).requires_grad_(True)  # gradcheck's Jacobian is taken at a rigid point
-    assert torch.autograd.gradcheck(lambda p: _WorldFrames.apply(p, chain, parent, subtree), (P0,))
-    compiled = torch.compile(lambda p: (_WorldFrames.apply(p, chain, parent, subtree) * w).sum(), dynamic=False)
+    assert torch.autograd.gradcheck(world, (P0,))
+    compiled = torch.compile(lambda p: (world(p) * w).sum(), dynamic=False)
     (g_compiled,) = torch.autograd.grad(compiled(P), P)
     torch.testing.assert_close(g_compiled, g_ref, rtol=1e-10, atol=1e-10)
