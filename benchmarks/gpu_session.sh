@@ -38,12 +38,18 @@ for spec in "$@"; do
     iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \
             --out "$OUT/iter_compiled.json" --tasks ${TASKS:-cartpole hopper ant humanoid};;
     sim-par) # inductor settings and cases in concurrent processes that compile together and then time one at a
-       # time (benchmarks/sim.py --gpu-lock); SIM_JOBS="task:envs:setting ..." (setting "base" or k=v,k=v)
-       rm -rf /tmp/sim.lock* /tmp/simpar; mkdir -p /tmp/simpar; jobs=(${SIM_JOBS:-ant:64:base})
+       # time (benchmarks/sim.py --gpu-lock); SIM_JOBS="task:envs:setting ..." (setting "base" or k=v,k=v; a job
+       # may repeat). Every row records the kernel configs autotuning kept (--configs). Jobs share inductor's and
+       # Triton's caches, so later jobs may reuse configs an earlier one chose; SIM_FRESH_CACHES=1 gives each job
+       # its own, so that each autotunes on its own (how far the configs alone move the time: BENCHMARKS.md s. 3)
+       rm -rf /tmp/sim.lock* /tmp/simpar; mkdir -p /tmp/simpar; jobs=(${SIM_JOBS:-ant:64:base}); n=0
        for j in "${jobs[@]}"; do IFS=: read -r t e v <<< "$j"; opts=""; [ "$v" != base ] && opts="--inductor ${v//,/ }"
-         tag="${t}${e}_${v//[=,.]/_}"
-         timeout "$secs" python3 benchmarks/sim.py --device cuda --tasks "$t" --num-envs "$e" --modes graph --kernels \
-           $opts --gpu-lock /tmp/sim.lock --parties ${#jobs[@]} --out "/tmp/simpar/$tag.json" > "/tmp/simpar/$tag.log" 2>&1 &
+         n=$((n + 1)); tag="${n}_${t}${e}_${v//[=,.]/_}"
+         caches=(); [ "${SIM_FRESH_CACHES:-0}" = 1 ] && caches=(TORCHINDUCTOR_CACHE_DIR="/tmp/simpar/cache_$n/inductor" \
+           TRITON_CACHE_DIR="/tmp/simpar/cache_$n/triton")
+         env "${caches[@]}" timeout "$secs" python3 benchmarks/sim.py --device cuda --tasks "$t" --num-envs "$e" --modes graph \
+           --kernels --configs $opts --gpu-lock /tmp/sim.lock --parties ${#jobs[@]} --out "/tmp/simpar/$tag.json" \
+           > "/tmp/simpar/$tag.log" 2>&1 &
        done; wait; tail -n 2 /tmp/simpar/*.log
        python3 -c "import json,sys; json.dump([json.load(open(f)) for f in sys.argv[2:]], open(sys.argv[1], 'w'), indent=1)" \
          "$OUT/sim_par.json" /tmp/simpar/*.json;;

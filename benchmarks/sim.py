@@ -12,7 +12,9 @@ substeps) with actions ``tanh(theta)``, loss = sum of rewards, backward to ``the
 Timing is CUDA-synchronised, warm-up (compilation, capture) is excluded and reported separately, the result
 is the median over ``--iters`` iterations. Peak allocated and reserved memory are read after
 ``reset_peak_memory_stats`` around the measured iterations (CUDA only). With ``--kernels`` one compiled
-iteration is profiled and the number of GPU kernels per substep (forward + backward) is reported.
+iteration is profiled and the number of GPU kernels per substep (forward + backward) is reported; with
+``--configs`` the launch config that autotuning kept for each Triton kernel is recorded (the same code can keep
+different configs in different processes, and on the H100 that alone moved the 64-ant horizon by 25 %).
 
 Not a test. Examples::
 
@@ -26,6 +28,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import fcntl
+import gc
+import hashlib
 import json
 import platform
 import statistics
@@ -150,6 +154,8 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
             if args.kernels:
                 row["kernels_per_substep"], row["kernel_table"] = _kernels_per_substep(
                     fn, args.horizon * roll.task.substeps)
+            if args.configs:
+                row["kernel_configs"] = kernel_configs()
     except Exception as e:  # a failing configuration is a row, not the end of the sweep
         row["status"] = f"error: {type(e).__name__}: {e}"[:400]
     finally:
@@ -179,6 +185,33 @@ def _barrier(lock: Path, parties: int) -> None:
     marker.touch()
     while len(list(lock.parent.glob(f"{lock.name}.ready.*"))) < parties:
         time.sleep(0.5)
+
+
+def kernel_configs(objects=None) -> list[dict]:
+    """The launch configuration inductor's autotuner chose for every Triton kernel loaded in this process.
+
+    Each entry: the kernel's name, ``source`` (a hash of its Triton source, equal across processes for the same
+    kernel, so that two runs' choices can be compared kernel by kernel, see ``benchmarks/config_diff.py``) and
+    ``chosen`` (the config of each launcher kept after autotuning, usually one). Why it matters: the same code
+    compiled in different processes can keep different configs (autotuning times each candidate on the GPU, and
+    the timings are noisy), and on the H100 that alone moved the 64-ant horizon between 38 and 48 ms. ``objects``:
+    where to look (default: every object the garbage collector tracks).
+    """
+    try:
+        from torch._inductor.runtime.triton_heuristics import CachingAutotuner
+    except ImportError:  # pragma: no cover - inductor ships with every supported torch
+        return []
+    found = []
+    for obj in gc.get_objects() if objects is None else objects:
+        if not isinstance(obj, CachingAutotuner):
+            continue
+        src = getattr(getattr(obj, "fn", None), "src", "") or ""
+        found.append({
+            "name": (getattr(obj, "inductor_meta", None) or {}).get("kernel_name", "?"),
+            "source": hashlib.sha1(src.encode()).hexdigest()[:12],
+            "chosen": [str(getattr(launcher, "config", None)) for launcher in (getattr(obj, "launchers", None) or [])],
+        })
+    return sorted(found, key=lambda k: (k["name"], k["source"], k["chosen"]))
 
 
 def _kernels_per_substep(fn, n_substeps: int) -> tuple[float, list[dict]]:
@@ -245,6 +278,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--settle-s", type=float, default=2.0, help="untimed iterations for this long before timing")
     p.add_argument("--kernels", action="store_true", help="count GPU kernels per substep (forward + backward)")
+    p.add_argument(
+        "--configs",
+        action="store_true",
+        help="record the launch config autotuning chose for every Triton kernel (kernel_configs in the JSON; compare "
+        "two runs with benchmarks/config_diff.py)",
+    )
     p.add_argument(
         "--threads",
         type=int,

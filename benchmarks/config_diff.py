@@ -1,0 +1,64 @@
+"""Which Triton kernels kept different launch configs in two benchmark runs of the same code.
+
+Reads the ``kernel_configs`` of two rows written by ``benchmarks/sim.py --configs`` and lists, kernel by kernel
+(matched by name and source hash), the configs that differ, with each row's time. Same code, different
+configs: the autotuner chose differently (its timings are noisy). Not a test. Example::
+
+    python benchmarks/config_diff.py fast.json slow.json --task ant --num-envs 64
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import Counter
+from pathlib import Path
+
+
+def load_row(path: Path, task: str | None, num_envs: int | None) -> dict:
+    """The first row of ``path`` (a sim.py JSON file) with kernel configs, matching task and batch if given."""
+    data = json.loads(path.read_text())
+    for row in data.get("rows", []):
+        if "kernel_configs" not in row:
+            continue
+        if (task is None or row.get("task") == task) and (num_envs is None or row.get("num_envs") == num_envs):
+            return row
+    raise SystemExit(f"{path}: no row with kernel_configs" + (f" for {task} {num_envs}" if task else ""))
+
+
+def diff(a: list[dict], b: list[dict]) -> list[tuple[str, str, list, list]]:
+    """Kernels present in both lists whose chosen configs differ: (name, source, chosen in a, chosen in b).
+    Kernels that occur several times with the same name and source are compared as multisets."""
+    def group(entries):
+        out: dict[tuple[str, str], Counter] = {}
+        for e in entries:
+            out.setdefault((e["name"], e["source"]), Counter())[json.dumps(e["chosen"])] += 1
+        return out
+
+    ga, gb = group(a), group(b)
+    rows = []
+    for key in sorted(ga.keys() & gb.keys()):
+        if ga[key] != gb[key]:
+            rows.append((*key, sorted(ga[key].elements()), sorted(gb[key].elements())))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("a", type=Path, help="first sim.py JSON file")
+    p.add_argument("b", type=Path, help="second sim.py JSON file")
+    p.add_argument("--task", default=None, help="row's task (default: the first row with configs)")
+    p.add_argument("--num-envs", type=int, default=None, help="row's batch size")
+    args = p.parse_args(argv)
+    ra, rb = load_row(args.a, args.task, args.num_envs), load_row(args.b, args.task, args.num_envs)
+    ka, kb = ra["kernel_configs"], rb["kernel_configs"]
+    print(f"a: {args.a} {ra.get('ms')} ms, {len(ka)} kernels; b: {args.b} {rb.get('ms')} ms, {len(kb)} kernels")
+    rows = diff(ka, kb)
+    common = {(e["name"], e["source"]) for e in ka} & {(e["name"], e["source"]) for e in kb}
+    print(f"{len(common)} kernels in both, {len(rows)} with different configs")
+    for name, source, ca, cb in rows:
+        print(f"{name} [{source}]\n  a: {', '.join(ca)}\n  b: {', '.join(cb)}")
+
+
+if __name__ == "__main__":
+    main()

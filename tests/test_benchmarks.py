@@ -1,0 +1,65 @@
+"""The benchmark helpers that record and compare the kernel configs inductor's autotuner kept."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _autotuner(name: str, src: str, *configs: str):
+    from torch._inductor.runtime.triton_heuristics import CachingAutotuner
+
+    k = CachingAutotuner.__new__(CachingAutotuner)  # no compilation: only the attributes the helper reads
+    k.fn = SimpleNamespace(src=src)
+    k.inductor_meta = {"kernel_name": name}
+    k.launchers = [SimpleNamespace(config=c) for c in configs]
+    return k
+
+
+def test_kernel_configs_names_each_kernel_by_its_source_and_records_the_kept_config():
+    sim = _load("sim")
+    found = sim.kernel_configs([
+        _autotuner("triton_poi_fused_0", "def k(): a", "XBLOCK: 128"),
+        _autotuner("triton_poi_fused_0", "def k(): b", "XBLOCK: 256"),
+        _autotuner("triton_poi_fused_0", "def k(): a", "XBLOCK: 256"),
+        object(),  # not a kernel
+    ])
+    assert len(found) == 3
+    assert {k["name"] for k in found} == {"triton_poi_fused_0"}
+    by_source = {}
+    for k in found:
+        by_source.setdefault(k["source"], []).append(k["chosen"])
+    assert sorted(map(len, by_source.values())) == [1, 2]  # equal sources hash equally, different ones do not
+    assert sorted(k["chosen"] for k in found) == [["XBLOCK: 128"], ["XBLOCK: 256"], ["XBLOCK: 256"]]
+
+
+def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
+    cd = _load("config_diff")
+    a = [{"name": "k0", "source": "s0", "chosen": ["X: 128"]}, {"name": "k1", "source": "s1", "chosen": ["X: 64"]},
+         {"name": "k2", "source": "s2", "chosen": ["X: 64"]}, {"name": "k2", "source": "s2", "chosen": ["X: 128"]}]
+    b = [{"name": "k0", "source": "s0", "chosen": ["X: 256"]}, {"name": "k1", "source": "s1", "chosen": ["X: 64"]},
+         {"name": "k2", "source": "s2", "chosen": ["X: 128"]}, {"name": "k2", "source": "s2", "chosen": ["X: 64"]},
+         {"name": "k3", "source": "s3", "chosen": ["X: 64"]}]
+    rows = cd.diff(a, b)
+    assert [(r[0], r[1]) for r in rows] == [("k0", "s0")]  # k2's two instances match as a multiset; k3 is b's only
+    for path, kernels, ms in ((tmp_path / "a.json", a, 38.3), (tmp_path / "b.json", b, 47.7)):
+        row = {"task": "ant", "num_envs": 64, "ms": ms, "kernel_configs": kernels}
+        path.write_text(json.dumps({"rows": [{"task": "ant", "num_envs": 4096}, row]}))
+    cd.main([str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--task", "ant", "--num-envs", "64"])
+    out = capsys.readouterr().out
+    assert "3 kernels in both, 1 with different configs" in out and "k0 [s0]" in out and "k1" not in out
+    with pytest.raises(SystemExit, match="no row with kernel_configs"):
+        cd.main([str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--num-envs", "1024"])
