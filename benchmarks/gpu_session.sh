@@ -4,7 +4,7 @@
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
 # Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
 # in ~95 s (H100) before a stage prints its first row.
-# Stages: env, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
+# Stages: env, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
@@ -53,6 +53,15 @@ for spec in "$@"; do
        done; wait; tail -n 2 /tmp/simpar/*.log
        python3 -c "import json,sys; json.dump([json.load(open(f)) for f in sys.argv[2:]], open(sys.argv[1], 'w'), indent=1)" \
          "$OUT/sim_par.json" /tmp/simpar/*.json;;
+    config-replay) # after "sim-par" with SIM_FRESH_CACHES=1 in the same call: time the fastest and the slowest job
+       # again, each alone on a warm copy of its own caches (so it reuses the configs it kept), and list the kernels
+       # whose kept configs differ between the two (benchmarks/config_diff.py)
+       read -r fast slow < <(python3 -c "import json,glob,re; r=[(json.load(open(f))['rows'][0], re.match(r'/tmp/simpar/(\d+)_', f).group(1)) for f in glob.glob('/tmp/simpar/*.json')]; r=[x for x in r if 'ms' in x[0]]; r.sort(key=lambda x: x[0]['ms']); print(r[0][1], r[-1][1])")
+       for n in $fast $slow; do f=$(ls /tmp/simpar/${n}_*.json); t=$(python3 -c "import json; r=json.load(open('$f'))['rows'][0]; print(r['task'], r['num_envs'])")
+         set -- $t; TORCHINDUCTOR_CACHE_DIR="/tmp/simpar/cache_$n/inductor" TRITON_CACHE_DIR="/tmp/simpar/cache_$n/triton" \
+           run "$secs" python3 benchmarks/sim.py --device cuda --tasks "$1" --num-envs "$2" --modes graph --configs \
+           --out "$OUT/config_replay_$n.json"; done
+       python3 benchmarks/config_diff.py "/tmp/simpar/${fast}_"*.json "/tmp/simpar/${slow}_"*.json | head -n 80;;
     graph-test) run "$secs" python3 -m pytest tests/test_cuda.py -q -x -p no:cacheprovider -k "captured and cartpole";;
     learn) # LEARN="task:mode:seed ..." runs concurrently on the one GPU, each stopping after LEARN_MIN minutes;
            # the run folders (without checkpoints) and ablate-plot's PNGs come back as one tarball.
