@@ -26,9 +26,10 @@ def load_row(path: Path, task: str | None, num_envs: int | None) -> dict:
     raise SystemExit(f"{path}: no row with kernel_configs" + (f" for {task} {num_envs}" if task else ""))
 
 
-def diff(a: list[dict], b: list[dict]) -> list[tuple[str, str, list, list]]:
-    """Kernels present in both lists whose chosen configs differ: (name, source, chosen in a, chosen in b).
-    Kernels that occur several times with the same name and source are compared as multisets."""
+def diff(a: list[dict], b: list[dict]) -> tuple[int, list[tuple[str, str, list, list]]]:
+    """How many kernels (name, source) both lists hold, and those whose chosen configs differ: (name, source,
+    chosen in a, chosen in b). Kernels that occur several times with the same name and source are compared as
+    multisets."""
     def group(entries):
         out: dict[tuple[str, str], Counter] = {}
         for e in entries:
@@ -36,11 +37,9 @@ def diff(a: list[dict], b: list[dict]) -> list[tuple[str, str, list, list]]:
         return out
 
     ga, gb = group(a), group(b)
-    rows = []
-    for key in sorted(ga.keys() & gb.keys()):
-        if ga[key] != gb[key]:
-            rows.append((*key, sorted(ga[key].elements()), sorted(gb[key].elements())))
-    return rows
+    common = sorted(ga.keys() & gb.keys())
+    rows = [(*key, sorted(ga[key].elements()), sorted(gb[key].elements())) for key in common if ga[key] != gb[key]]
+    return len(common), rows
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -53,9 +52,8 @@ def main(argv: list[str] | None = None) -> None:
     ra, rb = load_row(args.a, args.task, args.num_envs), load_row(args.b, args.task, args.num_envs)
     ka, kb = ra["kernel_configs"], rb["kernel_configs"]
     print(f"a: {args.a} {ra.get('ms')} ms, {len(ka)} kernels; b: {args.b} {rb.get('ms')} ms, {len(kb)} kernels")
-    rows = diff(ka, kb)
-    common = {(e["name"], e["source"]) for e in ka} & {(e["name"], e["source"]) for e in kb}
-    print(f"{len(common)} kernels in both, {len(rows)} with different configs")
+    n_common, rows = diff(ka, kb)
+    print(f"{n_common} kernels in both, {len(rows)} with different configs")
     for name, source, ca, cb in rows:
         print(f"{name} [{source}]\n  a: {', '.join(ca)}\n  b: {', '.join(cb)}")
 

@@ -53,7 +53,8 @@ def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
     b = [{"name": "k0", "source": "s0", "chosen": ["X: 256"]}, {"name": "k1", "source": "s1", "chosen": ["X: 64"]},
          {"name": "k2", "source": "s2", "chosen": ["X: 128"]}, {"name": "k2", "source": "s2", "chosen": ["X: 64"]},
          {"name": "k3", "source": "s3", "chosen": ["X: 64"]}]
-    rows = cd.diff(a, b)
+    n_common, rows = cd.diff(a, b)
+    assert n_common == 3
     assert [(r[0], r[1]) for r in rows] == [("k0", "s0")]  # k2's two instances match as a multiset; k3 is b's only
     for path, kernels, ms in ((tmp_path / "a.json", a, 38.3), (tmp_path / "b.json", b, 47.7)):
         row = {"task": "ant", "num_envs": 64, "ms": ms, "kernel_configs": kernels}
