@@ -131,13 +131,12 @@ class _WorldFrames(torch.autograd.Function):
         X, parent, subtree, eye4 = ctx.saved_tensors
         B, E = X.shape[:2]
         below = contract(subtree, bmm(gX, X.mT).reshape(B, E, 16)).reshape(B, E, 4, 4)
-        # X^-T of a rigid X = [[R, t], [0, 1]] is [[R, 0], [-t^T R, 1]]
+        # times X^-T = [[R, 0], [-t^T R, 1]] (X rigid), written out: [(b - c t^T) R | c] for below = [b | c]
         R, t = X[..., :3, :3], X[..., :3, 3:]
-        ones = torch.ones_like(t[..., :1, :])
-        top, bottom = torch.cat((R, torch.zeros_like(t)), dim=-1), torch.cat((-bmm(t.mT, R), ones), dim=-1)
-        inv_T = torch.cat((top, bottom), dim=-2)
+        b, c = below[..., :3], below[..., 3:]
+        G = torch.cat((bmm(b - bmm(c, t.mT), R), c), dim=-1)
         X_parent = torch.cat((X, eye4.expand(B, 1, 4, 4)), dim=1)[:, parent]
-        return bmm(X_parent.mT, bmm(below, inv_T)), None, None, None, None
+        return bmm(X_parent.mT, G), None, None, None, None
 
 
 class _InverseSolve(torch.autograd.Function):
