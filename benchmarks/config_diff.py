@@ -23,7 +23,8 @@ def load_row(path: Path, task: str | None, num_envs: int | None) -> dict:
             continue
         if (task is None or row.get("task") == task) and (num_envs is None or row.get("num_envs") == num_envs):
             return row
-    raise SystemExit(f"{path}: no row with kernel_configs" + (f" for {task} {num_envs}" if task else ""))
+    wanted = " ".join(f"{k}={v}" for k, v in (("task", task), ("num_envs", num_envs)) if v is not None)
+    raise SystemExit(f"{path}: no row with kernel_configs" + (f" for {wanted}" if wanted else ""))
 
 
 def diff(a: list[dict], b: list[dict]) -> tuple[int, list[tuple[str, str, list, list]]]:

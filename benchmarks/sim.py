@@ -192,10 +192,8 @@ def kernel_configs(objects=None) -> list[dict]:
 
     Each entry: the kernel's name, ``source`` (a hash of its Triton source, equal across processes for the same
     kernel, so that two runs' choices can be compared kernel by kernel, see ``benchmarks/config_diff.py``) and
-    ``chosen`` (the config of each launcher kept after autotuning, usually one). Why it matters: the same code
-    compiled in different processes can keep different configs (autotuning times each candidate on the GPU, and
-    the timings are noisy), and on the H100 that alone moved the 64-ant horizon between 38 and 48 ms. ``objects``:
-    where to look (default: every object the garbage collector tracks).
+    ``chosen`` (the config of each launcher kept after autotuning, usually one; why it matters: the module
+    docstring). ``objects``: where to look (default: every object the garbage collector tracks).
     """
     try:
         from torch._inductor.runtime.triton_heuristics import CachingAutotuner

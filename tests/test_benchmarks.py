@@ -62,5 +62,5 @@ def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
     cd.main([str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--task", "ant", "--num-envs", "64"])
     out = capsys.readouterr().out
     assert "3 kernels in both, 1 with different configs" in out and "k0 [s0]" in out and "k1" not in out
-    with pytest.raises(SystemExit, match="no row with kernel_configs"):
+    with pytest.raises(SystemExit, match="no row with kernel_configs for num_envs=1024"):
         cd.main([str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--num-envs", "1024"])
