@@ -36,7 +36,7 @@ from pytorch_kinematics.transforms import Transform3d
 
 from . import meshes as _meshes
 
-__all__ = ["MJCFError", "RobotModel"]
+__all__ = ["MJCFError", "RobotModel", "RobotPose"]
 
 
 class MJCFError(ValueError):
@@ -377,7 +377,10 @@ class RobotModel:
         self.num_faces = int(self.faces.shape[0])
 
     # ------------------------------------------------------------------------------------------ kinematics
-    def _check_qpos(self, qpos: torch.Tensor) -> None:
+    def check_qpos(self, qpos: torch.Tensor) -> None:
+        """Raise ``ValueError`` naming what is wrong unless ``qpos`` is a (B, nq) tensor in the model's dtype
+        on its device. Every method that takes ``qpos`` calls it; callers that compile their own code around
+        the model call it first to get the clear error before any compiled work."""
         if not isinstance(qpos, torch.Tensor):
             raise ValueError(f"qpos must be a torch.Tensor of shape (B, {self.nq}), got {type(qpos).__name__}")
         if qpos.ndim != 2 or qpos.shape[1] != self.nq:
@@ -389,8 +392,14 @@ class RobotModel:
             raise ValueError(f"qpos is on {qpos.device} but the model is on {self.device}")
 
     def frame_poses(self, qpos: torch.Tensor) -> torch.Tensor:
-        """World poses of the kinematic frames (pk's frame order): (B, num_frames, 4, 4)."""
-        self._check_qpos(qpos)
+        """Forward kinematics: world poses of the kinematic frames (pk's frame order).
+
+        Args:
+            qpos: (B, nq).
+        Returns:
+            (B, num_frames, 4, 4) homogeneous transforms frame -> world [m].
+        """
+        self.check_qpos(qpos)
         b = qpos.shape[0]
         if self._chain is not None:
             theta = qpos[:, self._theta_qadr] - self._theta_qpos0
@@ -406,6 +415,12 @@ class RobotModel:
         base = torch.cat([self._identity.expand(b, 1, 4, 4), torch.cat([top, bottom], dim=-2)], dim=1)
         return base[:, self._frame_base] @ fk
 
+    def pose(self, qpos: torch.Tensor) -> RobotPose:
+        """One forward-kinematics pass at ``qpos: (B, nq)``, from which link poses, geom poses and the posed
+        meshes are all read (a renderer that needs both the meshes and a camera anchored to a link runs FK
+        once per frame this way)."""
+        return RobotPose(model=self, frames=self.frame_poses(qpos))
+
     def link_poses(self, qpos: torch.Tensor) -> torch.Tensor:
         """Body frames in the world, equal to MuJoCo's ``xpos``/``xmat`` after ``mj_kinematics``.
 
@@ -414,7 +429,7 @@ class RobotModel:
         Returns:
             (B, nbody, 4, 4) homogeneous transforms body -> world [m], MuJoCo body order (world first).
         """
-        return self.frame_poses(qpos)[:, self._body_frame] @ self._body_offset
+        return self.pose(qpos).link_poses()
 
     def geom_poses(self, qpos: torch.Tensor) -> torch.Tensor:
         """All geoms (planes and world geoms included) in MjModel order, equal to ``geom_xpos``/``geom_xmat``.
@@ -424,7 +439,7 @@ class RobotModel:
         Returns:
             (B, ngeom, 4, 4) homogeneous transforms geom -> world [m].
         """
-        return self.frame_poses(qpos)[:, self._geom_frame] @ self._geom_offset
+        return self.pose(qpos).geom_poses()
 
     def world_vertices_and_normals(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Posed mesh vertices and unit normals, sharing one forward-kinematics pass.
@@ -434,17 +449,7 @@ class RobotModel:
         Returns:
             verts: (B, V, 3) [m] world frame; normals: (B, V, 3) unit, world frame.
         """
-        poses = self.frame_poses(qpos)
-        vs, ns = [], []
-        for frames, local_v, local_n in self._groups:
-            pose = poses[:, frames]  # (B, G_k, 4, 4)
-            rot, trans = pose[..., :3, :3], pose[..., :3, 3]
-            vs.append((torch.einsum("bgij,gnj->bgni", rot, local_v) + trans[:, :, None]).flatten(1, 2))
-            ns.append(torch.einsum("bgij,gnj->bgni", rot, local_n).flatten(1, 2))
-        if not vs:
-            empty = qpos.new_zeros(qpos.shape[0], 0, 3)
-            return empty, empty
-        return torch.cat(vs, dim=1), torch.cat(ns, dim=1)
+        return self.pose(qpos).world_vertices_and_normals()
 
     def world_vertices(self, qpos: torch.Tensor) -> torch.Tensor:
         """Posed mesh vertices: (B, V, 3) [m], world frame, indexed by :attr:`faces`."""
@@ -463,3 +468,45 @@ class RobotModel:
     def moving_bodies(self) -> Sequence[str]:
         """Names of the bodies whose pose depends on ``qpos``."""
         return [self.body_names[b] for b in self._moving_bodies]
+
+
+@dataclass(frozen=True, eq=False)
+class RobotPose:
+    """A robot at one batch of configurations: the kinematic frames of one forward-kinematics pass
+    (:meth:`RobotModel.pose`), and everything posed that is read off them without running FK again.
+
+    Attributes:
+        model: the :class:`RobotModel` the frames belong to.
+        frames: (B, num_frames, 4, 4) homogeneous transforms frame -> world [m] (pk's frame order), in the
+            autograd graph of the ``qpos`` they were computed from.
+    """
+
+    model: RobotModel
+    frames: torch.Tensor
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.frames.shape[0])
+
+    def link_poses(self) -> torch.Tensor:
+        """(B, nbody, 4, 4) body -> world [m], MuJoCo body order (see :meth:`RobotModel.link_poses`)."""
+        m = self.model
+        return self.frames[:, m._body_frame] @ m._body_offset
+
+    def geom_poses(self) -> torch.Tensor:
+        """(B, ngeom, 4, 4) geom -> world [m], MjModel order (see :meth:`RobotModel.geom_poses`)."""
+        m = self.model
+        return self.frames[:, m._geom_frame] @ m._geom_offset
+
+    def world_vertices_and_normals(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """verts: (B, V, 3) [m] and unit normals: (B, V, 3), world frame, indexed by ``model.faces``."""
+        vs, ns = [], []
+        for frames, local_v, local_n in self.model._groups:
+            pose = self.frames[:, frames]  # (B, G_k, 4, 4)
+            rot, trans = pose[..., :3, :3], pose[..., :3, 3]
+            vs.append((torch.einsum("bgij,gnj->bgni", rot, local_v) + trans[:, :, None]).flatten(1, 2))
+            ns.append(torch.einsum("bgij,gnj->bgni", rot, local_n).flatten(1, 2))
+        if not vs:
+            empty = self.frames.new_zeros(self.batch_size, 0, 3)
+            return empty, empty
+        return torch.cat(vs, dim=1), torch.cat(ns, dim=1)

@@ -1,7 +1,7 @@
 """What a visual policy sees: task-camera renders of the robot and the 3-frame stack.
 
-``tasks -> diffrender``: the task knows its camera (``Task.camera``, DESIGN section 4) and its MJCF; the
-renderer knows nothing of tasks.
+``tasks -> diffrender``: the task knows its camera (``Task.camera``; docs/design.md, "Image model") and its
+MJCF; the renderer knows nothing of tasks.
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ import dataclasses
 import torch
 
 import diffrender
-from diffrender.camera import focal_length
 
 __all__ = ["FrameStack", "TaskRenderer"]
 
@@ -65,7 +64,7 @@ class TaskRenderer:
         fields.update(settings)
         self.settings = dataclasses.replace(defaults, **fields)
         self._scene = self.scene
-        self.focal = focal_length(spec.fov_deg, self.height)  # [px], as the tracking camera computes it
+        self.focal = diffrender.focal_length(spec.fov_deg, self.height)  # [px], as the tracking camera computes it
 
     @property
     def num_faces(self) -> int:
@@ -82,22 +81,23 @@ class TaskRenderer:
         an overflowing environment would render as NaN; a fixed, generous capacity keeps that from happening
         as the robot moves. Returns the capacity (pairs per environment).
         """
-        from diffrender.raster.tiled import measure_capacity, tiled_static
-
+        self.robot.check_qpos(qpos)
         with torch.no_grad():
-            verts, _ = self.robot.world_vertices_and_normals(qpos)
-            cam = self.camera(qpos).expand(verts.shape[0])
-            _, capacity = measure_capacity(
-                verts, cam.rotation, cam.eye, self.robot.faces, self.settings, tiled_static(self.settings, cam)
-            )
+            pose = self.robot.pose(qpos)
+            verts, _ = pose.world_vertices_and_normals()
+            capacity = diffrender.measure_bin_capacity(verts, self.robot.faces, self._camera_at(pose), self.settings)
         capacity = int(capacity * headroom) + 64
         self.settings = dataclasses.replace(self.settings, bin_capacity=capacity)
         return capacity
 
     def camera(self, qpos: torch.Tensor) -> diffrender.Camera:
         """The task camera for each environment of ``qpos: (B, nq)``."""
+        return self._camera_at(self.robot.pose(qpos))
+
+    def _camera_at(self, pose: diffrender.RobotPose) -> diffrender.Camera:
+        """The task camera of each environment of an already computed ``pose`` (B environments)."""
         spec = self.spec
-        root = self.robot.link_poses(qpos)[:, self.root_index, :3, 3]
+        root = pose.link_poses()[:, self.root_index, :3, 3]  # (B, 3) [m]
         return diffrender.tracking_camera(
             root,
             eye_offset=spec.eye,
@@ -110,9 +110,11 @@ class TaskRenderer:
 
     def scene(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """What the rasterizer takes, from ``qpos: (B, nq)``: world vertices (B, V, 3) [m], unit normals
-        (B, V, 3), camera rotation (B, 3, 3) and eye (B, 3) [m]; one forward-kinematics pass."""
-        verts, normals = self.robot.world_vertices_and_normals(qpos)
-        cam = self.camera(qpos)
+        (B, V, 3), camera rotation (B, 3, 3) and eye (B, 3) [m]. The meshes and the camera's anchor are read
+        off one forward-kinematics pass."""
+        pose = self.robot.pose(qpos)
+        verts, normals = pose.world_vertices_and_normals()
+        cam = self._camera_at(pose)
         return verts, normals, cam.rotation, cam.eye
 
     def compile(self, **compile_kwargs) -> TaskRenderer:
@@ -124,7 +126,7 @@ class TaskRenderer:
         float rounding (tested on CUDA). Keyword arguments go to ``torch.compile``. Returns self.
 
         On the CPU :meth:`scene` stays eager: inductor's C++ code for the backward of pytorch-kinematics'
-        forward kinematics corrupts the heap (torch 2.13, 2026-11-22; the process aborts), and the CPU is
+        forward kinematics corrupts the heap (torch 2.13: the process aborts), and the CPU is
         not where the kernel launches cost anything."""
         kw = {"dynamic": False, **compile_kwargs}
         if self.robot.device.type == "cuda":
@@ -135,7 +137,7 @@ class TaskRenderer:
 
     def __call__(self, qpos: torch.Tensor) -> torch.Tensor:
         """qpos: (B, nq) -> images (B, 3, H, W) in [0, 1]."""
-        self.robot._check_qpos(qpos)  # a clear error before any (compiled) work
+        self.robot.check_qpos(qpos)  # a clear error before any (compiled) work
         verts, normals, rotation, eye = self._scene(qpos)
         camera = diffrender.Camera(rotation=rotation, eye=eye, focal=self.focal, height=self.height,
                                    width=self.width)

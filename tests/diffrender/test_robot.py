@@ -74,6 +74,24 @@ def test_fk_gradients_match_finite_differences(robot):
     torch.autograd.gradcheck(lambda x: rm.world_vertices(x)[:, ::17], (q,), eps=1e-6, atol=1e-8, fast_mode=True)
 
 
+@pytest.mark.parametrize("robot", ["ant", "hopper"])
+def test_one_pose_gives_links_geoms_and_meshes_of_one_fk_pass(robot, monkeypatch):
+    model = mujoco.MjModel.from_xml_path(asset(robot))
+    rm = dr.RobotModel.from_mjcf(asset(robot), dtype=F64, detail=0)
+    q = _random_qpos(model, 3, seed=5)
+    links, geoms, (verts, normals) = rm.link_poses(q), rm.geom_poses(q), rm.world_vertices_and_normals(q)
+
+    calls = []
+    fk = dr.RobotModel.frame_poses
+    monkeypatch.setattr(dr.RobotModel, "frame_poses", lambda self, x: calls.append(1) or fk(self, x))
+    pose = rm.pose(q)
+    assert isinstance(pose, dr.RobotPose) and pose.batch_size == 3
+    assert torch.equal(pose.link_poses(), links) and torch.equal(pose.geom_poses(), geoms)
+    pv, pn = pose.world_vertices_and_normals()
+    assert torch.equal(pv, verts) and torch.equal(pn, normals)
+    assert len(calls) == 1
+
+
 def test_dtype_device_and_shape_checks():
     rm = dr.RobotModel.from_mjcf(asset("ant"))
     assert rm.dtype == torch.float32 and rm.world_vertices(rm.qpos0[None]).dtype == torch.float32
@@ -83,6 +101,11 @@ def test_dtype_device_and_shape_checks():
         rm.geom_poses(rm.qpos0)
     with pytest.raises(ValueError, match=r"shape \(B, 15\)"):
         rm.geom_poses(torch.zeros(2, 14))
+    with pytest.raises(ValueError, match=r"shape \(B, 15\)"):
+        rm.check_qpos(torch.zeros(2, 14))
+    with pytest.raises(ValueError, match=r"torch\.Tensor"):
+        rm.pose(rm.qpos0.tolist())
+    rm.check_qpos(rm.qpos0[None])  # a valid qpos passes
     r64 = rm.to(dtype=F64)
     q = rm.qpos0[None].double()
     assert torch.allclose(r64.world_vertices(q).float(), rm.world_vertices(rm.qpos0[None]), atol=1e-6)

@@ -79,6 +79,80 @@ def test_hopper_camera_sees_dvas_view_at_the_start():
     assert cam.eye[0].tolist() == pytest.approx([0.0, -2.8, 1.35])
 
 
+
+def _count_fk(monkeypatch) -> dict:
+    """Count calls of pytorch-kinematics' chain FK and of RobotModel's FK entry point."""
+    import pytorch_kinematics as pk
+
+    import diffrender
+
+    calls = {"chain": 0, "model": 0}
+    chain_fk, model_fk = pk.Chain.forward_kinematics_tensor, diffrender.RobotModel.frame_poses
+
+    def counted_chain(self, *args, **kwargs):
+        calls["chain"] += 1
+        return chain_fk(self, *args, **kwargs)
+
+    def counted_model(self, *args, **kwargs):
+        calls["model"] += 1
+        return model_fk(self, *args, **kwargs)
+
+    monkeypatch.setattr(pk.Chain, "forward_kinematics_tensor", counted_chain)
+    monkeypatch.setattr(diffrender.RobotModel, "frame_poses", counted_model)
+    return calls
+
+
+def _two_pass_image(renderer, qpos):
+    """The image as composed with one FK pass for the meshes and another for the camera anchor."""
+    import diffrender
+
+    robot, spec = renderer.robot, renderer.spec
+    verts, normals = robot.world_vertices_and_normals(qpos)
+    root = robot.link_poses(qpos)[:, renderer.root_index, :3, 3]
+    cam = diffrender.tracking_camera(root, eye_offset=spec.eye, target_offset=spec.target, track=spec.track,
+                                     fov_deg=spec.fov_deg, height=renderer.height, width=renderer.width)
+    return diffrender.render(verts, robot.faces, robot.colors, cam, renderer.settings, normals=normals)
+
+
+@pytest.mark.parametrize("name", ["hopper", "ant"])
+def test_task_renderer_runs_forward_kinematics_once_per_frame(name, monkeypatch):
+    from tasks.vision import TaskRenderer
+
+    env = tasks.make(name, 2, dtype=torch.float64)
+    env.reset()
+    renderer = TaskRenderer(env, height=24, width=24)
+    g = torch.Generator().manual_seed(0)
+    q = (env.qpos + 0.05 * torch.randn(env.qpos.shape, dtype=torch.float64, generator=g)).requires_grad_()
+    weights = torch.rand(2, 3, 24, 24, dtype=torch.float64, generator=g)
+
+    reference = _two_pass_image(renderer, q)
+    (grad_reference,) = torch.autograd.grad((reference * weights).sum(), q)
+
+    calls = _count_fk(monkeypatch)
+    image = renderer(q)
+    assert calls == {"chain": 1, "model": 1}
+    (grad,) = torch.autograd.grad((image * weights).sum(), q)
+    assert calls == {"chain": 1, "model": 1}  # the backward does not run FK again either
+    assert torch.equal(image, reference)
+    # the camera's and the meshes' gradients now meet at the frames instead of at qpos: same sum, other order
+    torch.testing.assert_close(grad, grad_reference, rtol=1e-12, atol=1e-12)
+    assert grad[:, :2].abs().sum() > 0  # the root position reaches the image (camera and meshes)
+
+    capacity = renderer.freeze_capacity(q.detach())
+    assert calls == {"chain": 2, "model": 2}
+    assert renderer.settings.bin_capacity == capacity and capacity > 64
+
+
+def test_task_renderer_rejects_bad_qpos_before_rendering():
+    from tasks.vision import TaskRenderer
+
+    env = tasks.make("hopper", 1, dtype=torch.float64)
+    renderer = TaskRenderer(env, height=16, width=16)
+    with pytest.raises(ValueError, match=r"qpos has dtype torch.float32"):
+        renderer(env.qpos.float())
+    with pytest.raises(ValueError, match=r"qpos must have shape \(B, 6\)"):
+        renderer.freeze_capacity(env.qpos[:, :3])
+
 def test_cartpole_reward_and_obs_on_hand_made_states():
     env = tasks.make("cartpole", 3, dtype=torch.float64)
     qpos = torch.tensor([[0.0, 0.0], [1.0, 0.5], [-2.0, 2 * math.pi - 0.5]], dtype=torch.float64)
