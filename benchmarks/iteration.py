@@ -27,8 +27,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+import diffrender
 from gradlab import SHAC, SHACConfig
 from gradlab.timing import median
 
@@ -45,9 +44,7 @@ def measure(task: str, mode: str, args) -> dict:
         trainer = SHAC(cfg, device=args.device)
         row["setup_s"] = time.perf_counter() - t0
         if trainer.renderer is not None:  # which rasterizer backend "auto" resolved to (fused / tiled)
-            from diffrender.render import _backend
-
-            row["render_backend"] = _backend(trainer.renderer.settings, trainer.device)
+            row["render_backend"] = diffrender.backend_for(trainer.renderer.settings, trainer.device)
         t0 = time.perf_counter()
         for _ in range(args.warmup):
             trainer.train_iteration()

@@ -28,8 +28,6 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from gradlab import SHAC, SHACConfig
 from gradlab.networks import PixelEncoder
 

@@ -39,8 +39,6 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import tasks
 
 MODES = ("eager", "compiled", "graph")
