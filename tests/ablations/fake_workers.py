@@ -1,4 +1,4 @@
-"""Stand-ins for ``ablations.memory.measure_point`` (the sweep's test seam), run inside the worker processes.
+"""Stand-ins for ``ablations.memory.measure.measure_point`` (the sweep's test seam), run inside the worker processes.
 
 Behaviour per point comes from the environment, so one sweep can mix successes and failures:
     FAKE_BEHAVIOUR  JSON {"<mode>_m<meshes>_v<verts>": behaviour}; default "ok". Behaviours:

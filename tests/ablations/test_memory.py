@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from ablations import memory
-from ablations.memory import COLUMNS, MemoryConfig, read_csv, sweep
+from ablations.memory import COLUMNS, MemoryConfig, read_csv, sweep, worker
 from tests.ablations.conftest import ROOT, calls
 
 FAKE = "tests.ablations.fake_workers:fake"
@@ -203,9 +203,8 @@ def test_worker_classifies_exceptions_in_process(tmp_path, monkeypatch):
     for behaviour, status in (("ok", "ok"), ("oom", "oom"), ("cpu_oom", "oom"), ("error", "error")):
         monkeypatch.setenv("FAKE_BEHAVIOUR", json.dumps({"full_m1_v8": behaviour}))
         result = tmp_path / f"{behaviour}.json"
-        assert memory._worker_main(["--point", json.dumps(point), "--result", str(result),
-                                    "--measure", FAKE]) == 0
-        got = json.loads(result.read_text())
+        assert worker.main(["--point", json.dumps(point), "--result", str(result), "--measure", FAKE]) == 0
+        got = worker.read_result(result)
         assert got["status"] == status, behaviour
         assert got["scene_faces"] == 116
 
@@ -246,3 +245,13 @@ def test_plot_sweep_marks_failures(tmp_path):
     files = memory.plot_sweep(rows, tmp_path)
     assert [f.name for f in files] == ["memory_peak.png", "memory_bwd.png"]
     assert memory.plot_sweep([dict(rows[0], status="oom")], tmp_path / "none") == []
+
+
+def test_worker_result_lines_merge_and_a_torn_line_is_ignored(tmp_path):
+    """A worker killed mid-write leaves a torn last line: what was written before it still counts."""
+    path = tmp_path / "p.jsonl"
+    path.write_text('{"status": "running", "scene_faces": 132}\n{"status": "ok", "bwd_ms": 1.5, "scene_f')
+    assert worker.read_result(path) == {"status": "running", "scene_faces": 132}
+    path.write_text('{"status": "running", "scene_faces": 132}\n{"status": "ok", "bwd_ms": 1.5}\n')
+    assert worker.read_result(path) == {"status": "ok", "scene_faces": 132, "bwd_ms": 1.5}
+    assert worker.read_result(tmp_path / "missing.jsonl") == {}

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ablations.memory import COLUMNS, _csv_text
+from ablations.memory import COLUMNS, csv_text
 from ablations.report import PAPER_TABLE1_MS, ReportConfig, build_report, load_benchmark
 from tests.ablations.conftest import write_run
 
@@ -29,7 +29,7 @@ def write_sweep(folder: Path) -> Path:
                          "warmup_iters": 1, "iters": 2, "device": "cpu", "seed": 0})
     rows.append({**rows[-1], "mode": "full", "meshes": 8, "status": "oom", "bwd_ms": None,
                  "error": "OutOfMemoryError: CUDA out of memory"})
-    (folder / "memory.csv").write_text(_csv_text(rows))
+    (folder / "memory.csv").write_text(csv_text(rows))
     (folder / "memory.json").write_text(json.dumps({
         "started": "2026-01-01T10:00:00+00:00", "updated": "2026-01-01T11:00:00+00:00",
         "environment": {"device": "cpu", "torch": "2.13.0+cpu", "python": "3.11.7"},

@@ -1,0 +1,131 @@
+"""memory_peak.png and memory_bwd.png: memory and backward time against scene size, one line per setting."""
+
+from __future__ import annotations
+
+import io
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from ablations.memory.config import SWEPT_MODES
+
+__all__ = ["plot_sweep"]
+
+
+def _x_of(rows: list[dict]) -> tuple[str, Callable[[dict], float | None], bool]:
+    """x axis: total scene faces when every measured row knows them, else extra vertices (meshes x verts)."""
+    if all(r.get("scene_faces") for r in rows if r["status"] == "ok"):
+        return "scene faces (robot + extra meshes)", lambda r: r.get("scene_faces"), True
+    return "extra mesh vertices (meshes x vertices per mesh)", lambda r: r["meshes"] * r["verts_per_mesh"], False
+
+
+def _spans_decade(values) -> bool:
+    """True when the positive values cover a factor of 10 or more (a log axis is then worth it)."""
+    v = [x for x in values if isinstance(x, (int, float)) and x > 0]
+    return bool(v) and max(v) >= 10 * min(v)
+
+
+def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
+    """memory_peak.png and memory_bwd.png from sweep rows; returns the files written (none without ok rows).
+
+    One line per (mode, vertices per mesh); the robot-only point (0 meshes) starts every line of its mode.
+    Out-of-memory points are crosses at the top edge (their x known when the worker counted the scene first).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.transforms import blended_transform_factory
+
+    from gradlab.checkpoint import atomic_write_bytes
+
+    out = Path(out)
+    ok = [r for r in rows if r["status"] == "ok"]
+    if not ok:
+        return []
+    xlabel, xf, logx = _x_of(rows)
+    cuda = any(r.get("peak_alloc_mb") is not None for r in ok)
+    panels = [("peak_alloc_mb", "peak allocated [MB] (CUDA)")] if cuda else []
+    panels.append(("saved_mb", "saved for backward per window [MB]"))
+    if not cuda:
+        panels.append(("max_rss_mb", "peak process RSS [MB] (CPU)"))
+    panels = [(k, label) for k, label in panels if any(r.get(k) is not None for r in ok)]
+    verts = sorted({r["verts_per_mesh"] for r in rows if r["meshes"] > 0})
+    modes = [m for m in SWEPT_MODES if any(r["mode"] == m for r in rows)]
+    # Colour = mode (as in ablate-plot: full red, decoupled blue), darker = more vertices per mesh.
+    ramps = {"full": plt.get_cmap("Reds"), "decoupled": plt.get_cmap("Blues")}
+
+    def color(mode: str, v: int):
+        i = verts.index(v) if v in verts else len(verts) - 1
+        return ramps.get(mode, plt.get_cmap("Greys"))(0.45 + 0.5 * i / max(len(verts) - 1, 1))
+
+    styles = {"full": ("-", "o"), "decoupled": ("--", "s")}
+    task = rows[0]["task"]
+    written = []
+
+    def lines(ax, key: str) -> None:
+        drawn = False
+        for mode in modes:
+            base = [r for r in ok if r["mode"] == mode and r["meshes"] == 0 and r.get(key) is not None]
+            for v in verts or [0]:
+                pts = base + [r for r in ok if r["mode"] == mode and r["meshes"] > 0 and r["verts_per_mesh"] == v
+                              and r.get(key) is not None]
+                pts = sorted((xf(r), r[key]) for r in pts if xf(r) is not None)
+                if not pts:
+                    continue
+                ls, mk = styles.get(mode, ("-", "o"))
+                label = f"{mode}, {v} verts/mesh" if verts else mode
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], ls, marker=mk, color=color(mode, v),
+                        label=label, ms=4)
+                drawn = True
+        trans = blended_transform_factory(ax.transData, ax.transAxes)
+        failed = [r for r in rows if r["status"] in ("oom", "timeout")]
+        unknown, labelled = [], set()
+        for r in failed:
+            x = xf(r)
+            if x is None:
+                unknown.append(f"{r['mode']} m{r['meshes']} v{r['verts_per_mesh']}")
+                continue
+            ax.plot([x], [0.97], "x", color=color(r["mode"], r["verts_per_mesh"]), transform=trans, ms=8, mew=2,
+                    label=None if r["status"] in labelled else r["status"], clip_on=False)
+            labelled.add(r["status"])
+        if unknown:
+            ax.text(0.01, 0.01, "oom/timeout, size unknown: " + ", ".join(unknown), transform=ax.transAxes,
+                    fontsize=7, va="bottom")
+        # Log axes where the data span a decade or more (scene sizes usually do); on a narrow span a log axis
+        # only makes the tick labels unreadable.
+        if logx and _spans_decade([xf(r) for r in ok]):
+            ax.set_xscale("log")
+        elif not logx:
+            ax.set_xscale("symlog")
+        if drawn and _spans_decade([r.get(key) for r in ok]):
+            ax.set_yscale("log")  # only with data on it: an empty log axis cannot place its ticks
+        ax.set_xlabel(xlabel)
+        ax.grid(True, which="both", alpha=0.3)
+
+    def save(fig, name: str) -> None:
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
+        plt.close(fig)
+        atomic_write_bytes(out / name, buf.getvalue())
+        written.append(out / name)
+
+    setting = (f"{task}, {ok[0]['num_envs']} envs x {ok[0]['horizon']} steps, {ok[0]['image_size']} px, "
+               f"{ok[0]['device']}" + (f" ({ok[0]['gpu']})" if ok[0].get("gpu") else ""))
+    if panels:
+        fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2), squeeze=False,
+                                 layout="constrained")
+        for ax, (key, label) in zip(axes[0], panels):
+            lines(ax, key)
+            ax.set_ylabel(label)
+        axes[0][0].legend(fontsize=7)
+        fig.suptitle(f"Memory vs scene size: {setting}", fontsize=10)
+        save(fig, "memory_peak.png")
+
+    fig, ax = plt.subplots(figsize=(5.5, 4.2), layout="constrained")
+    lines(ax, "bwd_ms")
+    ax.set_ylabel("backward per iteration [ms] (median)")
+    ax.legend(fontsize=7)
+    ax.set_title(f"Backward time vs scene size: {setting}", fontsize=9)
+    save(fig, "memory_bwd.png")
+    return written
