@@ -53,7 +53,6 @@ class ArticulatedModel:
       body_pos (nb, 3) [m], body_rot (nb, 3, 3): body frame in the parent frame (MuJoCo body_pos/body_quat).
       body_free (nb,) int: index of the body's free joint or -1.
       body_slots (nb, K) int: the body's hinge/slide joints in order, padded with ``nh`` (identity).
-      levels: tuple of int arrays, bodies grouped by depth (level 0: children of the world).
     Inertia: body_mass (nb,) [kg], body_ipos (nb, 3) [m] (centre of mass in the body frame),
       body_inertia (nb, 3, 3) [kg m^2] (rotational inertia about the centre of mass, body frame).
     Hinge/slide joints (index h):
@@ -88,7 +87,6 @@ class ArticulatedModel:
     body_rot: np.ndarray
     body_free: np.ndarray
     body_slots: np.ndarray
-    levels: tuple[np.ndarray, ...]
     body_mass: np.ndarray
     body_ipos: np.ndarray
     body_inertia: np.ndarray
@@ -196,10 +194,6 @@ def from_mjmodel(m: mujoco.MjModel, *, path: str = "") -> ArticulatedModel:
             j = int(m.body_jntadr[i]) + k
             body_slots[i - 1, k] = hs_index[j]
             hs_slot[hs_index[j]] = k
-    depth = np.zeros(nb, dtype=np.int64)
-    for b in range(nb):  # MuJoCo numbers parents before children
-        depth[b] = 0 if body_parent[b] < 0 else depth[body_parent[b]] + 1
-    levels = tuple(np.nonzero(depth == d)[0] for d in range(int(depth.max()) + 1)) if nb else ()
 
     body_mass = np.array(m.body_mass[1:], dtype=np.float64)
     body_ipos = np.array(m.body_ipos[1:], dtype=np.float64)
@@ -322,7 +316,6 @@ def from_mjmodel(m: mujoco.MjModel, *, path: str = "") -> ArticulatedModel:
         body_rot=body_rot,
         body_free=body_free,
         body_slots=body_slots,
-        levels=levels,
         body_mass=body_mass,
         body_ipos=body_ipos,
         body_inertia=body_inertia,
