@@ -5,15 +5,15 @@ is still running, and puts a device-side wait (``gdc_wait``) before the first ac
 *previous* kernel wrote. A kernel that only reads older buffers, or only writes (a zero fill), gets no wait
 before those accesses. Then a kernel can read a buffer two kernels back while that kernel is still running: the
 previous kernel, having waited for nothing, may have finished first (the transitive race of NVIDIA/cccl#3131).
-The compiled simulator has such kernels: its backward graphs contain store-only zero fills
-(``triton_poi_fused_new_zeros_*`` in the H100 kernel tables of 2026-11-22). No wrong result was seen in our runs;
-the race depends on timing, so we close it rather than test for it.
+The compiled simulator has such kernels: its backward graphs contain store-only zero fills (inductor's
+``triton_poi_fused_new_zeros_*``). The race depends on timing, so a run without a wrong result proves nothing;
+it is closed here rather than tested for.
 
 :func:`install` replaces inductor's wait placement with "wait before the first global access of every kernel".
 Each kernel then starts only after the one before it has finished, and so, by induction, after all earlier ones.
 What PDL still saves is the launch: the next kernel is scheduled while the previous one drains, which at ~2 us
-per dependent kernel is most of the time of a small simulator substep (H100, 64 ants, 32 x 16 substeps forward
-+ backward: 51.3 ms with inductor's placement, 51.7 and 52.1 ms with this one; ~62.7 ms without PDL).
+per dependent kernel is most of the time of a small simulator substep (BENCHMARKS.md section 3: at 64
+environments the horizon is launch latency).
 
 The patch is private to inductor's code generator, so it is version-checked: where the method it replaces is
 missing, :func:`install` returns False and callers must leave PDL off. A custom post-grad pass with its own

@@ -39,9 +39,10 @@ DEFAULT_INDUCTOR_OPTIONS = {"combo_kernels": True, "unroll_reductions_threshold"
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """Where the task's camera looks from (DESIGN section 4). ``eye`` and ``target`` [m] are offsets from the
-    tracked root position (``root_body``'s origin) on the tracked axes (``track``: "none" fixed, "xz" or
-    "xyz"); with ``track="none"`` they are world coordinates. Images are ``height x width`` RGB."""
+    """Where the task's camera looks from (docs/design.md, "Image model"). ``eye`` and ``target`` [m] are
+    offsets from the tracked root position (``root_body``'s origin) on the tracked axes (``track``: "none"
+    fixed, "xz" or "xyz"); with ``track="none"`` they are world coordinates. Images are ``height x width``
+    RGB."""
 
     eye: tuple[float, float, float]
     target: tuple[float, float, float]
@@ -123,7 +124,7 @@ def _resolve_device(device: torch.device | str) -> torch.device:
 
 
 class Task(abc.ABC):
-    """``num_envs`` environments of one task; see the module docstring and DESIGN section 4.
+    """``num_envs`` environments of one task; see the module docstring and docs/design.md, "Simulator model".
 
     Attributes: name, num_envs, num_obs, num_act, episode_length, dt [s] (control step, 1/60), substeps,
     device, dtype, mjcf_path (str), sim (:class:`~tasks.dynamics.Simulator`), qpos (B, nq), qvel (B, nv),
@@ -254,7 +255,7 @@ class Task(abc.ABC):
         the next substep; with ``copy`` (the compiled path) as new tensors of the same values. Every substep of
         a control step reads the same ``tau`` and ``M``: passed along a chain instead of fanned out, their
         gradients add up inside each substep's compiled backward rather than in one more autograd
-        accumulation kernel per substep and tensor (H100: 64.3 -> 62.6 kernels per compiled ant substep)."""
+        accumulation kernel per substep and tensor."""
         qpos, qvel = self.sim.substep(qpos, qvel, tau, h, (M, Minv))
         if copy:
             tau, M = tau.clone(), M.clone()
@@ -337,19 +338,16 @@ class Task(abc.ABC):
         import torch._dynamo.config as dynamo_config
 
         # Every Task shares the compiled code objects (``substep`` etc.), and each batch size, dtype, device and
-        # grad/no-grad variant of the state is one more guard set. Past dynamo's default limit of 8 it silently
-        # falls back to eager (seen: an ant at 4096 envs after one at 64, 2.6x slower trainer iterations).
+        # grad/no-grad variant of the state is one more guard set. Past dynamo's default limit of 8 it quietly
+        # falls back to eager, and a process that simulates several batch sizes runs several times slower.
         dynamo_config.recompile_limit = max(getattr(dynamo_config, "recompile_limit", 8), 64)
-        # Inductor's combo kernels launch independent small kernels as one: a substep of 64 ants is ~100 tiny
-        # kernels whose launch latency, not their work, is the time (H100: 113 -> 69 kernels per substep,
-        # 100 -> 67 ms for a 32 x 16-substep ant horizon forward + backward in one CUDA graph). Reductions over
-        # up to 32 elements (the simulator's 3-, 6- and joint-sized sums) are unrolled into the pointwise code
-        # around them instead of launching their own kernels (H100: 68.6 -> 64.3 kernels per ant substep,
-        # 67.4 -> 62.7 ms for that horizon, the same loss). Programmatic dependent launch (Hopper and newer; a
-        # no-op elsewhere) lets each kernel start while the one before it drains and wait for its data on the
-        # device: at ~2 us per dependent kernel that latency is most of the time (H100, that horizon: 51.1 ->
-        # 41.8 ms within one run of the multi-process runner, identical loss; standalone 62.7 ms in session 4,
-        # 51.7-52.1 ms now; BENCHMARKS.md section 3).
+        # A substep of 64 ants is ~100 tiny kernels whose launch latency, not their work, is the time
+        # (BENCHMARKS.md section 3), so each option below removes launches or hides their latency, with the
+        # same losses. Inductor's combo kernels launch independent small kernels as one. Reductions over up to
+        # 32 elements (the simulator's 3-, 6- and joint-sized sums) are unrolled into the pointwise code around
+        # them instead of launching their own kernels. Programmatic dependent launch (Hopper and newer; a no-op
+        # elsewhere) lets each kernel be scheduled while the one before it drains, and at ~2 us per dependent
+        # kernel that latency is most of a substep's time.
         kw = {"dynamic": False, **compile_kwargs}
         if "mode" not in kw:  # torch.compile takes a mode or options, not both
             # PDL with every kernel waiting before its first access (see tasks._pdl for the race it avoids)
