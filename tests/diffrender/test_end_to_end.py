@@ -1,5 +1,7 @@
 """qpos -> FK -> tracking camera + vertices -> soft rasterizer -> image: autograd against finite differences."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -98,3 +100,29 @@ def test_hopper_xz_tracking_gradients(tmp_path):
     fd = _fd(loss, q, range(6))
     assert (qg.grad[0] - fd).abs().max() < 1e-6 * fd.abs().max()
     assert (qg.grad[0].abs() > 1e-3).all()
+
+
+def test_measured_bin_capacity_renders_the_frame_as_the_automatic_one(ant):
+    """measure_bin_capacity gives a fixed capacity the frame fits in: the tiled render with it equals the
+    render with the automatic capacity; a single camera is broadcast to the batch; a tighter capacity than
+    the frame needs is reported as an overflow."""
+    q = ant_pose(2, seed=4)
+    verts, normals = ant.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=16)
+    auto = dr.RasterSettings(backend="tiled", znear=0.3, zfar=8.0)
+    capacity = dr.measure_bin_capacity(verts, ant.faces, cam, auto)
+    assert isinstance(capacity, int) and capacity > 0
+    fixed = dataclasses.replace(auto, bin_capacity=capacity)
+    image = dr.render(verts, ant.faces, ant.colors, cam, fixed, normals=normals)
+    reference = dr.render(verts, ant.faces, ant.colors, cam, auto, normals=normals)
+    torch.testing.assert_close(image, reference, rtol=0, atol=1e-12)
+
+    one = ant_camera(q[:1], size=16)
+    same_pose = verts[:1].expand(2, -1, -1)
+    assert dr.measure_bin_capacity(same_pose, ant.faces, one, auto) == dr.measure_bin_capacity(
+        verts[:1], ant.faces, one, auto)
+    with pytest.raises(RuntimeError, match="bin_capacity"):
+        dr.render(verts, ant.faces, ant.colors, cam, dataclasses.replace(auto, bin_capacity=capacity // 8),
+                  normals=normals)
+    with pytest.raises(ValueError, match=r"verts must be a \(B, V, 3\) tensor"):
+        dr.measure_bin_capacity(verts[0], ant.faces, cam, auto)
