@@ -3,9 +3,10 @@
 A run folder holds:
     config.json      the resolved configuration (every flag, task defaults filled in) + versions
     git.txt          commit, branch, dirty status and diff stat of the code that ran (git.diff: the full diff)
-    metrics.jsonl    one JSON object per iteration (DESIGN section 6 keys, probe keys on probed iterations)
+    metrics.jsonl    one JSON object per iteration (``REQUIRED_KEYS``, plus ``PROBE_KEYS`` on probed iterations)
     summary.json     written at the end (or when the run stops on an error): medians without warm-up, peaks
-    checkpoints/     ckpt_<iter>.pt (the last ``keep_checkpoints``), written atomically
+    checkpoints/     ckpt_<iter>.pt (the last ``keep_checkpoints``), written atomically; a resume starts from
+                     the newest one that loads and renames damaged newer ones to ckpt_<iter>.pt.damaged
     videos/          iter_<iter>.mp4 evaluation rollouts of the deterministic policy
 """
 
@@ -25,7 +26,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gradlab.checkpoint import atomic_write_json, atomic_write_text, latest_checkpoint, load_checkpoint, save_checkpoint
+from gradlab.checkpoint import (
+    LoadedCheckpoint,
+    NoReadableCheckpointError,
+    atomic_write_json,
+    atomic_write_text,
+    checkpoint_path,
+    load_newest_readable,
+    prune_checkpoints,
+    save_checkpoint,
+)
 from gradlab.config import SHACConfig
 from gradlab.probes import NonFiniteError
 from gradlab.seeding import resolve_device
@@ -33,7 +43,7 @@ from gradlab.timing import median
 
 __all__ = ["RunConfig", "run", "read_metrics", "git_info", "environment_info", "write_video"]
 
-#: Keys every metrics line has (DESIGN section 6).
+#: Keys every metrics line has.
 REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "critic_loss", "grad_norm",
                  "grad_norm_clipped", "fwd_ms", "bwd_ms", "peak_alloc_mb", "peak_reserved_mb")
 #: Keys added on probed iterations.
@@ -57,7 +67,7 @@ class RunConfig(SHACConfig):
     checkpoint_every: int = 50
     """Iterations between checkpoints (and always at the end)."""
     keep_checkpoints: int = 2
-    """Checkpoints kept on disk (oldest deleted)."""
+    """Checkpoints kept on disk (oldest deleted); more than one lets a resume survive a damaged newest one."""
     video_every: int = 100
     """Iterations between evaluation videos (MP4 of the deterministic policy; also at the end); 0 disables."""
     video_steps: int | None = 300
@@ -235,30 +245,67 @@ def _check_writable(folder: Path) -> None:
         raise ValueError(f"output folder {folder} is not writable: {e}") from None
 
 
-def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device]:
-    """Validate everything and create/locate the run folder, before any expensive work."""
+def _stored_config(run_dir: Path, cfg_path: Path, overrides: RunConfig) -> RunConfig:
+    """The RunConfig of a run folder's config.json; a damaged or foreign file is named in a ValueError."""
+    try:
+        stored = json.loads(cfg_path.read_text())["config"]
+        if not isinstance(stored, dict):
+            raise TypeError(f"'config' is a {type(stored).__name__}, not an object")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"--resume {run_dir}: {cfg_path} cannot be read ({type(e).__name__}: {e}); it is the "
+                         f"record of the run's settings, restore it (e.g. from a copy) to resume") from None
+    except (KeyError, TypeError) as e:
+        raise ValueError(f"--resume {run_dir}: {cfg_path} has no 'config' object ({e}): not written by ablate") \
+            from None
+    fields = {f.name for f in dataclasses.fields(RunConfig)}
+    stored = {k: v for k, v in stored.items() if k in fields}
+    for k in ("actor_hidden", "critic_hidden", "betas"):
+        if stored.get(k) is not None:
+            stored[k] = tuple(stored[k])
+    stored["out"] = Path(stored.get("out", run_dir.parent))
+    stored.update(resume=run_dir, progress=overrides.progress)
+    if overrides.device != "auto":
+        stored["device"] = overrides.device
+    try:
+        cfg = RunConfig(**stored)
+        cfg.validate()
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--resume {run_dir}: {cfg_path}: {e}") from None
+    return cfg
+
+
+def _resume_point(run_dir: Path, device: torch.device) -> LoadedCheckpoint:
+    """The newest readable checkpoint; damaged newer ones are reported on stderr and renamed aside.
+
+    Renamed (``.damaged`` appended) rather than left in place so that they no longer count among the
+    ``keep_checkpoints`` newest files when the resumed run prunes old checkpoints, and kept for inspection.
+    """
+    try:
+        loaded = load_newest_readable(run_dir / "checkpoints", map_location=device)
+    except NoReadableCheckpointError as e:
+        raise ValueError(f"--resume {run_dir}: {e}") from None
+    for path, why in loaded.damaged:
+        aside = path.with_name(path.name + ".damaged")
+        os.replace(path, aside)
+        print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
+              f"{loaded.path.name}", file=sys.stderr)
+    return loaded
+
+
+def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device, LoadedCheckpoint | None]:
+    """Validate everything and create/locate the run folder, before any expensive work.
+
+    Returns the (resolved) config, the run folder, the device and, on ``--resume``, the checkpoint to start from.
+    """
     if cfg.resume is not None:
         run_dir = Path(cfg.resume)
         cfg_path = run_dir / "config.json"
         if not cfg_path.exists():
             raise ValueError(f"--resume {run_dir}: no config.json there (not a run folder)")
-        stored = json.loads(cfg_path.read_text())["config"]
-        fields = {f.name for f in dataclasses.fields(RunConfig)}
-        stored = {k: v for k, v in stored.items() if k in fields}
-        for k in ("actor_hidden", "critic_hidden", "betas"):
-            if stored.get(k) is not None:
-                stored[k] = tuple(stored[k])
-        stored["out"] = Path(stored["out"])
-        stored.update(resume=run_dir, progress=cfg.progress)
-        if cfg.device != "auto":
-            stored["device"] = cfg.device
-        cfg = RunConfig(**stored)
-        cfg.validate()
+        cfg = _stored_config(run_dir, cfg_path, cfg)
         device = resolve_device(cfg.device)
-        if latest_checkpoint(run_dir / "checkpoints") is None:
-            raise ValueError(f"--resume {run_dir}: no checkpoint in {run_dir / 'checkpoints'}")
         _check_writable(run_dir)
-        return cfg, run_dir, device
+        return cfg, run_dir, device, _resume_point(run_dir, device)
     cfg.validate()
     device = resolve_device(cfg.device)
     name = cfg.name or f"{cfg.task}_{cfg.mode}_seed{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
@@ -267,7 +314,7 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device]:
     if run_dir.exists() and any(run_dir.iterdir()):
         raise ValueError(f"run folder {run_dir} exists and is not empty: pass --resume {run_dir} or another --name")
     _check_writable(run_dir)
-    return cfg, run_dir, device
+    return cfg, run_dir, device, None
 
 
 def run(cfg: RunConfig) -> Path:
@@ -275,14 +322,14 @@ def run(cfg: RunConfig) -> Path:
     from gradlab.shac import SHAC
 
     started = time.time()
-    cfg, run_dir, device = prepare(cfg)
+    cfg, run_dir, device, resume_from = prepare(cfg)
     trainer = SHAC(shac_part(cfg), device=device)
     shac_fields = dataclasses.fields(SHACConfig)
     resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
     ckpt_dir = run_dir / "checkpoints"
-    if cfg.resume is not None:
-        ckpt = latest_checkpoint(ckpt_dir)
-        trainer.load_state_dict(load_checkpoint(ckpt, map_location=device))
+    if resume_from is not None:
+        trainer.load_state_dict(resume_from.state)
+        del resume_from  # not kept alive for the whole run (optimizer states can be large)
         _truncate_metrics(run_dir, trainer.iteration)
     else:
         atomic_write_json(run_dir / "config.json", {
@@ -330,9 +377,8 @@ def run(cfg: RunConfig) -> Path:
                     if isinstance(v, (int, float)) and not isinstance(v, bool) and v is not None:
                         writer.add_scalar(k, v, it)
             if it % cfg.checkpoint_every == 0 or last:
-                save_checkpoint(ckpt_dir / f"ckpt_{it:06d}.pt", trainer.state_dict())
-                for old in sorted(ckpt_dir.glob("ckpt_*.pt"))[:-cfg.keep_checkpoints]:
-                    old.unlink()
+                save_checkpoint(checkpoint_path(ckpt_dir, it), trainer.state_dict())
+                prune_checkpoints(ckpt_dir, keep=cfg.keep_checkpoints)
             ret = m["return_mean"]
             bar.set_postfix(ret="-" if ret is None else f"{ret:.1f}", ms=f"{m['iter_ms']:.0f}",
                             gn=f"{m['grad_norm']:.2g}")

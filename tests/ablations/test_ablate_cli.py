@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -11,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from ablations.cli import ablate_main
-from ablations.runs import PROBE_KEYS, REQUIRED_KEYS, TIMING_KEYS, read_metrics
+from ablations.runs import PROBE_KEYS, REQUIRED_KEYS, TIMING_KEYS, RunConfig, prepare, read_metrics
+from gradlab.checkpoint import atomic_write_json, checkpoint_path, save_checkpoint
 
 TINY = ["--num-envs", "2", "--horizon", "3", "--image-size", "24", "--critic-iterations", "1",
         "--critic-batches", "1", "--device", "cpu", "--no-progress"]
@@ -68,6 +70,73 @@ def test_resume_equals_uninterrupted_and_same_seed_same_metrics(tmp_path):
         ck.unlink()
     ablate("--resume", str(cut), "--no-progress")
     assert strip_timing(read_metrics(cut)) == strip_timing(read_metrics(tmp_path / "whole"))
+
+
+def test_resume_starts_from_the_newest_readable_checkpoint(tmp_path, capsys):
+    """The resume decision alone (no trainer): damaged newer checkpoints are named, set aside and skipped."""
+    ckpts = tmp_path / "run" / "checkpoints"
+    atomic_write_json(tmp_path / "run" / "config.json",
+                      {"config": dataclasses.asdict(RunConfig(task="cartpole", device="cpu", out=tmp_path))})
+    for it in (2, 4, 6):
+        save_checkpoint(checkpoint_path(ckpts, it), {"iteration": it})
+    checkpoint_path(ckpts, 6).write_bytes(os.urandom(4096))  # overwritten
+    checkpoint_path(ckpts, 4).write_bytes(b"")  # truncated to nothing
+    cfg, _, device, loaded = prepare(RunConfig(resume=tmp_path / "run", progress=False))
+    assert (cfg.task, device.type) == ("cartpole", "cpu")
+    assert loaded.path == checkpoint_path(ckpts, 2) and loaded.state == {"iteration": 2}
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2
+    assert err[0].startswith(f"warning: checkpoint {checkpoint_path(ckpts, 6)} is damaged (UnpicklingError")
+    assert err[1].startswith(f"warning: checkpoint {checkpoint_path(ckpts, 4)} is damaged (EOFError")
+    assert sorted(p.name for p in ckpts.iterdir()) == ["ckpt_000002.pt", "ckpt_000004.pt.damaged",
+                                                       "ckpt_000006.pt.damaged"]
+
+
+@pytest.mark.slow
+def test_resume_skips_a_damaged_checkpoint_and_says_when_none_is_readable(tmp_path, capsys):
+    """End to end with the trainer: the resumed run reproduces the uninterrupted one from the older checkpoint."""
+    common = ["--task", "cartpole", "--mode", "decoupled", "--iters", "4", "--cosine-every", "3",
+              "--video-every", "0", "--checkpoint-every", "2", "--out", str(tmp_path), *TINY]
+    ablate(*common, "--name", "run")
+    run = tmp_path / "run"
+    ckpts = run / "checkpoints"
+    whole = strip_timing(read_metrics(run))
+    newest = ckpts / "ckpt_000004.pt"
+    newest.write_bytes(os.urandom(4096))  # e.g. a disk fault or a copy that went wrong
+    capsys.readouterr()
+
+    ablate("--resume", str(run), "--no-progress")
+    err = capsys.readouterr().err
+    # Named with its reason, set aside, and the run continues from the older checkpoint to the same result.
+    assert f"warning: checkpoint {newest} is damaged (" in err and "resuming from ckpt_000002.pt" in err
+    assert (ckpts / "ckpt_000004.pt.damaged").exists()
+    assert strip_timing(read_metrics(run)) == whole
+    assert sorted(p.name for p in ckpts.glob("ckpt_*.pt")) == ["ckpt_000002.pt", "ckpt_000004.pt"]
+
+    for p in ckpts.glob("ckpt_*.pt"):
+        p.write_bytes(b"")  # a disk that filled up: both checkpoints empty
+    with pytest.raises(SystemExit) as e:
+        ablate("--resume", str(run), "--no-progress")
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "no readable checkpoint" in err
+    assert str(ckpts / "ckpt_000004.pt") in err and str(ckpts / "ckpt_000002.pt") in err
+
+
+def test_resume_with_a_damaged_config_names_the_file(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text('{"config": "\x01 torn')
+    with pytest.raises(SystemExit) as e:
+        ablate("--resume", str(run), "--no-progress")
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and str(run / "config.json") in err and "JSONDecodeError" in err
+
+    (run / "config.json").write_text('["not", "a", "run config"]')
+    with pytest.raises(SystemExit):
+        ablate("--resume", str(run), "--no-progress")
+    assert f"{run / 'config.json'} has no 'config' object" in capsys.readouterr().err
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
