@@ -40,14 +40,14 @@ def _can_sync(device: torch.device) -> bool:
 
 def backend_for(settings: RasterSettings, device: torch.device | str) -> str:
     """The backend :func:`render` uses for ``settings`` on ``device``: ``settings.backend`` unless it is
-    ``"auto"``, which picks ``"fused"`` on CUDA (softmax blend, Triton installed) and ``"tiled"`` elsewhere."""
+    ``"auto"``, which picks ``"fused"`` on CUDA (Triton installed) and ``"tiled"`` elsewhere."""
     return _backend(settings, torch.device(device))
 
 
 def _backend(settings: RasterSettings, device: torch.device) -> str:
     if settings.backend != "auto":
         return settings.backend
-    if device.type == "cuda" and settings.blend == "softmax" and _triton_installed():
+    if device.type == "cuda" and _triton_installed():
         return "fused"
     return "tiled"
 
@@ -70,7 +70,7 @@ def render(
     *,
     normals: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Soft-rasterize triangle meshes over the analytic floor.
+    """Rasterize triangle meshes over the analytic floor with the image model ``settings.raster_model``.
 
     Args:
         verts: (B, V, 3) [m] world-frame vertices, float32 or float64.

@@ -4,8 +4,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
-__all__ = ["FloorSettings", "RasterSettings"]
+__all__ = ["RASTER_MODELS", "FloorSettings", "RasterModel", "RasterSettings"]
+
+RasterModel = Literal["hard", "softmax", "alpha"]
+#: the image models of :class:`RasterSettings` (``raster_model``)
+RASTER_MODELS: tuple[str, ...] = get_args(RasterModel)
 
 _RGB = tuple[float, float, float]
 
@@ -47,22 +52,54 @@ class FloorSettings:
 
 @dataclass(frozen=True, kw_only=True)
 class RasterSettings:
-    """Soft-rasterizer settings.
+    """Rasterizer settings.
 
-    Image model (per pixel): every face within the coverage cut-off is a candidate with coverage
-    ``D = sigmoid(sd / sigma)`` (``sd``: signed Euclidean distance [px] from the pixel centre to the
-    triangle, positive inside) and normalised depth ``z_n = (zfar - z) / (zfar - znear)`` (``z`` from
-    perspective-correct barycentrics). Candidates are blended with weights ``D exp((z_n - m) / gamma)``
-    (``m``: the pixel's largest candidate ``z_n``, detached; it cancels in the blend and only prevents
-    overflow). The floor is one more candidate with ``D = 1``; the background has weight
-    ``exp((eps - m) / gamma)`` with ``eps = 0`` (the far plane). Colours are Lambert-shaded,
-    ``albedo (ambient + diffuse max(0, n . l))`` with interpolated vertex normals. As sigma, gamma -> 0
-    the image becomes a hard z-buffer.
+    ``raster_model`` picks the image model, and with it the gradient estimator (docs/design.md,
+    "Image model"). Shared by all three: per pixel centre, a face is a candidate with exact signed Euclidean
+    distance ``sd`` [px] to its screen triangle (positive inside) and normalised depth
+    ``z_n = (zfar - z) / (zfar - znear)`` (``z`` from perspective-correct barycentrics, which also interpolate
+    vertex normals and albedos); colours are Lambert-shaded, ``albedo (ambient + diffuse max(0, n . l))``.
+    Behind every face lies the analytic floor where the pixel's ray hits it, else the background (normalised
+    depth 0, the far plane).
+
+    * ``"hard"``: a z-buffer. The pixel shows the nearest face whose closed screen triangle contains its
+      centre (one face per pixel; the lowest face index among exact depth ties), else the floor, else the
+      background; coverage is a step. Gradients reach vertices, normals, colours and the camera only through
+      the perspective-correct interpolation and shading of that face (and the floor texture), never through
+      which face or surface is seen: silhouettes and occlusion boundaries carry none. This is the estimator of
+      D.Va's "SHAC with differentiable rendering" baseline (PyTorch3D ``MeshRasterizer`` with
+      ``blur_radius=0, faces_per_pixel=1``, then ``SoftPhongShader``). ``sigma``, ``gamma`` and
+      ``coverage_cutoff`` do not act.
+    * ``"softmax"``: SoftRas aggregation (Liu et al. 2019, "Soft Rasterizer"). Each face within the
+      coverage cut-off has coverage ``D = sigmoid(sd / sigma)`` and weight ``w = D exp((z_n - m) / gamma)``
+      (``m``: the pixel's largest candidate ``z_n``, detached; it cancels and only prevents overflow); the
+      floor (``D = 1``) and the background (``exp((0 - m) / gamma)``) are candidates of the same softmax, so
+      the floor hides what lies below it. The silhouettes against floor and sky follow the faces' joint
+      coverage ``A = min(1, sum D)``: with ``W`` the faces' weight sum, ``num / den`` the softmax over faces,
+      floor and background, and ``C_b`` the floor/background colour behind the faces,
+      ``colour = (A num + (1 - A) W C_b) / (A den + (1 - A) W)``. Where the faces cover the pixel
+      (``A = 1``) this is the plain softmax; at a silhouette in front of the floor or sky (``den ~ W``) it
+      is ``A softmax + (1 - A) C_b``, so the robot's share fades with its coverage and is one half on the
+      true edge: the silhouette is not dilated, and it carries gradient through the sigmoid. (In the plain
+      SoftRas softmax a face in front of a surface ``dz_n`` behind it weighs ``D exp(dz_n / gamma)`` against
+      it, so it owns every pixel out to the coverage cut-off: silhouettes dilated by ``cutoff_radius`` and
+      ending in a jump.) Between faces the softmax acts unchanged.
+    * ``"alpha"``: coverage compositing (the silhouette aggregation of Soft Rasterizer and the over
+      operator of Porter and Duff 1984): the depth softmax runs over the faces only and is composited over
+      the floor/background colour with ``A = min(1, sum D)``: ``colour = A num_f / W + (1 - A) C_b``.
+      The floor never occludes faces (parts below z = 0 stay visible). The same formula as ``"softmax"``
+      with the floor and background left out of ``num`` and ``den``.
+
+    For both soft models ``A`` sums the coverage of every kept face, hidden ones included: with
+    ``cull_backfaces=True`` a face that turns away at a silhouette leaves the sum at once (a jump of up to
+    its coverage there); ``cull_backfaces=False`` avoids that at twice the work. As sigma, gamma -> 0 both
+    soft images converge to the hard one (``tests/diffrender/test_raster.py``).
 
     Attributes:
-        sigma: coverage softness [px].
+        raster_model: ``"hard"``, ``"softmax"`` (default) or ``"alpha"``, see above.
+        sigma: coverage softness [px] (soft models).
         gamma: depth-blend temperature in units of ``z_n`` (``gamma * (zfar - znear)`` metres of depth
-            separate two surfaces by a factor e in weight).
+            separate two surfaces by a factor e in weight) (soft models).
         znear, zfar: clipping depths [m]. Faces with a vertex closer than ``znear`` are dropped (no
             clipping); the floor is kept beyond ``zfar`` (so it reaches the horizon), faces are not.
         background: colour where no ray hits the floor or a face.
@@ -70,25 +107,15 @@ class RasterSettings:
         light_dir: direction towards a directional light, world frame (normalised internally).
         ambient, diffuse: Lambert coefficients, ``ambient + diffuse <= 1`` keeps colours in [0, 1].
         cull_backfaces: drop faces whose projected winding shows their back. Halves the work on closed
-            meshes; when a face turns edge-on its (hidden) soft tail appears/disappears.
-        blend: ``"softmax"`` (default, the image model above: floor and background are candidates of the
-            depth softmax) or ``"alpha"``: the depth softmax runs over the faces only and is composited over
-            the floor/background with the faces' joint coverage ``A = min(1, sum D)``. Why it exists: in
-            the softmax model a face's weight relative to a surface behind it is ``D exp(dz_n / gamma)``, so
-            wherever the depth gap is many gammas (a robot in front of the floor) the face owns every pixel
-            out to the coverage cut-off: its silhouette is dilated by ``cutoff_radius`` and is a hard edge
-            with no gradient (the image jumps at the cut-off instead). With ``"alpha"`` the silhouette over
-            the floor/background is the smooth sigmoid again, so it carries gradients; the floor then never
-            occludes faces (parts below z = 0 stay visible). Between faces both modes use the softmax.
-            Use it with ``cull_backfaces=False``: culling makes the coverage jump where a silhouette face
-            turns edge-on.
-        coverage_cutoff: pairs with ``D`` below this are dropped exactly (binning radius
-            ``sigma * ln(1 / cutoff - 1)``); both backends drop the same pairs.
-        backend: ``"fused"`` (two Triton kernels, forward and a recomputing backward; CUDA only, softmax
-            blend only; the fastest), ``"tiled"`` (binned PyTorch kernel with a memory-bounded custom
-            backward; any device), ``"dense"`` (every face at every pixel, plain autograd; tiny scenes and
-            tests only) or ``"auto"``: fused for CUDA tensors with the softmax blend when Triton is
-            installed, else tiled.
+            meshes; see above for what it does to the soft models' silhouettes.
+        coverage_cutoff: soft models: pairs with ``D`` below this are dropped exactly (binning radius
+            ``sigma * ln(1 / cutoff - 1)``); every backend drops the same pairs. With ``A`` the dropped pair
+            changes the colour by at most about ``coverage_cutoff``.
+        backend: ``"fused"`` (two Triton kernels, forward and a recomputing backward; CUDA only; the
+            fastest), ``"tiled"`` (binned PyTorch kernel with a memory-bounded custom backward; any device),
+            ``"dense"`` (every face at every pixel, plain autograd; tiny scenes and tests only) or
+            ``"auto"``: fused for CUDA tensors when Triton is installed, else tiled. All implement every
+            ``raster_model``.
         tile_size: tile side [px] for the tiled backend's binning (the fused backend has its own tiles).
         bin_capacity: (tile, face) pairs per environment the tiled backend can hold (its work is
             proportional to it). None (default): measured the first time a scene layout (faces, image and
@@ -101,10 +128,10 @@ class RasterSettings:
             compiles; forward and the recompute-backward compile separately): the tiled backend's binning
             and per-chunk kernel, the fused backend's per-face setup (coefficients, floor planes). Eager,
             they launch several hundred small kernels per render.
-        save_blend_state: fused backend: keep the image and each pixel's blend maximum and denominator for
-            the backward (5 numbers per pixel, 9 MB for 64 images of 84 x 84 at float32) instead of
-            recomputing them with a second forward pass at backward time (H100, 64 ants: ~1.3 ms more per
-            backward). Off by default so a render keeps only its inputs (0.7 MB).
+        save_blend_state: fused backend: keep the image and four numbers of each pixel's blend for the
+            backward (7 numbers per pixel, 12.6 MB for 64 images of 84 x 84 at float32) instead of
+            recomputing them with a second forward pass at backward time (cost in BENCHMARKS.md). Off by
+            default so a render keeps only its inputs (0.7 MB).
         sync_checks: check bin overflow, face indices and finiteness with one host synchronisation per
             render and raise errors. When False (needed inside CUDA-graph capture) nothing syncs and an
             environment whose bins overflow renders as NaN instead, which downstream NaN guards catch.
@@ -120,7 +147,7 @@ class RasterSettings:
     ambient: float = 0.4
     diffuse: float = 0.6
     cull_backfaces: bool = True
-    blend: str = "softmax"
+    raster_model: RasterModel = "softmax"
     coverage_cutoff: float = 1e-4
     backend: str = "auto"
     tile_size: int = 2
@@ -146,8 +173,9 @@ class RasterSettings:
             raise ValueError(f"ambient and diffuse must be >= 0, got {self.ambient}, {self.diffuse}")
         if not 0 < self.coverage_cutoff < 0.5:
             raise ValueError(f"coverage_cutoff must be in (0, 0.5), got {self.coverage_cutoff}")
-        if self.blend not in ("softmax", "alpha"):
-            raise ValueError(f"blend must be 'softmax' or 'alpha', got {self.blend!r}")
+        if self.raster_model not in RASTER_MODELS:
+            raise ValueError(f"raster_model must be one of {', '.join(map(repr, RASTER_MODELS))}, "
+                             f"got {self.raster_model!r}")
         if self.backend not in ("auto", "dense", "tiled", "fused"):
             raise ValueError(f"backend must be 'auto', 'fused', 'tiled' or 'dense', got {self.backend!r}")
         if not (isinstance(self.tile_size, int) and 1 <= self.tile_size <= 64):
@@ -159,6 +187,9 @@ class RasterSettings:
 
     @property
     def cutoff_radius(self) -> float:
-        """Distance [px] outside a triangle beyond which its coverage is below ``coverage_cutoff``."""
+        """Distance [px] outside a triangle beyond which its coverage is below ``coverage_cutoff``; 0 for
+        the hard model (only pixel centres inside a triangle count)."""
+        if self.raster_model == "hard":
+            return 0.0
         return self.sigma * math.log(1.0 / self.coverage_cutoff - 1.0)
 

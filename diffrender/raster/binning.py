@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .kernel import _BBOX_MARGIN, Static, face_validity, project
+from .common import BBOX_MARGIN
+from .kernel import Static, face_validity, project
 
 __all__ = ["Bins", "bin_faces", "count_pairs"]
 
@@ -56,7 +57,7 @@ def _face_tiles(verts, rotation, eye, faces, st: Static):
     """Per face: first tile column/row, tile-range width, and the number of (face, tile) pairs (B, F)."""
     fuvz = project(verts, rotation, eye, st)[:, faces]  # (B, F, 3, 3)
     valid = face_validity(fuvz, st)
-    r = st.cutoff_radius + _BBOX_MARGIN
+    r = st.cutoff_radius + BBOX_MARGIN
     u, v = fuvz[..., 0], fuvz[..., 1]
     x0, x1, xok = _pixel_range(u.amin(-1) - r, u.amax(-1) + r, st.width)
     y0, y1, yok = _pixel_range(v.amin(-1) - r, v.amax(-1) + r, st.height)

@@ -1,4 +1,4 @@
-"""Fused backend: the soft rasterizer as two Triton kernels (forward, and a recomputing backward).
+"""Fused backend: the rasterizer as two Triton kernels (forward, and a recomputing backward).
 
 Same image model and the same per-pixel arithmetic as :mod:`.kernel` (the dense reference and the tiled
 backend), organised for the GPU:
@@ -13,10 +13,10 @@ backend), organised for the GPU:
   the faces in blocks of ``FACE_BLOCK``, skips a block whose screen bounding box misses the tile, evaluates
   the block's faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online
   softmax (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). It writes
-  the image and, when asked, each pixel's final maximum and denominator: no pair lists, no bins, no
-  capacity to overflow.
+  the image and, when asked, each pixel's blend state (final maximum, denominator, the faces' weight and
+  coverage sums): no pair lists, no bins, no capacity to overflow.
 * **Backward kernel**: one program per (tile of BWD_TILE x BWD_TILE pixels, environment). From each pixel's
-  maximum, denominator and colour (kept by the forward, or from a second forward pass), it forms the gradient of
+  blend state and colour (kept by the forward, or from a second forward pass), it forms the gradient of
   every pixel-face pair in closed form. Faces are taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane:
   the face's 45 coefficients stay in registers while a loop over the tile's pixels accumulates its 45
   coefficient gradients (no cross-lane reductions), then one atomic add per face, coefficient and tile. A pixel
@@ -25,10 +25,14 @@ backend), organised for the GPU:
   carries that weight. Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to
   vertices, normals, colours and the camera (recomputing the per-face setup from the saved inputs).
 
-Saved for backward: the inputs (O(B * V)); with ``RasterSettings.save_blend_state`` also the image, maximum
-and denominator per pixel (5 numbers, O(B * H * W)), which spares the backward a second forward pass.
-Flat in the number of faces either way. Only ``blend="softmax"`` is implemented here; ``"alpha"`` uses
-the tiled backend. Requires CUDA tensors, or, for testing on a CPU,
+Every image model (``RasterSettings.raster_model``) is one pair of kernels with a compile-time ``MODEL``:
+the soft models add the faces' weight and coverage sums to the online softmax and compose the colour at the
+end (the floor and background start the softmax for "softmax" only); "hard" keeps a running nearest face
+instead (coverage a step, no sums), and its backward differentiates only the chosen face's colour.
+
+Saved for backward: the inputs (O(B * V)); with ``RasterSettings.save_blend_state`` also the image and four
+numbers of each pixel's blend (7 numbers, O(B * H * W)), which spares the backward a second forward pass.
+Flat in the number of faces either way. Requires CUDA tensors, or, for testing on a CPU,
 ``TRITON_INTERPRET=1`` in the environment before this module is imported (Triton's interpreter).
 """
 
@@ -42,8 +46,8 @@ import torch
 from ..camera import Camera
 from ..floor import floor_candidate
 from ..settings import RasterSettings
-from .kernel import _BBOX_MARGIN, Static, face_validity, project, vertex_normals
-from .tiled import _chunks, _rows
+from .common import BBOX_MARGIN, chunks, rows
+from .kernel import Static, face_validity, project, vertex_normals
 
 try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack it
     import triton
@@ -68,6 +72,9 @@ _BIG = 1e30  # empty bounding box of a dropped face
 #: per-face coefficients held at once (environments are rendered in chunks of at most this many
 #: coefficients): bounds the renderer's working set, ~5x this in bytes at float32, at any face count
 COEF_ELEMS = 1 << 24
+#: numbers per pixel the forward keeps for the backward besides the image (see ``_fused_forward``)
+STATE_PER_PIXEL = 4
+_MODEL_CODE = {"hard": 0, "softmax": 1, "alpha": 2}  # the kernels' MODEL constant
 
 
 def interpreting() -> bool:
@@ -131,7 +138,7 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
     nfp = -(-nf // face_block) * face_block
     coef = torch.nn.functional.pad(coef, (0, 0, 0, nfp - nf)).transpose(1, 2).contiguous()
     with torch.no_grad():
-        r = st.cutoff_radius + _BBOX_MARGIN
+        r = st.cutoff_radius + BBOX_MARGIN
         box = torch.stack([u.amin(-1) - r, u.amax(-1) + r, v.amin(-1) - r, v.amax(-1) + r], dim=1)  # (B, 4, F)
         empty = _empty_box(b, box.dtype, box.device)
         box = torch.where(valid[:, None, :], box, empty)
@@ -243,11 +250,12 @@ if triton is not None:
         return sd, zn, ar * shade, ag * shade, ab * shade
 
     @triton.jit
-    def _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b, den, m, env, Fp, NB,
+    def _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp, NB,
                     xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
                     sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
                     FB: tl.constexpr):
-        """Online depth softmax over all faces, starting from the floor/background sums."""
+        """Soft models: online depth softmax over all faces, starting from the given sums (floor and
+        background for "softmax", zero for "alpha"); also the faces' weight sum and coverage sum."""
         fo = tl.arange(0, FB)
         cbase = coef_ptr + env * 45 * Fp
         for blk in range(0, NB):
@@ -266,13 +274,45 @@ if triton is not None:
                 num_g = num_g * scale + tl.sum(w * cg, axis=0)
                 num_b = num_b * scale + tl.sum(w * cb, axis=0)
                 den = den * scale + tl.sum(w, axis=0)
+                w_sum = w_sum * scale + tl.sum(w, axis=0)
+                cov_sum = cov_sum + tl.sum(tl.where(keep, cov, 0.0), axis=0)
                 m = m_new
-        return num_r, num_g, num_b, den, m
+        return num_r, num_g, num_b, den, w_sum, cov_sum, m
+
+    @triton.jit
+    def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
+                      xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz,
+                      FB: tl.constexpr):
+        """Hard model: the nearest face whose triangle contains the pixel centre, strictly nearer than ``m``
+        (the floor or background); the lowest face index among exact ties, as the faces come in order. Returns
+        its colour, its index (as a float; -1 for none) and its normalised depth."""
+        fo = tl.arange(0, FB)
+        cbase = coef_ptr + env * 45 * Fp
+        for blk in range(0, NB):
+            if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
+                f = blk * FB + fo
+                fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                cp = cbase + f[:, None]
+                sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                                ambient, diffuse)
+                keep = fm[:, None] & inb[None, :] & (sd >= 0)
+                zk = tl.where(keep, zn, -float("inf"))
+                best = tl.max(zk, axis=0)
+                first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
+                one = f[:, None] == first[None, :]
+                upd = best > m
+                col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
+                col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
+                col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
+                nearest = tl.where(upd, first.to(nearest.dtype), nearest)
+                m = tl.where(upd, best, m)
+        return col_r, col_g, col_b, nearest, m
 
     @triton.jit
     def _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma):
-        """Per pixel: the floor's normalised depth, colour and hit flag, and the blend's starting sums
-        (floor and background) with the running maximum at the floor (or the background's 0)."""
+        """Per pixel: the floor's normalised depth, colour and hit flag; its relative weight against the
+        background ``r_f = sigmoid(z_f / gamma)`` (0 without a hit); the colour behind the faces
+        ``C_b = bg + r_f (floor - bg)``; and the background's colour."""
         bg_r = tl.load(prm + 11)
         bg_g = tl.load(prm + 12)
         bg_b = tl.load(prm + 13)
@@ -282,33 +322,77 @@ if triton is not None:
         fg = tl.load(fp + 2 * HW, mask=inb, other=0.0)
         fb = tl.load(fp + 3 * HW, mask=inb, other=0.0)
         fhit = tl.load(fp + 4 * HW, mask=inb, other=0.0) > 0.5
-        m = tl.where(fhit, fzn, 0.0)
-        w_bg = tl.exp(-m / gamma)
-        w_f = tl.where(fhit, 1.0, 0.0)
-        return fzn, fr, fg, fb, fhit, m, w_bg * bg_r + w_f * fr, w_bg * bg_g + w_f * fg, w_bg * bg_b + w_f * fb, \
-            w_bg + w_f
+        r_f = tl.where(fhit, 1.0 / (1.0 + tl.exp(-tl.where(fhit, fzn, 0.0) / gamma)), 0.0)
+        return (fzn, fr, fg, fb, fhit, r_f, bg_r + r_f * (fr - bg_r), bg_g + r_f * (fg - bg_g),
+                bg_b + r_f * (fb - bg_b), bg_r, bg_g, bg_b)
+
+    @triton.jit
+    def _cover_coefficients(den, w_sum, cov_sum):
+        """The soft models' colour is ``kn num + kc C_b`` with ``kn = A / Q``, ``kc = (1 - A) W / Q``,
+        ``Q = A den + (1 - A) W``, ``A = min(1, sum D)`` (``C_b`` alone where no face is kept). Also returns
+        ``A``, ``1 / Q`` and whether a face is kept."""
+        has = cov_sum > 0
+        a = tl.minimum(cov_sum, 1.0)
+        inv_q = 1.0 / tl.where(has, a * den + (1.0 - a) * w_sum, 1.0)
+        kn = tl.where(has, a * inv_q, 0.0)
+        kc = tl.where(has, (1.0 - a) * w_sum * inv_q, 1.0)
+        return a, inv_q, kn, kc, has
 
     @triton.jit
     def _fused_forward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, out_ptr, state_ptr, Fp, NB, H, W, TX,
-                       TILE_: tl.constexpr, FB: tl.constexpr, SAVE: tl.constexpr):
+                       TILE_: tl.constexpr, FB: tl.constexpr, SAVE: tl.constexpr, MODEL: tl.constexpr):
+        """MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel (SAVE): soft models the blend's maximum, its
+        denominator, the faces' weight sum and coverage sum; hard the maximum and the chosen face (-1: none)."""
         tile = tl.program_id(0)
         env = tl.program_id(1)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
         xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
-        _, _, _, _, _, m, num_r, num_g, num_b, den = _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma)
-        num_r, num_g, num_b, den, m = _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b,
-                                                  den, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
-                                                  sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse,
-                                                  lx, ly, lz, FB)
+        fzn, fr, fg, fb, fhit, _, cb_r, cb_g, cb_b, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix,
+                                                                                    inb, HW, gamma)
+        m = tl.where(fhit, fzn, 0.0)  # the floor, else the background (normalised depth 0)
+        if MODEL == 0:
+            nearest = tl.full(m.shape, -1.0, m.dtype)
+            out_r, out_g, out_b, nearest, m = _nearest_pass(
+                coef_ptr, box_ptr, bbox_ptr, tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g),
+                tl.where(fhit, fb, bg_b), nearest, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear,
+                zfar, ambient, diffuse, lx, ly, lz, FB)
+            s1 = nearest
+            s2 = tl.zeros_like(m)
+            s3 = tl.zeros_like(m)
+        else:
+            zero = tl.zeros_like(m)
+            if MODEL == 1:  # the floor and background are softmax candidates
+                w_bg = tl.exp(-m / gamma)
+                w_f = tl.where(fhit, 1.0, 0.0)
+                num_r = w_bg * bg_r + w_f * fr
+                num_g = w_bg * bg_g + w_f * fg
+                num_b = w_bg * bg_b + w_f * fb
+                den = w_bg + w_f
+            else:  # faces only; the start lies below every face's depth (its scale underflows to 0)
+                m = zero - 1e4
+                num_r, num_g, num_b, den = zero, zero, zero, zero
+            num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_pass(
+                coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB, xc, yc,
+                inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly,
+                lz, FB)
+            _, _, kn, kc, _ = _cover_coefficients(den, w_sum, cov_sum)
+            out_r = kn * num_r + kc * cb_r
+            out_g = kn * num_g + kc * cb_g
+            out_b = kn * num_b + kc * cb_b
+            s1 = den
+            s2 = w_sum
+            s3 = cov_sum
         op = out_ptr + env * 3 * HW + pix
-        tl.store(op, num_r / den, mask=inb)
-        tl.store(op + HW, num_g / den, mask=inb)
-        tl.store(op + 2 * HW, num_b / den, mask=inb)
-        if SAVE:  # the blend's running maximum and denominator per pixel: the backward's first pass, done
-            sp = state_ptr + env * 2 * HW + pix
+        tl.store(op, out_r, mask=inb)
+        tl.store(op + HW, out_g, mask=inb)
+        tl.store(op + 2 * HW, out_b, mask=inb)
+        if SAVE:  # what the backward needs besides the image: its first pass, done
+            sp = state_ptr + env * 4 * HW + pix
             tl.store(sp, m, mask=inb)
-            tl.store(sp + HW, den, mask=inb)
+            tl.store(sp + HW, s1, mask=inb)
+            tl.store(sp + 2 * HW, s2, mask=inb)
+            tl.store(sp + 3 * HW, s3, mask=inb)
 
     @triton.jit
     def _affine_acc(ga, gx, gy, g, x, y):
@@ -330,33 +414,52 @@ if triton is not None:
 
     @triton.jit
     def _fused_backward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gcoef_ptr,
-                        gfloor_ptr, Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SUB: tl.constexpr):
+                        gfloor_ptr, Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SUB: tl.constexpr,
+                        MODEL: tl.constexpr):
         """One program per (tile, environment). Floor gradients per pixel; then, per sub-block of SUB faces
         (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
-        registers, and one atomic add per face and coefficient at the end (no cross-lane reductions)."""
+        registers, and one atomic add per face and coefficient at the end (no cross-lane reductions).
+        MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
         tile = tl.program_id(0)
         env = tl.program_id(1)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
         _, _, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
-        # ---- floor: weight exp((z_f - m) / gamma) where the ray hits it; the background is a constant
-        fzn, fr, fg, fb, fhit, _, _, _, _, _ = _floor_start(floor_ptr, prm, env, pix, inb, HW, gamma)
-        sp = state_ptr + env * 2 * HW + pix
+        # ---- floor: its colour and depth reach the image through C_b (soft models), through the softmax's
+        # floor weight exp((z_f - m) / gamma) (softmax), or directly where it is shown (hard)
+        fzn, fr, fg, fb, fhit, r_f, _, _, _, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix, inb, HW,
+                                                                             gamma)
+        sp = state_ptr + env * 4 * HW + pix
         m_t = tl.load(sp, mask=inb, other=0.0)
-        inv_den_t = 1.0 / tl.load(sp + HW, mask=inb, other=1.0)
-        ip = img_ptr + env * 3 * HW + pix
+        s1_t = tl.load(sp + HW, mask=inb, other=1.0)
+        s2_t = tl.load(sp + 2 * HW, mask=inb, other=0.0)
+        s3_t = tl.load(sp + 3 * HW, mask=inb, other=0.0)
         gp = gout_ptr + env * 3 * HW + pix
         gr_t = tl.load(gp, mask=inb, other=0.0)
         gg_t = tl.load(gp + HW, mask=inb, other=0.0)
         gb_t = tl.load(gp + 2 * HW, mask=inb, other=0.0)
-        w_f = tl.where(fhit, tl.exp(tl.minimum((fzn - m_t) / gamma, 0.0)), 0.0)  # m >= fzn; no-hit: no inf
-        g_wf = (gr_t * (fr - tl.load(ip, mask=inb, other=0.0)) + gg_t * (fg - tl.load(ip + HW, mask=inb, other=0.0))
-                + gb_t * (fb - tl.load(ip + 2 * HW, mask=inb, other=0.0))) * inv_den_t
+        if MODEL == 0:
+            shown = tl.where((s1_t < 0) & fhit, 1.0, 0.0)  # no face chosen and the ray hits the floor
+            g_fzn = tl.zeros_like(m_t)
+            k_fc = shown
+        else:
+            _, _, kn_t, kc_t, _ = _cover_coefficients(s1_t, s2_t, s3_t)
+            g_fb = gr_t * (fr - bg_r) + gg_t * (fg - bg_g) + gb_t * (fb - bg_b)
+            g_fzn = tl.where(fhit, kc_t * g_fb * r_f * (1.0 - r_f) / gamma, 0.0)
+            k_fc = kc_t * r_f
+            if MODEL == 1:
+                ip = img_ptr + env * 3 * HW + pix
+                w_f = tl.where(fhit, tl.exp(tl.minimum((fzn - m_t) / gamma, 0.0)), 0.0)  # m >= fzn; no inf
+                g_wf = (gr_t * (fr - tl.load(ip, mask=inb, other=0.0))
+                        + gg_t * (fg - tl.load(ip + HW, mask=inb, other=0.0))
+                        + gb_t * (fb - tl.load(ip + 2 * HW, mask=inb, other=0.0)))
+                g_fzn += tl.where(fhit, kn_t * g_wf * w_f / gamma, 0.0)
+                k_fc += kn_t * w_f
         gfp = gfloor_ptr + env * 4 * HW + pix
-        tl.store(gfp, tl.where(fhit, g_wf * w_f / gamma, 0.0), mask=inb)
-        tl.store(gfp + HW, gr_t * w_f * inv_den_t, mask=inb)
-        tl.store(gfp + 2 * HW, gg_t * w_f * inv_den_t, mask=inb)
-        tl.store(gfp + 3 * HW, gb_t * w_f * inv_den_t, mask=inb)
+        tl.store(gfp, g_fzn, mask=inb)
+        tl.store(gfp + HW, gr_t * k_fc, mask=inb)
+        tl.store(gfp + 2 * HW, gg_t * k_fc, mask=inb)
+        tl.store(gfp + 3 * HW, gb_t * k_fc, mask=inb)
 
         # ---- faces
         ty0 = (tile // TX) * TILE_
@@ -427,7 +530,11 @@ if triton is not None:
                             inside = dmin >= 0
                             root = tl.sqrt(dsmin + 1e-20)
                             sd = tl.where(inside, dmin, -root)
-                            keep = fm & pin & (sd > -cutoff)
+                            pst = state_ptr + env * 4 * HW + pyi * W + pxi
+                            if MODEL == 0:  # the face the forward chose (-1: none)
+                                keep = fm & pin & (f == tl.load(pst + HW, mask=pin, other=-1.0).to(tl.int32))
+                            else:
+                                keep = fm & pin & (sd > -cutoff)
                             if tl.max(keep.to(tl.int32), axis=0) > 0:
                                 q_off = env * 3 * HW + pyi * W + pxi
                                 gr = tl.load(gout_ptr + q_off)
@@ -436,8 +543,7 @@ if triton is not None:
                                 out_r = tl.load(img_ptr + q_off)
                                 out_g = tl.load(img_ptr + q_off + HW)
                                 out_b = tl.load(img_ptr + q_off + 2 * HW)
-                                m = tl.load(state_ptr + env * 2 * HW + pyi * W + pxi)
-                                inv_den = 1.0 / tl.load(state_ptr + env * 2 * HW + HW + pyi * W + pxi)
+                                m = tl.load(pst)
                                 lc0 = tl.maximum(lam0, 0.0)
                                 lc1 = tl.maximum(lam1, 0.0)
                                 lc2 = tl.maximum(lam2, 0.0)
@@ -451,7 +557,10 @@ if triton is not None:
                                 cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
                                 e = (zn - m) / gamma
                                 ew = tl.exp(tl.minimum(e, cap))
-                                w = tl.where(keep, cov * ew, 0.0)
+                                if MODEL == 0:
+                                    w = tl.where(keep, 1.0, 0.0)
+                                else:
+                                    w = tl.where(keep, cov * ew, 0.0)
                                 wmax = tl.maximum(wmax, w)
                                 b0 = q0 * inv_q
                                 b1 = q1 * inv_q
@@ -467,14 +576,33 @@ if triton is not None:
                                 cosl = nl * il
                                 shade = ambient + diffuse * tl.maximum(cosl, 0.0)
                                 # ---- backward: blend
-                                gw = tl.where(keep, (gr * (ar * shade - out_r) + gg * (ag * shade - out_g)
-                                                     + gb * (ab * shade - out_b)) * inv_den, 0.0)
-                                wd = w * inv_den
-                                gcr = gr * wd  # d loss / d colour of the pair
-                                gcg = gg * wd
-                                gcb = gb * wd
-                                gzn = tl.where(e < cap, gw * w / gamma, 0.0)
-                                gsd = gw * ew * cov * (1.0 - cov) / sigma
+                                if MODEL == 0:  # the chosen face's colour is the pixel's; nothing else
+                                    gcr = gr * w
+                                    gcg = gg * w
+                                    gcb = gb * w
+                                    gzn = tl.zeros_like(w)
+                                    gsd = tl.zeros_like(w)
+                                else:
+                                    den_p = tl.load(pst + HW)
+                                    wsum_p = tl.load(pst + 2 * HW)
+                                    csum_p = tl.load(pst + 3 * HW)
+                                    a, inv_cq, kn, _, _ = _cover_coefficients(den_p, wsum_p, csum_p)
+                                    fpp = floor_ptr + env * 5 * HW + pyi * W + pxi
+                                    _, _, _, _, _, _, pcb_r, pcb_g, pcb_b, _, _, _ = _floor_start(
+                                        fpp, prm, 0, 0, pin, HW, gamma)
+                                    g_out = gr * out_r + gg * out_g + gb * out_b
+                                    g_cb = gr * pcb_r + gg * pcb_g + gb * pcb_b
+                                    # d colour / d A = W (colour - C_b) / (A Q) while sum D < 1
+                                    g_a = tl.where(csum_p < 1.0, wsum_p * (g_out - g_cb) * inv_cq / a, 0.0)
+                                    # a face weight enters num, den and W
+                                    gw = tl.where(keep, kn * (gr * ar * shade + gg * ag * shade + gb * ab * shade
+                                                              - g_out) + (1.0 - a) * inv_cq * (g_cb - g_out), 0.0)
+                                    wd = w * kn
+                                    gcr = gr * wd  # d loss / d colour of the pair
+                                    gcg = gg * wd
+                                    gcb = gb * wd
+                                    gzn = tl.where(e < cap, gw * w / gamma, 0.0)
+                                    gsd = tl.where(keep, (gw * ew + g_a) * cov * (1.0 - cov) / sigma, 0.0)
                                 # ---- colour = albedo * shade(normal)
                                 gar = gcr * shade
                                 gag = gcg * shade
@@ -603,12 +731,13 @@ def _setup_fn(compile_: bool):
 
 def _launch_forward(coef, box, bbox, floor, st: Static, tile: int, fb: int, out: torch.Tensor,
                     state: torch.Tensor | None) -> None:
-    """Blend one chunk's image into ``out`` (b, 3, H, W) and, if ``state`` (b, 2, H, W) is given, each pixel's
-    final blend maximum and denominator into it."""
+    """Blend one chunk's image into ``out`` (b, 3, H, W) and, if ``state`` (b, 4, H, W) is given, what the
+    backward needs of each pixel's blend into it (see ``_fused_forward``)."""
     grid, tx = _launch_grid(st, out.shape[0], tile)
     _fused_forward[grid](coef, box, bbox, floor, _params(st, out.dtype, out.device), out,
                          out if state is None else state, coef.shape[2], bbox.shape[2], st.height, st.width, tx,
-                         TILE_=tile, FB=fb, SAVE=state is not None, num_warps=_warps(tile, fb))
+                         TILE_=tile, FB=fb, SAVE=state is not None, MODEL=_MODEL_CODE[st.raster_model],
+                         num_warps=_warps(tile, fb))
 
 
 class _FusedRasterize(torch.autograd.Function):
@@ -626,9 +755,9 @@ class _FusedRasterize(torch.autograd.Function):
         # per pixel: the blend's final maximum and denominator (what the backward needs besides the image);
         # kept only when asked to (settings.save_blend_state) and a gradient is wanted
         save = keep_state and any(ctx.needs_input_grad[:5])
-        state = torch.empty(b, 2, st.height, st.width, dtype=dt, device=dev) if save else None
-        for sl in _chunks(b, chunk):
-            coef, box, bbox, floor = setup(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True),
+        state = torch.empty(b, STATE_PER_PIXEL, st.height, st.width, dtype=dt, device=dev) if save else None
+        for sl in chunks(b, chunk):
+            coef, box, bbox, floor = setup(verts[sl], rows(normals, sl), rows(colors, sl, shared_ok=True),
                                            rotation[sl], eye[sl], faces, st, fb)
             _launch_forward(coef, box, bbox, floor, st, tile, fb, out[sl], None if state is None else state[sl])
         if save:
@@ -653,9 +782,9 @@ class _FusedRasterize(torch.autograd.Function):
         grad_img = grad_img.contiguous()
         dt, dev = verts.dtype, verts.device
         sub = min(fb, BWD_SUB_BLOCK)
-        for sl in _chunks(verts.shape[0], chunk):
+        for sl in chunks(verts.shape[0], chunk):
             with torch.enable_grad():
-                leaves = [None if x is None else _rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
+                leaves = [None if x is None else rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
                           for i, (x, nd) in enumerate(zip(inputs, need))]
                 coef, box, bbox, floor = setup(*leaves, faces, st, fb)
                 floor_diff = floor[:, :4]  # depth and colour (the hit flag has no gradient)
@@ -670,12 +799,12 @@ class _FusedRasterize(torch.autograd.Function):
             else:  # the forward pass again, this time keeping the blend state (chunk-sized temporaries)
                 nb = sl.stop - sl.start
                 out = torch.empty(nb, 3, st.height, st.width, dtype=dt, device=dev)
-                state = torch.empty(nb, 2, st.height, st.width, dtype=dt, device=dev)
+                state = torch.empty(nb, STATE_PER_PIXEL, st.height, st.width, dtype=dt, device=dev)
                 _launch_forward(coef.detach(), box, bbox, floor.detach(), st, tile, fb, out, state)
             grid, tx = _launch_grid(st, sl.stop - sl.start, BWD_TILE)
             _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, dt, dev), out,
                                   state, grad_img[sl], gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height,
-                                  st.width, tx, TILE_=BWD_TILE, FB=fb, SUB=sub,
+                                  st.width, tx, TILE_=BWD_TILE, FB=fb, SUB=sub, MODEL=_MODEL_CODE[st.raster_model],
                                   num_warps=BWD_WARPS or max(1, sub // 32))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
@@ -693,15 +822,12 @@ def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: t
                     faces: torch.Tensor, settings: RasterSettings, *, tile: int | None = None,
                     face_block: int | None = None) -> torch.Tensor:
     """Render (B, 3, H, W) with the fused Triton kernels (see :func:`diffrender.render` for the arguments;
-    ``settings.blend`` must be ``"softmax"``). ``tile`` (pixels per tile side) and ``face_block`` (faces
+    every ``settings.raster_model``). ``tile`` (pixels per tile side) and ``face_block`` (faces
     per block) are powers of two; None reads the module's ``TILE`` and ``FACE_BLOCK``."""
     tile = TILE if tile is None else tile
     face_block = FACE_BLOCK if face_block is None else face_block
     if triton is None:
         raise RuntimeError("the fused backend needs triton (it ships with CUDA builds of PyTorch)")
-    if settings.blend != "softmax":
-        raise ValueError(f"the fused backend implements blend='softmax' only, got {settings.blend!r}; "
-                         "use backend='tiled'")
     if not available(verts.device):
         raise ValueError(f"the fused backend runs on CUDA tensors (or on the CPU under TRITON_INTERPRET=1), "
                          f"got {verts.device}")

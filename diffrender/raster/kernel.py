@@ -20,11 +20,10 @@ import torch
 from ..floor import floor_candidate
 from ..settings import FloorSettings, RasterSettings
 from ..shading import lambert_shade, unit_light
+from .common import AREA_EPS
 
 __all__ = ["Static", "face_validity", "project", "render_pairs", "vertex_normals"]
 
-_AREA_EPS = 1e-9  # [px^2] faces with a smaller projected area are dropped (their barycentrics are undefined)
-_BBOX_MARGIN = 1e-3  # [px] extra binning radius: binning never misses a pair the kernel would keep
 
 
 @dataclass(frozen=True)
@@ -49,7 +48,7 @@ class Static:
     ambient: float
     diffuse: float
     cull_backfaces: bool
-    blend: str = "softmax"
+    raster_model: str = "softmax"
 
     @property
     def tiles_x(self) -> int:
@@ -77,7 +76,7 @@ class Static:
                    background=tuple(float(c) for c in settings.background), floor=settings.floor,
                    light=unit_light(settings.light_dir), ambient=float(settings.ambient),
                    diffuse=float(settings.diffuse), cull_backfaces=bool(settings.cull_backfaces),
-                   blend=settings.blend)
+                   raster_model=settings.raster_model)
 
 
 def project(verts: torch.Tensor, rotation: torch.Tensor, eye: torch.Tensor, st: Static) -> torch.Tensor:
@@ -100,8 +99,8 @@ def face_validity(face_uvz: torch.Tensor, st: Static) -> torch.Tensor:
     area2 = (u[..., 1] - u[..., 0]) * (v[..., 2] - v[..., 0]) - (v[..., 1] - v[..., 0]) * (u[..., 2] - u[..., 0])
     ok = (z > st.znear).all(-1) & torch.isfinite(area2)
     if st.cull_backfaces:
-        return ok & (area2 < -_AREA_EPS)
-    return ok & (area2.abs() > _AREA_EPS)
+        return ok & (area2 < -AREA_EPS)
+    return ok & (area2.abs() > AREA_EPS)
 
 
 def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -221,13 +220,13 @@ def render_pairs(
     attr = torch.bmm(bary.transpose(1, 2), fd[:, :, 4:10])
     normal, albedo = attr[..., :3], attr[..., 3:]
     color = albedo * lambert_shade(normal, st.light, ambient=st.ambient, diffuse=st.diffuse)[..., None]  # (N, T, 3)
-    keep = valid[:, None] & (sd > -st.cutoff_radius)
-
     # ---- blend. Per-pixel buffers are laid out (B * tiles, T): a pair's pixels are one contiguous row.
     ntile = st.num_tiles
     rows = pair_env * ntile + pair_tile
+    idx = rows[:, None].expand(n, st.tile_pixels)
     all_tiles = torch.arange(ntile, device=verts.device)
     fpx, fpy = _tile_pixel_centres(all_tiles, st, dt)  # (tiles, T)
+    # behind every face: the floor where the pixel's ray hits it, else the background (normalised depth 0)
     bg_zn = 0.0
     if st.floor is not None:
         light_factor = st.ambient + st.diffuse * max(0.0, st.light[2])
@@ -240,65 +239,95 @@ def render_pairs(
         m0 = torch.where(f_hit, f_zn.detach(), torch.full_like(f_zn, bg_zn))
     else:
         m0 = verts.new_full((b * ntile, st.tile_pixels), bg_zn)
-    # behind every face: the floor where the pixel's ray hits it, else the background (normalised depth 0)
-    if st.floor is not None:
-        # no-hit pixels carry a stand-in depth; mask before exp so no inf is formed (inf * 0 = NaN in backward)
-        f_expo = torch.where(f_hit, (f_zn - m0) / st.gamma, torch.full_like(f_zn, -math.inf))
-    coverage = torch.sigmoid(sd * (1.0 / st.sigma))
-    # Kept faces have (z_n - m) / gamma <= 0 up to rounding. The cap guards against the keep mask being
-    # re-evaluated with different rounding (a fused compiled backward recomputes sd): a pair dropped when m
-    # was formed, re-kept later, could otherwise have exp(+hundreds) = inf. Capped, it weighs at most its
-    # coverage (~ the cut-off), the same as the cut-off's own discontinuity; legitimate pairs never reach it.
-    cap = max(0.02, 100.0 * torch.finfo(dt).eps / st.gamma)
-    if st.blend == "softmax":
-        # the floor and the background are candidates of the depth softmax like the faces. Detached
-        # per-pixel max of the candidates' normalised depth: it cancels in the blend and only keeps
-        # exp() <= 1; it must include every kept face so no weight overflows
+    if st.raster_model == "hard":
+        out = _hard_blend(z_n, color, valid[:, None] & (sd >= 0), pair_face, faces.shape[0], idx, rows, m0,
+                          f_col if st.floor is not None else None, f_hit if st.floor is not None else None, st)
+    else:
+        keep = valid[:, None] & (sd > -st.cutoff_radius)
+        coverage = torch.sigmoid(sd * (1.0 / st.sigma))
+        # the floor / background colour behind the faces, C_b: relative weights floor : background =
+        # exp(z_f / gamma) : 1 (m-independent, so it never over- or underflows)
+        behind = _times_rgb(torch.ones_like(m0), st.background)
+        if st.floor is not None:
+            # no-hit pixels carry a stand-in depth; mask before exp so no inf is formed (inf * 0 = NaN in
+            # backward)
+            f_expo = torch.where(f_hit, (f_zn - m0) / st.gamma, torch.full_like(f_zn, -math.inf))
+            r_floor = torch.where(f_hit, torch.sigmoid(f_zn / st.gamma), torch.zeros_like(f_zn))
+            behind = behind + r_floor[..., None] * (f_col - behind)
+        # Kept faces have (z_n - m) / gamma <= 0 up to rounding. The cap guards against the keep mask being
+        # re-evaluated with different rounding (a fused compiled backward recomputes sd): a pair dropped when m
+        # was formed, re-kept later, could otherwise have exp(+hundreds) = inf. Capped, it weighs at most its
+        # coverage (~ the cut-off), the same as the cut-off's own discontinuity; legitimate pairs never reach it.
+        cap = max(0.02, 100.0 * torch.finfo(dt).eps / st.gamma)
+        # Detached per-pixel max of the candidates' normalised depth: it cancels in the blend and only keeps
+        # exp() <= 1; it must include every kept face so no weight overflows. "softmax": the floor and the
+        # background are candidates like the faces; "alpha": the faces only (0 where there are none).
         with torch.no_grad():
             cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
-            m = m0.scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand, reduce="amax",
-                                  include_self=True)
+            start = m0 if st.raster_model == "softmax" else torch.full_like(m0, -math.inf)
+            m = start.scatter_reduce(0, idx, cand, reduce="amax", include_self=True)
+            m = torch.where(torch.isfinite(m), m, torch.zeros_like(m))
         expo = torch.where(keep, ((z_n - m[rows]) * (1.0 / st.gamma)).clamp(max=cap),
                            torch.full_like(z_n, -math.inf))
         w = coverage * torch.exp(expo)  # exactly 0 for dropped pairs (also in the backward)
-        # the floor and background start the per-pixel sums; the faces are scattered onto them (scattering
-        # into fresh zero buffers and adding the floor afterwards was mis-compiled by inductor 2.13 on the
-        # CPU: the scattered part went missing; test_raster.py::test_compiled_kernel_matches_eager)
-        shift = torch.exp((m0 - m) / st.gamma)  # rescale floor/background weights from m0 to m
-        den = shift * torch.exp((bg_zn - m0) / st.gamma)
-        num = _times_rgb(den, st.background)
-        if st.floor is not None:
-            w_floor = shift * torch.exp(f_expo)
-            num = num + w_floor[..., None] * f_col
-            den = den + w_floor
-        num = num.index_add(0, rows, color * w[..., None])
-        den = den.index_add(0, rows, w)
-        out = num / den[..., None]  # (B * tiles, T, 3)
-    else:
-        # "alpha": the depth softmax runs over the faces only and its colour is composited over the floor /
-        # background with the faces' joint coverage A = min(1, sum D). (Not 1 - prod(1 - D): two triangles
-        # sharing an edge have complementary sigmoids there, D1 + D2 = 1, so the sum is exactly 1 across a
-        # mesh's internal edges, while the product form leaves A = 0.75 seams all over a tessellated surface.)
-        with torch.no_grad():
-            cand = torch.where(keep, z_n, torch.full_like(z_n, -math.inf))
-            m = torch.full_like(m0, -math.inf).scatter_reduce(0, rows[:, None].expand(n, st.tile_pixels), cand,
-                                                               reduce="amax", include_self=True)
-            m = torch.where(torch.isfinite(m), m, torch.zeros_like(m))  # pixels without faces
-        expo = torch.where(keep, ((z_n - m[rows]) * (1.0 / st.gamma)).clamp(max=cap),
-                           torch.full_like(z_n, -math.inf))
-        w = coverage * torch.exp(expo)
         cov = torch.where(keep, coverage, torch.zeros_like(coverage))
-        behind = _times_rgb(torch.ones_like(m0), st.background)
-        if st.floor is not None:
-            w_floor = torch.exp(f_expo)  # relative to the background's exp((0 - m0) / gamma)
-            w_bg = torch.exp((bg_zn - m0) / st.gamma)
-            behind = (_times_rgb(w_bg, st.background) + w_floor[..., None] * f_col) / (w_bg + w_floor)[..., None]
         zero = torch.zeros_like(m0)
-        num = zero[..., None].expand((*m0.shape, 3)).index_add(0, rows, color * w[..., None])
-        den = zero.index_add(0, rows, w)
-        alpha = zero.index_add(0, rows, cov).clamp(max=1.0)
-        faces_color = num / torch.where(den > 0, den, torch.ones_like(den))[..., None]
-        out = alpha[..., None] * faces_color + (1.0 - alpha[..., None]) * behind
+        # the faces' coverage sum and weight sum per pixel. (A = min(1, sum D), not 1 - prod(1 - D): two
+        # triangles sharing an edge have complementary sigmoids there, D1 + D2 = 1, so the sum is exactly 1
+        # across a mesh's internal edges, while the product form leaves A = 0.75 seams all over a surface.)
+        cov_sum = zero.index_add(0, rows, cov)
+        w_faces = zero.index_add(0, rows, w)
+        if st.raster_model == "softmax":
+            # the floor and background start the per-pixel sums; the faces are scattered onto them (scattering
+            # into fresh zero buffers and adding the floor afterwards was mis-compiled by inductor 2.13 on the
+            # CPU: the scattered part went missing; test_raster.py::test_compiled_kernel_matches_eager)
+            shift = torch.exp((m0 - m) / st.gamma)  # rescale floor/background weights from m0 to m
+            den = shift * torch.exp((bg_zn - m0) / st.gamma)
+            num = _times_rgb(den, st.background)
+            if st.floor is not None:
+                w_floor = shift * torch.exp(f_expo)
+                num = num + w_floor[..., None] * f_col
+                den = den + w_floor
+            num = num.index_add(0, rows, color * w[..., None])
+            den = den.index_add(0, rows, w)
+        else:
+            num = zero[..., None].expand((*m0.shape, 3)).index_add(0, rows, color * w[..., None])
+            den = w_faces
+        out = _cover(num, den, w_faces, cov_sum, behind)
     img = out.view(b, st.tiles_y, st.tiles_x, st.tile_h, st.tile_w, 3).permute(0, 5, 1, 3, 2, 4)
     img = img.reshape(b, 3, st.tiles_y * st.tile_h, st.tiles_x * st.tile_w)
     return img[:, :, : st.height, : st.width]
+
+
+def _cover(num: torch.Tensor, den: torch.Tensor, w_faces: torch.Tensor, cov_sum: torch.Tensor,
+           behind: torch.Tensor) -> torch.Tensor:
+    """The soft models' colour ``(A num + (1 - A) W C_b) / (A den + (1 - A) W)`` with ``A = min(1, sum D)``:
+    num (P, 3) and den (P,) the depth softmax's sums, w_faces (P,) the faces' part ``W`` of den, cov_sum (P,)
+    ``sum D``, behind (P, 3) the floor/background colour ``C_b``. Pixels without faces show ``C_b``."""
+    a = cov_sum.clamp(max=1.0)
+    has = cov_sum > 0
+    uncovered = (1.0 - a) * w_faces
+    q = torch.where(has, a * den + uncovered, torch.ones_like(den))  # > 0 where there are faces
+    mixed = (a[..., None] * num + uncovered[..., None] * behind) / q[..., None]
+    return torch.where(has[..., None], mixed, behind)
+
+
+def _hard_blend(z_n, color, inside, pair_face, num_faces: int, idx, rows, m0, f_col, f_hit, st: Static):
+    """The hard model: per pixel the nearest face containing the centre (lowest face index among exact
+    depth ties), strictly nearer than the floor / background (``m0``); else the floor or background. The
+    choice is made without gradient; the chosen face's colour keeps its gradient. Returns (P, 3)."""
+    with torch.no_grad():
+        cand = torch.where(inside, z_n, torch.full_like(z_n, -math.inf))
+        m = m0.scatter_reduce(0, idx, cand, reduce="amax", include_self=True)
+        wins = inside & (z_n == m[rows]) & (z_n > m0[rows])
+        face_id = torch.where(wins, pair_face[:, None], torch.full_like(idx, num_faces))
+        chosen = torch.full_like(m0, num_faces, dtype=torch.long).scatter_reduce(0, idx, face_id, reduce="amin",
+                                                                                include_self=True)
+        selected = wins & (pair_face[:, None] == chosen[rows])
+    faces_color = torch.zeros((*m0.shape, 3), dtype=color.dtype, device=color.device)
+    faces_color = faces_color.index_add(0, rows, color * selected[..., None].to(color.dtype))
+    behind = _times_rgb(torch.ones_like(m0), st.background)
+    if f_col is not None:
+        behind = torch.where(f_hit[..., None], f_col, behind)
+    return torch.where((chosen < num_faces)[..., None], faces_color, behind)
+

@@ -26,6 +26,7 @@ import torch
 from ..camera import Camera
 from ..settings import RasterSettings
 from .binning import Bins, bin_faces, count_pairs
+from .common import chunks, rows
 from .kernel import Static, render_pairs
 
 __all__ = ["chunk_of", "measure_capacity", "rasterize_tiled", "tiled_static"]
@@ -64,18 +65,6 @@ def _bins(verts, rotation, eye, faces, st: Static, slots: int, compile_: bool = 
     return _binner(compile_)(verts, rotation, eye, faces, st, slots)
 
 
-def _rows(x: torch.Tensor | None, sl: slice, *, shared_ok: bool = False) -> torch.Tensor | None:
-    """Slice a per-environment tensor; shared (V, 3) colours (``shared_ok``) are used whole."""
-    if x is None or (shared_ok and x.ndim == 2):
-        return x
-    return x[sl]
-
-
-def _chunks(b: int, chunk: int):
-    for b0 in range(0, b, chunk):
-        yield slice(b0, min(b, b0 + chunk))
-
-
 class _TiledRasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, capacity: int, chunk: int,
@@ -84,12 +73,12 @@ class _TiledRasterize(torch.autograd.Function):
         b = verts.shape[0]
         out = verts.new_empty(b, 3, st.height, st.width)
         need = torch.zeros(b, dtype=torch.long, device=verts.device)
-        for sl in _chunks(b, chunk):
+        for sl in chunks(b, chunk):
             nb = sl.stop - sl.start
             bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * nb, compile_)
             # slots are pooled over the chunk: report the chunk's demand per environment (rounded up)
             need[sl] = -(-bins.count.sum() // nb)
-            out[sl] = kernel(verts[sl], _rows(normals, sl), _rows(colors, sl, shared_ok=True), rotation[sl],
+            out[sl] = kernel(verts[sl], rows(normals, sl), rows(colors, sl, shared_ok=True), rotation[sl],
                              eye[sl], faces, bins.env, bins.face, bins.tile, bins.valid, st)
         # environments of an overflowing chunk are NaN, never a silently incomplete image (render() also
         # raises unless host syncs are disabled)
@@ -111,11 +100,11 @@ class _TiledRasterize(torch.autograd.Function):
         need = ctx.needs_input_grad[:5]
         inputs = (verts, normals, colors, rotation, eye)
         grads = [torch.zeros_like(x) if (nd and x is not None) else None for x, nd in zip(inputs, need)]
-        for sl in _chunks(verts.shape[0], chunk):
+        for sl in chunks(verts.shape[0], chunk):
             bins = _bins(verts[sl], rotation[sl], eye[sl], faces, st, capacity * (sl.stop - sl.start), compile_)
             with torch.enable_grad():
                 leaves = [None if x is None
-                          else _rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
+                          else rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
                           for i, (x, nd) in enumerate(zip(inputs, need))]
                 img = kernel(*leaves, faces, bins.env, bins.face, bins.tile, bins.valid, st)
                 wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
@@ -141,7 +130,7 @@ def measure_capacity(verts, rotation, eye, faces, settings: RasterSettings, st: 
     need = 0
     for _ in range(2):
         chunk = _chunk_envs(settings, st, capacity)
-        need = max(-(-sum(counts[sl]) // (sl.stop - sl.start)) for sl in _chunks(b, chunk))
+        need = max(-(-sum(counts[sl]) // (sl.stop - sl.start)) for sl in chunks(b, chunk))
         capacity = _with_headroom(need)
     return need, capacity
 
