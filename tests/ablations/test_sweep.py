@@ -1,0 +1,339 @@
+"""``ablate-sweep``: the grid, its checks, run folders as archives, the driver's store, and real sweeps on a local
+Ray cluster (a worker killed mid-run, a failed run, a rerun that skips and resumes)."""
+
+from __future__ import annotations
+
+import io
+import json
+import tarfile
+from pathlib import Path
+
+import pytest
+
+from ablations.runs import read_metrics
+from ablations.sweep import (
+    RunStore,
+    SweepConfig,
+    load_manifest,
+    main,
+    pack_run,
+    parse_args,
+    plan,
+    run_sweep,
+    unpack_run,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+#: A run of a few seconds on one CPU core: 12 iterations, a checkpoint every 2.
+TINY = ("iters=12", "num-envs=2", "horizon=3", "image-size=24", "critic-iterations=1", "critic-batches=1",
+        "checkpoint-every=2", "video-every=0", "cosine-every=0", "device=cpu")
+
+
+def tiny_sweep(out: Path, **kw) -> SweepConfig:
+    kw.setdefault("modes", ("decoupled", "state"))
+    return SweepConfig(out=out, tasks=("cartpole",), set=TINY, progress=False, **kw)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The grid and its checks (no Ray)
+
+
+def test_plan_is_the_product_of_the_axes_with_stable_names_and_flags():
+    cfg = SweepConfig(tasks=("cartpole", "ant"), modes=("full", "state"), seeds=(0, 1),
+                      set=("iters=7", "compile=false", "actor-hidden=32 16"), vary=("image-size=24,32",))
+    specs = plan(cfg)
+    assert len(specs) == 2 * 2 * 2 * 2
+    assert len({s.run_id for s in specs}) == len(specs)
+    first = specs[0]
+    assert first.run_id == "cartpole_full_seed0_image-size24"
+    assert first.flags == {"image_size": "24"} and first.iters == 7
+    args = list(first.args)
+    assert args[:6] == ["--task", "cartpole", "--mode", "full", "--seed", "0"]
+    assert "--no-compile" in args and args[args.index("--actor-hidden") + 1:][:2] == ["32", "16"]
+    assert args[-2:] == ["--image-size", "24"]
+    assert {s.run_id for s in specs if s.task == "ant" and s.seed == 1} == {
+        "ant_full_seed1_image-size24", "ant_full_seed1_image-size32",
+        "ant_state_seed1_image-size24", "ant_state_seed1_image-size32"}
+
+
+@pytest.mark.parametrize(("kw", "message"), [
+    (dict(set=("tsk=3",)), "--set tsk=3: ablate has no flag --tsk"),
+    (dict(set=("seed=3",)), "the sweep sets --seed itself; use --seeds"),
+    (dict(vary=("name=a,b",)), "the sweep sets --name itself"),
+    (dict(set=("iters",)), "expected FLAG=VALUE"),
+    (dict(set=("compile=maybe",)), "--compile: expected true or false, got 'maybe'"),
+    (dict(set=("no-compile=true",)), "write compile=false instead"),
+    (dict(vary=("horizon=4,,8",)), "an empty value"),
+    (dict(vary=("horizon=4,4",)), "values repeat"),
+    (dict(set=("horizon=4",), vary=("horizon=8,16",)), "horizon: given in both --set and --vary"),
+    (dict(tasks=("cartpol",)), "run cartpol_full_seed0: unknown task 'cartpol'"),
+    (dict(seeds=(1, 1)), "--seeds lists a value twice"),
+    (dict(modes=()), "--modes needs at least one value"),
+    (dict(set=("num-envs=0",)), "run cartpole_full_seed0: num_envs must be a positive integer"),
+    (dict(cpus_per_run=0), "--cpus-per-run must be positive"),
+    (dict(gpus_per_run=1.5), "--gpus-per-run above 1 must be a whole number"),
+    (dict(address="ray://head:10001"), "Ray Client is not supported"),
+    (dict(address="auto", num_cpus=2), "cannot be used with --address"),
+])
+def test_bad_grid_is_refused_naming_the_flag(kw, message):
+    with pytest.raises(ValueError) as info:
+        plan(SweepConfig(**kw))
+    assert message in str(info.value)
+
+
+def test_tyro_rejection_names_the_run(capsys):
+    with pytest.raises(ValueError, match=r"run cartpole_full_seed0: ablate rejects its flags: .*--num-envs abc"):
+        plan(SweepConfig(set=("num-envs=abc",)))
+
+
+def test_toml_file_and_command_line_merge_key_by_key(tmp_path):
+    toml = tmp_path / "sweep.toml"
+    toml.write_text('tasks = ["cartpole"]\nmodes = ["state"]\nseeds = [0, 1, 2]\nout = "from-file"\n'
+                    'gpus-per-run = 0.25\n[set]\niters = 9\nnum_envs = 4\ncompile = false\nactor_hidden = [32, 32]\n'
+                    '[vary]\nimage-size = [24, 32]\n')
+    cfg, set_table, vary_table = parse_args(["--config", str(toml), "--seeds", "5", "--set", "num-envs=8",
+                                             "--vary", "horizon=3,4"])
+    assert cfg.seeds == (5,) and cfg.modes == ("state",) and cfg.out == Path("from-file")
+    assert cfg.gpus_per_run == 0.25
+    assert set_table == {"iters": 9, "num_envs": "8", "compile": False, "actor_hidden": [32, 32]}
+    assert vary_table == {"image_size": [24, 32], "horizon": ["3", "4"]}
+    specs = plan(cfg, set_table, vary_table)
+    assert len(specs) == 4
+    assert specs[0].run_id == "cartpole_state_seed5_image-size24_horizon3"
+    args = list(specs[0].args)
+    assert args[args.index("--num-envs") + 1] == "8" and "--no-compile" in args
+    assert args[args.index("--actor-hidden") + 1:][:2] == ["32", "32"]
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("tasks = [", "not valid TOML"),
+    ("colour = 3\n", "unknown key 'colour'"),
+    ("[vary]\nhorizon = 3\n", "[vary] must be a table of flag = [value, ...]"),
+    ("[set]\nbogus = 1\n", "ablate has no flag --bogus"),
+])
+def test_bad_toml_is_refused(tmp_path, text, message):
+    toml = tmp_path / "sweep.toml"
+    toml.write_text(text)
+    with pytest.raises(ValueError) as info:
+        parse_args(["--config", str(toml)])
+    assert message in str(info.value)
+
+
+def test_main_reports_bad_input_in_one_line_before_starting_ray(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--out", str(tmp_path / "s"), "--set", "tsk=3"])
+    assert info.value.code == 2
+    assert capsys.readouterr().err.strip() == "error: --set tsk=3: ablate has no flag --tsk (see ablate --help)"
+    assert not (tmp_path / "s").exists()
+
+
+def field_docs() -> dict[str, str]:
+    """SweepConfig's attribute docstrings (what tyro shows as each flag's help), from the source."""
+    import ast
+
+    tree = ast.parse((ROOT / "ablations" / "sweep.py").read_text())
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "SweepConfig")
+    docs = {}
+    for a, b in zip(cls.body, cls.body[1:]):
+        if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant):
+            docs[a.target.id] = b.value.value
+    return docs
+
+
+def test_help_explains_every_flag(monkeypatch, capsys):
+    import dataclasses
+
+    docs = field_docs()
+    assert set(docs) == {f.name for f in dataclasses.fields(SweepConfig)}
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit) as info:
+        main(["--help"])
+    assert info.value.code == 0
+    text = capsys.readouterr().out
+    for name, doc in docs.items():
+        assert "--" + name.replace("_", "-") in text, name
+        assert " ".join(doc.split()[:3]) in text, name
+
+
+def test_dry_run_lists_runs_without_ray(tmp_path, capsys):
+    main(["--dry-run", "--out", str(tmp_path / "s"), "--modes", "state", "--seeds", "0", "1", "--set", *TINY])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("start    cartpole_state_seed0: ablate --task cartpole --mode state --seed 0")
+    assert lines[-1] == "2 runs; 1.0 CPU and 0.0 GPU each"
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Run folders as archives, and the driver's store (no Ray: the store is a plain class underneath)
+
+
+def fake_run(folder: Path, *, iters: int, checkpoints: list[int]) -> Path:
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "config.json").write_text('{"config": {}}')
+    (folder / "metrics.jsonl").write_text("".join(json.dumps({"iter": i}) + "\n" for i in range(1, iters + 1))
+                                          + '{"iter": 99, "torn')
+    for it in checkpoints:
+        (folder / "checkpoints" / f"ckpt_{it:06d}.pt").write_bytes(b"state %d" % it)
+    (folder / "checkpoints" / ".ckpt_000009.pt.abc.tmp").write_bytes(b"half written")
+    (folder / "videos").mkdir()
+    (folder / "videos" / "iter_000002.mp4").write_bytes(b"\x00" * 10)
+    return folder
+
+
+def test_pack_keeps_the_newest_checkpoint_and_whole_metrics_lines(tmp_path):
+    run = fake_run(tmp_path / "run", iters=4, checkpoints=[2, 4])
+    names = tarfile.open(fileobj=io.BytesIO(pack_run(run))).getnames()
+    assert sorted(names) == ["checkpoints/ckpt_000004.pt", "config.json", "metrics.jsonl", "videos/iter_000002.mp4"]
+    assert "checkpoints/ckpt_000004.pt" not in tarfile.open(
+        fileobj=io.BytesIO(pack_run(run, checkpoint=False))).getnames()
+
+    dest = tmp_path / "dest"
+    (dest / "checkpoints").mkdir(parents=True)
+    (dest / "checkpoints" / "ckpt_000002.pt").write_bytes(b"older")
+    (dest / "summary.json").write_text("{}")
+    unpack_run(pack_run(run), dest)
+    assert [r["iter"] for r in read_metrics(dest)] == [1, 2, 3, 4]
+    assert (dest / "metrics.jsonl").read_text().endswith("\n")
+    assert sorted(p.name for p in (dest / "checkpoints").iterdir()) == ["ckpt_000004.pt"]
+    assert (dest / "checkpoints" / "ckpt_000004.pt").read_bytes() == b"state 4"
+    assert (dest / "summary.json").exists()  # files the archive does not carry stay
+
+
+def test_unpack_refuses_paths_outside_the_run_folder(tmp_path):
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        info = tarfile.TarInfo("../evil.txt")
+        info.size = 1
+        tar.addfile(info, io.BytesIO(b"x"))
+    with pytest.raises(ValueError, match=r"refusing member '\.\./evil\.txt'"):
+        unpack_run(buf.getvalue(), tmp_path / "run")
+    assert not (tmp_path / "evil.txt").exists()
+
+
+def test_store_hands_out_resume_state_and_refuses_stale_attempts(tmp_path):
+    store = RunStore(str(tmp_path), {"b": 3})
+    assert store.begin("a") == (1, None)
+    worker = fake_run(tmp_path / "worker" / "a", iters=3, checkpoints=[2])
+    assert store.save("a", 1, pack_run(worker))
+    attempt, pack = store.begin("a")  # a retry
+    assert attempt == 2
+    names = tarfile.open(fileobj=io.BytesIO(pack)).getnames()
+    assert "checkpoints/ckpt_000002.pt" in names and "metrics.jsonl" in names
+    assert not any(n.startswith("videos/") for n in names)  # a resume does not need them
+    assert not store.save("a", 1, pack_run(worker))  # the dead attempt's late message
+    assert store.snapshot()["a"]["attempts"] == 2
+    # A run folder without a checkpoint cannot be resumed; ablate needs it empty: it moves to discarded/.
+    (tmp_path / "runs" / "b").mkdir(parents=True)
+    (tmp_path / "runs" / "b" / "config.json").write_text("{}")
+    assert store.begin("b") == (4, None)
+    assert not (tmp_path / "runs" / "b").exists()
+    assert [p.name.split(".")[:2] for p in (tmp_path / "discarded").iterdir()] == [["b", "attempt3"]]
+    assert store.claim_kill("a", "ckpt_000002.pt") and not store.claim_kill("a", "ckpt_000004.pt")
+    assert (tmp_path / ".killed" / "a").read_text() == "ckpt_000002.pt"
+
+
+def test_rerun_with_other_flags_in_the_same_folder_is_refused(tmp_path):
+    out = tmp_path / "s"
+    out.mkdir()
+    spec = plan(tiny_sweep(out, modes=("state",)))[0]
+    (out / "sweep.json").write_text(json.dumps({"version": 1, "id": "x", "runs": {
+        spec.run_id: {"args": [*spec.args[:-2]], "status": "done"}}}))
+    with pytest.raises(ValueError, match=r"was made with the flags .*use another --out"):
+        run_sweep(tiny_sweep(out, modes=("state",)))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Real sweeps on a local Ray cluster
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """One local cluster for the module (starting one takes seconds); run_sweep uses this connection."""
+    ray = pytest.importorskip("ray")
+    import logging
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level=logging.WARNING,
+             log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def assert_complete_run(run: Path, iters: int) -> None:
+    """Every iteration once, in order; finished; the files ablate writes, gathered in the sweep folder."""
+    assert [r["iter"] for r in read_metrics(run)] == list(range(1, iters + 1))
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["status"] == "finished" and summary["iterations"] == iters
+    assert (run / "config.json").exists() and (run / "git.txt").exists()
+    assert [p.name for p in (run / "checkpoints").iterdir()] == [f"ckpt_{iters:06d}.pt"]
+
+
+def killed_at(out: Path, run_id: str) -> int:
+    """The iteration of the checkpoint the run had shipped when --kill-once killed its worker."""
+    return int((out / ".killed" / run_id).read_text().split("_")[1].split(".")[0])
+
+
+def test_sweep_recovers_a_killed_worker_then_a_rerun_skips_everything(ray_cluster, tmp_path):
+    out = tmp_path / "sweep"
+    killed = "cartpole_decoupled_seed0"
+    manifest = run_sweep(tiny_sweep(out, kill_once=(killed,)))
+    runs = manifest["runs"]
+    assert set(runs) == {killed, "cartpole_state_seed0"}
+    assert manifest["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0}
+    assert load_manifest(out) == manifest
+    for run_id, rec in runs.items():
+        assert rec["status"] == "done" and rec["error"] is None and rec["iteration"] == 12, (run_id, rec)
+        assert rec["folder"] == f"runs/{run_id}"
+        assert_complete_run(out / rec["folder"], 12)
+    # The worker died after shipping an early checkpoint; Ray retried it and the retry resumed from there.
+    assert 2 <= killed_at(out, killed) < 12
+    assert runs[killed]["attempts"] == 2 and runs[killed]["resumed"] is True
+    assert runs["cartpole_state_seed0"]["attempts"] == 1 and runs["cartpole_state_seed0"]["resumed"] is False
+    first_log = (out / "logs" / f"{killed}.attempt1.log").read_text()
+    assert "the Ray worker kills itself" in first_log and "ablate-sweep" in first_log
+    assert (out / "logs" / f"{killed}.attempt2.log").exists()
+
+    again = run_sweep(tiny_sweep(out, kill_once=(killed,)))
+    assert {k: (r["status"], r["attempts"]) for k, r in again["runs"].items()} == {
+        killed: ("done", 2), "cartpole_state_seed0": ("done", 1)}
+    assert sorted(p.name for p in (out / "logs").iterdir()) == [
+        f"{killed}.attempt1.log", f"{killed}.attempt2.log", "cartpole_state_seed0.attempt1.log"]
+
+
+def test_failed_run_is_recorded_and_a_rerun_resumes_it(ray_cluster, tmp_path):
+    out = tmp_path / "sweep"
+    killed = "cartpole_state_seed1"
+    cfg = tiny_sweep(out, modes=("state",), seeds=(1,), kill_once=(killed,), max_retries=0)
+    manifest = run_sweep(cfg)
+    rec = manifest["runs"][killed]
+    assert rec["status"] == "failed" and manifest["counts"]["failed"] == 1
+    assert "Worker" in rec["error"] or "worker" in rec["error"], rec["error"]
+    step = killed_at(out, killed)
+    # The sweep folder holds the run up to the checkpoint it shipped, and nothing past it.
+    assert [r["iter"] for r in read_metrics(out / rec["folder"])][:step] == list(range(1, step + 1))
+    assert (out / rec["folder"] / "checkpoints" / f"ckpt_{step:06d}.pt").exists()
+
+    manifest = run_sweep(tiny_sweep(out, modes=("state",), seeds=(1,), kill_once=(killed,)))
+    rec = manifest["runs"][killed]
+    assert rec["status"] == "done" and rec["error"] is None and rec["resumed"] is True and rec["attempts"] == 2
+    assert_complete_run(out / rec["folder"], 12)
+
+
+@pytest.mark.slow
+def test_grid_of_two_modes_and_two_seeds_with_a_kill_and_failing_runs(ray_cluster, tmp_path, capsys):
+    """The grid of the issue: decoupled and state, 2 seeds; one worker killed; a --vary point whose runs fail."""
+    out = tmp_path / "sweep"
+    killed = "cartpole_decoupled_seed1_abort-grad-norm1e8"
+    with pytest.raises(SystemExit) as info:
+        main(["--out", str(out), "--modes", "decoupled", "state", "--seeds", "0", "1", "--set", *TINY,
+              "--vary", "abort-grad-norm=1e8,1e-12", "--kill-once", killed, "--no-progress"])
+    assert info.value.code == 1  # some runs failed
+    manifest = load_manifest(out)
+    assert len(manifest["runs"]) == 8
+    for run_id, rec in manifest["runs"].items():
+        if run_id.endswith("1e-12"):
+            assert rec["status"] == "failed" and "abort_grad_norm" in rec["error"], rec
+        else:
+            assert rec["status"] == "done", rec
+            assert_complete_run(out / rec["folder"], 12)
+    assert manifest["runs"][killed]["attempts"] == 2
+    err = capsys.readouterr().err
+    assert err.count("failed cartpole_") == 4
