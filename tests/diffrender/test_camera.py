@@ -32,6 +32,8 @@ def test_look_at_conventions():
     up_axis = -r[1]
     top = target + up_axis * d * math.tan(math.radians(30.0))
     assert torch.isclose(cam.project(top.view(1, 1, 3))[0, 0, 1], torch.tensor(0.0, dtype=F64), atol=1e-9)
+    # the public focal length is the one look_at uses: half the height over tan(fov / 2)
+    assert cam.focal == dr.focal_length(60.0, 30) == pytest.approx(15.0 / math.tan(math.radians(30.0)), rel=1e-15)
 
 
 def test_batched_broadcasting_and_gradients():
