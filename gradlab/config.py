@@ -1,7 +1,8 @@
 """SHAC / D.Va configuration: one dataclass, field docstrings become the CLI's ``--help`` (tyro).
 
-Fields left at ``None`` take the task's reference value (DESIGN section 5, notes/dva-reference.md) when the
-trainer is built; ``config.json`` of a run stores the resolved values.
+Fields left at ``None`` take the task's reference value (docs/design.md, "A SHAC window";
+notes/dva-reference.md) when the trainer is built; ``config.json`` of a run stores the resolved values.
+``ModePlan`` is everything the ``mode`` switch decides, in one place.
 """
 
 from __future__ import annotations
@@ -10,9 +11,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["SHACConfig", "TASK_DEFAULTS", "MODES", "resolve_config"]
-
-MODES = ("full", "decoupled", "state")
+__all__ = ["SHACConfig", "TASK_DEFAULTS", "MODES", "ModePlan", "resolve_config"]
 
 #: Per-task reference hyperparameters (D.Va / SHAC configs).
 TASK_DEFAULTS: dict[str, dict] = {
@@ -25,6 +24,58 @@ TASK_DEFAULTS: dict[str, dict] = {
     "humanoid": dict(critic_lr=5e-4, target_alpha=0.995, trunk_dim=256, actor_hidden=(256, 128),
                      critic_hidden=(128, 128)),
 }
+
+
+@dataclass(frozen=True)
+class ModePlan:
+    """What the training mode decides, decided once; the trainer reads this and never the mode's name
+    (docs/design.md, "Where the mode acts").
+
+    Attributes:
+        actor_input: what the actor sees: "images" (the rendered frame stack) or "state" (the normalised state
+            vector).
+        grad_through_images: the training gradient flows through the images into the renderer (full APG).
+            Plain iterations then render with grad and train with the image gate open; otherwise they render
+            without grad and the gate stays closed.
+
+    The image gradient is cut in three places, each for its own reason:
+
+    * a decoupled plain iteration renders under ``no_grad``: no render graph is built at all, which is
+      what makes D.Va cheap (the image is a constant to the actor);
+    * the ``ImageGate`` at the actor's input exists for probe iterations only: they render with grad and
+      differentiate ONE graph twice, gate open (full) and closed (decoupled), so the two gradients come from
+      the same rollout;
+    * the frame buffer is detached at the window start together with the task state: that is SHAC's
+      truncation of the whole state between windows (like ``task.detach()``), not an image-gradient switch.
+    """
+
+    actor_input: Literal["images", "state"]
+    grad_through_images: bool
+
+    @property
+    def renders(self) -> bool:
+        """The trainer renders the task during training (the actor's images, the probes' render path)."""
+        return self.actor_input == "images"
+
+    @property
+    def probes(self) -> bool:
+        """Probe iterations (both gradients of one rollout) apply: they need images rendered with grad."""
+        return self.renders
+
+    @staticmethod
+    def of(mode: str) -> ModePlan:
+        try:
+            return _MODE_PLANS[mode]
+        except KeyError:
+            raise ValueError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}") from None
+
+
+_MODE_PLANS = {
+    "full": ModePlan(actor_input="images", grad_through_images=True),
+    "decoupled": ModePlan(actor_input="images", grad_through_images=False),
+    "state": ModePlan(actor_input="state", grad_through_images=False),
+}
+MODES = tuple(_MODE_PLANS)
 
 
 @dataclass
@@ -86,10 +137,10 @@ class SHACConfig:
     render_gamma: float | None = None
     """Soft-rasterizer depth-blend temperature; None: the renderer's default."""
     render_blend: Literal["softmax", "alpha"] = "softmax"
-    """How faces meet the floor: softmax (DESIGN's depth softmax with the floor as one more candidate) or
-    alpha (faces softmax-blended among themselves, then composited over floor and sky by coverage). alpha
-    passes 2-3x more of the image's change at silhouettes to the gradient (benchmarks/render.py
-    --jump-share) and renders without back-face culling."""
+    """How faces meet the floor: softmax (the depth softmax of docs/design.md, "Image model", with the floor
+    as one more candidate) or alpha (faces softmax-blended among themselves, then composited over floor and sky
+    by coverage). alpha passes 2-3x more of the image's change at silhouettes to the gradient
+    (benchmarks/render.py --jump-share) and renders without back-face culling."""
     episode_length: int | None = None
     """Override the task's episode length (None: 240 cartpole, 1000 others)."""
     cosine_every: int = 10
@@ -109,8 +160,7 @@ class SHACConfig:
 
         if self.task not in TASKS:
             raise ValueError(f"unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
-        if self.mode not in MODES:
-            raise ValueError(f"unknown mode {self.mode!r}; valid modes: {', '.join(MODES)}")
+        ModePlan.of(self.mode)  # raises for an unknown mode, naming the valid ones
         for name in ("iters", "num_envs", "horizon", "critic_iterations", "critic_batches", "image_size",
                      "frames", "render_detail"):
             v = getattr(self, name)

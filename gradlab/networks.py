@@ -1,4 +1,4 @@
-"""Actor and critic networks of SHAC / D.Va (DESIGN section 5).
+"""Actor and critic networks of SHAC / D.Va (docs/design.md, "A SHAC window").
 
 The visual actor is the DrQ-v2 encoder (4 convolutions, ReLU) followed by a trunk (Linear -> LayerNorm -> Tanh)
 and an MLP head (Linear -> ELU -> LayerNorm per hidden layer). The policy is a tanh-squashed Gaussian with a
@@ -73,8 +73,8 @@ class PixelEncoder(nn.Module):
         orthogonal_init(self.convs, gain=nn.init.calculate_gain("relu"))
         orthogonal_init(self.trunk)
         # Channels-last (NHWC) weights and activations: cuDNN's tensor-core convolutions work in NHWC and
-        # otherwise transpose every input and gradient (measured: ~6 ms of layout copies per ant iteration on
-        # an H100). Same values; only the memory layout differs.
+        # otherwise transpose every input and gradient (BENCHMARKS.md, "1. SHAC iteration"). Same values; only
+        # the memory layout differs.
         self.convs.to(memory_format=torch.channels_last)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,6 @@ import torch
 __all__ = [
     "ImageGate",
     "flat_grad",
-    "grad_norm",
     "cosine",
     "NonFiniteError",
     "FiniteFlags",
@@ -60,11 +59,6 @@ def flat_grad(params: Iterable[torch.nn.Parameter]) -> torch.Tensor:
         parts.append(torch.zeros(p.numel(), dtype=torch.float64, device=p.device) if g is None
                      else g.detach().reshape(-1).to(torch.float64))
     return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
-
-
-def grad_norm(params: Iterable[torch.nn.Parameter]) -> torch.Tensor:
-    """L2 norm of all gradients together (a 0-d tensor; no host sync)."""
-    return flat_grad(params).norm()
 
 
 def cosine(a: torch.Tensor, b: torch.Tensor, eps: float = 1e-30) -> torch.Tensor:

@@ -1,20 +1,22 @@
 """SHAC with one switch between full analytic policy gradients through pixels and decoupled D.Va.
 
-One iteration, top to bottom (DESIGN section 5):
+One iteration, top to bottom (docs/design.md, "A SHAC window"):
 
-1. Cut the graph at the window start (task state, frame buffer).
-2. Roll out ``horizon`` steps: actor(images or state) -> tanh action -> differentiable simulator -> reward;
-   render the new state and push it into the 3-frame stack. The actor loss is SHAC's
-   ``-(sum_t gamma^t r_t + gamma^T V_target(s_T)) / (T*B)`` with episodes cut at resets and the terminal value
-   zero after an early termination.
-3. Backward. The mode decides only what the actor sees:
-     full       the image stack keeps its graph: gradients flow image -> vertices -> FK -> qpos -> actions;
-     decoupled  the image stack is detached at the actor input (rendered without grad);
-     state      the actor sees the normalised state vector.
-   On probe iterations (every ``cosine_every``) the images are rendered WITH grad behind an ``ImageGate`` and
-   the loss is differentiated twice over the same graph, gate open and closed: the full and the decoupled
-   gradient of the SAME rollout. The training mode's gradient is the one applied.
-4. Clip, Adam step with a linear LR decay; fit the critic on TD(lambda) targets; Polyak-update the target.
+1. Rollout window: cut the graph at the window start (task state and frame buffer: SHAC's truncation), then
+   roll out ``horizon`` steps: actor(images or state) -> tanh action -> differentiable simulator -> reward;
+   render the new state into the frame stack.
+2. Actor loss: SHAC's ``-(sum_t gamma^t r_t + gamma^T V_target(s_T)) / (T*B)``, episodes cut at resets and the
+   terminal value zero after an early termination.
+3. Backward: the mode decides what the actor sees and whether its gradient runs through the images
+   (``ModePlan``, decided once from the config: docs/design.md, "Where the mode acts"). On probe iterations
+   (every ``cosine_every``) the images are rendered WITH grad behind an ``ImageGate`` and the loss is
+   differentiated twice over the same graph, gate open and closed: the full and the decoupled gradient of the
+   SAME rollout. The training mode's gradient is the one applied.
+4. Clip, Adam step with a linear LR decay.
+5. Critic phase: fit the critic on TD(lambda) targets of the window; Polyak-update the target critic.
+
+With ``--compile`` on a CUDA device the window (steps 1-3) and the critic phase are CUDA graphs replayed every
+iteration; ``gradlab.graphs`` holds that machinery, and this module calls it the same way either way.
 
 Every iteration reports CUDA-synchronised forward / backward / critic times, peak allocated and reserved memory
 (CUDA), bytes saved for backward, pre- and post-clip gradient norms; a NaN/inf anywhere stops the run with the
@@ -33,13 +35,14 @@ import torch
 from torch import nn
 
 import tasks
-from gradlab.config import SHACConfig, resolve_config
+from gradlab.config import ModePlan, SHACConfig, resolve_config
 from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
+from gradlab.graphs import GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
 from gradlab.networks import Critic, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
 from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad
 from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_state
-from gradlab.timing import MemoryProbe, RegionTimer, SavedTensorBytes
+from gradlab.timing import MemoryProbe, RegionTimer
 from tasks.vision import FrameStack, TaskRenderer
 
 __all__ = ["SHAC", "NonFiniteError"]
@@ -58,6 +61,7 @@ class SHAC:
     def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto"):
         self.cfg = resolve_config(cfg)
         cfg = self.cfg
+        self.plan = ModePlan.of(cfg.mode)
         self.device = device if isinstance(device, torch.device) else resolve_device(device)
         seed_everything(cfg.seed)
 
@@ -71,21 +75,20 @@ class SHAC:
 
             functorch_config.donated_buffer = False
             self.task.compile()
-        self.visual = cfg.mode in ("full", "decoupled")
         self.renderer = None
-        if self.visual:
+        if self.plan.renders:
             self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
                                          **self._render_options())
             if cfg.compile:
-                # forward kinematics, vertices, camera and the fused rasterizer's per-face setup: eager, these
-                # are ~500 small kernels per frame in forward and again in backward. (The tiled backend's
-                # compiled kernel stays off: on an H200 its backward produced NaN image gradients in full
-                # mode, 2026-11-22.)
+                # Forward kinematics, vertices, camera and the fused rasterizer's per-face setup are ~500 small
+                # kernels per frame eagerly, in forward and again in backward. (The tiled backend's compiled
+                # kernel stays off: on an H200 its backward produced NaN image gradients in full mode.)
                 self.renderer.compile()
+        if self.plan.actor_input == "state":
+            self.actor = StateActor(self.task.num_obs, self.task.num_act, cfg.actor_hidden)
+        else:
             self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
                                      cfg.trunk_dim, cfg.actor_hidden)
-        else:
-            self.actor = StateActor(self.task.num_obs, self.task.num_act, cfg.actor_hidden)
         self.critic = Critic(self.task.num_obs, cfg.critic_hidden)
         self.actor.to(self.device)
         self.critic.to(self.device)
@@ -99,14 +102,9 @@ class SHAC:
         if cfg.compile:
             self._actor_mean = torch.compile(self.actor.mean, dynamic=False)
             self._target_value = torch.compile(self.target_critic, dynamic=False)
-        # CUDA graphs (compile on a CUDA device): the critic phase is captured, so its Adam must be capturable
+        # CUDA graphs (compile on a CUDA device) capture the critic phase too, so its Adam must be capturable
         # and read its learning rate from a tensor that the decay updates in place.
         self.graphs = cfg.compile and self.device.type == "cuda"
-        if self.graphs:
-            # The encoder's convolutions have one static shape per run: let cuDNN time its algorithms once (in
-            # the eager warm-up iterations, before any capture) instead of taking its heuristic's choice. A
-            # process-wide switch; the run's info.json records it.
-            torch.backends.cudnn.benchmark = True
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=cfg.betas)
         critic_lr = torch.tensor(cfg.critic_lr, device=self.device) if self.graphs else cfg.critic_lr
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=critic_lr, betas=cfg.betas,
@@ -125,10 +123,12 @@ class SHAC:
         self.recent_returns: deque[float] = deque(maxlen=100)
         self.recent_lengths: deque[int] = deque(maxlen=100)
         self._started = False
-        self._live: dict[str, torch.Tensor] = {}  # the state a window starts from, in fixed tensors
-        self._actor_graphs: dict[bool, _ActorGraph] = {}  # plain and probe iterations, captured separately
-        self._eager_runs = {False: 0, True: 0}  # eager (warm-up) iterations run, plain and probe
-        self._critic_graph: _CriticGraph | None = None
+        self.live = LiveState()
+        self.window = WindowGraphs(forward=self._window_forward, backward=self._backward, commit=self._commit_state,
+                                   params=list(self.actor.parameters()), timer=self.timer, device=self.device,
+                                   capture=self.graphs)
+        self.critic_phase = (GraphedCriticPhase(self._critic_phase, self.critic, self.device) if self.graphs
+                             else self._critic_phase)
 
     def _render_options(self) -> dict:
         cfg = self.cfg
@@ -140,7 +140,7 @@ class SHAC:
             options["cull_backfaces"] = False  # alpha coverage sums over all faces, hidden ones included
         return options
 
-    # ------------------------------------------------------------------ observation plumbing
+    # ------------------------------------------------------------------ state the windows hand on
     def _render(self, *, grad: bool) -> torch.Tensor:
         """Images of the task's current state: (B, 3, H, W) in [0, 1]; differentiable in qpos if ``grad``."""
         if grad:
@@ -152,7 +152,7 @@ class SHAC:
         """First reset: state, frame stack tiled with the first image, running stats seeded."""
         obs = self.task.reset()
         self.obs_rms.update(obs)
-        if self.visual:
+        if self.plan.renders:
             if self.graphs:
                 # A captured render cannot measure or grow its bins (no host sync): fix a generous capacity
                 # now, before the warm-up iterations compile the kernels for it.
@@ -162,31 +162,16 @@ class SHAC:
         self._commit_state()
 
     def _commit_state(self) -> None:
-        """Copy the state a window ended in into the fixed live-state tensors and point the task at them.
+        """The window's end state into the fixed tensors the next window starts from (``LiveState``)."""
+        self.live.commit(self.task, self.frames if self.plan.renders else None)
 
-        Every window starts from the same tensor objects, so a captured CUDA graph that reads them at the
-        start and writes them at the end (after its backward, which may still read the old values) carries
-        the state from one replay to the next. Eager iterations do the same, so both paths interleave freely.
-        """
-        task = self.task
-        current = {"qpos": task.qpos, "qvel": task.qvel, "progress": task.progress,
-                   "prev_actions": task.prev_actions}
-        if self.visual:
-            current.update({f"frame{i}": f for i, f in enumerate(self.frames.frames)})
-        with torch.no_grad():
-            for k, v in current.items():
-                if k not in self._live:
-                    self._live[k] = v.detach().clone()
-                elif v is not self._live[k]:
-                    self._live[k].copy_(v)
-        task.qpos, task.qvel = self._live["qpos"], self._live["qvel"]
-        task.progress, task.prev_actions = self._live["progress"], self._live["prev_actions"]
-        if self.visual:
-            self.frames.frames = [self._live[f"frame{i}"] for i in range(len(self.frames.frames))]
+    # ------------------------------------------------------------------ rollout window and actor loss
+    def _window_forward(self, probe: bool) -> tuple[torch.Tensor, dict]:
+        # A probe renders with grad whatever the mode: both gradients need the render graph.
+        return self._rollout(render_grad=self.plan.grad_through_images or probe)
 
-    # ------------------------------------------------------------------ the rollout and the actor loss
     def _rollout(self, *, render_grad: bool) -> tuple[torch.Tensor, dict]:
-        """One SHAC window. Returns the actor loss (0-d, differentiable) and the window's buffers."""
+        """One SHAC window. Returns the actor loss (0-d, differentiable) and the window's (T, B) buffers."""
         cfg, task = self.cfg, self.task
         T, B = cfg.horizon, cfg.num_envs
         stats = self.obs_rms.snapshot()
@@ -210,12 +195,11 @@ class SHAC:
         for t in range(T):
             with torch.no_grad():
                 critic_obs[t] = RunningMeanStd.apply(obs, stats)
-            if self.visual:
-                images = self.frames.stacked()
+            if self.plan.actor_input == "images":
+                actor_in = self.frames.stacked()
                 if render_grad:
-                    images = self.gate(images)
-                    self.flags.watch_grad(t, "image", images)
-                actor_in = images
+                    actor_in = self.gate(actor_in)
+                    self.flags.watch_grad(t, "image", actor_in)
             else:
                 actor_in = RunningMeanStd.apply(obs, stats)
             action = self.actor.sample(self._actor_mean(actor_in))
@@ -238,7 +222,7 @@ class SHAC:
             discount = torch.where(done, torch.ones_like(discount), discount * cfg.gamma)
             rew_acc = torch.where(done, torch.zeros_like(rew_acc), rew_acc)
 
-            if self.visual:
+            if self.plan.renders:
                 self.frames.push(self._render(grad=render_grad), reset=done)
 
             with torch.no_grad():
@@ -258,49 +242,39 @@ class SHAC:
                        dones=dones, episode_ends=episode_ends, ep_returns=ep_returns, ep_lengths=ep_lengths)
         return loss, buffers
 
-    # ------------------------------------------------------------------ one training iteration
-    def _lr(self, base: float) -> float:
-        """Linear decay from ``base`` to 1e-5 over ``iters`` (the reference's schedule)."""
-        frac = min(self.iteration / self.cfg.iters, 1.0)
-        return base + (1e-5 - base) * frac
-
-    def _zero_actor_grads(self) -> None:
-        """Zero the actor's gradients IN PLACE (captured graphs write into these very tensors)."""
-        for p in self.actor.parameters():
-            if p.grad is None:
-                p.grad = torch.zeros_like(p)
-            else:
-                p.grad.zero_()
-
+    # ------------------------------------------------------------------ backward
     def _backward(self, loss: torch.Tensor, probe: bool) -> dict:
-        """Actor gradients into ``.grad`` for the training mode; on probes, both estimators of one rollout."""
-        params = list(self.actor.parameters())
-        self._zero_actor_grads()
-        out: dict = {}
-        if probe:
-            # The mode we do NOT train with goes first (graph retained); the training mode's gradient is
-            # computed last, so it is what stays in .grad.
-            other_full = self.cfg.mode == "decoupled"
-            self.gate.open = other_full
-            loss.backward(retain_graph=True)
-            g_other = flat_grad(params)
-            self._zero_actor_grads()
-            self.gate.open = not other_full
-            loss.backward()
-            g_train = flat_grad(params)
-            g_full, g_dec = (g_other, g_train) if other_full else (g_train, g_other)
-            out = {
-                "grad_norm_full": g_full.norm(),
-                "grad_norm_decoupled": g_dec.norm(),
-                "cos_full_decoupled": cosine(g_full, g_dec),
-                # The image path's contribution alone (the control-regularisation term of D.Va's eq. 5).
-                "grad_norm_render_term": (g_full - g_dec).norm(),
-            }
-        else:
-            self.gate.open = self.cfg.mode == "full"
-            loss.backward()
-        return out
+        """Actor gradients into ``.grad`` for the training mode; on probes, both estimators of one rollout.
 
+        Returns the probe's metrics as 0-d tensors (empty on plain iterations): computed here, they are part of
+        a captured backward graph and rewritten by every replay.
+        """
+        params = list(self.actor.parameters())
+        zero_grads_(params)
+        train_open = self.plan.grad_through_images
+        if not probe:
+            self.gate.open = train_open
+            loss.backward()
+            return {}
+        # The estimator we do NOT train with goes first (graph retained); the training mode's gradient is
+        # computed last, so it is what stays in .grad.
+        self.gate.open = not train_open
+        loss.backward(retain_graph=True)
+        g_other = flat_grad(params)
+        zero_grads_(params)
+        self.gate.open = train_open
+        loss.backward()
+        g_train = flat_grad(params)
+        g_full, g_dec = (g_train, g_other) if train_open else (g_other, g_train)
+        return {
+            "grad_norm_full": g_full.norm(),
+            "grad_norm_decoupled": g_dec.norm(),
+            "cos_full_decoupled": cosine(g_full, g_dec),
+            # The image path's contribution alone (the control-regularisation term of D.Va's eq. 5).
+            "grad_norm_render_term": (g_full - g_dec).norm(),
+        }
+
+    # ------------------------------------------------------------------ critic phase and target update
     def _critic_phase(self, buf: dict) -> torch.Tensor:
         """TD(lambda) targets of the window, the critic fit, the target update. Returns the critic loss."""
         cfg = self.cfg
@@ -310,12 +284,18 @@ class SHAC:
         polyak_update(self.target_critic, self.critic, cfg.target_alpha)
         return loss
 
+    # ------------------------------------------------------------------ one training iteration
+    def _lr(self, base: float) -> float:
+        """Linear decay from ``base`` to 1e-5 over ``iters`` (the reference's schedule)."""
+        frac = min(self.iteration / self.cfg.iters, 1.0)
+        return base + (1e-5 - base) * frac
+
     def _set_learning_rates(self) -> None:
         for group in self.actor_opt.param_groups:
             group["lr"] = self._lr(self.cfg.actor_lr)
         for group in self.critic_opt.param_groups:
             if isinstance(group["lr"], torch.Tensor):
-                group["lr"].fill_(self._lr(self.cfg.critic_lr))
+                group["lr"].fill_(self._lr(self.cfg.critic_lr))  # in place: the captured Adam reads it
             else:
                 group["lr"] = self._lr(self.cfg.critic_lr)
 
@@ -325,36 +305,14 @@ class SHAC:
         if not self._started:
             self._start()
         t_wall = time.perf_counter()
-        probe = self.visual and cfg.cosine_every > 0 and self.iteration % cfg.cosine_every == 0
-        render_grad = cfg.mode == "full" or probe
+        probe = self.plan.probes and cfg.cosine_every > 0 and self.iteration % cfg.cosine_every == 0
         self.timer.reset()
         self._set_learning_rates()
-        # CUDA graphs replay the iteration; the first iterations run eagerly and warm up (torch.compile,
-        # cuBLAS/cuDNN handles, the allocator), then the window is captured once. Plain and probe windows run
-        # different code (a probe renders with grad, differentiates twice), so each kind runs eagerly at
-        # least once before its capture: compiling inside a capture would invalidate it.
-        replay = self.graphs and self.iteration >= _GRAPH_WARMUP_ITERS and self._eager_runs[probe] > 0
-        if not replay:
-            self._eager_runs[probe] += 1
-        if replay and probe not in self._actor_graphs:
-            self._actor_graphs[probe] = _ActorGraph(self, probe=probe)
 
-        # Actor: forward (rollout + render + loss) and backward, timed and memory-probed as one region.
+        # Actor: rollout window, loss and backward, timed ("fwd", "bwd") and memory-probed as one region.
         with MemoryProbe(self.device) as mem:
-            if replay:
-                graph = self._actor_graphs[probe]
-                with self.timer("fwd"):
-                    graph.fwd.replay()
-                with self.timer("bwd"):
-                    graph.bwd.replay()
-                loss, buf, saved_bytes, probe_out = graph.loss, graph.buf, graph.saved_bytes, graph.probe_out
-            else:
-                with self.timer("fwd"), SavedTensorBytes() as saved:
-                    loss, buf = self._rollout(render_grad=render_grad)
-                with self.timer("bwd"):
-                    probe_out = self._backward(loss, probe)
-                    self._commit_state()
-                saved_bytes = saved.bytes
+            window = self.window.run(iteration=self.iteration, probe=probe)
+        loss, buf = window.loss, window.buffers
         params = list(self.actor.parameters())
         gn = nn.utils.clip_grad_norm_(params, cfg.grad_clip)
         gn_clipped = flat_grad(params).norm()
@@ -368,14 +326,7 @@ class SHAC:
 
         # Critic on TD(lambda) targets of the window, then the target network.
         with self.timer("critic"):
-            if self.graphs:
-                if self._critic_graph is None:
-                    self._critic_graph = _CriticGraph(self, buf)  # runs this iteration's phase, then captures
-                    critic_loss = self._critic_graph.first_loss
-                else:
-                    critic_loss = self._critic_graph(buf)
-            else:
-                critic_loss = self._critic_phase(buf)
+            critic_loss = self.critic_phase(buf)
         self.obs_rms.update(buf["raw_obs"])
 
         # Episode statistics: one host transfer per iteration.
@@ -405,12 +356,12 @@ class SHAC:
             "iter_ms": iter_wall * 1e3,
             "peak_alloc_mb": mem.peak_alloc_mb,
             "peak_reserved_mb": mem.peak_reserved_mb,
-            "saved_mb": saved_bytes / 2**20,
+            "saved_mb": window.saved_bytes / 2**20,
             "actor_lr": self.actor_opt.param_groups[0]["lr"],
             "probed": probe,
-            "graph": replay,
+            "graph": window.replayed,
         }
-        metrics.update({k: float(v) for k, v in probe_out.items()})
+        metrics.update({k: float(v) for k, v in window.probe_metrics.items()})
         return metrics
 
     # ------------------------------------------------------------------ evaluation and video
@@ -432,7 +383,7 @@ class SHAC:
         stats = self.obs_rms.snapshot()
         renderer = video = None
         frames = FrameStack(cfg.frames)
-        if self.visual:
+        if self.plan.renders:
             renderer = TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options())
             frames.reset(renderer(task.qpos))
         if record:
@@ -445,12 +396,12 @@ class SHAC:
             if record:
                 img = video(task.qpos[:1])[0].clamp(0, 1).mul(255).byte().permute(1, 2, 0).cpu().numpy()
                 out_frames.append(img)
-            actor_in = frames.stacked() if self.visual else RunningMeanStd.apply(obs, stats)
+            actor_in = frames.stacked() if self.plan.actor_input == "images" else RunningMeanStd.apply(obs, stats)
             action = self.actor(actor_in, deterministic=True)
             obs, reward, done, _ = task.step(action)
             total += reward * alive
             alive &= ~done
-            if self.visual:
+            if self.plan.renders:
                 frames.push(renderer(task.qpos), reset=done)
             if not bool(alive.any()):
                 break
@@ -498,63 +449,3 @@ class SHAC:
         set_rng_state(state["rng"])
         if self._started:
             self._commit_state()
-
-
-#: Eager iterations before the window is captured (compilation and library warm-up happen in them).
-_GRAPH_WARMUP_ITERS = 2
-
-
-class _ActorGraph:
-    """One iteration's rollout + loss (``fwd``) and backward (``bwd``) captured as two CUDA graphs.
-
-    Two graphs sharing one memory pool (as ``torch.cuda.make_graphed_callables`` does) so forward and backward
-    stay separately timed. The rollout reads the live-state tensors; ``bwd`` ends by writing the window's
-    final state into them (after the backward, which still reads the old values). ``loss``, ``buf`` and
-    ``probe_out`` are the graphs' static outputs, overwritten by every replay. A probe graph renders with
-    grad and holds both backward passes (gate open and closed) and the norms and cosine. Capturing records
-    work without doing it: the caller replays both graphs afterwards, so the capture iteration is real.
-    """
-
-    def __init__(self, trainer: SHAC, *, probe: bool):
-        trainer._zero_actor_grads()
-        pool = torch.cuda.graph_pool_handle()
-        self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
-        torch.cuda.synchronize(trainer.device)
-        with torch.cuda.graph(self.fwd, pool=pool):
-            with SavedTensorBytes() as saved:
-                self.loss, self.buf = trainer._rollout(render_grad=probe or trainer.cfg.mode == "full")
-        with torch.cuda.graph(self.bwd, pool=pool):
-            self.probe_out = trainer._backward(self.loss, probe)
-            trainer._commit_state()
-        self.saved_bytes = saved.bytes
-
-
-class _CriticGraph:
-    """The critic phase (targets, 16 x 4 minibatch steps, Polyak) captured as one CUDA graph.
-
-    Built at the first graph-mode iteration: the phase first runs eagerly (it is that iteration's real update
-    and warms up the capturable Adam's state), then is captured reading ``self.inputs``, which later
-    iterations fill from their window's buffers before replaying.
-    """
-
-    def __init__(self, trainer: SHAC, buf: dict):
-        keys = ("rewards", "next_values", "dones", "critic_obs")
-        self.inputs = {k: buf[k].detach().clone() for k in keys}
-        side = torch.cuda.Stream(trainer.device)
-        side.wait_stream(torch.cuda.current_stream(trainer.device))
-        with torch.cuda.stream(side):
-            self.first_loss = trainer._critic_phase(self.inputs).clone()
-        torch.cuda.current_stream(trainer.device).wait_stream(side)
-        for p in trainer.critic.parameters():  # capture needs existing gradient tensors, zeroed in place
-            if p.grad is None:
-                p.grad = torch.zeros_like(p)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.loss = trainer._critic_phase(self.inputs)
-
-    def __call__(self, buf: dict) -> torch.Tensor:
-        for k, v in self.inputs.items():
-            if buf[k] is not v:
-                v.copy_(buf[k])
-        self.graph.replay()
-        return self.loss
