@@ -89,7 +89,7 @@ def profile_trainer(task: str, mode: str, args) -> dict:
     trainer = SHAC(cfg, device="cuda")
     for _ in range(4):  # 2 eager warm-up iterations, the capture, one replay
         trainer.train_iteration()
-    graph = trainer._actor_graphs[False]
+    graph = trainer.window.captured[False]  # the plain (not probe) window's forward and backward graphs
     out = {"task": task, "mode": mode}
 
     def fwd():
