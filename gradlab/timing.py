@@ -3,19 +3,25 @@
 CUDA work is asynchronous: a region is timed with CUDA events recorded on the current stream and read after
 a synchronisation, so the number is the device time of everything launched inside the region. On the CPU a
 perf_counter pair is the same thing. Peak memory is read after ``reset_peak_memory_stats`` so each region
-reports its own peak, allocated (tensors) and reserved (the caching allocator's footprint).
+reports its own peak, allocated (tensors) and reserved (the caching allocator's footprint). What a region
+keeps for backward is measured by :class:`diffrender.profiling.SavedTensorMeter` (re-exported here), the one
+meter the renderer's tests, its benchmark and the trainer share.
 """
 
 from __future__ import annotations
 
 import time
-import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import torch
 
-__all__ = ["RegionTimer", "MemoryProbe", "SavedTensorBytes", "median"]
+from diffrender.profiling import SavedTensorMeter
+
+__all__ = ["RegionTimer", "MemoryProbe", "SavedTensorMeter", "SavedTensorBytes", "median"]
+
+#: The name gradlab.shac and tests/gradlab import; the same class as :class:`SavedTensorMeter`.
+SavedTensorBytes = SavedTensorMeter
 
 
 def median(xs: list[float]) -> float:
@@ -83,51 +89,3 @@ class MemoryProbe:
             torch.cuda.synchronize(self.device)
             self.peak_alloc_mb = torch.cuda.max_memory_allocated(self.device) / 2**20
             self.peak_reserved_mb = torch.cuda.max_memory_reserved(self.device) / 2**20
-
-
-class SavedTensorBytes:
-    """Bytes autograd keeps for backward from the region (device-independent; works on the CPU).
-
-    Every tensor packed for backward inside the region is tracked by a weak reference; at exit, the storages
-    of those still alive (held by the graph) are summed, each storage once. Tensors saved by graph branches
-    that were dropped before the region ended are not counted (their memory is gone), and no address can be
-    counted twice. This is the memory a 32-step SHAC window keeps alive until ``backward``: the quantity
-    that grows with mesh complexity in full mode.
-    """
-
-    def __init__(self):
-        self.bytes = 0
-        self._refs: list[weakref.ref] = []
-        self._ctx = None
-
-    def _pack(self, t: torch.Tensor):
-        # A detached alias (same storage): returning ``t`` itself would tie a saved OUTPUT to its own grad_fn
-        # in a reference cycle, keeping dropped graphs alive until the garbage collector runs.
-        alias = t.detach()
-        self._refs.append(weakref.ref(alias))
-        return alias
-
-    def __enter__(self) -> SavedTensorBytes:
-        self._refs.clear()
-        self._ctx = torch.autograd.graph.saved_tensors_hooks(self._pack, lambda t: t)
-        self._ctx.__enter__()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._ctx.__exit__(*exc)
-        seen: dict[int, int] = {}
-        for ref in self._refs:
-            t = ref()
-            if t is None:
-                continue
-            try:
-                storage = t.untyped_storage()
-                seen[storage.data_ptr()] = storage.nbytes()
-            except (RuntimeError, NotImplementedError):  # tensors without storage (e.g. functionalised)
-                seen[id(t)] = t.numel() * t.element_size()
-        self._refs.clear()
-        self.bytes = sum(seen.values())
-
-    @property
-    def mb(self) -> float:
-        return self.bytes / 2**20
