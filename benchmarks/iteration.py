@@ -98,8 +98,12 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("iteration.json"))
     args = p.parse_args()
-    if args.device == "auto":
-        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    from gradlab.seeding import resolve_device  # what "auto" means, and the error for a GPU that is absent
+
+    try:
+        args.device = str(resolve_device(args.device))
+    except ValueError as e:
+        p.error(str(e))
 
     env = {"torch": torch.__version__, "python": platform.python_version(), "device": args.device,
            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv)}

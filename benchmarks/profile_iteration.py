@@ -158,8 +158,12 @@ def main() -> None:
     p.add_argument("--encoder", action="store_true", help="also the encoder micro-benchmark")
     p.add_argument("--out", type=Path, default=Path("profile.json"))
     args = p.parse_args()
-    if not torch.cuda.is_available():
-        p.error("needs a CUDA device (it profiles captured CUDA graphs)")
+    from gradlab.seeding import resolve_device
+
+    try:
+        resolve_device("cuda")
+    except ValueError:
+        p.error("needs a CUDA device (it profiles captured CUDA graphs), and torch sees none")
     doc = {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__,
            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv), "results": []}
     if args.encoder:
