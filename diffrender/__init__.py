@@ -12,12 +12,15 @@ Public API:
     backend_for(settings, device)  which rasterizer backend render() uses there
     measure_bin_capacity(verts, faces, camera, settings)  a tiled-backend bin capacity for a frame
     RasterSettings, FloorSettings  keyword-only frozen settings
+    RayTracer(faces, *, num_envs, num_verts, device, settings, shadows)  forward-only Warp ray tracer of the
+        same scene (the rasterizer's sharp limit; no gradient), render_raytraced(...) its functional form
 """
 
 import torch
 
 from . import raster
 from .camera import Camera, focal_length, tracking_camera
+from .raytrace import RayTracer, render_raytraced
 from .render import backend_for, render
 from .robot import MJCFError, RobotModel, RobotPose
 from .settings import FloorSettings, RasterSettings
@@ -27,12 +30,14 @@ __all__ = [
     "FloorSettings",
     "MJCFError",
     "RasterSettings",
+    "RayTracer",
     "RobotModel",
     "RobotPose",
     "backend_for",
     "focal_length",
     "measure_bin_capacity",
     "render",
+    "render_raytraced",
     "tracking_camera",
 ]
 

@@ -12,7 +12,10 @@ import torch
 
 import diffrender
 
-__all__ = ["FrameStack", "TaskRenderer"]
+__all__ = ["RENDERERS", "FrameStack", "TaskRenderer"]
+
+#: Image sources of :class:`TaskRenderer`: the differentiable soft rasterizer and the forward-only ray tracer.
+RENDERERS = ("soft", "warp")
 
 
 class TaskRenderer:
@@ -29,6 +32,9 @@ class TaskRenderer:
         extra_meshes, extra_mesh_verts: extra meshes attached to moving links (scene complexity sweeps).
         sigma, gamma: soft-rasterizer softness [px] and depth temperature; None keeps the renderer defaults
             (sigma is given at 84 px and scaled with the image height so that edges stay equally soft).
+        renderer: ``"soft"``, the differentiable rasterizer, or ``"warp"``, the forward-only ray tracer
+            (:class:`diffrender.RayTracer`: the rasterizer's sharp limit, cost nearly flat in faces) for images
+            that need no gradient. :meth:`soft` renders with the rasterizer whichever is chosen.
         settings: further :class:`diffrender.RasterSettings` fields.
     """
 
@@ -43,8 +49,13 @@ class TaskRenderer:
         extra_mesh_verts: int = 64,
         sigma: float | None = None,
         gamma: float | None = None,
+        renderer: str = "soft",
         **settings,
     ):
+        if renderer not in RENDERERS:
+            raise ValueError(f"unknown renderer {renderer!r}; valid renderers: {', '.join(RENDERERS)}")
+        self.renderer = renderer
+        self._tracers: dict[int, diffrender.RayTracer] = {}  # one per batch size (a tracer renders exactly B)
         spec = task.camera
         self.spec = spec
         self.height = height or spec.height
@@ -79,7 +90,8 @@ class TaskRenderer:
 
         A render inside a captured CUDA graph cannot measure or grow its bins (no host synchronisation) and
         an overflowing environment would render as NaN; a fixed, generous capacity keeps that from happening
-        as the robot moves. Returns the capacity (pairs per environment).
+        as the robot moves. Returns the capacity (pairs per environment). The ray tracer has no bins; this
+        sizes the rasterizer, which probes and :meth:`soft` use with either renderer.
         """
         self.robot.check_qpos(qpos)
         with torch.no_grad():
@@ -136,13 +148,35 @@ class TaskRenderer:
         return self
 
     def __call__(self, qpos: torch.Tensor) -> torch.Tensor:
-        """qpos: (B, nq) -> images (B, 3, H, W) in [0, 1]."""
+        """qpos: (B, nq) -> images (B, 3, H, W) in [0, 1] from the chosen renderer. With ``"warp"`` the image
+        has no gradient: calling it with grad enabled and a ``qpos`` that requires grad is an error."""
+        if self.renderer == "soft":
+            return self.soft(qpos)
+        self.robot.check_qpos(qpos)
+        if torch.is_grad_enabled() and qpos.requires_grad:
+            raise RuntimeError("TaskRenderer(renderer='warp') renders without gradient, but qpos requires grad: "
+                               "call it under torch.no_grad() or use .soft(qpos) for a differentiable image")
+        with torch.no_grad():
+            verts, normals, camera = self._posed(qpos)
+            tracer = self._tracers.get(qpos.shape[0])
+            if tracer is None:
+                tracer = self._tracers[qpos.shape[0]] = diffrender.RayTracer(
+                    self.robot.faces, num_envs=qpos.shape[0], num_verts=self.robot.num_vertices,
+                    device=self.robot.device, settings=self.settings)
+            return tracer(verts, self.robot.colors, camera, normals=normals)
+
+    def soft(self, qpos: torch.Tensor) -> torch.Tensor:
+        """qpos: (B, nq) -> images (B, 3, H, W) in [0, 1] from the soft rasterizer, differentiable in qpos."""
         self.robot.check_qpos(qpos)  # a clear error before any (compiled) work
+        verts, normals, camera = self._posed(qpos)
+        return diffrender.render(verts, self.robot.faces, self.robot.colors, camera, self.settings,
+                                 normals=normals)
+
+    def _posed(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, diffrender.Camera]:
         verts, normals, rotation, eye = self._scene(qpos)
         camera = diffrender.Camera(rotation=rotation, eye=eye, focal=self.focal, height=self.height,
                                    width=self.width)
-        return diffrender.render(verts, self.robot.faces, self.robot.colors, camera, self.settings,
-                                 normals=normals)
+        return verts, normals, camera
 
 
 class FrameStack:
