@@ -7,7 +7,7 @@ import dataclasses
 import torch
 
 from .ant import AntTask
-from .cartpole import CartpoleTask
+from .cartpole import CartpoleSwingUpTask, CartpoleTask
 from .hopper import HopperTask
 from .humanoid import HumanoidTask
 from .task import Task, config_fields
@@ -16,6 +16,7 @@ __all__ = ["TASKS", "make"]
 
 _REGISTRY: dict[str, type[Task]] = {
     "cartpole": CartpoleTask,
+    "cartpole-swingup": CartpoleSwingUpTask,
     "hopper": HopperTask,
     "ant": AntTask,
     "humanoid": HumanoidTask,

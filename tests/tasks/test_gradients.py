@@ -9,9 +9,11 @@ import tasks
 from tests.tasks.helpers import directional_fd_check, rollout_return
 
 
-def test_cartpole_16_steps_matches_finite_differences():
-    """d(return)/d(actions) and d(return)/d(initial qpos, qvel) over 16 control steps (64 substeps)."""
-    env = tasks.make("cartpole", 3, dtype=torch.float64, early_termination=False)
+@pytest.mark.parametrize("name", ["cartpole", "cartpole-swingup"])
+def test_cartpole_16_steps_matches_finite_differences(name):
+    """d(return)/d(actions) and d(return)/d(initial qpos, qvel) over 16 control steps (64 substeps), with the
+    joint springs (cartpole) and without (cartpole-swingup)."""
+    env = tasks.make(name, 3, dtype=torch.float64, early_termination=False)
     gen = torch.Generator().manual_seed(0)
     # away from th = +-pi, where the wrapped angle in the reward has a kink
     qpos0 = torch.tensor([[0.1, -2.0], [-0.3, 1.0], [0.0, 0.3]], dtype=torch.float64)

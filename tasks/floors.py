@@ -1,0 +1,273 @@
+"""Return floors: what a policy that does nothing, or acts at random, scores on each task.
+
+A learning curve means little without them: D.Va's cartpole, whose joint springs swing the pole up on their
+own, scores about 2100 of a possible 2400 per episode with zero action, while the spring-free swing-up scores
+under 200. :func:`action_floors` measures the mean and standard deviation of the undiscounted episode return
+for zero action and for actions drawn uniformly from [-1, 1] at every step; ``task-floors`` runs it for
+several tasks, writes the numbers to a JSON file and prints a table.
+
+Every environment runs the same number of whole episodes (``ceil(episodes / num_envs)``), so episodes that
+terminate early are not over-represented, as they would be if the first ``episodes`` episodes to finish were
+kept. Both policies start from the same seeded reset states; the random actions come from a CPU generator
+seeded with ``seed``, so they are the same on every device.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from tqdm import tqdm
+
+from .registry import TASKS, make
+from .task import Task
+
+__all__ = ["POLICIES", "action_floors", "main", "rollout_returns"]
+
+#: the action policies whose returns are measured
+POLICIES: tuple[str, ...] = ("zero", "random")
+
+
+def _resolve_device(device: str | torch.device) -> torch.device:
+    if str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    d = torch.device(device)
+    if d.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {str(device)!r} was asked for, but CUDA is not available (use 'cpu' or 'auto')")
+    return d
+
+
+@torch.no_grad()
+def rollout_returns(
+    env: Task,
+    *,
+    policy: Literal["zero", "random"],
+    episodes_per_env: int,
+    generator: torch.Generator | None = None,
+    progress: tqdm | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reset ``env`` and run every environment for ``episodes_per_env`` whole episodes.
+
+    policy: "zero" (all actions 0) or "random" (uniform in [-1, 1), drawn on the CPU from ``generator``).
+    progress: a tqdm bar advanced by one per finished episode that is counted.
+    Returns ``(returns, lengths)``, each of shape (num_envs * episodes_per_env,): the undiscounted return
+    and the number of control steps of every counted episode (float64, CPU).
+    """
+    if policy not in POLICIES:
+        raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
+    if not (isinstance(episodes_per_env, int) and episodes_per_env >= 1):
+        raise ValueError(f"episodes_per_env must be a positive int, got {episodes_per_env!r}")
+    if policy == "random" and generator is None:
+        raise ValueError("policy 'random' needs a torch.Generator")
+    B, A = env.num_envs, env.num_act
+    env.reset()
+    running = torch.zeros(B, dtype=torch.float64, device=env.device)
+    steps = torch.zeros(B, dtype=torch.long, device=env.device)
+    finished = torch.zeros(B, dtype=torch.long, device=env.device)
+    returns = torch.zeros(B, episodes_per_env, dtype=torch.float64, device=env.device)
+    lengths = torch.zeros(B, episodes_per_env, dtype=torch.float64, device=env.device)
+    rows = torch.arange(B, device=env.device)
+    zero = torch.zeros(B, A, dtype=env.dtype, device=env.device)
+    # no episode lasts longer than episode_length steps, so this bound is never the reason the loop ends
+    for _ in range(episodes_per_env * env.episode_length):
+        if policy == "zero":
+            action = zero
+        else:
+            action = (torch.rand(B, A, generator=generator, dtype=torch.float64) * 2 - 1).to(env.device, env.dtype)
+        _, reward, done, _ = env.step(action)
+        running += reward.to(torch.float64)
+        steps += 1
+        count = done & (finished < episodes_per_env)
+        if bool(count.any()):
+            slot = finished.clamp(max=episodes_per_env - 1)
+            returns[rows[count], slot[count]] = running[count]
+            lengths[rows[count], slot[count]] = steps[count].to(torch.float64)
+            finished += count.long()
+            if progress is not None:
+                progress.update(int(count.sum()))
+        running = torch.where(done, 0.0, running)
+        steps = torch.where(done, 0, steps)
+        if bool((finished >= episodes_per_env).all()):
+            break
+    return returns.flatten().cpu(), lengths.flatten().cpu()
+
+
+def action_floors(
+    task: str,
+    *,
+    episodes: int,
+    num_envs: int,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    overrides: dict[str, Any] | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Mean and standard deviation of the undiscounted episode return of ``task`` under zero action and under
+    uniform random actions in [-1, 1].
+
+    episodes: at least this many episodes per policy; each of the ``num_envs`` environments runs
+    ``ceil(episodes / num_envs)`` of them. seed: the task's reset seed and the random actions' seed.
+    device: "auto", "cpu", "cuda" or a torch.device. overrides: task config fields (:func:`tasks.make`).
+    progress: show a tqdm bar per policy on stderr.
+    Returns ``{"task", "episode_length", "episodes", "num_envs", "seed", "device", "overrides", "zero",
+    "random"}``; each policy entry holds ``mean``, ``std`` (population), ``min``, ``max`` of the return,
+    ``mean_length`` [control steps] and ``episodes`` (the number counted).
+    """
+    if not (isinstance(episodes, int) and episodes >= 1):
+        raise ValueError(f"episodes must be a positive int, got {episodes!r}")
+    if not (isinstance(num_envs, int) and num_envs >= 1):
+        raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+    dev = _resolve_device(device)
+    per_env = math.ceil(episodes / num_envs)
+    out: dict[str, Any] = {
+        "task": task,
+        "episodes": per_env * num_envs,
+        "num_envs": num_envs,
+        "seed": seed,
+        "device": dev.type,
+        "overrides": dict(overrides or {}),
+    }
+    for policy in POLICIES:
+        env = make(task, num_envs, device=dev, seed=seed, **(overrides or {}))
+        out["episode_length"] = env.episode_length
+        generator = torch.Generator().manual_seed(seed)
+        bar = tqdm(total=per_env * num_envs, desc=f"{task} {policy}", unit="ep", disable=not progress, file=sys.stderr)
+        with bar:
+            ret, length = rollout_returns(
+                env,
+                policy=policy,
+                episodes_per_env=per_env,
+                generator=generator,
+                progress=bar,  # type: ignore[arg-type]
+            )
+        out[policy] = {
+            "mean": ret.mean().item(),
+            "std": ret.std(correction=0).item(),
+            "min": ret.min().item(),
+            "max": ret.max().item(),
+            "mean_length": length.mean().item(),
+            "episodes": ret.numel(),
+        }
+    return out
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``, so a reader
+    never sees a half-written file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def format_table(results: dict[str, dict[str, Any]]) -> str:
+    """A plain-text table of :func:`action_floors` results keyed by task name."""
+    head = f"{'task':<18}{'ep len':>7}{'episodes':>9}  {'zero action':>20}  {'random action':>20}"
+    head += f"  {'mean length z/r':>16}"
+    lines = [head, "-" * len(head)]
+    for name, r in results.items():
+        z, u = r["zero"], r["random"]
+        zs = f"{z['mean']:.1f} +- {z['std']:.1f}"
+        us = f"{u['mean']:.1f} +- {u['std']:.1f}"
+        ls = f"{z['mean_length']:.0f} / {u['mean_length']:.0f}"
+        lines.append(f"{name:<18}{r['episode_length']:>7}{r['episodes']:>9}  {zs:>20}  {us:>20}  {ls:>16}")
+    return "\n".join(lines)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="task-floors",
+        description="Undiscounted episode returns of zero and of uniform random actions in [-1, 1] per task "
+        "(the floors a learning curve should be read against). Writes JSON and prints a table.",
+    )
+    p.add_argument(
+        "--tasks",
+        nargs="+",
+        default=list(TASKS),
+        metavar="TASK",
+        help=f"tasks to measure (default: all of {', '.join(TASKS)})",
+    )
+    p.add_argument(
+        "--episodes",
+        type=int,
+        default=32,
+        help="at least this many episodes per task and policy; every environment runs ceil(episodes / num-envs) "
+        "whole episodes (default: 32)",
+    )
+    p.add_argument("--num-envs", type=int, default=16, help="environments stepped in parallel (default: 16)")
+    p.add_argument("--seed", type=int, default=0, help="reset seed and random-action seed (default: 0)")
+    p.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where to simulate: auto (CUDA when available, else CPU), cpu or cuda (default: auto)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/floors.json"),
+        help="JSON file to write; entries of tasks not measured in this run are kept from an existing file "
+        "unless --fresh is given (default: docs/floors.json)",
+    )
+    p.add_argument("--fresh", action="store_true", help="start from an empty file instead of merging into --out")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point ``task-floors`` (``--help`` lists the flags)."""
+    p = _parser()
+    args = p.parse_args(argv)
+    unknown = [t for t in args.tasks if t not in TASKS]
+    if unknown:
+        p.error(f"--tasks: unknown task(s) {unknown}; known tasks: {', '.join(TASKS)}")
+    if args.episodes < 1:
+        p.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.num_envs < 1:
+        p.error(f"--num-envs must be >= 1, got {args.num_envs}")
+    try:
+        device = _resolve_device(args.device)
+    except ValueError as e:
+        p.error(f"--device: {e}")
+    data: dict[str, Any] = {"tasks": {}}
+    if args.out.exists() and not args.fresh:
+        try:
+            old = json.loads(args.out.read_text())
+        except json.JSONDecodeError as e:
+            p.error(f"--out {args.out} is not valid JSON ({e}); pass --fresh to overwrite it")
+        if isinstance(old, dict) and isinstance(old.get("tasks"), dict):
+            data = old
+    data["description"] = (
+        "Undiscounted episode return (mean, population std, min, max) and mean episode length in control steps "
+        "of zero action and of uniform random actions in [-1, 1], per task; written by task-floors."
+    )
+    for name in args.tasks:
+        data["tasks"][name] = action_floors(
+            name,
+            episodes=args.episodes,
+            num_envs=args.num_envs,
+            seed=args.seed,
+            device=device,
+            progress=not args.no_progress,
+        )
+        _write_json_atomic(args.out, data)  # after every task, so a long run keeps what it has measured
+    print(format_table({n: data["tasks"][n] for n in TASKS if n in data["tasks"]}))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
