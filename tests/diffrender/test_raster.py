@@ -1,5 +1,6 @@
 """The soft rasterizer: gradients, backend agreement, limits, symmetries, robustness, memory, errors."""
 
+import dataclasses
 import itertools
 import math
 
@@ -8,6 +9,7 @@ import torch
 
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
+from diffrender.settings import RASTER_MODELS
 
 from .helpers import (
     F64,
@@ -38,11 +40,14 @@ def ant64():
 
 # ------------------------------------------------------------------------------------------------ gradients
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize(("cull", "blend"), [(True, "softmax"), (False, "softmax"), (False, "alpha")])
-def test_gradcheck_vertices_and_colors(backend, cull, blend):
+@pytest.mark.parametrize(("cull", "model"), [(True, "softmax"), (False, "softmax"), (False, "alpha"), (True, "hard"),
+                                             (False, "hard")])
+def test_gradcheck_vertices_and_colors(backend, cull, model):
+    """Each model's gradient against central differences of its own image. The hard image is differentiable
+    wherever no pixel centre lies on an edge (the perturbations of 1e-6 move no edge across a centre here)."""
     verts, faces, colors = tiny_scene()
     _, _, cam = tiny_camera()
-    s = _settings(backend, cull_backfaces=cull, blend=blend)
+    s = _settings(backend, cull_backfaces=cull, raster_model=model)
     per_env_colors = colors.expand(2, 9, 3).clone()
     for col in (colors, per_env_colors):
         torch.autograd.gradcheck(lambda v, c: dr.render(v, faces, c, cam, s),
@@ -51,13 +56,13 @@ def test_gradcheck_vertices_and_colors(backend, cull, blend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("blend", ["softmax", "alpha"])
-def test_gradcheck_camera_eye_target_and_normals(backend, blend):
+@pytest.mark.parametrize("model", ["softmax", "alpha", "hard"])
+def test_gradcheck_camera_eye_target_and_normals(backend, model):
     verts, faces, colors = tiny_scene()
     eye, target, _ = tiny_camera()
     normals = torch.nn.functional.normalize(torch.randn(2, 9, 3, dtype=F64) + torch.tensor([0, -2.0, 0.5],
                                                                                           dtype=F64), dim=-1)
-    s = _settings(backend, blend=blend)
+    s = _settings(backend, raster_model=model)
 
     def fn(e, t, n):
         cam = dr.Camera.look_at(e, t, (0.0, 0.0, 1.0), 40.0, 7, 6)
@@ -99,8 +104,10 @@ def _ant_inputs(robot, batch=2, size=20, seed=0):
         dict(tile_size=5, chunk_elems=1),  # ragged tiles, one environment per chunk
         dict(tile_size=16, cull_backfaces=False, floor=None),
         dict(tile_size=4, sigma=0.3, gamma=1e-3),
-        dict(blend="alpha", cull_backfaces=False, tile_size=3, chunk_elems=1),
-        dict(blend="alpha", floor=None),
+        dict(raster_model="alpha", cull_backfaces=False, tile_size=3, chunk_elems=1),
+        dict(raster_model="alpha", floor=None),
+        dict(raster_model="hard"),
+        dict(raster_model="hard", cull_backfaces=False, tile_size=3, chunk_elems=1),
     ],
 )
 def test_tiled_matches_dense_forward_and_backward(ant64, kw):
@@ -138,12 +145,12 @@ def test_tiled_matches_dense_with_given_normals_and_per_env_colors(ant64):
 
 
 # ------------------------------------------------------------------------------------------------ limits
-@pytest.mark.parametrize(("floor", "blend"), [(True, "softmax"), (False, "softmax"), (True, "alpha")])
-def test_soft_approaches_hard_zbuffer_monotonically(ant64, floor, blend):
+@pytest.mark.parametrize(("floor", "model"), [(True, "softmax"), (False, "softmax"), (True, "alpha")])
+def test_soft_approaches_hard_zbuffer_monotonically(ant64, floor, model):
     """As sigma, gamma -> 0 the fraction of pixels differing from an independent hard z-buffer decreases
     monotonically to (almost) nothing."""
     verts, normals, cam = _ant_inputs(ant64, batch=2, size=32, seed=2)
-    base = dict(znear=0.5, zfar=6.0, floor=dr.FloorSettings() if floor else None, blend=blend)
+    base = dict(znear=0.5, zfar=6.0, floor=dr.FloorSettings() if floor else None, raster_model=model)
     hard = hard_zbuffer(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(**base), normals=normals)
     fractions = []
     for sigma, gamma in [(1.0, 1e-2), (0.3, 3e-3), (0.1, 1e-3), (0.03, 3e-4), (0.01, 1e-4), (0.003, 1e-5)]:
@@ -152,10 +159,115 @@ def test_soft_approaches_hard_zbuffer_monotonically(ant64, floor, blend):
         fractions.append(((soft - hard).abs().amax(1) > 0.02).double().mean().item())
     assert all(a > b for a, b in itertools.pairwise(fractions)), fractions
     assert fractions[0] > 0.1 and fractions[-1] < 0.01, fractions
+    # and towards the renderer's own hard model
+    own = dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(**base | dict(raster_model="hard")),
+                    normals=normals)
+    assert ((soft - own).abs().amax(1) > 0.02).double().mean() < 0.01
 
 
-@pytest.mark.parametrize("blend", ["softmax", "alpha"])
-def test_tessellated_surface_has_no_seams(blend):
+@pytest.mark.parametrize(("floor", "cull"), [(True, True), (False, True), (False, False)])
+def test_hard_model_equals_the_independent_hard_zbuffer(ant64, floor, cull):
+    verts, normals, cam = _ant_inputs(ant64, batch=2, size=32, seed=2)
+    s = dr.RasterSettings(raster_model="hard", znear=0.5, zfar=6.0, cull_backfaces=cull,
+                          floor=dr.FloorSettings() if floor else None)
+    hard = hard_zbuffer(verts, ant64.faces, ant64.colors, cam, s, normals=normals)
+    for backend in BACKENDS:
+        img = dr.render(verts, ant64.faces, ant64.colors, cam, dataclasses.replace(s, backend=backend),
+                        normals=normals)
+        assert (img - hard).abs().max() < 1e-12
+
+
+def _coverage_masks(robot, q, models, size=64, **kw):
+    """Per model, the robot's mask: pixels where it owns more than half the colour (white unlit robot over a
+    black sky, no floor). (B, H, W) bool each."""
+    verts, normals = robot.world_vertices_and_normals(q)
+    cam = dr.tracking_camera(q[:, :3], eye_offset=(0.5, -2.0, 1.0), target_offset=(0.0, 0.0, 1.0), track="xyz",
+                             fov_deg=90.0, height=size, width=size)
+    white = torch.ones_like(robot.colors)
+    out = {}
+    for model in models:
+        s = dr.RasterSettings(raster_model=model, floor=None, background=(0.0, 0.0, 0.0), ambient=1.0, diffuse=0.0,
+                              **kw)
+        out[model] = dr.render(verts, robot.faces, white, cam, s, normals=normals)[:, 0] > 0.5
+    return out
+
+
+def _iou(a, b) -> float:
+    return float((a & b).sum() / (a | b).sum())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("sigma", "cull"), [(0.02, True), (0.1, True), (0.005, False)])
+def test_soft_silhouettes_are_not_dilated(sigma, cull):
+    """The soft models' half-coverage mask agrees with the hard model's (IoU >= 0.99) on ant images at task
+    resolution: the robot's share of a silhouette pixel follows its coverage, 1/2 on the true edge, instead of
+    owning every pixel out to the coverage cut-off. Without culling the front and back faces of a silhouette
+    both count, which moves the half level out by sigma ln 3, hence the smaller sigma."""
+    robot = dr.RobotModel.from_mjcf(asset("ant"), dtype=F64, detail=1)
+    masks = _coverage_masks(robot, ant_pose(3, seed=3), ("hard", "softmax", "alpha"), sigma=sigma, gamma=1e-4,
+                            cull_backfaces=cull)
+    assert masks["hard"].sum() > 500
+    for model in ("softmax", "alpha"):
+        assert _iou(masks[model], masks["hard"]) >= 0.99, (model, _iou(masks[model], masks["hard"]))
+
+
+@pytest.mark.parametrize("model", ["softmax", "alpha", "hard"])
+def test_silhouette_gradient_over_the_floor(model):
+    """One triangle in front of the floor, moved sideways by 1e-3 px: at its silhouette pixels the soft models'
+    derivative predicts the image change (central differences), the hard model's is zero there (its image
+    there does not change under so small a step, up to rounding)."""
+    verts = torch.tensor([[[-0.3, 0.0, 0.6], [0.3, 0.0, 0.6], [0.0, 0.0, 1.1]]], dtype=F64)
+    faces = torch.tensor([[0, 2, 1]])
+    colors = torch.full((3, 3), 0.9, dtype=F64)
+    cam = dr.Camera.look_at(torch.tensor([0.0, -2.0, 0.9], dtype=F64), torch.tensor([0.0, 0.0, 0.8], dtype=F64),
+                            (0.0, 0.0, 1.0), 40.0, 16, 16)
+    s = dr.RasterSettings(raster_model=model, sigma=0.3, gamma=1e-3, cull_backfaces=False)
+    shift = torch.tensor([1.0, 0.0, 0.0], dtype=F64)
+    # world metres per pixel at the triangle's depth: 1e-3 px of motion
+    h = 1e-3 * 2.0 * math.tan(math.radians(20.0)) / 16 * 2.0
+
+    def img(t):
+        return dr.render(verts + t * shift, faces, colors, cam, s)
+
+    t = torch.zeros((), dtype=F64, requires_grad=True)
+    base = img(t)
+    weights = torch.randn(base.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
+    hard_s = dataclasses.replace(s, raster_model="hard")
+    hard = dr.render(verts, faces, colors, cam, hard_s)
+    empty = dr.render(verts[:, :0], faces[:0], colors[:0], cam, hard_s)  # the floor and sky alone
+    covered = (hard - empty).abs().amax(1) > 0
+    inside = torch.nn.functional.max_pool2d(covered.double(), 3, 1, 1) > 0
+    outside = torch.nn.functional.max_pool2d((~covered).double(), 3, 1, 1) > 0
+    silhouette = (inside & outside)[:, None].expand_as(base)
+    assert silhouette.sum() > 3 * 10
+    fd = ((img(torch.tensor(h, dtype=F64)) - img(torch.tensor(-h, dtype=F64))) / (2 * h)).detach()
+    (grad,) = torch.autograd.grad((base * weights * silhouette).sum(), t)
+    predicted, observed = float(grad), float((fd * weights * silhouette).sum())
+    if model == "hard":
+        assert abs(predicted) < 1e-12 and abs(observed) < 1e-8  # rounding of the unchanged image
+    else:
+        assert abs(observed) > 1.0 and abs(predicted - observed) < 1e-4 * abs(observed), (predicted, observed)
+
+
+def test_floor_occludes_faces_below_it_except_in_alpha():
+    """A triangle half below the floor: "softmax" and "hard" hide the buried half, "alpha" shows it."""
+    verts = torch.tensor([[[-0.4, 0.0, -0.3], [0.4, 0.0, -0.3], [0.0, 0.0, 0.5]]], dtype=F64)
+    faces = torch.tensor([[0, 2, 1]])
+    colors = torch.tensor([[1.0, 0.0, 0.0]], dtype=F64).expand(3, 3)
+    cam = dr.Camera.look_at(torch.tensor([0.0, -2.0, 1.0], dtype=F64), torch.tensor([0.0, 0.0, 0.0], dtype=F64),
+                            (0.0, 0.0, 1.0), 50.0, 24, 24)
+    red = {}
+    for model in ("hard", "softmax", "alpha"):
+        img = dr.render(verts, faces, colors, cam, dr.RasterSettings(raster_model=model, cull_backfaces=False))
+        red[model] = img[0, 0] - img[0, 1] > 0.2  # the floor and sky are grey-blue
+    uv = cam.project(verts)[0]
+    assert red["alpha"].sum() > red["hard"].sum() + 10
+    assert (red["softmax"] ^ red["hard"]).sum() <= 2  # pixel centres within ~sigma of an edge may differ
+    assert red["hard"].sum() > 10 and float(uv[:, 1].max()) > 12
+
+
+@pytest.mark.parametrize("model", ["softmax", "alpha"])
+def test_tessellated_surface_has_no_seams(model):
     """A square tessellated into many triangles renders like the same square as two triangles: the mesh's
     internal edges leave no trace (in "alpha" mode the coverage of adjacent triangles must add up to 1)."""
     n = 6
@@ -170,7 +282,7 @@ def test_tessellated_surface_has_no_seams(blend):
     normals = torch.tensor([0.0, -1.0, 0.0], dtype=F64).expand_as(verts).contiguous()
     cam = dr.Camera.look_at(torch.tensor([0.0, -2.0, 1.0], dtype=F64), torch.tensor([0.0, 0.0, 1.0], dtype=F64),
                             (0.0, 0.0, 1.0), 40.0, 24, 24)
-    s = dr.RasterSettings(sigma=0.5, blend=blend, cull_backfaces=False)
+    s = dr.RasterSettings(sigma=0.5, raster_model=model, cull_backfaces=False)
     imgs = [dr.render(verts, f, colors, cam, s, normals=normals) for f in (fine, coarse)]
     uv = cam.project(verts)[0]
     inner = (uv[:, 0].min() + 3, uv[:, 0].max() - 3, uv[:, 1].min() + 3, uv[:, 1].max() - 3)
@@ -180,7 +292,7 @@ def test_tessellated_surface_has_no_seams(blend):
     diff = (imgs[0] - imgs[1]).abs().amax(1)[0]
     # softmax: exact; alpha: where more than two triangles meet the sigmoids add up to 1 only approximately
     # (the product form 1 - prod(1 - D) left seams of ~0.1 here)
-    assert diff[mask].max() < (1e-9 if blend == "softmax" else 1e-3), diff[mask].max()
+    assert diff[mask].max() < (1e-9 if model == "softmax" else 1e-3), diff[mask].max()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -408,6 +520,7 @@ def test_bad_inputs_raise_clear_errors():
     with pytest.raises(ValueError, match="camera has 3 views but verts has 2 environments"):
         dr.render(verts, faces, colors, three, s)
     for kw, msg in ((dict(sigma=0.0), "sigma"), (dict(znear=2.0, zfar=1.0), "znear"), (dict(backend="x"), "backend"),
+                    (dict(raster_model="soft"), "raster_model must be one of 'hard', 'softmax', 'alpha'"),
                     (dict(tile_size=0), "tile_size"), (dict(bin_capacity=-1), "bin_capacity"),
                     (dict(background=(2, 0, 0)), "background")):
         with pytest.raises(ValueError, match=msg):
@@ -439,11 +552,11 @@ def test_compiled_kernel_matches_eager():
     It caught an inductor mis-fusion of a scatter-add into a zero buffer, see kernel.py.)"""
     verts, faces, colors = tiny_scene()
     _, _, cam = tiny_camera(height=12, width=10)
-    for blend in ("softmax", "alpha"):
+    for model in RASTER_MODELS:
         res = []
         for comp in (False, True):
             v = verts.clone().requires_grad_()
-            img = dr.render(v, faces, colors, cam, tiny_settings(compile=comp, blend=blend))
+            img = dr.render(v, faces, colors, cam, tiny_settings(compile=comp, raster_model=model))
             (img * torch.linspace(0, 1, img.numel(), dtype=F64).view_as(img)).sum().backward()
             res.append((img.detach(), v.grad))
         assert (res[0][0] - res[1][0]).abs().max() < 1e-12
