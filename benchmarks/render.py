@@ -15,6 +15,7 @@ measured with saved-tensor hooks; the faces tensor, which the caller owns anyway
 
     python benchmarks/render.py --device cuda --quick --out bench_render.json
     python benchmarks/render.py --device cpu --tiny                  # smoke test on a laptop
+    python benchmarks/render.py --silhouette-share --out silhouette_share.json   # gradient share per model
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import torch
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
 from diffrender.raster import count_pairs, tiled_static
+from diffrender.settings import RASTER_MODELS
 
 ASSETS = Path(__file__).resolve().parents[1] / "tasks" / "assets"
 # (tile, face block, backward sub-block, backward warps) of diffrender.raster.fused
@@ -114,7 +116,7 @@ class Scene:
         self.res = res
 
     def camera(self, qpos: torch.Tensor) -> dr.Camera:
-        # the ant task's camera (DESIGN section 4): eye (0.5, -2, 1) -> (0, 0, 1) from the torso, fov 90
+        # the ant task's camera: eye (0.5, -2, 1) -> (0, 0, 1) from the torso, fov 90
         return dr.tracking_camera(qpos[:, :3], eye_offset=(0.5, -2.0, 1.0), target_offset=(0.0, 0.0, 1.0),
                                   track="xyz", fov_deg=90.0, height=self.res, width=self.res)
 
@@ -125,7 +127,7 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
     device = torch.device(args.device)
     dtype = torch.float64 if args.float64 else torch.float32
     rec = dict(backend=backend, batch=batch, res=res, faces_target=faces, tile=tile, compile=compile,
-               blend=args.blend, cull=not args.no_cull)
+               raster_model=args.raster_model, cull=not args.no_cull)
     if backend == "fused":
         from diffrender.raster import fused
 
@@ -142,9 +144,9 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
     if backend == "dense" and batch * robot.num_faces * res * res > DENSE_MAX_ELEMS:
         rec["status"] = "skipped: too large for the dense reference"
         return rec
-    settings = dr.RasterSettings(backend=backend, tile_size=tile, compile=compile, sigma=args.sigma, blend=args.blend,
-                                 cull_backfaces=not args.no_cull, chunk_elems=args.chunk_elems,
-                                 save_blend_state=args.save_blend_state)
+    settings = dr.RasterSettings(backend=backend, tile_size=tile, compile=compile, sigma=args.sigma,
+                                 raster_model=args.raster_model, cull_backfaces=not args.no_cull,
+                                 chunk_elems=args.chunk_elems, save_blend_state=args.save_blend_state)
     rec["save_blend_state"] = args.save_blend_state
     cam = scene.camera(scene.qpos)
     verts = scene.verts
@@ -325,40 +327,71 @@ def table(records: list[dict]) -> str:
     return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in rows)
 
 
-def jump_share(device: str) -> list[dict]:
-    """How much of the image's dependence on the pose autograd sees, per blend mode: for the ant at 84 x 84
-    under a fixed camera, 4 poses x 4 directions (root x, root y, two hinges), compare the image change under
-    a 1e-4 step (central difference) with the derivative (central difference at 1e-7, which equals autograd
-    where nothing jumps); the excess is jumps (coverage cut-off, culling). float64."""
-    dev = torch.device(device)
-    robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=1, dtype=torch.float64, device=dev)
-    f64 = dict(dtype=torch.float64, device=dev)
-    cam = dr.Camera.look_at(torch.tensor([0.5, -2.2, 1.6], **f64), torch.tensor([0.0, 0.0, 0.4], **f64),
-                            (0.0, 0.0, 1.0), 60.0, 84, 84)
+def _silhouette_pixels(robot, q, cam, settings) -> torch.Tensor:
+    """(B, 1, H, W) bool: pixels whose 3 x 3 neighbourhood holds both robot and floor/sky in the hard model's
+    image at ``q`` (the robot's pixels: those that differ from the floor and sky rendered alone)."""
+    hard = dataclasses.replace(settings, raster_model="hard")
+    with torch.no_grad():
+        v, n = robot.world_vertices_and_normals(q)
+        img = dr.render(v, robot.faces, robot.colors, cam, hard, normals=n)
+        empty = dr.render(v[:, :0], robot.faces[:0], robot.colors[:0], cam, hard)
+    robot_px = ((img - empty).abs().amax(1, keepdim=True) > 0).double()
+    near_robot = torch.nn.functional.max_pool2d(robot_px, 3, 1, 1) > 0
+    near_rest = torch.nn.functional.max_pool2d(1.0 - robot_px, 3, 1, 1) > 0
+    return near_robot & near_rest
+
+
+def silhouette_share(args) -> list[dict]:
+    """Per raster model (and culling): of the image's change when one joint moves, the part the model's
+    analytic gradient predicts, at silhouette pixels and over the whole image.
+
+    The ant at ``--res`` (default 84) under its task camera, ``--poses`` random poses x four hinge joints,
+    float64, the ``--device``'s automatic backend (fused on CUDA, tiled elsewhere). Per joint, the finite
+    difference ``FD = (I(q + h e) - I(q - h e)) / 2h`` (``h = --fd-step`` rad, which moves edges by about a
+    hundredth of a pixel) and the analytic derivative ``AN = dI/dq e`` (one backward pass: only its
+    projection on FD is needed). Share = ``sum <FD, AN> / sum <FD, FD>`` over the pixels of the silhouette
+    (next to both robot and floor/sky in the hard image) or the whole image, summed over poses and joints:
+    1 where the gradient predicts the change, 0 where the image moves only by jumps (a hard edge crossing a
+    pixel centre, a pair crossing the coverage cut-off, a face culled as it turns away)."""
+    dev = torch.device(args.device)
+    f64 = torch.float64
+    robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=1, dtype=f64, device=dev)
+    h = args.fd_step
     out = []
-    for sigma in (0.1, 0.3):
-        for blend in ("softmax", "alpha"):
-            for cull in (True, False):
-                s = dr.RasterSettings(sigma=sigma, blend=blend, cull_backfaces=cull)
-                jump = visible = 0.0
-                for seed in range(4):
-                    q = Scene(0, 1, 84, dev, torch.float64, seed=seed).qpos
-                    for idx in (0, 1, 8, 11):
-                        d = torch.zeros_like(q)
-                        d[0, idx] = 1.0
+    for model in args.models:
+        for cull in (True, False):
+            s = dr.RasterSettings(raster_model=model, sigma=args.sigma, cull_backfaces=cull)
+            sums = dict(sil_fd_an=0.0, sil_fd_fd=0.0, img_fd_an=0.0, img_fd_fd=0.0)
+            sil_pixels = 0
+            for seed in range(args.poses):
+                scene = Scene(0, 1, args.res, dev, f64, seed=seed)
+                q0 = scene.qpos
+                cam = scene.camera(q0)
+                sil = _silhouette_pixels(robot, q0, cam, s)
+                sil_pixels += int(sil.sum())
 
-                        def img(x, s=s):
-                            v, n = robot.world_vertices_and_normals(x)
-                            return dr.render(v, robot.faces, robot.colors, cam, s, normals=n)
+                def img(q, s=s, cam=cam):
+                    v, n = robot.world_vertices_and_normals(q)
+                    return dr.render(v, robot.faces, robot.colors, cam, s, normals=n)
 
-                        deriv = (img(q + 1e-7 * d) - img(q - 1e-7 * d)) / 2e-7
-                        step = (img(q + 1e-4 * d) - img(q - 1e-4 * d)) / 2e-4
-                        jump += float((step - deriv).abs().sum())
-                        visible += float(deriv.abs().sum())
-                rec = dict(sigma=sigma, blend=blend, cull=cull, jump_share=jump / (jump + visible),
-                           autograd_visible=visible)
-                print(json.dumps(rec), flush=True)
-                out.append(rec)
+                for joint in (7, 9, 11, 13):  # the first hinge of each leg
+                    e = torch.zeros_like(q0)
+                    e[0, joint] = 1.0
+                    with torch.no_grad():
+                        fd = (img(q0 + h * e) - img(q0 - h * e)) / (2 * h)
+                    for where, mask in (("sil", sil), ("img", None)):
+                        u = fd if mask is None else fd * mask
+                        q = q0.clone().requires_grad_()
+                        (g,) = torch.autograd.grad((img(q) * u).sum(), q)
+                        sums[f"{where}_fd_an"] += float(g[0, joint])
+                        sums[f"{where}_fd_fd"] += float((u * fd).sum())
+            rec = dict(raster_model=model, cull=cull, sigma=args.sigma, res=args.res, poses=args.poses, fd_step=h,
+                       backend=dr.backend_for(s, dev), silhouette_pixels=sil_pixels,
+                       silhouette_share=sums["sil_fd_an"] / sums["sil_fd_fd"],
+                       image_share=sums["img_fd_an"] / sums["img_fd_fd"],
+                       silhouette_part_of_change=sums["sil_fd_fd"] / sums["img_fd_fd"])
+            print(json.dumps(rec), flush=True)
+            out.append(rec)
     return out
 
 
@@ -382,7 +415,8 @@ def main(argv=None) -> int:
                    help="with --backends: only the target point (64 ant images, 84x84), no sweeps")
     p.add_argument("--tiles", type=int, nargs="*", help="tile sizes to compare at the target point")
     p.add_argument("--compile", action="store_true", help="also measure with torch.compile (see points())")
-    p.add_argument("--blend", choices=["softmax", "alpha"], default="softmax")
+    p.add_argument("--raster-model", choices=RASTER_MODELS, default=dr.RasterSettings().raster_model,
+                   help="the image model timed (RasterSettings.raster_model)")
     p.add_argument("--no-cull", action="store_true", help="keep back faces (cull_backfaces=False)")
     p.add_argument("--chunk-elems", type=int, default=dr.RasterSettings().chunk_elems)
     p.add_argument("--float64", action="store_true")
@@ -390,16 +424,22 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=None)
     p.add_argument("--repeats", type=int, default=None)
     p.add_argument("--out", type=Path, default=Path("bench_render.json"))
-    p.add_argument("--jump-share", action="store_true",
-                   help="instead of timing: how much of the image's pose dependence is jumps, per blend mode")
+    p.add_argument("--silhouette-share", action="store_true",
+                   help="instead of timing: per raster model, the part of the image's change at silhouette pixels "
+                        "(and over the image) when a joint moves that the analytic gradient predicts")
+    p.add_argument("--models", nargs="*", choices=RASTER_MODELS, default=list(RASTER_MODELS),
+                   help="--silhouette-share: the raster models compared")
+    p.add_argument("--res", type=int, default=84, help="--silhouette-share: image side [px]")
+    p.add_argument("--poses", type=int, default=4, help="--silhouette-share: random ant poses")
+    p.add_argument("--fd-step", type=float, default=1e-3, help="--silhouette-share: joint step h [rad]")
     args = p.parse_args(argv)
-    if args.jump_share:
-        recs = jump_share(args.device)
+    if args.silhouette_share:
+        recs = silhouette_share(args)
         args.out.write_text(json.dumps(recs, indent=2))
-        print("\nsigma  blend    cull   jump share  autograd-visible")
+        print("\nmodel    cull   sigma  silhouette share  image share  silhouette part of change  backend")
         for r in recs:
-            print(f"{r['sigma']:5}  {r['blend']:7}  {r['cull']!s:5}  {r['jump_share']:10.2f}  "
-                  f"{r['autograd_visible']:16.0f}")
+            print(f"{r['raster_model']:7}  {r['cull']!s:5}  {r['sigma']:5}  {r['silhouette_share']:16.3f}  "
+                  f"{r['image_share']:11.3f}  {r['silhouette_part_of_change']:25.3f}  {r['backend']}")
         return 0
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda but CUDA is not available")
@@ -419,7 +459,7 @@ def main(argv=None) -> int:
     info = dict(torch=torch.__version__, python=platform.python_version(), device=args.device,
                 device_name=torch.cuda.get_device_name() if args.device == "cuda" else platform.processor(),
                 threads=torch.get_num_threads(), compile=args.compile, dtype="float64" if args.float64 else "float32",
-                sigma=args.sigma, blend=args.blend, cull=not args.no_cull, chunk_elems=args.chunk_elems,
+                sigma=args.sigma, raster_model=args.raster_model, cull=not args.no_cull, chunk_elems=args.chunk_elems,
                 wall_s=time.perf_counter() - start, targets=TARGET)
     # the target point per backend, its best variant; graph-replayed times where measured (how the trainer
     # renders under --compile), else eager

@@ -1,4 +1,5 @@
-"""Soft rasterization: a shared per-pair kernel, a dense reference backend and the tiled backend."""
+"""Rasterization with three image models (``RasterSettings.raster_model``): a shared per-pair kernel, a dense
+reference backend and the tiled backend (the fused Triton backend is :mod:`.fused`, imported when used)."""
 
 from .binning import Bins, bin_faces, count_pairs
 from .dense import rasterize_dense

@@ -1,4 +1,4 @@
-"""The per-chunk soft-rasterization kernel shared by the dense and tiled backends.
+"""The per-chunk rasterization kernel shared by the dense and tiled backends (every image model).
 
 Both backends call :func:`render_pairs` with a list of (face, tile) pairs per environment; the kernel
 evaluates every pair at every pixel of its tile and blends. The dense backend passes every face once with a
