@@ -1,8 +1,9 @@
 """Ant (SHAC's dflex ant): a four-legged 182 kg robot (density 1000), reward for running along +x.
 
 Start: torso at 0.75 m, hip/ankle angles (0, 1, 0, -1, 0, -1, 0, 1) (legs bent down). Actions: 8 motors,
-torque = a * 200 N m. Contact (dflex): ke 4e4, kd 1e4, kf 3e3, mu 0.75; joint limits ke 1e3, kd 1e1;
-16 substeps; episodes of 1000 steps.
+torque = a * 200 N m. Joint ranges: hips -40..40 deg, ankles 30..100 deg (sign per leg), as the reference's
+ant.xml. Contact (dflex): ke 4e4, kd 1e4, kf 3e3, mu 0.75; joint limits ke 1e3, kd 1e1; 16 substeps; episodes
+of 1000 steps (docs/tasks.md lists every constant with its source).
 Reward (SHAC): ``v_x + 0.1 up + heading + (z - 0.27)``; terminates when the torso height z < 0.27.
 Reset noise and the 37-number observation: :mod:`tasks.locomotion`.
 """

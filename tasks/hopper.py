@@ -2,7 +2,9 @@
 
 qpos = [x, z, pitch, thigh, leg, foot] with z the absolute torso height (the asset's rootz has ref 1.25, so
 z = 1.25 at the start); qvel the matching rates. Actions: 3 motors (thigh, leg, foot), torque = a * 200 N m.
-Contact (dflex): ke 2e4, kd 1e3, kf 1e3, mu 0.9; joint limits ke 1e3, kd 1e1; 16 substeps.
+Contact (dflex): ke 2e4, kd 1e3, kf 1e3, mu 0.9; joint limits ke 1e3, kd 1e1; 16 substeps. Armature 1.0 on
+every joint, the root slides and hinge included, and joint damping 2 on the leg joints (D.Va's parse_mjcf
+arguments; docs/tasks.md lists every constant with its source).
 
 Reward (SHAC): ``v_x + height + angle - 0.1 |a|^2`` where, with ``dz = z - 1.25`` the height relative to the
 start, ``h = clip(dz + 0.3, -1, 0.3)``, ``height = -200 h^2 if h < 0 else h``, ``angle = 1 - pitch^2/(pi/6)^2``.
