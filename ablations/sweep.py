@@ -64,9 +64,9 @@ class SweepConfig:
     """Run a grid of `ablate` runs (tasks x modes x seeds x --vary flags) as Ray tasks; rerun to resume."""
 
     config: Path | None = None
-    """TOML file with any of these options (underscores or dashes): tasks, modes, seeds, out, address, ...;
-    a [set] table (flag = value) and a [vary] table (flag = [values]). Flags given on the command line win;
-    their --set/--vary entries are added to the file's, key by key."""
+    """TOML file with any of these options (underscores or dashes: tasks, modes, seeds, out, gpus-per-run...),
+    a [set] table (flag = value) and a [vary] table (flag = [values]).
+    Flags given on the command line win; their --set/--vary entries are added to the file's, key by key."""
     out: Path = Path("sweep")
     """The sweep folder: sweep.json, runs/<run_id>/, logs/. Reuse it to resume the sweep."""
     tasks: tuple[str, ...] = ("cartpole",)
@@ -81,34 +81,35 @@ class SweepConfig:
     vary: tuple[str, ...] = ()
     """More grid axes over any ablate flag, as FLAG=V1,V2,... (e.g. image-size=64,84 horizon=16,32)."""
     address: str | None = None
-    """Ray cluster to join: HOST:PORT, or auto (the cluster `ray start` began on this machine). None: RAY_ADDRESS
-    or that cluster when there is one, else a local cluster started for this sweep. ray:// (Ray Client) is
-    refused: the driver must run on a node of the cluster, where the run folders are collected."""
+    """Ray cluster to join: HOST:PORT, or auto (the cluster `ray start` began on this machine).
+    None: RAY_ADDRESS or that cluster when there is one, else a local cluster started for this sweep.
+    ray:// (Ray Client) is refused: the driver must run on a node of the cluster, where run folders are collected."""
     num_cpus: int | None = None
     """CPUs of a local cluster started here (None: all); only without --address."""
     num_gpus: int | None = None
     """GPUs of a local cluster started here (None: all detected); only without --address."""
     cpus_per_run: float = 1.0
-    """CPUs Ray reserves for each run (also its OMP_NUM_THREADS)."""
+    """CPUs Ray reserves for each run; its torch CPU threads (OMP_NUM_THREADS) are this, rounded down, at least 1."""
     gpus_per_run: float = 0.0
-    """GPUs Ray reserves for each run; fractions share a GPU (0.25: four runs per GPU; Ray does not divide
-    its memory). 0: the run sees no GPU (CUDA_VISIBLE_DEVICES is emptied) and trains on the CPU."""
+    """GPUs Ray reserves for each run; fractions share a GPU (0.25: four runs per GPU; Ray does not divide its memory).
+    0: the run sees no GPU (CUDA_VISIBLE_DEVICES is emptied) and trains on the CPU."""
     max_retries: int = 3
-    """Retries of a run whose worker process died or whose ablate process was killed by a signal (each resumes
-    from the last checkpoint the sweep folder holds). An ablate error is not retried: it is recorded."""
+    """Retries of a run whose worker process died or whose ablate process was killed by a signal.
+    Each retry resumes from the last checkpoint the sweep folder holds.
+    An ablate error (a bad value, a non-finite loss, out of memory) is not retried: it is recorded."""
     rerun_failed: bool = True
     """On a rerun, start (or resume) runs recorded as failed; --no-rerun-failed leaves them as they are."""
     keep_checkpoints: bool = True
     """Keep each finished run's last checkpoint in its folder (--no-keep-checkpoints deletes it once done)."""
     progress: bool = True
     """Live table (tqdm): done / running / failed / queued and each running run's iteration and latest return.
-    --no-progress prints one line per change of status instead."""
+    Either way a line is printed whenever a run changes status."""
     dry_run: bool = False
     """List the runs (and what a rerun would do with each) and exit without starting Ray."""
     kill_once: tuple[str, ...] = ()
-    """Fault injection for testing recovery: each of these run ids kills its own Ray worker (SIGKILL) once,
-    right after its first checkpoint has reached the sweep folder; a marker in <out>/.killed/ keeps the retry
-    from doing it again."""
+    """Fault injection, to test recovery: each of these run ids kills its own Ray worker (SIGKILL) once,
+    right after its first checkpoint has reached the sweep folder.
+    A marker in <out>/.killed/ (naming that checkpoint) keeps the retry from doing it again."""
 
     def validate(self) -> None:
         """Checks of the sweep's own options (the runs' flags are checked by :func:`plan`)."""
@@ -538,7 +539,10 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
         args = ["--resume", str(run_dir)]
     else:
         args = [*spec["args"], "--out", str(scratch), "--name", run_id]
-    env = dict(os.environ)
+    # What the store already holds needs no second trip.
+    shipped = latest_checkpoint(run_dir / "checkpoints")
+    sent_videos: set[str] = set()
+    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(opts["cpus_per_run"]))))
     if not opts["gpus_per_run"]:
         env["CUDA_VISIBLE_DEVICES"] = ""
     log = scratch / "ablate.log"
@@ -553,7 +557,7 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
         store.report.remote(run_id, attempt, {"status": "running", "node": node, "host": platform.node(),
                                               "resumed": pack is not None})
         metrics = _MetricsTail(run_dir / "metrics.jsonl")
-        shipped, reported = None, None
+        reported = None
         while True:
             returncode = proc.poll()
             last = metrics.poll()
@@ -568,12 +572,14 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
                     proc.send_signal(signal.SIGSTOP)
                 # metrics.jsonl gets an iteration's line before its checkpoint: read after seeing the checkpoint,
                 # it covers every iteration the checkpoint does.
-                data = pack_run(run_dir, only=[*_small_files(run_dir), str(ckpt.relative_to(run_dir))])
+                videos = _new_videos(run_dir, sent_videos)
+                data = pack_run(run_dir, only=[*_RESUME_FILES, *videos, str(ckpt.relative_to(run_dir))])
                 if f"checkpoints/{ckpt.name}" in tarfile.open(fileobj=io.BytesIO(data)).getnames():
                     ray.get(store.save.remote(run_id, attempt, data))
                     shipped = ckpt
+                    sent_videos.update(videos)
                     if run_id in opts["kill_once"] and ray.get(store.claim_kill.remote(run_id, ckpt.name)):
-                        _kill_self_mid_run(proc, store, run_id, attempt, log)
+                        _kill_self_mid_run(store, run_id, attempt, log)
                 if run_id in opts["kill_once"]:
                     proc.send_signal(signal.SIGCONT)
             if returncode is not None:
@@ -581,14 +587,21 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
             time.sleep(WORKER_POLL_S)
         ray.get(store.save_log.remote(run_id, attempt, log.read_text(errors="replace")))
         if returncode < 0:
-            name = signal.Signals(-returncode).name if -returncode in signal.Signals._value2member_map_ else returncode
+            try:
+                name = signal.Signals(-returncode).name
+            except ValueError:
+                name = str(-returncode)
             raise RunProcessDied(f"ablate was killed by signal {name} on {platform.node()} "
                                  f"(attempt {attempt}); last output: {_tail(log, 3)}")
-        ray.get(store.save.remote(run_id, attempt, pack_run(run_dir, checkpoint=True)))
         summary = {}
         if (run_dir / "summary.json").exists():
             summary = json.loads((run_dir / "summary.json").read_text())
         done = returncode == 0 and summary.get("status") in FINISHED
+        rest = [str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()]
+        # An unfinished run keeps its checkpoint whatever --keep-checkpoints says: a rerun resumes from it.
+        data = pack_run(run_dir, only=[n for n in rest if n not in sent_videos],
+                        checkpoint=opts["keep_checkpoints"] or not done)
+        ray.get(store.save.remote(run_id, attempt, data))
         last = metrics.poll() or {}
         return {"status": "done" if done else "failed",
                 "error": None if done else _error_of(log, returncode),
@@ -600,7 +613,7 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
         shutil.rmtree(scratch, ignore_errors=True)
 
 
-def _kill_self_mid_run(proc, store, run_id: str, attempt: int, log: Path) -> None:
+def _kill_self_mid_run(store, run_id: str, attempt: int, log: Path) -> None:
     """--kill-once: SIGKILL this Ray worker, as a node's OOM killer or a lost node would; its child follows."""
     import ray
 
@@ -609,10 +622,14 @@ def _kill_self_mid_run(proc, store, run_id: str, attempt: int, log: Path) -> Non
     os.kill(os.getpid(), signal.SIGKILL)
 
 
-def _small_files(run_dir: Path) -> list[str]:
-    """What a resume needs besides the checkpoint, and the videos so far (small: they ride along)."""
-    names = [n for n in ("config.json", "git.txt", "git.diff", "metrics.jsonl") if (run_dir / n).exists()]
-    return names + [str(p.relative_to(run_dir)) for p in sorted((run_dir / "videos").glob("*.mp4"))]
+#: What ``ablate --resume`` needs besides the checkpoint (git.* keep the folder complete if the driver's is all).
+_RESUME_FILES = ("config.json", "git.txt", "git.diff", "metrics.jsonl")
+
+
+def _new_videos(run_dir: Path, sent: set[str]) -> list[str]:
+    """Evaluation videos not shipped yet (small: they ride along with the checkpoints)."""
+    return [n for n in (str(p.relative_to(run_dir)) for p in sorted((run_dir / "videos").glob("*.mp4")))
+            if n not in sent]
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -857,7 +874,8 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
         ).remote(str(out), {k: r.get("attempts", 0) for k, r in runs.items()})
         task = ray.remote(_run_attempt).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
                                                 max_retries=cfg.max_retries, retry_exceptions=[RunProcessDied])
-        opts = {"sweep_id": manifest["id"], "gpus_per_run": cfg.gpus_per_run, "kill_once": list(cfg.kill_once)}
+        opts = {"sweep_id": manifest["id"], "gpus_per_run": cfg.gpus_per_run, "cpus_per_run": cfg.cpus_per_run,
+                "keep_checkpoints": cfg.keep_checkpoints, "kill_once": list(cfg.kill_once)}
         for spec in todo:
             pending[task.remote(dataclasses.asdict(spec), store, opts)] = spec.run_id
         table = _Table(manifest, todo, enabled=cfg.progress)
@@ -882,7 +900,10 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
                 try:
                     result = ray.get(ref)
                 except ray.exceptions.RayError as e:
-                    result = {"status": "failed", "error": _describe_failure(e)}
+                    # Retries are spent (a worker death, a killed ablate) or the task itself broke.
+                    tries = max(rec.get("attempts") or 0, 1)
+                    result = {"status": "failed", "error": f"{_describe_failure(e)} (attempt {tries}, "
+                                                           f"--max-retries {cfg.max_retries})"}
                 rec.update({k: v for k, v in result.items() if k in ("status", "error", "iteration", "latest_return",
                                                                      "node", "host", "summary_status")},
                            updated=time.strftime("%Y-%m-%dT%H:%M:%S"))
