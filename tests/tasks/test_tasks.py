@@ -10,11 +10,11 @@ import torch
 
 import tasks
 
-DIMS = {"cartpole": (5, 1), "hopper": (11, 3), "ant": (37, 8), "humanoid": (76, 21)}
+DIMS = {"cartpole": (5, 1), "cartpole-swingup": (5, 1), "hopper": (11, 3), "ant": (37, 8), "humanoid": (76, 21)}
 
 
-def test_registry_lists_the_four_tasks():
-    assert set(tasks.TASKS) == set(DIMS) or set(tasks.TASKS) <= set(DIMS)
+def test_registry_lists_the_paper_tasks_and_the_swingup_variant():
+    assert set(tasks.TASKS) == set(DIMS)
 
 
 def test_unknown_task_lists_known_names():
@@ -58,6 +58,7 @@ def test_cameras():
     cams = {n: tasks.make(n, 1).camera for n in tasks.TASKS}
     expected = {
         "cartpole": ((0, -2.8, 1.2), (0, 0, 1.2), 90, "none"),
+        "cartpole-swingup": ((0, -2.8, 1.2), (0, 0, 1.2), 90, "none"),
         "hopper": ((0, -2.8, 0.1), (0, 0, 0), 45, "xz"),  # offsets from the torso (1.25 m at the start)
         "ant": ((0.5, -2, 1), (0, 0, 1), 90, "xyz"),
         "humanoid": ((-3, 0, 1), (0, 0, 0), 45, "xyz"),
