@@ -31,7 +31,8 @@ TINY = ("iters=12", "num-envs=2", "horizon=3", "image-size=24", "critic-iteratio
 
 def tiny_sweep(out: Path, **kw) -> SweepConfig:
     kw.setdefault("modes", ("decoupled", "state"))
-    return SweepConfig(out=out, tasks=("cartpole",), set=TINY, progress=False, **kw)
+    kw.setdefault("progress", False)
+    return SweepConfig(out=out, tasks=("cartpole",), set=TINY, **kw)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -257,13 +258,16 @@ def ray_cluster():
     ray.shutdown()
 
 
-def assert_complete_run(run: Path, iters: int) -> None:
+def assert_complete_run(run: Path, iters: int, *, checkpoint: bool = True) -> None:
     """Every iteration once, in order; finished; the files ablate writes, gathered in the sweep folder."""
     assert [r["iter"] for r in read_metrics(run)] == list(range(1, iters + 1))
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"] == "finished" and summary["iterations"] == iters
     assert (run / "config.json").exists() and (run / "git.txt").exists()
-    assert [p.name for p in (run / "checkpoints").iterdir()] == [f"ckpt_{iters:06d}.pt"]
+    if checkpoint:
+        assert [p.name for p in (run / "checkpoints").iterdir()] == [f"ckpt_{iters:06d}.pt"]
+    else:
+        assert not (run / "checkpoints").exists()
 
 
 def killed_at(out: Path, run_id: str) -> int:
@@ -274,7 +278,7 @@ def killed_at(out: Path, run_id: str) -> int:
 def test_sweep_recovers_a_killed_worker_then_a_rerun_skips_everything(ray_cluster, tmp_path):
     out = tmp_path / "sweep"
     killed = "cartpole_decoupled_seed0"
-    manifest = run_sweep(tiny_sweep(out, kill_once=(killed,)))
+    manifest = run_sweep(tiny_sweep(out, kill_once=(killed,), progress=True))  # the live table too
     runs = manifest["runs"]
     assert set(runs) == {killed, "cartpole_state_seed0"}
     assert manifest["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0}
@@ -311,10 +315,10 @@ def test_failed_run_is_recorded_and_a_rerun_resumes_it(ray_cluster, tmp_path):
     assert [r["iter"] for r in read_metrics(out / rec["folder"])][:step] == list(range(1, step + 1))
     assert (out / rec["folder"] / "checkpoints" / f"ckpt_{step:06d}.pt").exists()
 
-    manifest = run_sweep(tiny_sweep(out, modes=("state",), seeds=(1,), kill_once=(killed,)))
+    manifest = run_sweep(tiny_sweep(out, modes=("state",), seeds=(1,), kill_once=(killed,), keep_checkpoints=False))
     rec = manifest["runs"][killed]
     assert rec["status"] == "done" and rec["error"] is None and rec["resumed"] is True and rec["attempts"] == 2
-    assert_complete_run(out / rec["folder"], 12)
+    assert_complete_run(out / rec["folder"], 12, checkpoint=False)
 
 
 @pytest.mark.slow
