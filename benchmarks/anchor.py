@@ -1,0 +1,350 @@
+"""The renderer against an anchor: nvdiffrast, and the Warp ray tracer, on the same scene and camera.
+
+Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up to each face count, one process:
+
+- ``time``: per face count and backend, forward and forward+backward [ms] (median of ``--repeats`` after
+  warm-up, CUDA-synchronised), peak allocated/reserved memory of the fwd+bwd region and the bytes autograd
+  saves. Backends: ours ``fused`` for each raster model, eager and CUDA-graph-replayed (as the trainer runs
+  it under ``--compile``); ``warp`` (forward only, eager and graph-replayed); ``nvdiffrast`` (rasterize +
+  interpolate colours and normals + Lambert shading + antialias; eager), when it is importable
+  (``source ../shared/tools/nvdiffrast-build.sh``). The backward is that of a fixed random weighting of the
+  image, into the world vertices.
+- ``iou``: the sharp-limit silhouette of each of our models and of the ray tracer against nvdiffrast's
+  coverage (no floor, black background, white unlit robot), 64 ant poses: intersection over union and our
+  mask's size relative to the anchor's.
+
+    python benchmarks/anchor.py --out benchmarks/results/anchor.json            # both parts
+    python benchmarks/anchor.py --faces 0 --models softmax --repeats 5         # a quick look
+
+The scene, poses and camera are ``benchmarks/render.py``'s ``Scene`` (the ant task's tracking camera).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import torch
+from render import Scene
+
+import diffrender as dr
+from diffrender.profiling import SavedTensorMeter
+from diffrender.settings import RASTER_MODELS
+
+FACES = (0, 4500, 21000, 100000)  # 0: the plain ant (1,856 faces); extra spheres up to about the rest
+
+
+def _sync() -> None:
+    torch.cuda.synchronize()
+
+
+def _median_ms(fn, *, warmup: int, repeats: int) -> float:
+    for _ in range(warmup):
+        fn()
+    _sync()
+    times = []
+    for _ in range(repeats):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        fn()
+        end.record()
+        end.synchronize()
+        times.append(start.elapsed_time(end))
+    return statistics.median(times)
+
+
+def _graphed(fn):
+    """``fn`` captured in a CUDA graph after warm-up on a side stream; returns the replay."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        for _ in range(3):
+            fn()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        fn()
+    return graph.replay
+
+
+def _peak(fn) -> dict:
+    """Peak allocated / reserved memory [MB] of one call, above what was allocated before it."""
+    _sync()
+    torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated()
+    fn()
+    _sync()
+    return {"peak_alloc_mb": (torch.cuda.max_memory_allocated() - base) / 2**20,
+            "peak_reserved_mb": torch.cuda.max_memory_reserved() / 2**20}
+
+
+def clip_space(verts: torch.Tensor, cam: dr.Camera, settings: dr.RasterSettings) -> torch.Tensor:
+    """World vertices (B, V, 3) -> nvdiffrast clip coordinates (B, V, 4) for the same pinhole camera.
+
+    Our camera frame is x right, y down, z forward with pixel ``u = f x / z + W / 2``; nvdiffrast's image row
+    0 is clip y = -w, so ``clip = (2 f x / W, 2 f y / H, depth, z)`` puts every vertex on the same pixel.
+    """
+    p = torch.einsum("bij,bnj->bni", cam.rotation, verts - cam.eye[:, None, :])
+    x, y, z = p.unbind(-1)
+    n, f = settings.znear, settings.zfar
+    zc = z * (f + n) / (f - n) - 2 * f * n / (f - n)
+    return torch.stack([2 * cam.focal * x / cam.width, 2 * cam.focal * y / cam.height, zc, z], dim=-1)
+
+
+class Anchor:
+    """nvdiffrast's rasterize + interpolate + Lambert + antialias on our scene (robot only, no floor)."""
+
+    def __init__(self, robot: dr.RobotModel, settings: dr.RasterSettings, res: int):
+        import nvdiffrast.torch as ndr
+
+        self.ndr, self.ctx = ndr, ndr.RasterizeCudaContext()
+        self.tri = robot.faces.to(torch.int32).contiguous()
+        self.colors, self.settings, self.res = robot.colors, settings, res
+        light = torch.tensor(settings.light_dir, device=robot.device, dtype=torch.float32)
+        self.light = light / light.norm()
+
+    def coverage(self, verts: torch.Tensor, cam: dr.Camera) -> torch.Tensor:
+        clip = clip_space(verts, cam, self.settings).contiguous()
+        rast, _ = self.ndr.rasterize(self.ctx, clip, self.tri, (self.res, self.res))
+        return rast[..., 3] > 0  # (B, H, W): a triangle covers the pixel centre
+
+    def image(self, verts: torch.Tensor, cam: dr.Camera) -> torch.Tensor:
+        ndr, s = self.ndr, self.settings
+        clip = clip_space(verts, cam, s).contiguous()
+        rast, _ = ndr.rasterize(self.ctx, clip, self.tri, (self.res, self.res))
+        # area-weighted vertex normals, as the rasterizer computes them when none are given
+        faces = self.tri.long()
+        fv = verts[:, faces]
+        fn = torch.linalg.cross(fv[:, :, 1] - fv[:, :, 0], fv[:, :, 2] - fv[:, :, 0])
+        acc = torch.zeros_like(verts).index_add_(1, faces.reshape(-1), fn.repeat_interleave(3, 1))
+        normals = acc * torch.rsqrt((acc * acc).sum(-1, keepdim=True) + 1e-30)
+        colors = self.colors.expand(verts.shape[0], -1, -1) if self.colors.ndim == 2 else self.colors
+        attr = torch.cat([colors, normals], dim=-1).contiguous()
+        feat, _ = ndr.interpolate(attr, rast, self.tri)
+        n = torch.nn.functional.normalize(feat[..., 3:], dim=-1)
+        shade = s.ambient + s.diffuse * (n @ self.light).clamp(min=0)
+        rgb = feat[..., :3] * shade[..., None]
+        bg = torch.tensor(s.background, device=verts.device, dtype=verts.dtype)
+        rgb = torch.where(rast[..., 3:] > 0, rgb, bg)
+        return ndr.antialias(rgb.contiguous(), rast, clip, self.tri).permute(0, 3, 1, 2)
+
+
+def time_rows(args) -> list[dict]:
+    rows = []
+    anchor_ok = _nvdiffrast_available()
+    for faces in args.faces:
+        rows += _time_scene(args, faces, anchor_ok=anchor_ok)
+        torch.cuda.empty_cache()
+    return rows
+
+
+def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
+    rows = []
+    scene = Scene(faces, args.batch, args.res, torch.device("cuda"), torch.float32)
+    robot, cam = scene.robot, scene.camera(scene.qpos)
+    base = dict(faces=robot.num_faces, batch=args.batch, res=args.res)
+    weights = torch.rand(args.batch, 3, args.res, args.res, device="cuda")
+    verts0 = scene.verts.detach()
+
+    def fwdbwd_of(render_fn):
+        verts = verts0.clone().requires_grad_(True)
+
+        def step():
+            verts.grad = None
+            (render_fn(verts) * weights).sum().backward()
+        return step, verts
+
+    for model in args.models:
+        settings = dr.RasterSettings(raster_model=model, backend="fused", sync_checks=False,
+                                     save_blend_state=True)
+        row = dict(base, backend="fused", raster_model=model)
+        try:
+            def render(v, settings=settings):
+                return dr.render(v, robot.faces, robot.colors, cam, settings)
+            with torch.no_grad():
+                row["fwd_eager_ms"] = _median_ms(lambda: render(verts0), warmup=args.warmup,
+                                                 repeats=args.repeats)
+            step, _ = fwdbwd_of(render)
+            row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
+            row.update(_peak(step))
+            with SavedTensorMeter(exclude=[robot.faces]) as meter:
+                render(verts0.clone().requires_grad_(True))
+            row["saved_mb"] = meter.bytes / 2**20
+
+            def fwd_nograd(render=render):
+                with torch.no_grad():
+                    render(verts0)
+            row["fwd_ms"] = _median_ms(_graphed(fwd_nograd), warmup=args.warmup, repeats=args.repeats)
+            row["fwdbwd_ms"] = _median_ms(_graphed(step), warmup=args.warmup, repeats=args.repeats)
+        except Exception as e:  # an OOM or a failed capture is a result: record it and go on
+            row["error"] = f"{type(e).__name__}: {e}"
+            traceback.print_exc()
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+
+    row = dict(base, backend="warp", raster_model="hard")
+    try:
+        settings = dr.RasterSettings(sync_checks=False)
+        tracer = dr.RayTracer(robot.faces, num_envs=args.batch, num_verts=robot.num_vertices,
+                              device="cuda", settings=settings)
+
+        def trace():
+            with torch.no_grad():
+                tracer(verts0, robot.colors, cam)
+        trace()
+        row["fwd_eager_ms"] = _median_ms(trace, warmup=args.warmup, repeats=args.repeats)
+        row["fwd_ms"] = _median_ms(_graphed(trace), warmup=args.warmup, repeats=args.repeats)
+        row["images_per_s"] = args.batch / row["fwd_ms"] * 1e3
+    except Exception as e:
+        row["error"] = f"{type(e).__name__}: {e}"
+        traceback.print_exc()
+    rows.append(row)
+    print(json.dumps(row), flush=True)
+
+    if anchor_ok:
+        row = dict(base, backend="nvdiffrast", raster_model="hard+antialias")
+        try:
+            anchor = Anchor(robot, dr.RasterSettings(floor=None), args.res)
+            with torch.no_grad():
+                row["fwd_eager_ms"] = _median_ms(lambda: anchor.image(verts0, cam), warmup=args.warmup,
+                                                 repeats=args.repeats)
+            step, _ = fwdbwd_of(lambda v: anchor.image(v, cam))
+            row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
+            row.update(_peak(step))
+        except Exception as e:
+            row["error"] = f"{type(e).__name__}: {e}"
+            traceback.print_exc()
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
+def iou_rows(args) -> list[dict]:
+    """Sharp-limit silhouettes against nvdiffrast's coverage, the ant (no extra meshes), 64 poses."""
+    if not _nvdiffrast_available():
+        return [{"part": "iou", "error": "nvdiffrast is not importable"}]
+    scene = Scene(0, args.batch, args.res, torch.device("cuda"), torch.float32, seed=1)
+    robot, cam = scene.robot, scene.camera(scene.qpos)
+    white = torch.ones_like(robot.colors)
+    unlit = dict(floor=None, background=(0.0, 0.0, 0.0), ambient=1.0, diffuse=0.0)
+    ref = Anchor(robot, dr.RasterSettings(floor=None), args.res).coverage(scene.verts, cam)
+    rows = []
+    candidates = [(m, "fused") for m in args.models] + [("hard", "warp")]
+    for model, backend in candidates:
+        row = dict(part="iou", backend=backend, raster_model=model, sigma=args.iou_sigma, gamma=args.iou_gamma,
+                   faces=robot.num_faces, batch=args.batch, res=args.res)
+        try:
+            with torch.no_grad():
+                if backend == "warp":
+                    s = dr.RasterSettings(**unlit)
+                    img = dr.render_raytraced(scene.verts, robot.faces, white, cam, s)
+                else:
+                    s = dr.RasterSettings(raster_model=model, sigma=args.iou_sigma, gamma=args.iou_gamma,
+                                          backend="fused", **unlit)
+                    img = dr.render(scene.verts, robot.faces, white, cam, s)
+            mask = img[:, 0] > 0.5
+            inter = (mask & ref).sum().item()
+            union = (mask | ref).sum().item()
+            row.update(iou=inter / max(union, 1), size_vs_anchor=mask.sum().item() / max(ref.sum().item(), 1),
+                       anchor_pixels=int(ref.sum().item()))
+        except Exception as e:
+            row["error"] = f"{type(e).__name__}: {e}"
+            traceback.print_exc()
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
+def _nvdiffrast_available() -> bool:
+    try:
+        import nvdiffrast.torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return os.environ.get("PIXELGRAD_COMMIT", "unknown")
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| faces | backend | model | fwd ms (graph) | fwd+bwd ms (graph) | fwd+bwd ms (eager) | saved MB | "
+             "peak MB |", "|---|---|---|---|---|---|---|---|"]
+
+    def f(r, k):
+        v = r.get(k)
+        return "-" if v is None else f"{v:.3g}"
+    for r in rows:
+        if r.get("part") == "iou":
+            continue
+        lines.append(f"| {r['faces']} | {r['backend']} | {r['raster_model']} | {f(r, 'fwd_ms')} | "
+                     f"{f(r, 'fwdbwd_ms')} | {f(r, 'fwdbwd_eager_ms')} | {f(r, 'saved_mb')} | "
+                     f"{f(r, 'peak_alloc_mb')} |" + (f" {r['error'][:60]}" if "error" in r else ""))
+    anchors = {r["faces"]: r for r in rows if r.get("backend") == "nvdiffrast" and "fwdbwd_eager_ms" in r}
+    if anchors:
+        lines += ["", "| faces | model | fwd+bwd graph / nvdiffrast | fwd graph / nvdiffrast fwd | "
+                  "fwd+bwd eager / nvdiffrast |", "|---|---|---|---|---|"]
+        for r in rows:
+            a = anchors.get(r.get("faces"))
+            if a is None or r.get("backend") != "fused" or "fwdbwd_ms" not in r:
+                continue
+            lines.append(f"| {r['faces']} | {r['raster_model']} | {r['fwdbwd_ms'] / a['fwdbwd_eager_ms']:.2f} | "
+                         f"{r['fwd_ms'] / a['fwd_eager_ms']:.2f} | "
+                         f"{r['fwdbwd_eager_ms'] / a['fwdbwd_eager_ms']:.2f} |")
+    ious = [r for r in rows if r.get("part") == "iou" and "iou" in r]
+    if ious:
+        lines += ["", "| silhouette vs nvdiffrast | model | IoU | size / anchor |", "|---|---|---|---|"]
+        lines += [f"| {r['backend']} | {r['raster_model']} | {r['iou']:.4f} | {r['size_vs_anchor']:.4f} |"
+                  for r in ious]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--faces", type=int, nargs="*", default=list(FACES),
+                   help="face-count targets (0: the plain ant); extra sphere meshes fill the rest")
+    p.add_argument("--models", nargs="*", choices=RASTER_MODELS, default=list(RASTER_MODELS),
+                   help="raster models of our fused backend to time and compare")
+    p.add_argument("--batch", type=int, default=64, help="environments per frame")
+    p.add_argument("--res", type=int, default=84, help="image side [px]")
+    p.add_argument("--warmup", type=int, default=5, help="untimed calls before timing")
+    p.add_argument("--repeats", type=int, default=20, help="timed calls; the median is reported")
+    p.add_argument("--iou-sigma", type=float, default=0.02, help="sigma [px] of the sharp-limit silhouettes")
+    p.add_argument("--iou-gamma", type=float, default=1e-4, help="gamma of the sharp-limit silhouettes")
+    p.add_argument("--parts", nargs="*", choices=["time", "iou"], default=["iou", "time"])
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/anchor.json"), help="JSON output")
+    args = p.parse_args(argv)
+    if not torch.cuda.is_available():
+        p.error("needs a CUDA device (nvdiffrast and the timed fused kernels are CUDA-only)")
+    started = time.time()
+    rows = (iou_rows(args) if "iou" in args.parts else []) + (time_rows(args) if "time" in args.parts else [])
+    meta = dict(device=torch.cuda.get_device_name(), torch=torch.__version__, python=platform.python_version(),
+                date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), commit=_commit(),
+                command="python benchmarks/anchor.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+                args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+                seconds=round(time.time() - started, 1))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
+    os.replace(tmp, args.out)
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
