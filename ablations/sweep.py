@@ -107,8 +107,8 @@ class SweepConfig:
     dry_run: bool = False
     """List the runs (and what a rerun would do with each) and exit without starting Ray."""
     kill_once: tuple[str, ...] = ()
-    """Fault injection, to test recovery: each of these run ids kills its own Ray worker (SIGKILL) once,
-    right after its first checkpoint has reached the sweep folder.
+    """Fault injection, to test recovery: these runs' Ray workers kill themselves (SIGKILL) once each.
+    Each dies right after its first checkpoint has reached the sweep folder, its ablate process with it.
     A marker in <out>/.killed/ (naming that checkpoint) keeps the retry from doing it again."""
 
     def validate(self) -> None:
