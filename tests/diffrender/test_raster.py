@@ -290,9 +290,11 @@ def test_tessellated_surface_has_no_seams(model):
     mask = (jj > inner[0]) & (jj < inner[1]) & (ii > inner[2]) & (ii < inner[3])
     assert mask.sum() > 50
     diff = (imgs[0] - imgs[1]).abs().amax(1)[0]
-    # softmax: exact; alpha: where more than two triangles meet the sigmoids add up to 1 only approximately
-    # (the product form 1 - prod(1 - D) left seams of ~0.1 here)
-    assert diff[mask].max() < (1e-9 if model == "softmax" else 1e-3), diff[mask].max()
+    # Both soft models compose over the sky by the joint coverage A = min(1, sum D), which inside the square
+    # falls short of 1 by the outer edges' sigmoid tails (exp(-6) at 3 px with sigma 0.5, times the colour
+    # contrast) and differently for the two tessellations: that, not a seam, is the difference left. (The
+    # product form 1 - prod(1 - D) left seams of ~0.1 here.)
+    assert diff[mask].max() < 1e-3, diff[mask].max()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -307,7 +309,8 @@ def test_perspective_correct_interpolation(backend):
                                                            [0.2, -0.2, 1]]], dtype=F64), dim=-1)
     cam = dr.Camera.look_at(torch.tensor([0.0, 0.0, 1.0], dtype=F64), torch.tensor([0.0, 2.0, 0.0], dtype=F64),
                             (0.0, 0.0, 1.0), 70.0, 32, 32)
-    s = dr.RasterSettings(backend=backend, floor=None, sigma=0.1, cull_backfaces=True, znear=0.1, zfar=10.0)
+    # sigma 0.05: at 1.5 px inside, the sky's share through the coverage, about exp(-1.5 / sigma), is below 1e-13
+    s = dr.RasterSettings(backend=backend, floor=None, sigma=0.05, cull_backfaces=True, znear=0.1, zfar=10.0)
     soft = dr.render(verts, faces, colors, cam, s, normals=normals)
     hard = hard_zbuffer(verts, faces, colors, cam, s, normals=normals)
     # pixels farther than 1.5 px from every edge of both triangles (the diagonal included)
