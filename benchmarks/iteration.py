@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 import diffrender
-from gradlab import SHAC, SHACConfig
+from gradlab import SHAC, SHACConfig, resolve_device
 from gradlab.timing import median
 
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
@@ -98,8 +98,6 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("iteration.json"))
     args = p.parse_args()
-    from gradlab.seeding import resolve_device  # what "auto" means, and the error for a GPU that is absent
-
     try:
         args.device = str(resolve_device(args.device))
     except ValueError as e:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from gradlab import SHAC, SHACConfig
+from gradlab import SHAC, SHACConfig, resolve_device
 from gradlab.networks import PixelEncoder
 
 
@@ -158,8 +158,6 @@ def main() -> None:
     p.add_argument("--encoder", action="store_true", help="also the encoder micro-benchmark")
     p.add_argument("--out", type=Path, default=Path("profile.json"))
     args = p.parse_args()
-    from gradlab.seeding import resolve_device
-
     try:
         resolve_device("cuda")
     except ValueError:
