@@ -1,18 +1,21 @@
 """gradlab: the SHAC / D.Va trainer and the gradient probes.
 
 One switch (``SHACConfig.mode``) decides what the actor sees: ``full`` (images with their graph: analytic
-policy gradients through the renderer), ``decoupled`` (D.Va: the image detached at the actor's input) or
-``state``. Probes measure both gradients of one rollout, their norms and cosine, CUDA-synchronised times and
-peak memory; a NaN/inf stops the run naming the iteration, the horizon step and the tensor.
+policy gradients through the renderer), ``decoupled`` (D.Va: the image detached at the actor's input),
+``state`` (the state vector: the ceiling) or ``blind`` (a constant image: the floor); ``ModePlan`` holds what
+the mode decides. Probes measure both gradients of one rollout, their norms, cosine and split by parameter
+group, and the policy's sensitivity to each frame; every iteration reports CUDA-synchronised times and peak
+memory; a NaN/inf stops the run naming the iteration, the horizon step and the tensor.
 """
 
-from gradlab.config import MODES, TASK_DEFAULTS, SHACConfig, resolve_config
+from gradlab.config import MODES, TASK_DEFAULTS, ModePlan, SHACConfig, resolve_config
 from gradlab.probes import ImageGate, NonFiniteError, cosine, flat_grad
 from gradlab.seeding import resolve_device, seed_everything
 from gradlab.shac import SHAC
 
 __all__ = [
     "MODES",
+    "ModePlan",
     "SHAC",
     "SHACConfig",
     "TASK_DEFAULTS",

@@ -32,8 +32,9 @@ class ModePlan:
     (docs/design.md, "Where the mode acts").
 
     Attributes:
-        actor_input: what the actor sees: "images" (the rendered frame stack) or "state" (the normalised state
-            vector).
+        actor_input: what the actor sees: "images" (the rendered frame stack), "blank" (a constant all-black
+            stack of the same shape, zeros (B, 3 * frames, H, W): the visual actor, blind) or "state" (the
+            normalised state vector).
         grad_through_images: the training gradient flows through the images into the renderer (full APG).
             Plain iterations then render with grad and train with the image gate open; otherwise they render
             without grad and the gate stays closed.
@@ -49,17 +50,20 @@ class ModePlan:
       truncation of the whole state between windows (like ``task.detach()``), not an image-gradient switch.
     """
 
-    actor_input: Literal["images", "state"]
+    actor_input: Literal["images", "blank", "state"]
     grad_through_images: bool
 
     @property
     def renders(self) -> bool:
-        """The trainer renders the task during training (the actor's images, the probes' render path)."""
+        """The trainer renders the task during training (the actor's images, the probes' render path); a blind
+        actor's input is a constant, so nothing is rendered for it."""
         return self.actor_input == "images"
 
     @property
     def probes(self) -> bool:
-        """Probe iterations (both gradients of one rollout) apply: they need images rendered with grad."""
+        """Probe iterations (both gradients of one rollout) apply: they need images rendered with grad that the
+        actor sees. Not in state mode (no images) nor blind mode (its image does not depend on the state, so its
+        full and decoupled gradients are the same)."""
         return self.renders
 
     @staticmethod
@@ -74,6 +78,7 @@ _MODE_PLANS = {
     "full": ModePlan(actor_input="images", grad_through_images=True),
     "decoupled": ModePlan(actor_input="images", grad_through_images=False),
     "state": ModePlan(actor_input="state", grad_through_images=False),
+    "blind": ModePlan(actor_input="blank", grad_through_images=False),
 }
 MODES = tuple(_MODE_PLANS)
 
@@ -84,9 +89,12 @@ class SHACConfig:
 
     task: str = "cartpole"
     """Task: cartpole, hopper, ant or humanoid."""
-    mode: Literal["full", "decoupled", "state"] = "decoupled"
+    mode: Literal["full", "decoupled", "state", "blind"] = "decoupled"
     """full: gradients flow through the rendered images into the robot state; decoupled (D.Va): the image
-    stack is detached at the actor's input; state: the actor sees the state vector (upper bound)."""
+    stack is detached at the actor's input; state: the actor sees the state vector (upper bound); blind: the
+    decoupled visual actor, critic and rewards, but the actor sees a constant all-black image stack, so it
+    learns one open-loop action distribution for every state: the floor any result from pixels must beat.
+    Blind runs render nothing during training and run no probes."""
     iters: int = 500
     """Training iterations (one iteration = num_envs x horizon env steps). Also the length of the linear
     learning-rate decay."""
@@ -145,7 +153,12 @@ class SHACConfig:
     """Override the task's episode length (None: 240 cartpole, 1000 others)."""
     cosine_every: int = 10
     """Every K-th iteration, compute both gradients (full and decoupled) of the SAME rollout and log their
-    norms and cosine; 0 disables. Visual modes only."""
+    norms and cosine; 0 disables. full and decoupled modes only. Keys: grad_norm_full, grad_norm_decoupled,
+    cos_full_decoupled; grad_norm_render_term (the norm of full minus decoupled: the path through the
+    renderer) and its split by the actor's parameter groups, grad_norm_render_term_encoder / _mlp / _log_std
+    (their squares sum to its square); image_sensitivity_f0 .. f{frames-1}, how much the policy looks at
+    each frame of its stack, oldest first: the norm of d(sum of the mean action)/d(frame), averaged over the
+    environments, on the frame stack the window ended in (gradlab.probes.image_sensitivity)."""
     compile: bool = False
     """torch.compile the physics substep, the per-step reward/reset and the renderer's PyTorch work (forward
     kinematics, camera, the fused rasterizer's per-face setup) and, on a CUDA device, capture the window

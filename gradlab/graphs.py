@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gradlab.timing import RegionTimer, SavedTensorBytes
+from gradlab.timing import MemoryProbe, RegionTimer, SavedTensorBytes
 
 __all__ = ["WARMUP_ITERS", "LiveState", "Window", "WindowGraphs", "GraphedCriticPhase", "zero_grads_"]
 
@@ -72,14 +72,15 @@ class Window:
     """What one window's forward and backward leave behind (a replay's static outputs, overwritten by the next).
 
     loss: the actor loss (0-d); buffers: the rollout's (T, B, ...) buffers; probe_metrics: 0-d tensors of a
-    probe iteration (empty otherwise); saved_bytes: bytes autograd kept for backward; replayed: the window ran
-    as a CUDA-graph replay.
+    probe iteration (empty otherwise); saved_bytes: bytes autograd kept for backward; memory: the peak memory
+    of forward and backward (a capture is outside it); replayed: the window ran as a CUDA-graph replay.
     """
 
     loss: torch.Tensor
     buffers: dict
     probe_metrics: dict
     saved_bytes: int
+    memory: MemoryProbe
     replayed: bool
 
 
@@ -119,7 +120,7 @@ class WindowGraphs:
         backward: ``backward(loss, probe) -> probe_metrics``, the actor's gradients into ``.grad``.
         commit: writes the window's end state into the live-state tensors (``LiveState.commit``).
         params: the actor's parameters (their ``.grad`` are written in place by a replay).
-        timer: times the regions "fwd" and "bwd".
+        timer: times the regions "fwd" and "bwd" (a capture is outside them).
         device: the device the window runs on.
         capture: capture and replay (a CUDA device and ``--compile``); False runs every window eagerly.
     """
@@ -142,20 +143,25 @@ class WindowGraphs:
         replay = self.capture and iteration >= WARMUP_ITERS and self._eager_runs[probe] > 0
         if not replay:
             self._eager_runs[probe] += 1
-            with self.timer("fwd"), SavedTensorBytes() as saved:
-                loss, buffers = self.forward(probe)
-            with self.timer("bwd"):
-                probe_metrics = self.backward(loss, probe)
-                self.commit()
-            return Window(loss, buffers, probe_metrics, saved.bytes, replayed=False)
-        if probe not in self.captured:
+        elif probe not in self.captured:
             self.captured[probe] = _CapturedWindow(self, probe=probe)
-        graph = self.captured[probe]
-        with self.timer("fwd"):
-            graph.fwd.replay()
-        with self.timer("bwd"):
-            graph.bwd.replay()
-        return Window(graph.loss, graph.buffers, graph.probe_metrics, graph.saved_bytes, replayed=True)
+        with MemoryProbe(self.device) as memory:
+            if replay:
+                graph = self.captured[probe]
+                with self.timer("fwd"):
+                    graph.fwd.replay()
+                with self.timer("bwd"):
+                    graph.bwd.replay()
+                loss, buffers, probe_metrics, saved_bytes = (graph.loss, graph.buffers, graph.probe_metrics,
+                                                             graph.saved_bytes)
+            else:
+                with self.timer("fwd"), SavedTensorBytes() as saved:
+                    loss, buffers = self.forward(probe)
+                with self.timer("bwd"):
+                    probe_metrics = self.backward(loss, probe)
+                    self.commit()
+                saved_bytes = saved.bytes
+        return Window(loss, buffers, probe_metrics, saved_bytes, memory, replay)
 
 
 class GraphedCriticPhase:

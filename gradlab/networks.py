@@ -97,6 +97,11 @@ class _GaussianTanhPolicy(nn.Module):
     def features(self, obs: torch.Tensor) -> torch.Tensor:
         return obs
 
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """The parameters by part of the policy, every parameter in exactly one group: "mlp" (the head that
+        maps features to the mean action) and "log_std" (the exploration noise)."""
+        return {"mlp": list(self.mu.parameters()), "log_std": [self.log_std]}
+
     def mean(self, obs: torch.Tensor) -> torch.Tensor:
         """obs -> the action distribution's pre-tanh mean ``mu`` (B, act_dim): deterministic (no sampling),
         which is what gradlab compiles (the noise stays on PyTorch's generator, so compiled and eager runs
@@ -136,6 +141,10 @@ class VisualActor(_GaussianTanhPolicy):
 
     def features(self, obs: torch.Tensor) -> torch.Tensor:
         return self.encoder(obs)
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """"encoder" (convolutions and trunk: pixels to features), then the head's "mlp" and "log_std"."""
+        return {"encoder": list(self.encoder.parameters()), **super().param_groups()}
 
 
 class Critic(nn.Module):

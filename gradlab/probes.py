@@ -1,21 +1,29 @@
-"""Gradient probes: the full / decoupled switch, both gradients of ONE rollout, norms, cosine, NaN guard.
+"""Gradient probes: the full / decoupled switch, both gradients of ONE rollout, their norms, cosine and split, the
+policy's image sensitivity, the NaN guard.
 
 The two estimators differ by one detach at the actor's image input. ``ImageGate`` sits exactly there. Its
 forward is the identity; its backward passes the image gradient (full APG through the renderer) or drops it
 (D.Va's decoupled gradient) depending on a switch read AT BACKWARD TIME. That makes the probe exact: one
 forward rollout (same noise, same states), two backward passes over the same graph, and the two gradients
 differ only by the path through the renderer — the control-regularisation term of the D.Va paper's eq. (5).
+
+Two probes explain that term: ``group_norms`` splits it by the actor's parameter groups (encoder, MLP head,
+log-std: which part of the policy the image path reaches), and ``image_sensitivity`` measures how much the
+policy looks at each frame of its stack at all. Everything here returns tensors without a host sync, so a
+captured CUDA graph can compute them (docs/design.md, "Adding a probe").
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Sequence
 
 import torch
 
 __all__ = [
     "ImageGate",
     "flat_grad",
+    "group_norms",
+    "image_sensitivity",
     "cosine",
     "NonFiniteError",
     "FiniteFlags",
@@ -59,6 +67,48 @@ def flat_grad(params: Iterable[torch.nn.Parameter]) -> torch.Tensor:
         parts.append(torch.zeros(p.numel(), dtype=torch.float64, device=p.device) if g is None
                      else g.detach().reshape(-1).to(torch.float64))
     return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
+
+
+def group_norms(vec: torch.Tensor, params: Sequence[torch.nn.Parameter],
+                groups: dict[str, Sequence[torch.nn.Parameter]]) -> dict[str, torch.Tensor]:
+    """The norm of ``vec`` restricted to each group of parameters (0-d tensors, no host sync).
+
+    vec: a ``flat_grad(params)``-shaped vector (sum of ``p.numel()``,), in ``params`` order; groups: name ->
+    parameters, each one of ``params``. When the groups partition ``params`` the squares of the group norms
+    sum to ``vec.norm()**2``.
+    """
+    spans, start = {}, 0
+    for p in params:
+        spans[id(p)] = (start, start + p.numel())
+        start += p.numel()
+    if start != vec.numel():
+        raise ValueError(f"group_norms: vec has {vec.numel()} entries, the parameters {start}")
+    out = {}
+    for name, ps in groups.items():
+        parts = [vec[slice(*spans[id(p)])] for p in ps]
+        out[name] = torch.cat(parts).norm() if parts else vec.new_zeros(())
+    return out
+
+
+def image_sensitivity(mean: Callable[[torch.Tensor], torch.Tensor], images: torch.Tensor, *,
+                      frames: int) -> torch.Tensor:
+    """How much a policy looks at each frame of its input stack: (frames,), oldest frame first.
+
+    Entry i is ``mean_b || d(sum_a mu_a(x_b)) / d(frame i of x_b) ||_2``: the gradient of the mean action
+    summed over its dimensions (one backward pass, not the full Jacobian), with respect to the pixels of
+    frame i, its norm per environment b, averaged over the environments. Zero means the policy ignores the
+    frame; a blind policy gives zeros. ``images`` is detached first, so no gradient reaches its producer and
+    nothing is accumulated in the parameters' ``.grad``.
+
+    Args:
+        mean: the actor's mean, (B, 3 * frames, H, W) -> (B, act_dim).
+        images: (B, 3 * frames, H, W) in [0, 1].
+        frames: frames in the stack.
+    """
+    x = images.detach().requires_grad_(True)
+    with torch.enable_grad():
+        (g,) = torch.autograd.grad(mean(x).sum(), x)
+    return g.unflatten(1, (frames, -1)).flatten(2).norm(dim=2).mean(0)
 
 
 def cosine(a: torch.Tensor, b: torch.Tensor, eps: float = 1e-30) -> torch.Tensor:

@@ -3,15 +3,16 @@
 One iteration, top to bottom (docs/design.md, "A SHAC window"):
 
 1. Rollout window: cut the graph at the window start (task state and frame buffer: SHAC's truncation), then
-   roll out ``horizon`` steps: actor(images or state) -> tanh action -> differentiable simulator -> reward;
-   render the new state into the frame stack.
+   roll out ``horizon`` steps: actor(images, a constant blank image, or state) -> tanh action ->
+   differentiable simulator -> reward; render the new state into the frame stack.
 2. Actor loss: SHAC's ``-(sum_t gamma^t r_t + gamma^T V_target(s_T)) / (T*B)``, episodes cut at resets and the
    terminal value zero after an early termination.
 3. Backward: the mode decides what the actor sees and whether its gradient runs through the images
    (``ModePlan``, decided once from the config: docs/design.md, "Where the mode acts"). On probe iterations
    (every ``cosine_every``) the images are rendered WITH grad behind an ``ImageGate`` and the loss is
    differentiated twice over the same graph, gate open and closed: the full and the decoupled gradient of the
-   SAME rollout. The training mode's gradient is the one applied.
+   SAME rollout; the training mode's gradient is the one applied. The probe also splits their difference by
+   the actor's parameter groups and measures the policy's sensitivity to each frame of its stack.
 4. Clip, Adam step with a linear LR decay.
 5. Critic phase: fit the critic on TD(lambda) targets of the window; Polyak-update the target critic.
 
@@ -40,9 +41,9 @@ from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
 from gradlab.graphs import GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
 from gradlab.networks import Critic, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
-from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad
+from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad, group_norms, image_sensitivity
 from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_state
-from gradlab.timing import MemoryProbe, RegionTimer
+from gradlab.timing import RegionTimer
 from tasks.vision import FrameStack, TaskRenderer
 
 __all__ = ["SHAC", "NonFiniteError"]
@@ -112,6 +113,8 @@ class SHAC:
         self.obs_rms = RunningMeanStd(self.task.num_obs, device=self.device)
 
         self.frames = FrameStack(cfg.frames)
+        # A blind actor's input: one fixed tensor (a captured window reads it at a fixed address).
+        self.blank_images = self._blank_images(cfg.num_envs) if self.plan.actor_input == "blank" else None
         self.gate = ImageGate()
         self.flags = FiniteFlags(cfg.horizon, _FLAG_NAMES, self.device)
         self.timer = RegionTimer(self.device)
@@ -139,6 +142,11 @@ class SHAC:
         if cfg.render_blend == "alpha":
             options["cull_backfaces"] = False  # alpha coverage sums over all faces, hidden ones included
         return options
+
+    def _blank_images(self, n: int) -> torch.Tensor:
+        """A blind actor's input for ``n`` environments: an all-black stack, zeros (n, 3 * frames, H, W)."""
+        cfg = self.cfg
+        return torch.zeros(n, 3 * cfg.frames, cfg.image_size, cfg.image_size, device=self.device)
 
     # ------------------------------------------------------------------ state the windows hand on
     def _render(self, *, grad: bool) -> torch.Tensor:
@@ -200,6 +208,8 @@ class SHAC:
                 if render_grad:
                     actor_in = self.gate(actor_in)
                     self.flags.watch_grad(t, "image", actor_in)
+            elif self.plan.actor_input == "blank":
+                actor_in = self.blank_images
             else:
                 actor_in = RunningMeanStd.apply(obs, stats)
             action = self.actor.sample(self._actor_mean(actor_in))
@@ -246,8 +256,8 @@ class SHAC:
     def _backward(self, loss: torch.Tensor, probe: bool) -> dict:
         """Actor gradients into ``.grad`` for the training mode; on probes, both estimators of one rollout.
 
-        Returns the probe's metrics as 0-d tensors (empty on plain iterations): computed here, they are part of
-        a captured backward graph and rewritten by every replay.
+        Returns the probe's metrics as 0-d tensors (empty on plain iterations; keys in ``SHACConfig.cosine_every``):
+        computed here, they are part of a captured backward graph and rewritten by every replay.
         """
         params = list(self.actor.parameters())
         zero_grads_(params)
@@ -266,12 +276,20 @@ class SHAC:
         loss.backward()
         g_train = flat_grad(params)
         g_full, g_dec = (g_train, g_other) if train_open else (g_other, g_train)
+        # The image path's contribution alone (the control-regularisation term of D.Va's eq. 5), in total and
+        # by the part of the actor it reaches.
+        render_term = g_full - g_dec
+        by_group = group_norms(render_term, params, self.actor.param_groups())
+        # The policy's own sensitivity to each frame, on the stack the window ended in (the parameters are
+        # still those of the rollout).
+        sensitivity = image_sensitivity(self.actor.mean, self.frames.stacked(), frames=self.cfg.frames)
         return {
             "grad_norm_full": g_full.norm(),
             "grad_norm_decoupled": g_dec.norm(),
             "cos_full_decoupled": cosine(g_full, g_dec),
-            # The image path's contribution alone (the control-regularisation term of D.Va's eq. 5).
-            "grad_norm_render_term": (g_full - g_dec).norm(),
+            "grad_norm_render_term": render_term.norm(),
+            **{f"grad_norm_render_term_{name}": norm for name, norm in by_group.items()},
+            **{f"image_sensitivity_f{i}": s for i, s in enumerate(sensitivity.unbind(0))},
         }
 
     # ------------------------------------------------------------------ critic phase and target update
@@ -310,8 +328,7 @@ class SHAC:
         self._set_learning_rates()
 
         # Actor: rollout window, loss and backward, timed ("fwd", "bwd") and memory-probed as one region.
-        with MemoryProbe(self.device) as mem:
-            window = self.window.run(iteration=self.iteration, probe=probe)
+        window = self.window.run(iteration=self.iteration, probe=probe)
         loss, buf = window.loss, window.buffers
         params = list(self.actor.parameters())
         gn = nn.utils.clip_grad_norm_(params, cfg.grad_clip)
@@ -354,8 +371,8 @@ class SHAC:
             "bwd_ms": ms["bwd"],
             "critic_ms": ms["critic"],
             "iter_ms": iter_wall * 1e3,
-            "peak_alloc_mb": mem.peak_alloc_mb,
-            "peak_reserved_mb": mem.peak_reserved_mb,
+            "peak_alloc_mb": window.memory.peak_alloc_mb,
+            "peak_reserved_mb": window.memory.peak_reserved_mb,
             "saved_mb": window.saved_bytes / 2**20,
             "actor_lr": self.actor_opt.param_groups[0]["lr"],
             "probed": probe,
@@ -383,6 +400,7 @@ class SHAC:
         stats = self.obs_rms.snapshot()
         renderer = video = None
         frames = FrameStack(cfg.frames)
+        blank = self._blank_images(num_envs) if self.plan.actor_input == "blank" else None
         if self.plan.renders:
             renderer = TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options())
             frames.reset(renderer(task.qpos))
@@ -396,7 +414,12 @@ class SHAC:
             if record:
                 img = video(task.qpos[:1])[0].clamp(0, 1).mul(255).byte().permute(1, 2, 0).cpu().numpy()
                 out_frames.append(img)
-            actor_in = frames.stacked() if self.plan.actor_input == "images" else RunningMeanStd.apply(obs, stats)
+            if self.plan.actor_input == "images":
+                actor_in = frames.stacked()
+            elif self.plan.actor_input == "blank":
+                actor_in = blank
+            else:
+                actor_in = RunningMeanStd.apply(obs, stats)
             action = self.actor(actor_in, deterministic=True)
             obs, reward, done, _ = task.step(action)
             total += reward * alive

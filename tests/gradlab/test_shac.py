@@ -7,6 +7,7 @@ import torch
 
 import tasks
 from gradlab import SHAC, SHACConfig
+from gradlab.networks import VisualActor
 from gradlab.probes import NonFiniteError, cosine, flat_grad
 
 TIMING = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb")
@@ -155,3 +156,73 @@ def test_compile_matches_eager_on_cpu():
             if k in a:
                 assert b[k] == pytest.approx(a[k], rel=1e-4, abs=1e-6), (k, a[k], b[k])
         assert not b["graph"]
+
+
+def test_probe_explains_the_render_term_by_group_and_frame():
+    trainer = SHAC(tiny(mode="decoupled", cosine_every=1), device="cpu")
+    trainer._start()
+    loss, _ = trainer._window_forward(True)
+    out = {k: float(v) for k, v in trainer._backward(loss, True).items()}
+    groups = ("encoder", "mlp", "log_std")
+    total_sq = sum(out[f"grad_norm_render_term_{g}"] ** 2 for g in groups)
+    assert total_sq == pytest.approx(out["grad_norm_render_term"] ** 2, rel=1e-9)
+    assert out["grad_norm_render_term_encoder"] > 0
+    # The sensitivity is the actor's input gradient on the stack the window ended in, by hand (the parameters
+    # are still the rollout's: no optimiser step yet).
+    x = trainer.frames.stacked().detach().requires_grad_(True)
+    (g,) = torch.autograd.grad(trainer.actor.mean(x).sum(), x)
+    for i in range(3):
+        want = g[:, 3 * i:3 * i + 3].flatten(1).norm(dim=1).mean()
+        assert out[f"image_sensitivity_f{i}"] == pytest.approx(float(want), rel=1e-5)
+        assert out[f"image_sensitivity_f{i}"] > 0
+    # The same keys reach the metrics of a probe iteration.
+    m = SHAC(tiny(mode="full", cosine_every=1), device="cpu").train_iteration()
+    assert {f"grad_norm_render_term_{g}" for g in groups} | {"image_sensitivity_f0", "image_sensitivity_f2"} <= set(m)
+
+
+@pytest.mark.parametrize("mode", ["blind", "state"])
+def test_modes_without_images_run_no_probes(mode):
+    m = SHAC(tiny(mode=mode, cosine_every=1), device="cpu").train_iteration()
+    assert not m["probed"]
+    assert not [k for k in m if k.startswith(("grad_norm_render_term", "image_sensitivity", "cos_", "grad_norm_f"))]
+
+
+def test_blind_actor_sees_one_constant_image_and_renders_nothing(monkeypatch):
+    trainer = SHAC(tiny(mode="blind"), device="cpu")
+    assert trainer.renderer is None and isinstance(trainer.actor, VisualActor)  # decoupled's actor
+    seen = []
+    real_mean = trainer._actor_mean
+    monkeypatch.setattr(trainer, "_actor_mean", lambda x: (seen.append((x, real_mean(x))), seen[-1][1])[1])
+    m = trainer.train_iteration()
+    assert m["grad_norm"] > 0 and len(seen) == 4
+    for x, mu in seen:
+        assert x.shape == (3, 9, 24, 24) and not x.any()
+        # Different environments (different states: random resets) get the same mean action.
+        assert torch.equal(mu, mu[:1].expand_as(mu))
+    assert not torch.equal(trainer.task.qpos[0], trainer.task.qpos[1])  # the environments' states differ
+    assert not trainer.frames.frames  # nothing was rendered into the stack
+
+    # evaluate() feeds the same constant image.
+    inputs = []
+    real_forward = trainer.actor.forward
+    monkeypatch.setattr(trainer.actor, "forward", lambda x, **kw: (inputs.append(x), real_forward(x, **kw))[1])
+    ret, _ = trainer.evaluate(steps=3, num_envs=2)
+    assert isinstance(ret, float) and len(inputs) == 3
+    assert all(x.shape == (2, 9, 24, 24) and not x.any() for x in inputs)
+
+
+@pytest.mark.parametrize("mode", ["blind", "decoupled"])
+def test_resume_from_state_dict_equals_uninterrupted(mode):
+    import io
+
+    cfg = tiny(mode=mode, cosine_every=2)
+    straight = SHAC(cfg, device="cpu")
+    want = [straight.train_iteration() for _ in range(3)][-1]
+    first = SHAC(cfg, device="cpu")
+    first.train_iteration(), first.train_iteration()
+    buf = io.BytesIO()
+    torch.save(first.state_dict(), buf)
+    resumed = SHAC(cfg, device="cpu")
+    resumed.load_state_dict(torch.load(io.BytesIO(buf.getvalue()), weights_only=False))
+    got = resumed.train_iteration()
+    assert {k: v for k, v in got.items() if k not in TIMING} == {k: v for k, v in want.items() if k not in TIMING}

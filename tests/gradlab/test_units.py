@@ -12,7 +12,7 @@ from gradlab.checkpoint import atomic_write_json, latest_checkpoint, load_checkp
 from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
 from gradlab.networks import Critic, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
-from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad
+from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad, group_norms, image_sensitivity
 
 
 def lambda_return_reference(r, v, d, gamma, lam):
@@ -116,6 +116,56 @@ def test_cosine_and_flat_grad():
     net = torch.nn.Linear(2, 2)
     net(torch.ones(1, 2)).sum().backward()
     assert flat_grad(net.parameters()).shape == (6,)
+
+
+def test_param_groups_partition_the_actors_parameters():
+    actors = (VisualActor(9, 16, 16, act_dim=2, trunk_dim=4, hidden=(5,)), StateActor(7, 2, (6, 3)))
+    for actor, names in zip(actors, (["encoder", "mlp", "log_std"], ["mlp", "log_std"])):
+        groups = actor.param_groups()
+        assert list(groups) == names
+        grouped = [id(p) for ps in groups.values() for p in ps]
+        assert sorted(grouped) == sorted(id(p) for p in actor.parameters())  # each parameter exactly once
+
+
+def test_group_norms_squares_sum_to_the_total():
+    torch.manual_seed(1)
+    actor = VisualActor(9, 16, 16, act_dim=2, trunk_dim=4, hidden=(5,)).double()
+    params = list(actor.parameters())
+    vec = torch.randn(sum(p.numel() for p in params), dtype=torch.float64)
+    norms = group_norms(vec, params, actor.param_groups())
+    assert sum(float(n) ** 2 for n in norms.values()) == pytest.approx(float(vec.norm()) ** 2, rel=1e-12)
+    # log_std is one parameter: its norm is that slice's norm, wherever it sits in the flat vector.
+    start = sum(p.numel() for p in params[:params.index(actor.log_std)])
+    assert float(norms["log_std"]) == pytest.approx(float(vec[start:start + 2].norm()), rel=1e-12)
+    with pytest.raises(ValueError, match="vec has 3 entries"):
+        group_norms(vec[:3], params, actor.param_groups())
+
+
+def test_image_sensitivity_is_the_per_frame_input_gradient_norm():
+    torch.manual_seed(2)
+    actor = VisualActor(9, 16, 16, act_dim=2, trunk_dim=6, hidden=(5,)).double()
+    images = torch.rand(3, 9, 16, 16, dtype=torch.float64)
+    got = image_sensitivity(actor.mean, images, frames=3)
+    assert got.shape == (3,)
+    # By hand: one environment and one frame at a time.
+    want = torch.zeros(3, dtype=torch.float64)
+    for b in range(3):
+        x = images[b:b + 1].clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(actor.mean(x).sum(), x)
+        for i in range(3):
+            want[i] += g[0, 3 * i:3 * i + 3].norm() / 3
+            # The norm is the directional derivative along the gradient's direction (central differences).
+            v = torch.zeros_like(images[b:b + 1])
+            v[0, 3 * i:3 * i + 3] = g[0, 3 * i:3 * i + 3] / g[0, 3 * i:3 * i + 3].norm()
+            eps, x0 = 1e-6, images[b:b + 1]
+            with torch.no_grad():
+                fd = (actor.mean(x0 + eps * v).sum() - actor.mean(x0 - eps * v).sum()) / (2 * eps)
+            assert float(fd) == pytest.approx(float(g[0, 3 * i:3 * i + 3].norm()), rel=1e-5)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=0)
+    assert all(p.grad is None for p in actor.parameters())  # nothing accumulated in the parameters
+    # A policy that cannot see: zero sensitivity to every frame.
+    blind = image_sensitivity(lambda x: actor.mean(torch.zeros_like(x)) + 0 * x.sum(), images, frames=3)
+    assert torch.equal(blind, torch.zeros(3, dtype=torch.float64))
 
 
 def test_finite_flags_name_step_and_tensor():
