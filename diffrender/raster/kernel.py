@@ -291,7 +291,9 @@ def render_pairs(
             num = num.index_add(0, rows, color * w[..., None])
             den = den.index_add(0, rows, w)
         else:
-            num = zero[..., None].expand((*m0.shape, 3)).index_add(0, rows, color * w[..., None])
+            # a buffer of its own: scattering into an expanded view of ``zero`` fails in inductor 2.13's CPU
+            # code generation (test_raster.py::test_compiled_kernel_matches_eager)
+            num = m0.new_zeros((*m0.shape, 3)).index_add(0, rows, color * w[..., None])
             den = w_faces
         out = _cover(num, den, w_faces, cov_sum, behind)
     img = out.view(b, st.tiles_y, st.tiles_x, st.tile_h, st.tile_w, 3).permute(0, 5, 1, 3, 2, 4)

@@ -197,12 +197,13 @@ def _iou(a, b) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("sigma", "cull"), [(0.02, True), (0.1, True), (0.005, False)])
+@pytest.mark.parametrize(("sigma", "cull"), [(0.02, True), (0.005, False)])
 def test_soft_silhouettes_are_not_dilated(sigma, cull):
     """The soft models' half-coverage mask agrees with the hard model's (IoU >= 0.99) on ant images at task
     resolution: the robot's share of a silhouette pixel follows its coverage, 1/2 on the true edge, instead of
-    owning every pixel out to the coverage cut-off. Without culling the front and back faces of a silhouette
-    both count, which moves the half level out by sigma ln 3, hence the smaller sigma."""
+    owning every pixel out to the coverage cut-off. In the sharp limit: the tails of the k faces that meet at a
+    silhouette vertex add up, which moves the half level out by sigma ln(2k - 1) there; without culling the front
+    and back faces of a silhouette both count (sigma ln 3 along it), hence the smaller sigma."""
     robot = dr.RobotModel.from_mjcf(asset("ant"), dtype=F64, detail=1)
     masks = _coverage_masks(robot, ant_pose(3, seed=3), ("hard", "softmax", "alpha"), sigma=sigma, gamma=1e-4,
                             cull_backfaces=cull)
