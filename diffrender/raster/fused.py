@@ -21,7 +21,8 @@ backend), organised for the GPU:
   the face's 45 coefficients stay in registers while a loop over the tile's pixels accumulates its 45
   coefficient gradients (no cross-lane reductions), then one atomic add per face, coefficient and tile. A pixel
   where none of the sub-block's faces is kept is skipped, and a face whose blend weight is exactly 0 on all of
-  the tile's pixels (hidden, or only inside its box's margin) issues no atomics: every term of its gradient
+  the tile's pixels (hidden, or only inside its box's margin) and that touches no partly covered pixel
+  (``sum D < 1``, where its coverage acts through ``A``) issues no atomics: every other term of its gradient
   carries that weight. Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to
   vertices, normals, colours and the camera (recomputing the per-face setup from the saved inputs).
 
@@ -561,7 +562,6 @@ if triton is not None:
                                     w = tl.where(keep, 1.0, 0.0)
                                 else:
                                     w = tl.where(keep, cov * ew, 0.0)
-                                wmax = tl.maximum(wmax, w)
                                 b0 = q0 * inv_q
                                 b1 = q1 * inv_q
                                 b2 = q2 * inv_q
@@ -582,6 +582,7 @@ if triton is not None:
                                     gcb = gb * w
                                     gzn = tl.zeros_like(w)
                                     gsd = tl.zeros_like(w)
+                                    wmax = tl.maximum(wmax, w)
                                 else:
                                     den_p = tl.load(pst + HW)
                                     wsum_p = tl.load(pst + 2 * HW)
@@ -603,6 +604,9 @@ if triton is not None:
                                     gcb = gb * wd
                                     gzn = tl.where(e < cap, gw * w / gamma, 0.0)
                                     gsd = tl.where(keep, (gw * ew + g_a) * cov * (1.0 - cov) / sigma, 0.0)
+                                    # where sum D < 1 a kept face reaches the image through A even when its
+                                    # depth weight is 0 (hidden): it stays live
+                                    wmax = tl.maximum(wmax, tl.where(keep, tl.where(csum_p < 1.0, 1.0, w), 0.0))
                                 # ---- colour = albedo * shade(normal)
                                 gar = gcr * shade
                                 gag = gcg * shade
@@ -679,9 +683,10 @@ if triton is not None:
                                 gpa0, gpx0, gpy0 = _affine_acc(gpa0, gpx0, gpy0, gs0, x, y)
                                 gpa1, gpx1, gpy1 = _affine_acc(gpa1, gpx1, gpy1, gs1, x, y)
                                 gpa2, gpx2, gpy2 = _affine_acc(gpa2, gpx2, gpy2, gs2, x, y)
-                        # Every term of a pair's gradient carries its weight w (coverage x depth softmax): a face
-                        # whose weight is exactly 0 at all of the tile's pixels (hidden behind nearer surfaces,
-                        # or only within the box margin) adds nothing, so it issues no atomics.
+                        # Every term of a pair's gradient carries its weight w (coverage x depth softmax), except
+                        # the coverage term where sum D < 1 (counted in wmax as 1): a face whose weight is exactly
+                        # 0 at all of the tile's pixels (hidden behind nearer surfaces, or only within the box
+                        # margin) and that touches no partly covered pixel adds nothing, so it issues no atomics.
                         live = fm & (wmax > 0.0)
                         gq = gbase + f
                         _store_grads(gq, Fp, 0, gla0, gla1, gla2, glx0, glx1, glx2, gly0, gly1, gly2, live)
