@@ -12,7 +12,7 @@ The sweep folder::
     sweep.json                    the manifest (written atomically): grid, and per run its status
                                   (queued / running / done / failed), error, folder, iteration, latest return
     runs/<run_id>/                each run folder as ``ablate`` writes it (config.json, metrics.jsonl,
-                                  summary.json, videos/, the last checkpoint)
+                                  summary.json, videos/, the two newest checkpoints)
     logs/<run_id>.attempt<N>.log  the child's output of each attempt
     discarded/                    folders of earlier attempts that stopped before any checkpoint (a fresh
                                   start needs an empty folder; nothing is deleted)
@@ -20,7 +20,12 @@ The sweep folder::
 A rerun with the same folder skips runs whose summary says they finished, resumes the others from their last
 checkpoint and starts the rest from scratch. Library use (the ``ablate-paper`` layer): build a
 :class:`SweepConfig` (or :func:`parse_args`), then :func:`run_sweep` returns the manifest; :func:`plan` lists
-the runs without starting anything.
+the runs without starting anything. Both take ``arms``: named sets of ablate flags, each with its own mode,
+that replace the modes axis (tasks x arms x seeds x --vary), for comparisons whose sides differ in more than
+the mode (the paper's full arm with its own preset beside the soft-rasterizer one).
+
+Each run folder keeps its ``KEPT_CHECKPOINTS`` newest checkpoints, so a resume survives a damaged newest one
+(``ablate --resume`` falls back to the next).
 """
 
 from __future__ import annotations
@@ -42,10 +47,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gradlab.checkpoint import atomic_write_bytes, atomic_write_json, latest_checkpoint
+from gradlab.checkpoint import (
+    atomic_write_bytes,
+    atomic_write_json,
+    latest_checkpoint,
+    list_checkpoints,
+    prune_checkpoints,
+)
 
-__all__ = ["SweepConfig", "RunSpec", "RunStore", "RunProcessDied", "parse_args", "plan", "run_sweep",
-           "load_manifest", "pack_run", "unpack_run", "main"]
+__all__ = ["SweepConfig", "RunSpec", "RunStore", "RunProcessDied", "parse_args", "plan", "run_sweep", "dry_run",
+           "load_manifest", "pack_run", "unpack_run", "main", "KEPT_CHECKPOINTS"]
 
 MANIFEST = "sweep.json"
 #: ``ablate`` flags the sweep sets itself (the grid's own axes, and where each run's folder goes).
@@ -54,6 +65,9 @@ RESERVED = {"task": "--tasks", "mode": "--modes", "seed": "--seeds", "out": "--o
 #: Summary statuses of a run that needs no more work (time_limit: it stopped on the budget it was given).
 FINISHED = ("finished", "time_limit")
 STATUSES = ("queued", "running", "done", "failed")
+#: Checkpoints a run folder in the sweep keeps (the newest ones): a resume falls back to the older one when the
+#: newest does not load.
+KEPT_CHECKPOINTS = 2
 #: Seconds between the worker's looks at its run folder, and between the driver's table updates.
 WORKER_POLL_S = 0.5
 DRIVER_POLL_S = 1.0
@@ -100,7 +114,7 @@ class SweepConfig:
     rerun_failed: bool = True
     """On a rerun, start (or resume) runs recorded as failed; --no-rerun-failed leaves them as they are."""
     keep_checkpoints: bool = True
-    """Keep each finished run's last checkpoint in its folder (--no-keep-checkpoints deletes it once done)."""
+    """Keep each finished run's two newest checkpoints in its folder (--no-keep-checkpoints deletes them once done)."""
     progress: bool = True
     """Live table (tqdm): done / running / failed / queued and each running run's iteration and latest return.
     Either way a line is printed whenever a run changes status."""
@@ -148,6 +162,8 @@ class RunSpec:
     #: ``ablate`` arguments without --out/--name/--progress (the worker adds those).
     args: tuple[str, ...] = ()
     iters: int = 0
+    #: The arm this run belongs to (see :func:`plan`), or None in a tasks x modes grid.
+    arm: str | None = None
 
 
 class RunProcessDied(RuntimeError):
@@ -289,10 +305,35 @@ def parse_args(argv: list[str] | None = None) -> tuple[SweepConfig, dict, dict]:
 # The grid
 
 
-def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None) -> list[RunSpec]:
+def _arm_table(arms: dict, set_table: dict, vary_table: dict) -> dict[str, tuple[str, dict]]:
+    """{arm name: (mode, {ablate field: value})}, checked: names fit a folder name, flags exist and are not the
+    sweep's own, and no flag of an arm is also in --set or --vary."""
+    if not arms:
+        raise ValueError("arms: give at least one arm (name -> {mode, flags})")
+    table = {}
+    for name, arm in arms.items():
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9.+-]*", str(name)):
+            raise ValueError(f"arm {name!r}: names are letters, digits, '.', '+' and '-' (they name run folders)")
+        if not isinstance(arm, dict) or not isinstance(arm.get("mode"), str):
+            raise ValueError(f"arm {name}: needs a 'mode' (full, decoupled, state, blind)")
+        unknown = set(arm) - {"mode", "flags", "about"}
+        if unknown:
+            raise ValueError(f"arm {name}: unknown keys {sorted(unknown)} (mode, flags, about)")
+        flags = {_norm_key(k, where=f"arm {name} flag {k}"): v for k, v in (arm.get("flags") or {}).items()}
+        both = sorted(set(flags) & (set(set_table) | set(vary_table)))
+        if both:
+            raise ValueError(f"arm {name}: {', '.join(both)} is set by the arm and also by --set/--vary")
+        table[str(name)] = (arm["mode"], flags)
+    return table
+
+
+def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
+         arms: dict | None = None) -> list[RunSpec]:
     """Every run of the grid, checked by ablate's own parser and validation; raises ValueError naming the run.
 
-    ``set_table``/``vary_table`` default to the config's ``--set``/``--vary`` strings.
+    ``set_table``/``vary_table`` default to the config's ``--set``/``--vary`` strings. ``arms``
+    ({name: {"mode": ..., "flags": {flag: value}}}) replaces the modes axis: the grid is tasks x arms x seeds x
+    --vary, run ids ``<task>_<arm>_seed<seed>...``, each run with its arm's mode and flags (after --set).
     """
     import itertools
 
@@ -312,14 +353,17 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
         if len({_slug(v) for v in values}) != len(values):
             raise ValueError(f"--vary {name}: values repeat (or differ only in punctuation): {values}")
     shared = [a for name, value in set_table.items() for a in _flag_args(name, value)]
+    columns = [(None, (mode, {})) for mode in cfg.modes] if arms is None else \
+        list(_arm_table(arms, set_table, vary_table).items())
     specs, seen = [], {}
     axes = list(vary_table.items())
-    for task, mode, seed in itertools.product(cfg.tasks, cfg.modes, cfg.seeds):
+    for task, (arm, (mode, arm_flags)), seed in itertools.product(cfg.tasks, columns, cfg.seeds):
         for combo in itertools.product(*(values for _, values in axes)):
             flags = {name: value for (name, _), value in zip(axes, combo)}
-            run_id = f"{task}_{mode}_seed{seed}" + "".join(
+            run_id = f"{task}_{arm or mode}_seed{seed}" + "".join(
                 f"_{name.replace('_', '-')}{_slug(value)}" for name, value in flags.items())
             args = ["--task", str(task), "--mode", str(mode), "--seed", str(seed), *shared,
+                    *(a for name, value in arm_flags.items() for a in _flag_args(name, value)),
                     *(a for name, value in flags.items() for a in _flag_args(name, value))]
             try:
                 run_cfg = tyro.cli(RunConfig, args=[*args, "--no-progress"])
@@ -334,7 +378,7 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
                 raise ValueError(f"runs {seen[run_id]} and {flags} share the folder name {run_id}")
             seen[run_id] = flags
             specs.append(RunSpec(run_id=run_id, task=str(task), mode=str(mode), seed=int(seed), flags=flags,
-                                 args=tuple(args), iters=run_cfg.iters))
+                                 args=tuple(args), iters=run_cfg.iters, arm=arm))
     return specs
 
 
@@ -342,21 +386,23 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
 # Run folders as tar archives (the only way files travel between a worker and the driver)
 
 
-def pack_run(run_dir: str | os.PathLike, *, checkpoint: bool = True, only: Iterable[str] | None = None) -> bytes:
+def pack_run(run_dir: str | os.PathLike, *, checkpoints: int = 1, only: Iterable[str] | None = None) -> bytes:
     """The files of a run folder as an uncompressed tar archive (checkpoints hardly compress).
 
-    Only the newest checkpoint goes in (``checkpoint=False``: none). ``only``: relative paths to include
-    (default: every file). metrics.jsonl is cut after its last complete line: the run may be appending to it.
+    Only the ``checkpoints`` newest checkpoints go in (0: none). ``only``: relative paths to include (default:
+    every file). metrics.jsonl is cut after its last complete line: the run may be appending to it.
     """
     run_dir = Path(run_dir)
-    ckpt = latest_checkpoint(run_dir / "checkpoints") if checkpoint else None
+    if checkpoints < 0:
+        raise ValueError(f"checkpoints must be >= 0, got {checkpoints}")
+    kept = set(list_checkpoints(run_dir / "checkpoints")[:checkpoints])
     names = sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()) if only is None \
         else sorted(set(only))
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w") as tar:
         for name in names:
             path = run_dir / name
-            if name.startswith("checkpoints/") and (ckpt is None or path != ckpt):
+            if name.startswith("checkpoints/") and path not in kept:
                 continue
             if Path(name).name.startswith("."):  # a file being written atomically under a temporary name
                 continue
@@ -376,7 +422,9 @@ def pack_run(run_dir: str | os.PathLike, *, checkpoint: bool = True, only: Itera
 def unpack_run(data: bytes, run_dir: str | os.PathLike) -> list[str]:
     """Write an archive of :func:`pack_run` into run_dir, each file atomically; returns the names written.
 
-    Files already there and not in the archive stay, except older checkpoints when the archive brings one.
+    Files already there and not in the archive stay. When the archive brings checkpoints, its newest is the
+    run's state: checkpoints of later iterations (an abandoned timeline: the run resumed from an older one)
+    are deleted, and of the rest the ``KEPT_CHECKPOINTS`` newest stay.
     """
     run_dir = Path(run_dir)
     written = []
@@ -388,11 +436,12 @@ def unpack_run(data: bytes, run_dir: str | os.PathLike) -> list[str]:
             src = tar.extractfile(member)
             atomic_write_bytes(run_dir / member.name, src.read() if src else b"")
             written.append(member.name)
-    shipped = {n for n in written if n.startswith("checkpoints/")}
+    folder = run_dir / "checkpoints"
+    shipped = [p for p in list_checkpoints(folder) if f"checkpoints/{p.name}" in written]
     if shipped:
-        for old in (run_dir / "checkpoints").glob("ckpt_*.pt"):
-            if f"checkpoints/{old.name}" not in shipped:
-                old.unlink()
+        for later in list_checkpoints(folder)[:list_checkpoints(folder).index(shipped[0])]:
+            later.unlink()
+        prune_checkpoints(folder, keep=KEPT_CHECKPOINTS)
     return written
 
 
@@ -423,8 +472,9 @@ class RunStore:
         run_dir = self.run_dir(run_id)
         pack = None
         if latest_checkpoint(run_dir / "checkpoints") is not None:
-            pack = pack_run(run_dir, only=[str(p.relative_to(run_dir)) for p in run_dir.rglob("*")
-                                           if p.is_file() and not p.relative_to(run_dir).parts[0] == "videos"])
+            pack = pack_run(run_dir, checkpoints=KEPT_CHECKPOINTS,
+                            only=[str(p.relative_to(run_dir)) for p in run_dir.rglob("*")
+                                  if p.is_file() and not p.relative_to(run_dir).parts[0] == "videos"])
         elif run_dir.exists() and any(run_dir.iterdir()):
             # ablate starts only in an empty folder; keep what the earlier attempt left.
             dest = self.root / "discarded" / f"{run_id}.attempt{attempt - 1}.{time.strftime('%Y%m%d-%H%M%S')}"
@@ -600,7 +650,7 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
         rest = [str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()]
         # An unfinished run keeps its checkpoint whatever --keep-checkpoints says: a rerun resumes from it.
         data = pack_run(run_dir, only=[n for n in rest if n not in sent_videos],
-                        checkpoint=opts["keep_checkpoints"] or not done)
+                        checkpoints=1 if opts["keep_checkpoints"] or not done else 0)
         ray.get(store.save.remote(run_id, attempt, data))
         last = metrics.poll() or {}
         return {"status": "done" if done else "failed",
@@ -661,14 +711,14 @@ def _run_state(out: Path, spec: RunSpec) -> str:
 
 
 def _new_record(spec: RunSpec) -> dict:
-    return {"task": spec.task, "mode": spec.mode, "seed": spec.seed, "flags": spec.flags,
+    return {"task": spec.task, "mode": spec.mode, "arm": spec.arm, "seed": spec.seed, "flags": spec.flags,
             "args": list(spec.args), "iters": spec.iters, "folder": f"runs/{spec.run_id}", "status": "queued",
             "error": None, "iteration": None, "latest_return": None, "attempts": 0, "resumed": False, "node": None,
             "host": None, "updated": None}
 
 
 def _prepare_manifest(cfg: SweepConfig, specs: list[RunSpec], set_table: dict, vary_table: dict,
-                      argv: list[str] | None) -> tuple[dict, list[RunSpec]]:
+                      argv: list[str] | None, arms: dict | None = None) -> tuple[dict, list[RunSpec]]:
     """The manifest to start from (existing runs checked against the grid) and the runs to launch."""
     out = Path(cfg.out)
     manifest = load_manifest(out) or {"version": 1, "id": uuid.uuid4().hex[:12],
@@ -694,6 +744,8 @@ def _prepare_manifest(cfg: SweepConfig, specs: list[RunSpec], set_table: dict, v
                          "set": {k: v for k, v in set_table.items()}, "vary": {k: v for k, v in vary_table.items()},
                          "cpus_per_run": cfg.cpus_per_run, "gpus_per_run": cfg.gpus_per_run,
                          "max_retries": cfg.max_retries}
+    if arms is not None:
+        manifest["sweep"]["arms"] = arms
     manifest["command"] = ["ablate-sweep", *(sys.argv[1:] if argv is None else argv)]
     return manifest, todo
 
@@ -834,13 +886,13 @@ def _describe_failure(exc: BaseException) -> str:
 
 
 def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
-              argv: list[str] | None = None) -> dict:
+              argv: list[str] | None = None, arms: dict | None = None) -> dict:
     """Run (or resume) the sweep; returns the final manifest. Bad input raises ValueError before any run.
 
-    Uses the Ray connection of this process when there is one (it is left open), else joins or starts the
-    cluster that ``cfg.address`` names and shuts the connection down at the end.
+    ``arms``: see :func:`plan`. Uses the Ray connection of this process when there is one (it is left open),
+    else joins or starts the cluster that ``cfg.address`` names and shuts the connection down at the end.
     """
-    specs = plan(cfg, set_table, vary_table)
+    specs = plan(cfg, set_table, vary_table, arms=arms)
     set_table = _set_table(cfg.set) if set_table is None else set_table
     vary_table = _vary_table(cfg.vary) if vary_table is None else vary_table
     out = Path(cfg.out).resolve()
@@ -851,7 +903,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
         os.unlink(probe)
     except OSError as e:
         raise ValueError(f"--out {cfg.out}: the sweep folder is not writable: {e}") from None
-    manifest, todo = _prepare_manifest(cfg, specs, set_table, vary_table, argv)
+    manifest, todo = _prepare_manifest(cfg, specs, set_table, vary_table, argv, arms)
     unknown = sorted(set(cfg.kill_once) - {s.run_id for s in specs})
     if unknown:
         raise ValueError(f"--kill-once {' '.join(unknown)}: no such run in this sweep")
@@ -932,17 +984,23 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
     return manifest
 
 
-def _dry_run(cfg: SweepConfig, set_table: dict, vary_table: dict) -> None:
-    specs = plan(cfg, set_table, vary_table)
+def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
+            arms: dict | None = None) -> list[str]:
+    """Print (and return) one line per run, with what a (re)run would do with it; starts nothing."""
+    specs = plan(cfg, set_table, vary_table, arms=arms)
     out = Path(cfg.out)
     manifest = load_manifest(out) or {"runs": {}}
+    lines = []
     for spec in specs:
         state = _run_state(out, spec)
         if state != "done" and manifest["runs"].get(spec.run_id, {}).get("status") == "failed" \
                 and not cfg.rerun_failed:
             state = "failed (left)"
-        print(f"{state:8s} {spec.run_id}: ablate {' '.join(spec.args)}")
-    print(f"{len(specs)} runs; {cfg.cpus_per_run} CPU and {cfg.gpus_per_run} GPU each")
+        lines.append(f"{state:8s} {spec.run_id}: ablate {' '.join(spec.args)}")
+    lines.append(f"{len(specs)} runs; {cfg.cpus_per_run} CPU and {cfg.gpus_per_run} GPU each")
+    for line in lines:
+        print(line)
+    return lines
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -950,7 +1008,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         cfg, set_table, vary_table = parse_args(argv)
         if cfg.dry_run:
-            _dry_run(cfg, set_table, vary_table)
+            dry_run(cfg, set_table, vary_table)
             return
         manifest = run_sweep(cfg, set_table, vary_table, argv=argv)
     except ValueError as e:
