@@ -1,14 +1,24 @@
 """Training curves of run folders, per task and mode, mean +- std across seeds: ``ablate-plot RUN_DIR... --out DIR``.
 
-Runs are grouped by (task, mode) from their config.json; each group is one line (colour = mode) in one panel per
-task. Curves are aligned on iteration or environment steps and linearly interpolated onto a common grid on the
-wall clock (seeds never finish iterations at the same second), over the range every run of the group covers
-(no tail averaged over fewer seeds than the legend says). The band is +- one sample standard deviation across
-runs (none for a single run). Quantities plotted on a log axis (gradient norms) are averaged in log space: the
-line is the geometric mean and the band multiplies/divides by the geometric standard deviation.
+Runs are grouped by task and label from their config.json; each group is one line in one panel per task. The
+label is the mode, followed in brackets by the values of ``preset``, ``raster_model`` and ``renderer`` that
+differ between the given runs of that mode (``full (hard)`` beside ``full (alpha)``); colour = mode, line
+style = the variant within the mode. Curves are aligned on iteration or environment steps and linearly
+interpolated onto a common grid on the wall clock (seeds never finish iterations at the same second), over the
+range every run of the group covers (no tail averaged over fewer seeds than the legend says). The band is +- one
+sample standard deviation across runs (none for a single run). Quantities plotted on a log axis (gradient norms)
+are averaged in log space: the line is the geometric mean and the band multiplies/divides by the geometric
+standard deviation.
+
+Every return curve has the task's zero-action and random-action return floors beside it as horizontal lines
+(``task-floors``' JSON: docs/floors.json of this checkout, or ``--floors FILE``); a task without an entry is
+drawn without them and named in one warning.
 
 Files (PNG, written atomically; a figure without data is skipped and the reason returned):
-    return_vs_env_steps.png  return_vs_wall_clock.png  grad_norm.png  cosine_hist.png  cosine_vs_iter.png
+    return_vs_env_steps.png  return_vs_wall_clock.png  return_vs_iter.png  grad_norm.png  cosine_hist.png
+    cosine_vs_iter.png  probe_grad_norms.png (full, decoupled and render-term norms of the same rollout)
+    render_term_groups.png (the render term by the actor's parameter groups)
+    image_sensitivity.png (the policy's sensitivity to each frame of its stack)
     timing.png (forward and backward ms per iteration)  memory.png (peak allocated MB; CPU: saved for backward)
 """
 
@@ -18,31 +28,52 @@ import io
 import json
 import math
 import os
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import tyro
 
-__all__ = ["PlotConfig", "Run", "load_run", "find_runs", "group_runs", "aggregate", "make_plots", "PlotResult",
-           "FIGURES",
-           "MODE_COLORS"]
+__all__ = ["PlotConfig", "Run", "load_run", "find_runs", "group_runs", "run_labels", "aggregate", "make_plots",
+           "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS", "VARIANT_KEYS", "DEFAULT_FLOORS",
+           "RENDER_TERM_GROUPS", "plot_runs"]
 
 #: File name -> caption of every figure ``make_plots`` can write.
 FIGURES = {
     "return_vs_env_steps.png": "Return (mean of the last 100 episodes) against environment steps.",
     "return_vs_wall_clock.png": "Return against wall-clock training time (interpolated across seeds).",
+    "return_vs_iter.png": "Return against training iterations.",
     "grad_norm.png": "Actor gradient norm before clipping (log scale; geometric mean x/÷ geometric std).",
     "cosine_hist.png": "Cosine between the full and the decoupled gradient of the same rollout (probe "
                        "iterations, all seeds pooled).",
     "cosine_vs_iter.png": "Cosine(full, decoupled) over training.",
+    "probe_grad_norms.png": "Norms of the full and the decoupled actor gradient of the same rollout, and of the "
+                            "render term (full minus decoupled: the path through the renderer), on probe "
+                            "iterations (log scale).",
+    "render_term_groups.png": "The render term's norm by the actor's parameter groups (encoder, MLP, log-std; "
+                              "their squares sum to the total's), on probe iterations (log scale).",
+    "image_sensitivity.png": "How much the policy's mean action depends on each frame of its stack (oldest "
+                             "first): norm of d(sum of mean actions)/d(frame), averaged over environments, on "
+                             "probe iterations (log scale).",
     "timing.png": "Forward (rollout + render + loss) and backward time per iteration (geometric mean across "
                   "seeds; probe iterations, which compute both gradients, left out).",
     "memory.png": "Peak memory per iteration (CUDA: peak allocated; CPU: bytes saved for backward; probe "
                   "iterations left out).",
 }
-MODE_COLORS = {"full": "tab:red", "decoupled": "tab:blue", "state": "tab:green"}
-_TASK_ORDER = ("cartpole", "hopper", "ant", "humanoid")
+MODE_COLORS = {"full": "tab:red", "decoupled": "tab:blue", "state": "tab:green", "blind": "tab:gray"}
+#: Line styles of the variants of one mode (in the order of their labels).
+_VARIANT_STYLES = ("-", "--", "-.", ":")
+_TASK_ORDER = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid")
+#: config.json settings that tell runs of one mode apart in labels, when the given runs differ in them.
+VARIANT_KEYS = ("preset", "raster_model", "renderer")
+#: The actor's parameter groups of the render-term probe (metrics keys grad_norm_render_term_<group>).
+RENDER_TERM_GROUPS = ("encoder", "mlp", "log_std")
+#: The return floors of this checkout (written by ``task-floors``).
+DEFAULT_FLOORS = Path(__file__).resolve().parents[1] / "docs" / "floors.json"
+#: Floor policy -> (line style, legend name).
+_FLOOR_LINES = {"zero": (":", "zero action"), "random": ("-.", "random action")}
 
 
 @dataclass
@@ -54,6 +85,8 @@ class PlotConfig:
     """Run folders written by `ablate` (a folder holding run folders stands for all of them)."""
     out: Path = Path("plots")
     """Folder for the PNG files."""
+    floors: Path | None = None
+    """task-floors JSON with the zero- and random-action return floors; None: docs/floors.json of this checkout."""
 
 
 @dataclass
@@ -66,6 +99,10 @@ class Run:
     command: list | None
     summary: dict | None
     metrics: list[dict]
+    #: config.json's "preset" record (name, supplied, overridden), when the run has one.
+    preset: dict | None = None
+    #: config.json's "started_utc", when the run recorded it.
+    started_utc: str | None = None
 
     @property
     def task(self) -> str:
@@ -78,6 +115,13 @@ class Run:
     @property
     def seed(self):
         return self.config.get("seed")
+
+    def setting(self, key: str):
+        """A config.json setting (``preset`` falls back to the name in the preset record); None when absent."""
+        value = self.config.get(key)
+        if value is None and key == "preset" and isinstance(self.preset, dict):
+            value = self.preset.get("name")
+        return value
 
     def series(self, x: str, y: str, *, skip_probed: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(x, y) of the iterations where both are finite numbers, sorted by x; ``skip_probed`` leaves out
@@ -121,8 +165,10 @@ def load_run(path: str | os.PathLike) -> Run:
             summary = json.loads((path / "summary.json").read_text())
         except json.JSONDecodeError:
             summary = None  # summary.json is written atomically: unreadable means a foreign file; ignore it
+    preset = data.get("preset") if isinstance(data.get("preset"), dict) else None
+    started = data.get("started_utc") if isinstance(data.get("started_utc"), str) else None
     return Run(path=path, config=config, environment=data.get("environment") or {}, command=data.get("command"),
-               summary=summary, metrics=read_metrics(path))
+               summary=summary, metrics=read_metrics(path), preset=preset, started_utc=started)
 
 
 def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
@@ -144,18 +190,96 @@ def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
     return runs
 
 
-def group_runs(runs: list[Run]) -> dict[tuple[str, str], list[Run]]:
-    """{(task, mode): runs}, tasks in the paper's order, modes full, decoupled, state."""
-    groups: dict[tuple[str, str], list[Run]] = {}
+def run_labels(runs: list[Run]) -> list[str]:
+    """Each run's label: its mode, plus the ``VARIANT_KEYS`` values that differ among the runs of that mode.
+
+    E.g. ``full (hard)`` and ``full (alpha)`` when the full runs differ only in raster_model; a mode whose runs
+    agree on every variant key is just its name.
+    """
+    by_mode: dict[str, list[Run]] = {}
     for r in runs:
-        groups.setdefault((r.task, r.mode), []).append(r)
+        by_mode.setdefault(r.mode, []).append(r)
+    varying = {mode: [k for k in VARIANT_KEYS if len({json.dumps(r.setting(k)) for r in rs}) > 1]
+               for mode, rs in by_mode.items()}
+    labels = []
+    for r in runs:
+        keys = varying[r.mode]
+        labels.append(f"{r.mode} ({', '.join(str(r.setting(k)) for k in keys)})" if keys else r.mode)
+    return labels
+
+
+def group_runs(runs: list[Run], *, label: Callable[[Run], str] | None = None) -> dict[tuple[str, str], list[Run]]:
+    """{(task, label): runs}, tasks in the paper's order, then modes full, decoupled, state, blind.
+
+    ``label``: a run's group label; default :func:`run_labels` (the mode, with its variant where runs differ).
+    """
+    labels = [label(r) for r in runs] if label is not None else run_labels(runs)
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for r, lab in zip(runs, labels):
+        groups.setdefault((r.task, lab), []).append(r)
 
     def order(k: tuple[str, str]) -> tuple:
-        t, m = k
+        t, lab = k
+        m = groups[k][0].mode
         return (_TASK_ORDER.index(t) if t in _TASK_ORDER else 99, t,
-                list(MODE_COLORS).index(m) if m in MODE_COLORS else 99, m)
+                list(MODE_COLORS).index(m) if m in MODE_COLORS else 99, m, lab)
 
     return {k: sorted(groups[k], key=lambda r: (str(r.seed), str(r.path))) for k in sorted(groups, key=order)}
+
+
+def _styles(groups: dict[tuple[str, str], list[Run]]) -> dict[str, tuple[str | None, str]]:
+    """label -> (colour of its mode, line style of its variant within the mode), the same in every panel."""
+    by_mode: dict[str, list[str]] = {}
+    for (_, lab), rs in groups.items():
+        labs = by_mode.setdefault(rs[0].mode, [])
+        if lab not in labs:
+            labs.append(lab)
+    return {lab: (MODE_COLORS.get(mode), _VARIANT_STYLES[i % len(_VARIANT_STYLES)])
+            for mode, labs in by_mode.items() for i, lab in enumerate(labs)}
+
+
+# ---------------------------------------------------------------------------------------------- floors
+@dataclass
+class Floors:
+    """Zero- and random-action return floors per task, and the file they came from."""
+
+    source: Path | None
+    #: task -> {"zero": {"mean", "std", "episodes", ...}, "random": {...}}
+    tasks: dict[str, dict] = field(default_factory=dict)
+
+    def of(self, task: str) -> dict[str, dict] | None:
+        """{policy: stats} of the task's floors, or None when the file has no entry for it."""
+        entry = self.tasks.get(task)
+        return {k: entry[k] for k in _FLOOR_LINES if k in entry} if entry else None
+
+    def missing_message(self, task: str) -> str:
+        where = str(self.source) if self.source else "no floors file"
+        return (f"no return floor for task {task!r} ({where}): its return curves are drawn without the zero- and "
+                f"random-action lines; measure them with `task-floors --tasks {task}`")
+
+
+def load_floors(path: str | os.PathLike | None = None) -> Floors:
+    """The floors of a ``task-floors`` JSON file; None: docs/floors.json of this checkout (no floors, and no
+    error, when that file is missing). ValueError naming the file when a given one is missing or malformed."""
+    default = path is None
+    path = Path(DEFAULT_FLOORS if default else path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        if default:
+            return Floors(source=None)
+        raise ValueError(f"--floors {path}: no such file (write it with task-floors --out {path})") from None
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"--floors {path}: cannot be read ({e})") from None
+    tasks = data.get("tasks") if isinstance(data, dict) else None
+    if not isinstance(tasks, dict):
+        raise ValueError(f"--floors {path}: expected a 'tasks' object as task-floors writes it")
+    for task, entry in tasks.items():
+        ok = isinstance(entry, dict) and any(k in entry for k in _FLOOR_LINES) and all(
+            isinstance(entry[k], dict) and _num(entry[k].get("mean")) for k in _FLOOR_LINES if k in entry)
+        if not ok:
+            raise ValueError(f"--floors {path}: task {task!r} needs zero/random objects with a numeric 'mean'")
+    return Floors(source=path, tasks=tasks)
 
 
 def aggregate(series: list[tuple[np.ndarray, np.ndarray]], *, log: bool = False
@@ -191,10 +315,11 @@ def aggregate(series: list[tuple[np.ndarray, np.ndarray]], *, log: bool = False
 
 @dataclass
 class PlotResult:
-    """What ``make_plots`` wrote and what it skipped (file name -> reason)."""
+    """What ``make_plots`` wrote, what it skipped (file name -> reason) and what it warned about."""
 
     files: dict[str, Path] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
 
 def _save(fig, path: Path) -> None:
@@ -208,8 +333,19 @@ def _save(fig, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
-    """Write the FIGURES that the runs have data for into ``out``; see the module docstring."""
+def _frame_keys(runs: list[Run]) -> list[str]:
+    """The image_sensitivity_f<i> keys present in the runs, by frame index."""
+    keys = {k for r in runs for m in r.metrics for k in m if k.startswith("image_sensitivity_f")}
+    return sorted(keys, key=lambda k: int(k.rsplit("f", 1)[1]) if k.rsplit("f", 1)[1].isdigit() else 99)
+
+
+def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None = None,
+               label: Callable[[Run], str] | None = None) -> PlotResult:
+    """Write the FIGURES that the runs have data for into ``out``; see the module docstring.
+
+    floors: the return floors (None: :func:`load_floors`'s default file); label: a run's group label (None:
+    :func:`run_labels`). A task without floors is named once in ``PlotResult.warnings`` and a UserWarning.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -220,43 +356,64 @@ def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
         raise ValueError("no runs to plot")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    groups = group_runs(runs)
+    floors = load_floors() if floors is None else floors
+    groups = group_runs(runs, label=label)
+    styles = _styles(groups)
     tasks = list(dict.fromkeys(t for t, _ in groups))
     result = PlotResult()
+    for task in tasks:
+        if floors.of(task) is None:
+            msg = floors.missing_message(task)
+            result.warnings.append(msg)
+            warnings.warn(msg, UserWarning, stacklevel=2)
 
-    def label(mode: str, rs: list[Run]) -> str:
-        return f"{mode} (n={len(rs)})"
+    def legend_label(lab: str, rs: list[Run]) -> str:
+        return f"{lab} (n={len(rs)})"
 
     def panels(nrows: int = 1):
         fig, axes = plt.subplots(nrows, len(tasks), figsize=(4.6 * len(tasks), 3.4 * nrows), squeeze=False,
                                  layout="constrained")
         return fig, axes
 
+    def floor_lines(ax, task: str) -> None:
+        for policy, stats in (floors.of(task) or {}).items():
+            style, name = _FLOOR_LINES[policy]
+            ax.axhline(stats["mean"], color="0.35", ls=style, lw=1.1, label=f"{name} floor ({stats['mean']:.4g})")
+
+    def band(ax, gx, c, lo, hi, rs, lab, *, color=None, ls=None, name=None) -> None:
+        col, style = styles[lab]
+        ax.plot(gx, c, color=color or col, ls=ls or style, label=name or legend_label(lab, rs), lw=1.4)
+        if len(rs) > 1:
+            ax.fill_between(gx, lo, hi, color=color or col, alpha=0.2, lw=0)
+
+    def finish(ax, task: str, xlabel: str, *, log: bool = False, title: str | None = None) -> None:
+        ax.set_title(title or task)
+        ax.set_xlabel(xlabel)
+        if log:
+            ax.set_yscale("log")
+        ax.grid(True, alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+
     def curve_figure(name: str, x: str, y: str, *, xlabel: str, ylabel: str, log: bool = False,
-                     modes: tuple[str, ...] | None = None, skip_probed: bool = False) -> None:
+                     modes: tuple[str, ...] | None = None, skip_probed: bool = False,
+                     with_floors: bool = False) -> None:
         fig, axes = panels()
         drawn = False
         for col, task in enumerate(tasks):
             ax = axes[0][col]
-            for (t, mode), rs in groups.items():
-                if t != task or (modes is not None and mode not in modes):
+            ax.set_title(task)
+            for (t, lab), rs in groups.items():
+                if t != task or (modes is not None and rs[0].mode not in modes):
                     continue
                 agg = aggregate([r.series(x, y, skip_probed=skip_probed) for r in rs], log=log)
                 if agg is None:
                     continue
-                gx, c, lo, hi = agg
-                color = MODE_COLORS.get(mode)
-                ax.plot(gx, c, color=color, label=label(mode, rs), lw=1.4)
-                if len(rs) > 1:
-                    ax.fill_between(gx, lo, hi, color=color, alpha=0.2, lw=0)
+                band(ax, *agg, rs, lab)
                 drawn = True
-            ax.set_title(task)
-            ax.set_xlabel(xlabel)
-            if log:
-                ax.set_yscale("log")
-            ax.grid(True, alpha=0.3)
-            if ax.get_legend_handles_labels()[0]:
-                ax.legend(fontsize=8)
+            if with_floors:
+                floor_lines(ax, task)
+            finish(ax, task, xlabel, log=log)
         axes[0][0].set_ylabel(ylabel)
         if not drawn:
             plt.close(fig)
@@ -265,14 +422,51 @@ def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
         _save(fig, out / name)
         result.files[name] = out / name
 
-    curve_figure("return_vs_env_steps.png", "env_steps", "return_mean", xlabel="environment steps",
-                 ylabel="return (last 100 episodes)")
-    curve_figure("return_vs_wall_clock.png", "wall_s", "return_mean", xlabel="wall clock [s]",
-                 ylabel="return (last 100 episodes)")
+    def multi_figure(name: str, keys: dict[str, str], *, ylabel: str, why: str) -> None:
+        """One panel per task; one line per (group, key): colour = key, line style = the group's."""
+        present = [k for k in keys if any(_num(m.get(k)) for r in runs for m in r.metrics)]
+        if not present:
+            result.skipped[name] = why
+            return
+        colors = dict(zip(present, ("tab:purple", "tab:orange", "tab:cyan", "tab:olive", "tab:brown", "tab:pink")))
+        fig, axes = panels()
+        for col, task in enumerate(tasks):
+            ax = axes[0][col]
+            for (t, lab), rs in groups.items():
+                if t != task:
+                    continue
+                for k in present:
+                    agg = aggregate([r.series("iter", k) for r in rs], log=True)
+                    if agg is not None:
+                        band(ax, *agg, rs, lab, color=colors[k], name=f"{keys[k]}: {legend_label(lab, rs)}")
+            finish(ax, task, "iteration", log=True)
+        axes[0][0].set_ylabel(ylabel)
+        _save(fig, out / name)
+        result.files[name] = out / name
+
+    returns = "return (last 100 episodes)"
+    curve_figure("return_vs_env_steps.png", "env_steps", "return_mean", xlabel="environment steps", ylabel=returns,
+                 with_floors=True)
+    curve_figure("return_vs_wall_clock.png", "wall_s", "return_mean", xlabel="wall clock [s]", ylabel=returns,
+                 with_floors=True)
+    curve_figure("return_vs_iter.png", "iter", "return_mean", xlabel="iteration", ylabel=returns, with_floors=True)
     curve_figure("grad_norm.png", "iter", "grad_norm", xlabel="iteration", ylabel="actor gradient norm (pre-clip)",
                  log=True)
     curve_figure("cosine_vs_iter.png", "iter", "cos_full_decoupled", xlabel="iteration",
                  ylabel="cos(full, decoupled)", modes=("full", "decoupled"))
+    multi_figure("probe_grad_norms.png", {"grad_norm_full": "full", "grad_norm_decoupled": "decoupled",
+                                          "grad_norm_render_term": "render term"},
+                 ylabel="gradient norm (same rollout)", why="no run has probe iterations (grad_norm_full)")
+    multi_figure("render_term_groups.png", {f"grad_norm_render_term_{g}": g for g in RENDER_TERM_GROUPS},
+                 ylabel="render-term norm", why="no run has the render term by parameter group "
+                                               "(grad_norm_render_term_encoder/_mlp/_log_std)")
+    frame_keys = _frame_keys(runs)
+    n = len(frame_keys)
+    multi_figure("image_sensitivity.png",
+                 {k: f"frame {k.rsplit('f', 1)[1]}" + (" (oldest)" if i == 0 and n > 1 else
+                                                       " (newest)" if i == n - 1 and n > 1 else "")
+                  for i, k in enumerate(frame_keys)},
+                 ylabel="|d mean action / d frame|", why="no run has image_sensitivity_f<i>")
 
     # Cosine histogram: every probe of every seed pooled (the distribution, not a curve).
     fig, axes = panels()
@@ -280,20 +474,17 @@ def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
     bins = np.linspace(-1, 1, 41)
     for col, task in enumerate(tasks):
         ax = axes[0][col]
-        for (t, mode), rs in groups.items():
+        for (t, lab), rs in groups.items():
             vals = [v for r in rs for v in r.series("iter", "cos_full_decoupled")[1]] if t == task else []
             if not vals:
                 continue
-            # Outlines, not filled bars: the two modes' histograms overlap.
-            ax.hist(np.clip(vals, -1, 1), bins=bins, color=MODE_COLORS.get(mode), histtype="step", lw=1.6,
-                    label=f"{mode} (n={len(rs)}, {len(vals)} probes)")
+            # Outlines, not filled bars: the modes' histograms overlap.
+            color, style = styles[lab]
+            ax.hist(np.clip(vals, -1, 1), bins=bins, color=color, ls=style, histtype="step", lw=1.6,
+                    label=f"{lab} (n={len(rs)}, {len(vals)} probes)")
             drawn = True
-        ax.set_title(task)
-        ax.set_xlabel("cos(full, decoupled)")
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-        ax.grid(True, alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8)
+        finish(ax, task, "cos(full, decoupled)")
     axes[0][0].set_ylabel("probe iterations")
     if drawn:
         _save(fig, out / "cosine_hist.png")
@@ -309,25 +500,19 @@ def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
         for col, task in enumerate(tasks):
             ax = axes[row][col]
             spans: list[float] = []
-            for (t, mode), rs in groups.items():
+            for (t, lab), rs in groups.items():
                 if t != task:
                     continue
                 agg = aggregate([r.series("iter", key, skip_probed=True) for r in rs], log=True)
                 if agg is None:
                     continue
-                gx, c, lo, hi = agg
-                spans += [float(c.min()), float(c.max())]
-                ax.plot(gx, c, color=MODE_COLORS.get(mode), label=label(mode, rs), lw=1.2)
-                if len(rs) > 1:
-                    ax.fill_between(gx, lo, hi, color=MODE_COLORS.get(mode), alpha=0.2, lw=0)
+                spans += [float(agg[1].min()), float(agg[1].max())]
+                band(ax, *agg, rs, lab)
                 drawn = True
-            if spans and min(spans) > 0 and max(spans) >= 10 * min(spans):
-                ax.set_yscale("log")  # warm-up and full vs decoupled often differ by decades; else linear
-            ax.set_title(f"{task}: {name}")
-            ax.set_xlabel("iteration")
+            # warm-up and full vs decoupled often differ by decades; else linear
+            log = bool(spans) and min(spans) > 0 and max(spans) >= 10 * min(spans)
+            finish(ax, task, "iteration", log=log, title=f"{task}: {name}")
             ax.grid(True, which="both", alpha=0.3)
-            if ax.get_legend_handles_labels()[0]:
-                ax.legend(fontsize=8)
         axes[row][0].set_ylabel(f"{name} [ms]")
     if drawn:
         _save(fig, out / "timing.png")
@@ -342,3 +527,8 @@ def make_plots(runs: list[Run], out: str | os.PathLike) -> PlotResult:
         ("saved_mb", "saved for backward [MB]")
     curve_figure("memory.png", "iter", key, xlabel="iteration", ylabel=ylabel, skip_probed=True)
     return result
+
+
+def plot_runs(cfg: PlotConfig) -> PlotResult:
+    """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``."""
+    return make_plots(find_runs(list(cfg.runs)), cfg.out, floors=load_floors(cfg.floors))

@@ -3,11 +3,19 @@
 Sections:
     1. Backward time per iteration (the paper's Table 1): for cartpole, hopper, ant and humanoid, our median
        backward ms of decoupled (D.Va) and full (SHAC through the renderer) and their ratio, beside the
-       paper's numbers (RTX 4080), labelled as the paper's. A task or mode without a measurement says
-       "not run"; nothing is estimated.
-    2. Training curves: the ``ablate-plot`` figures of the given runs, and a table of the runs.
+       paper's numbers (ablations/paper_numbers.json, with its citation), labelled as the paper's. A task or
+       mode without a measurement says "not run"; nothing is estimated. Runs of one mode that differ in
+       preset, raster model or renderer are told apart (``full (hard)``), one row per full variant.
+    2. Training curves: the ``ablate-plot`` figures of the given runs (return curves with the zero- and
+       random-action floors), the floors table, and a table of the runs.
     3. Memory sweeps: the ``ablate-memory`` table(s) and plots.
     4. Provenance: device, versions, dates and the command behind every input, and this report's command.
+       A run's start and end are config.json's ``started_utc`` and summary.json's ``ended_utc``; runs that
+       did not record them show the files' modification times, marked "(file time)" (a copy or a checkout
+       changes those).
+
+The sections are functions (``table1_section``, ``curves_section``, ``memory_section``,
+``provenance_section``) that ``ablate-paper`` composes into its own report.
 
 Where our backward times come from, in order of precedence per (task, mode):
     a benchmark JSON (``--benchmark``), then the runs' summary.json ``median_bwd_ms`` (warm-up and probe
@@ -20,7 +28,8 @@ Benchmark JSON (a dedicated timing measurement; the format this module reads)::
      "results": [{"task": "ant", "mode": "full", "bwd_ms": 123.4,
                   "num_envs": 64, "horizon": 32, "image_size": 84}, ...]}
 
-A bare list of result objects is accepted too; ``median_bwd_ms`` is accepted for ``bwd_ms``.
+A bare list of result objects is accepted too; ``median_bwd_ms`` is accepted for ``bwd_ms``. Results whose
+``status`` is not ``ok`` (``benchmarks/iteration.py`` records oom and error points) are left out.
 The figures are (re)drawn into ``<report folder>/figures/`` so the report folder is self-contained.
 """
 
@@ -36,21 +45,20 @@ from pathlib import Path
 
 import tyro
 
-from ablations.plot import FIGURES, Run, find_runs, group_runs, make_plots
+from ablations.paper_numbers import load_paper_numbers
+from ablations.plot import FIGURES, Floors, PlotResult, Run, find_runs, group_runs, load_floors, make_plots
 from gradlab.timing import median
 
-__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "TASKS", "run_bwd_ms", "load_benchmark"]
+__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms",
+           "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
+           "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN"]
 
 TASKS = ("cartpole", "hopper", "ant", "humanoid")
-#: The paper's Table 1 (D.Va, NeurIPS 2025): backward time per iteration on an RTX 4080, converted from seconds
-#: to ms: task -> (D.Va = decoupled, SHAC with rendering = full).
-PAPER_TABLE1_MS = {
-    "cartpole": (110.0, 360.0),
-    "hopper": (190.0, 510.0),
-    "ant": (210.0, 580.0),
-    "humanoid": (680.0, 1380.0),
-}
-PAPER_DEVICE = "RTX 4080"
+_PAPER = load_paper_numbers()
+#: The paper's Table 1: backward time per iteration, converted from seconds to ms: task -> (D.Va = decoupled,
+#: SHAC with rendering = full); from ablations/paper_numbers.json, which cites it.
+PAPER_TABLE1_MS = _PAPER.table1_ms()
+PAPER_DEVICE = _PAPER.table1_device()
 NOT_RUN = "not run"
 
 
@@ -66,6 +74,8 @@ class ReportConfig:
     """Benchmark JSON files with backward times per (task, mode); they take precedence over run summaries."""
     out: Path = Path("report/report.md")
     """The markdown file to write; figures go to figures/ beside it."""
+    floors: Path | None = None
+    """task-floors JSON with the zero- and random-action return floors; None: docs/floors.json of this checkout."""
     title: str = "Policy gradients through pixels: full vs decoupled"
     """Title of the report."""
 
@@ -100,6 +110,8 @@ def load_benchmark(path: str | os.PathLike) -> tuple[dict, list[dict]]:
         raise ValueError(f"--benchmark {path}: expected a 'results' list of {{task, mode, bwd_ms}} objects")
     out = []
     for i, r in enumerate(results):
+        if isinstance(r, dict) and r.get("status", "ok") != "ok":
+            continue  # a point the benchmark could not measure (oom, error): nothing to report
         bwd = r.get("bwd_ms", r.get("median_bwd_ms")) if isinstance(r, dict) else None
         if not isinstance(r, dict) or "task" not in r or "mode" not in r or not isinstance(bwd, (int, float)):
             raise ValueError(f"--benchmark {path}: result {i} needs task, mode and a numeric bwd_ms")
@@ -123,17 +135,20 @@ def _run_device(run: Run) -> str:
 
 @dataclass
 class Cell:
-    """Our backward time for one (task, mode) and where it came from."""
+    """Our backward time for one (task, label) and where it came from; ``mode`` is the label's mode."""
 
     ms: float
     n: int
     source: str
     setting: str
     device: str
+    mode: str = ""
 
 
-def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]]) -> dict[tuple[str, str], Cell]:
-    """Our backward-time cells keyed by (task, mode): benchmarks first, then runs (see the module docstring)."""
+def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]], *, label=None
+                ) -> dict[tuple[str, str], Cell]:
+    """Our backward-time cells keyed by (task, label): benchmarks first (label = mode), then runs grouped by
+    :func:`ablations.plot.group_runs` with ``label`` (see the module docstring)."""
     cells: dict[tuple[str, str], Cell] = {}
     for path, meta, results in benchmarks:
         by_key: dict[tuple[str, str], list[dict]] = {}
@@ -144,17 +159,18 @@ def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]]
                 continue  # the first benchmark given wins
             settings = sorted({_setting(r) for r in rs})
             cells[key] = Cell(ms=median([r["bwd_ms"] for r in rs]), n=len(rs), source=f"benchmark {path.name}",
-                              setting=" / ".join(settings), device=str(meta.get("gpu") or meta.get("device") or "?"))
-    for (task, mode), rs in group_runs(runs).items():
-        if (task, mode) in cells:
+                              setting=" / ".join(settings), device=str(meta.get("gpu") or meta.get("device") or "?"),
+                              mode=key[1])
+    for (task, lab), rs in group_runs(runs, label=label).items():
+        if (task, lab) in cells:
             continue
         vals = [(v, r) for r in rs if (v := run_bwd_ms(r)) is not None]
         if not vals:
             continue
         settings = sorted({_setting(r.config) for _, r in vals})
         devices = sorted({_run_device(r) for _, r in vals})
-        cells[(task, mode)] = Cell(ms=median([v for v, _ in vals]), n=len(vals), source="runs",
-                                   setting=" / ".join(settings), device=" / ".join(devices))
+        cells[(task, lab)] = Cell(ms=median([v for v, _ in vals]), n=len(vals), source="runs",
+                                  setting=" / ".join(settings), device=" / ".join(devices), mode=rs[0].mode)
     return cells
 
 
@@ -173,7 +189,8 @@ def _cell(v) -> str:
     return str(v).replace("|", "\\|").replace("\n", " ")
 
 
-def _table(header: list[str], rows: list[list]) -> list[str]:
+def markdown_table(header: list[str], rows: list[list]) -> list[str]:
+    """Markdown table lines; floats formatted like times, '|' escaped."""
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
     return lines
@@ -184,6 +201,22 @@ def _mtime(p: Path) -> str:
         return _dt.datetime.fromtimestamp(p.stat().st_mtime).astimezone().isoformat(timespec="seconds")
     except OSError:
         return "?"
+
+
+def _started(run: Run) -> str:
+    """config.json's started_utc, else the file's modification time, marked as such."""
+    if run.started_utc:
+        return run.started_utc
+    return f"{_mtime(run.path / 'config.json')} (file time)"
+
+
+def _ended(run: Run) -> str:
+    """summary.json's ended_utc, else its modification time, marked as such; '-' without a summary."""
+    ended = (run.summary or {}).get("ended_utc")
+    if isinstance(ended, str) and ended:
+        return ended
+    path = run.path / "summary.json"
+    return f"{_mtime(path)} (file time)" if path.exists() else "-"
 
 
 def _command(cmd) -> str:
@@ -205,77 +238,124 @@ def _rel(target: Path, base: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- sections
-def _table1(cells: dict[tuple[str, str], Cell]) -> list[str]:
-    out = ["## 1. Backward time per iteration (Table 1)", "",
+def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. Backward time per iteration (Table 1)"
+                   ) -> list[str]:
+    """Table 1: our decoupled and full backward ms per task beside the paper's; one row per full variant."""
+    cite = _PAPER.cite(_PAPER.backward_s[0]["source"]) if _PAPER.backward_s else "?"
+    out = [heading, "",
            "Median backward time of one SHAC iteration (one window of `horizon` steps for `num_envs` "
            "environments), in ms. **Ours** is measured by this toolkit (CUDA-synchronised timers, warm-up "
-           "excluded); **paper** is D.Va's Table 1 (NeurIPS 2025, "
-           f"{PAPER_DEVICE}), converted from seconds, quoted for comparison and not measured here. The "
-           "reference implementation's timers do not synchronise CUDA, so its times may not include all "
-           "asynchronous GPU work. Absolute times depend on the device and the sizes; compare the ratios.", ""]
+           f"excluded); **paper** is {cite}, converted from seconds, quoted for comparison and not measured "
+           "here. The reference implementation's timers do not synchronise CUDA, so its times may not include "
+           "all asynchronous GPU work. Absolute times depend on the device and the sizes; compare the ratios.", ""]
     header = ["task", "ours: decoupled (D.Va) [ms]", "ours: full [ms]", "ours: full / decoupled",
               "ours: setting (envs x steps, image), device, source",
               f"paper ({PAPER_DEVICE}): D.Va [ms]", f"paper ({PAPER_DEVICE}): SHAC with rendering [ms]",
               "paper: ratio"]
     rows = []
     extra = sorted({t for t, _ in cells if t not in TASKS})
+
+    def of_mode(task: str, mode: str) -> list[tuple[str, Cell]]:
+        found = [(lab, c) for (t, lab), c in cells.items() if t == task and (c.mode or lab) == mode]
+        # The plain mode first (a benchmark's, or runs without variants), then the variants by label.
+        return sorted(found, key=lambda lc: (lc[0] != mode, lc[0]))
+
     for task in (*TASKS, *extra):
-        dec, full = cells.get((task, "decoupled")), cells.get((task, "full"))
-        if dec and full:
-            ratio = f"{full.ms / dec.ms:.2f}x" if dec.setting == full.setting and dec.ms > 0 else \
-                "n/a (settings differ)"
-        else:
-            ratio = NOT_RUN
-        info = []
-        for name, c in (("decoupled", dec), ("full", full)):
-            if c:
-                info.append(f"{name}: {c.setting}, {c.device}, {c.source} (n={c.n})")
+        decs = of_mode(task, "decoupled")
+        dec_label, dec = decs[0] if decs else ("decoupled", None)
         paper = PAPER_TABLE1_MS.get(task)
-        rows.append([task, _ms(dec.ms if dec else None), _ms(full.ms if full else None), ratio,
-                     "; ".join(info) or NOT_RUN,
-                     _ms(paper[0]) if paper else "-", _ms(paper[1]) if paper else "-",
-                     f"{paper[1] / paper[0]:.2f}x" if paper else "-"])
-    out += _table(header, rows)
-    state = sorted(t for t, m in cells if m == "state")
+        for full_label, full in of_mode(task, "full") or [("full", None)]:
+            if dec and full:
+                ratio = f"{full.ms / dec.ms:.2f}x" if dec.setting == full.setting and dec.ms > 0 else \
+                    "n/a (settings differ)"
+            else:
+                ratio = NOT_RUN
+            info = []
+            for name, c in ((dec_label, dec), (full_label, full)):
+                if c:
+                    info.append(f"{name}: {c.setting}, {c.device}, {c.source} (n={c.n})")
+            rows.append([task, _ms(dec.ms if dec else None), _ms(full.ms if full else None), ratio,
+                         "; ".join(info) or NOT_RUN,
+                         _ms(paper[0]) if paper else "-", _ms(paper[1]) if paper else "-",
+                         f"{paper[1] / paper[0]:.2f}x" if paper else "-"])
+    out += markdown_table(header, rows)
+    state = sorted((t, lab) for (t, lab), c in cells.items() if (c.mode or lab) in ("state", "blind"))
     if state:
-        out += ["", "State-policy runs (no rendering) have backward times too: "
-                + ", ".join(f"{t} {_ms(cells[(t, 'state')].ms)} ms" for t in state) + "."]
+        out += ["", "Runs that render nothing during training (state, blind) have backward times too: "
+                + ", ".join(f"{t} {lab} {_ms(cells[(t, lab)].ms)} ms" for t, lab in state) + "."]
     return [*out, ""]
 
 
-def _curves(runs: list[Run], fig_dir: Path, base: Path) -> list[str]:
-    out = ["## 2. Training curves", ""]
+def floors_section(runs: list[Run], floors: Floors, plot: PlotResult | None = None) -> list[str]:
+    """The zero- and random-action return floors of the runs' tasks, their source, and the tasks without one."""
+    tasks = list(dict.fromkeys(t for t, _ in group_runs(runs)))
+    out = ["### Return floors", ""]
+    if floors.source is None:
+        out += ["No floors file (docs/floors.json of this checkout is missing; give --floors FILE written by "
+                "`task-floors`): the return curves have no floor lines.", ""]
+        return out
+    out += [f"Undiscounted episode return of zero action and of uniform random actions in [-1, 1] "
+            f"(mean +- std over episodes), from `{floors.source}` (written by `task-floors`); drawn as "
+            "horizontal lines beside every return curve. A learning curve means little below them.", ""]
+    rows = []
+    for task in tasks:
+        f = floors.of(task)
+        if f is None:
+            rows.append([task, "no entry", "no entry", "-"])
+            continue
+        cells = [f"{f[k]['mean']:.4g} +- {f[k].get('std', float('nan')):.3g}" if k in f else "-"
+                 for k in ("zero", "random")]
+        eps = {f[k].get("episodes") for k in f if f[k].get("episodes") is not None}
+        rows.append([task, *cells, " / ".join(str(e) for e in sorted(eps)) or "?"])
+    out += markdown_table(["task", "zero action", "random action", "episodes"], rows)
+    missing = [t for t in tasks if floors.of(t) is None]
+    if missing:
+        out += ["", "**Warning:** " + "; ".join(floors.missing_message(t) for t in missing) + "."]
+    return [*out, ""]
+
+
+def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors, label=None,
+                   heading: str = "## 2. Training curves", figures: tuple[str, ...] | None = None) -> list[str]:
+    """The ablate-plot figures (drawn into ``fig_dir``, linked relative to ``base``), the floors and a runs table.
+
+    figures: the FIGURES to include, in this order (default: all).
+    """
+    out = [heading, ""]
     if not runs:
         return [*out, "No training runs were given.", ""]
-    res = make_plots(runs, fig_dir)
-    out += ["Per task and mode, mean +- one standard deviation across seeds (n in the legends).", ""]
-    for name, caption in FIGURES.items():
+    res = make_plots(runs, fig_dir, floors=floors, label=label)
+    out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends).", ""]
+    for name in figures or tuple(FIGURES):
+        caption = FIGURES[name]
         if name in res.files:
             out += [f"![{caption}]({_rel(res.files[name], base)})", "", f"*{caption}*", ""]
         elif name in res.skipped:
             out += [f"*{name} not drawn: {res.skipped[name]}.*", ""]
+    out += floors_section(runs, floors, res)
     out += ["### Runs", ""]
     rows = []
-    for (_task, _mode), rs in group_runs(runs).items():
+    for (_task, lab), rs in group_runs(runs, label=label).items():
         for r in rs:
             s = r.summary or {}
             last = r.metrics[-1] if r.metrics else {}
             peak = s.get("peak_alloc_mb")
-            rows.append([r.path.name, r.task, r.mode, r.seed, s.get("status", "no summary"),
+            rows.append([r.path.name, r.task, lab, r.seed, s.get("status", "no summary"),
                          s.get("iterations", last.get("iter")), s.get("env_steps", last.get("env_steps")),
                          s.get("final_return", last.get("return_mean")), s.get("median_fwd_ms"), run_bwd_ms(r),
                          peak if peak is not None else s.get("median_saved_mb"),
                          "alloc" if peak is not None else "saved" if s.get("median_saved_mb") is not None else ""])
-    out += _table(["run", "task", "mode", "seed", "status", "iterations", "env steps", "final return",
-                   "median fwd [ms]", "median bwd [ms]", "memory [MB]", "memory kind"], rows)
+    out += markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps", "final return",
+                           "median fwd [ms]", "median bwd [ms]", "memory [MB]", "memory kind"], rows)
     out += ["", "memory kind: alloc = CUDA peak allocated; saved = median bytes saved for backward (CPU runs)."]
     return [*out, ""]
 
 
-def _memory(sweeps: list[Path], fig_dir: Path, base: Path) -> list[str]:
+def memory_section(sweeps: list[Path], fig_dir: Path, base: Path, *, heading: str = "## 3. Memory sweep"
+                   ) -> list[str]:
+    """The ablate-memory table(s) and figures of each sweep folder (figures into ``fig_dir``)."""
     from ablations.memory import plot_sweep, read_csv
 
-    out = ["## 3. Memory sweep", ""]
+    out = [heading, ""]
     if not sweeps:
         return [*out, "No memory sweep was given (`ablate-memory`).", ""]
     for i, folder in enumerate(sweeps):
@@ -293,7 +373,7 @@ def _memory(sweeps: list[Path], fig_dir: Path, base: Path) -> list[str]:
         table = [[r["mode"], r["meshes"], r["verts_per_mesh"], r.get("scene_faces"), r.get("scene_verts"),
                   r.get("fwd_ms"), r.get("bwd_ms"), r.get("peak_alloc_mb"), r.get("peak_reserved_mb"),
                   r.get("saved_mb"), r["status"] + (f": {r['error']}" if r.get("error") else "")] for r in rows]
-        out += _table(["mode", "meshes", "verts/mesh", "faces", "vertices", "fwd [ms]", "bwd [ms]",
+        out += markdown_table(["mode", "meshes", "verts/mesh", "faces", "vertices", "fwd [ms]", "bwd [ms]",
                        "peak alloc [MB]", "peak reserved [MB]", "saved [MB]", "status"], table)
         out.append("")
         sub = fig_dir / f"memory_{i}_{task}"
@@ -302,8 +382,10 @@ def _memory(sweeps: list[Path], fig_dir: Path, base: Path) -> list[str]:
     return out
 
 
-def _provenance(runs: list[Run], sweeps: list[Path], benchmarks: list[tuple[Path, dict, list[dict]]]) -> list[str]:
-    out = ["## 4. Provenance", "", f"Report written {_dt.datetime.now().astimezone().isoformat(timespec='seconds')} "
+def provenance_section(runs: list[Run], sweeps: list[Path], benchmarks: list[tuple[Path, dict, list[dict]]], *,
+                       heading: str = "## 4. Provenance") -> list[str]:
+    """Device, versions, commit, start and end, and command of every input, and this report's command."""
+    out = [heading, "", f"Report written {_dt.datetime.now().astimezone().isoformat(timespec='seconds')} "
            f"by `{_command(sys.argv)}`.", ""]
     if runs:
         out += ["### Runs", ""]
@@ -312,11 +394,10 @@ def _provenance(runs: list[Run], sweeps: list[Path], benchmarks: list[tuple[Path
             env = r.environment
             versions = ", ".join(f"{k} {env[k]}" for k in ("python", "torch", "cuda", "mujoco",
                                                              "pytorch_kinematics") if env.get(k))
-            rows.append([str(r.path), _run_device(r), versions, _commit(r), _mtime(r.path / "config.json"),
-                         _mtime(r.path / "summary.json") if (r.path / "summary.json").exists() else "-",
+            rows.append([str(r.path), _run_device(r), versions, _commit(r), _started(r), _ended(r),
                          f"`{_command(r.command)}`"])
-        out += _table(["run", "device", "versions", "commit", "started (config.json)", "ended (summary.json)",
-                       "command"], rows)
+        out += markdown_table(["run", "device", "versions", "commit", "started (config.json started_utc)",
+                               "ended (summary.json ended_utc)", "command"], rows)
         out.append("")
     for folder in sweeps:
         try:
@@ -341,18 +422,25 @@ def _provenance(runs: list[Run], sweeps: list[Path], benchmarks: list[tuple[Path
 
 
 # ---------------------------------------------------------------------------------------------- the report
+def load_memory_sweeps(folders) -> list[Path]:
+    """The ablate-memory folders, each checked for its memory.csv (ValueError naming the folder)."""
+    sweeps = []
+    for m in folders:
+        m = Path(m)
+        if not (m / "memory.csv").exists():
+            raise ValueError(f"--memory {m}: no memory.csv there (not an ablate-memory output folder)")
+        sweeps.append(m)
+    return sweeps
+
+
 def build_report(cfg: ReportConfig) -> Path:
     """Write the report (and its figures) and return its path; ValueError on bad or missing input."""
     if not cfg.runs and not cfg.memory and not cfg.benchmark:
         raise ValueError("nothing to report: give run folders, --memory SWEEP_DIR and/or --benchmark FILE.json")
     runs = find_runs(list(cfg.runs)) if cfg.runs else []
-    sweeps = []
-    for m in cfg.memory:
-        m = Path(m)
-        if not (m / "memory.csv").exists():
-            raise ValueError(f"--memory {m}: no memory.csv there (not an ablate-memory output folder)")
-        sweeps.append(m)
+    sweeps = load_memory_sweeps(cfg.memory)
     benchmarks = [(Path(b), *load_benchmark(b)) for b in cfg.benchmark]
+    floors = load_floors(cfg.floors)
 
     out = Path(cfg.out)
     if out.suffix.lower() != ".md":
@@ -373,10 +461,10 @@ def build_report(cfg: ReportConfig) -> Path:
     if benchmarks:
         inputs.append(f"{len(benchmarks)} benchmark file(s)")
     lines += [f"Built from {', '.join(inputs)}. Sections without inputs say so; no number here is estimated.", ""]
-    lines += _table1(collect_bwd(runs, benchmarks))
-    lines += _curves(runs, fig_dir, base)
-    lines += _memory(sweeps, fig_dir, base)
-    lines += _provenance(runs, sweeps, benchmarks)
+    lines += table1_section(collect_bwd(runs, benchmarks))
+    lines += curves_section(runs, fig_dir, base, floors=floors)
+    lines += memory_section(sweeps, fig_dir, base)
+    lines += provenance_section(runs, sweeps, benchmarks)
 
     from gradlab.checkpoint import atomic_write_text
 

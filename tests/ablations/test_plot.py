@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from ablations import plot
-from ablations.plot import FIGURES, aggregate, find_runs, group_runs, load_run, make_plots
+from ablations.plot import FIGURES, aggregate, find_runs, group_runs, load_floors, load_run, make_plots
 from tests.ablations.conftest import write_run
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -119,3 +121,100 @@ def test_cli_writes_pngs(runs_dir, tmp_path, capsys):
     plot_main([*runs, "--out", str(out)])
     printed = capsys.readouterr().out.split()
     assert sorted(printed) == sorted(str(out / n) for n in FIGURES)
+
+
+def test_blind_has_a_colour_and_variants_get_labels(tmp_path):
+    parent = tmp_path / "runs"
+    for seed in (0, 1):
+        write_run(parent, task="hopper", mode="full", seed=seed, name=f"hard{seed}",
+                  settings={"preset": "shac-diffrender", "raster_model": "hard", "renderer": "soft"})
+        write_run(parent, task="hopper", mode="full", seed=seed, name=f"alpha{seed}",
+                  settings={"preset": "dva", "raster_model": "alpha", "renderer": "soft"})
+    write_run(parent, task="hopper", mode="decoupled", seed=0, settings={"preset": "dva", "raster_model": "alpha"})
+    write_run(parent, task="hopper", mode="blind", seed=0, probe_every=0)
+    runs = find_runs([parent])
+    assert plot.MODE_COLORS["blind"] not in {c for m, c in plot.MODE_COLORS.items() if m != "blind"}
+    groups = group_runs(runs)
+    # Only the settings that differ within a mode make it into its label.
+    assert list(groups) == [("hopper", "full (dva, alpha)"), ("hopper", "full (shac-diffrender, hard)"),
+                            ("hopper", "decoupled"), ("hopper", "blind")]
+    assert [r.path.name for r in groups[("hopper", "full (shac-diffrender, hard)")]] == ["hard0", "hard1"]
+    styles = plot._styles(groups)
+    assert styles["full (dva, alpha)"][0] == styles["full (shac-diffrender, hard)"][0] == plot.MODE_COLORS["full"]
+    assert styles["full (dva, alpha)"][1] != styles["full (shac-diffrender, hard)"][1]
+    # A caller's labels (ablate-paper's arms) replace them.
+    named = group_runs(runs, label=lambda r: "arm-" + r.mode)
+    assert set(named) == {("hopper", "arm-full"), ("hopper", "arm-decoupled"), ("hopper", "arm-blind")}
+    # The preset name falls back to config.json's preset record.
+    run = runs[0]
+    run.config.pop("preset")
+    run.preset = {"name": "dva", "supplied": {}, "overridden": {}}
+    assert run.setting("preset") == "dva"
+
+
+def floors_file(path, tasks):
+    path.write_text(json.dumps({"tasks": {t: {"zero": {"mean": z, "std": 1.0, "episodes": 8},
+                                              "random": {"mean": r, "std": 2.0, "episodes": 8}}
+                                          for t, (z, r) in tasks.items()}}))
+    return path
+
+
+def test_floors_are_drawn_beside_every_return_curve(runs_dir, tmp_path, monkeypatch):
+    import matplotlib.axes
+
+    drawn = []
+    real = matplotlib.axes.Axes.axhline
+
+    def spy(self, y=0, *args, **kw):
+        drawn.append((self.get_title(), y, kw.get("label")))
+        return real(self, y, *args, **kw)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "axhline", spy)
+    floors = load_floors(floors_file(tmp_path / "floors.json", {"cartpole": (5.0, 7.0)}))
+    with pytest.warns(UserWarning, match=r"no return floor for task 'hopper'.*task-floors --tasks hopper"):
+        res = make_plots(find_runs([runs_dir]), tmp_path / "plots", floors=floors)
+    # Once per task, although three figures draw hopper's return.
+    assert res.warnings == [floors.missing_message("hopper")]
+    # Three return figures x the two floors of cartpole's panel; none elsewhere.
+    assert sorted(drawn) == sorted([("cartpole", 5.0, "zero action floor (5)"),
+                                    ("cartpole", 7.0, "random action floor (7)")] * 3)
+
+
+def test_default_floors_are_this_checkouts(tmp_path):
+    floors = load_floors()
+    assert floors.source == plot.DEFAULT_FLOORS
+    assert floors.of("hopper")["zero"]["mean"] == json.loads(plot.DEFAULT_FLOORS.read_text())[
+        "tasks"]["hopper"]["zero"]["mean"]
+    assert floors.of("no-such-task") is None
+
+
+def test_bad_floors_files_are_named(tmp_path):
+    with pytest.raises(ValueError, match=r"--floors .*missing\.json: no such file"):
+        load_floors(tmp_path / "missing.json")
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ValueError, match="cannot be read"):
+        load_floors(tmp_path / "bad.json")
+    (tmp_path / "flat.json").write_text(json.dumps({"hopper": 1}))
+    with pytest.raises(ValueError, match="expected a 'tasks' object"):
+        load_floors(tmp_path / "flat.json")
+    (tmp_path / "nomean.json").write_text(json.dumps({"tasks": {"hopper": {"zero": {"std": 1}}}}))
+    with pytest.raises(ValueError, match="task 'hopper' needs zero/random objects with a numeric 'mean'"):
+        load_floors(tmp_path / "nomean.json")
+
+
+def test_probe_figures_are_skipped_without_probe_metrics(tmp_path):
+    run = write_run(tmp_path / "runs", task="ant", mode="blind", seed=0, probe_every=0)
+    res = make_plots([load_run(run)], tmp_path / "plots")
+    for name in ("probe_grad_norms.png", "render_term_groups.png", "image_sensitivity.png"):
+        assert name in res.skipped and not (tmp_path / "plots" / name).exists()
+    assert "image_sensitivity_f" in res.skipped["image_sensitivity.png"]
+
+
+def test_plot_runs_reads_the_floors_flag(runs_dir, tmp_path):
+    from ablations.plot import PlotConfig, plot_runs
+
+    floors = floors_file(tmp_path / "f.json", {"cartpole": (1.0, 2.0), "hopper": (3.0, 4.0)})
+    res = plot_runs(PlotConfig(runs=(runs_dir,), out=tmp_path / "p", floors=floors))
+    assert not res.warnings and "return_vs_iter.png" in res.files
+    with pytest.raises(ValueError, match="no such file"):
+        plot_runs(PlotConfig(runs=(runs_dir,), out=tmp_path / "p", floors=tmp_path / "none.json"))

@@ -139,3 +139,53 @@ def test_cli_builds_the_report(inputs, tmp_path, capsys):
     report_main([str(runs), "--memory", str(sweep), "--out", str(out)])
     assert capsys.readouterr().out.strip() == str(out)
     assert out.read_text().startswith("# Policy gradients through pixels")
+
+
+def test_report_lists_floors_dates_and_variants(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, task="hopper", mode="decoupled", seed=0, bwd_ms=20.0, settings={"raster_model": "alpha"},
+              started_utc="2026-03-01T10:00:00+00:00", ended_utc="2026-03-01T11:30:00+00:00")
+    write_run(runs, task="hopper", mode="full", seed=0, bwd_ms=50.0, name="hard",
+              settings={"raster_model": "hard"})
+    write_run(runs, task="hopper", mode="full", seed=0, bwd_ms=40.0, name="alpha",
+              settings={"raster_model": "alpha"})
+    write_run(runs, task="humanoid", mode="blind", seed=0, bwd_ms=7.0, probe_every=0)
+    floors = tmp_path / "floors.json"
+    floors.write_text(json.dumps({"tasks": {"hopper": {"zero": {"mean": -12.5, "std": 3.0, "episodes": 64},
+                                                       "random": {"mean": 40.25, "std": 9.0, "episodes": 64}}}}))
+    with pytest.warns(UserWarning, match="no return floor for task 'humanoid'"):
+        text = build_report(ReportConfig(runs=(runs,), floors=floors, out=tmp_path / "r.md")).read_text()
+
+    # One Table 1 row per full variant, each against the decoupled runs.
+    rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in text.splitlines() if ln.startswith("| hopper |")]
+    assert [r[1:4] for r in rows[:2]] == [["20.0", "40.0", "2.00x"], ["20.0", "50.0", "2.50x"]]
+    assert "full (alpha): 4x8" in rows[0][4] and "full (hard): 4x8" in rows[1][4]
+    assert "humanoid blind 7 ms" in text
+    # Floors: a table with their source, and the task without one named.
+    assert f"from `{floors}`" in text
+    assert table_row(text, "hopper")[0] == "hopper"
+    assert "| hopper | -12.5 +- 3 | 40.25 +- 9 | 64 |" in text
+    assert "| humanoid | no entry | no entry | - |" in text
+    assert "**Warning:** no return floor for task 'humanoid'" in text
+    assert "| alpha | hopper | full (alpha) | 0 |" in text
+    # Recorded start and end; file times marked as such where a run recorded none.
+    assert "| 2026-03-01T10:00:00+00:00 | 2026-03-01T11:30:00+00:00 |" in text
+    assert text.count("(file time)") == 3 * 2
+
+
+def test_benchmark_points_that_failed_are_left_out(tmp_path):
+    bench = tmp_path / "b.json"
+    bench.write_text(json.dumps({"results": [
+        {"task": "ant", "mode": "full", "status": "oom", "bwd_ms": None, "error": "CUDA out of memory"},
+        {"task": "ant", "mode": "decoupled", "status": "ok", "bwd_ms": 12.0}]}))
+    _, results = load_benchmark(bench)
+    assert [(r["task"], r["mode"]) for r in results] == [("ant", "decoupled")]
+
+
+def test_paper_numbers_come_from_the_cited_file():
+    from ablations.paper_numbers import load_paper_numbers
+
+    numbers = load_paper_numbers()
+    assert PAPER_TABLE1_MS == {r["task"]: (1000 * r["dva"], 1000 * r["shac-diffrender"]) for r in numbers.backward_s}
+    assert PAPER_TABLE1_MS["hopper"] == pytest.approx((190.0, 510.0))
+    assert "Table 1" in numbers.cite("table1") and "RTX 4080" in numbers.cite("table1")
