@@ -1,7 +1,8 @@
 """One training run as a folder a researcher can trust, resume and plot.
 
 A run folder holds:
-    config.json      the resolved configuration (every flag, task defaults filled in) + versions
+    config.json      the resolved configuration (every flag, preset values filled in), what the preset supplied
+                     and which flags overrode it, the start time (UTC) + versions
     git.txt          commit, branch, dirty status and diff stat of the code that ran (git.diff: the full diff)
     metrics.jsonl    one JSON object per iteration (``REQUIRED_KEYS``, plus ``PROBE_KEYS`` on probed iterations)
     summary.json     written at the end (or when the run stops on an error): medians without warm-up, peaks
@@ -13,6 +14,7 @@ A run folder holds:
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import json
 import os
 import platform
@@ -37,6 +39,7 @@ from gradlab.checkpoint import (
     save_checkpoint,
 )
 from gradlab.config import SHACConfig
+from gradlab.presets import preset_record
 from gradlab.probes import NonFiniteError
 from gradlab.seeding import resolve_device
 from gradlab.timing import median
@@ -47,7 +50,7 @@ __all__ = ["RunConfig", "run", "read_metrics", "git_info", "environment_info", "
 REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "critic_loss", "grad_norm",
                  "grad_norm_clipped", "fwd_ms", "bwd_ms", "peak_alloc_mb", "peak_reserved_mb")
 #: Keys added on probed iterations.
-PROBE_KEYS = ("cos_full_decoupled", "grad_norm_full", "grad_norm_decoupled")
+PROBE_KEYS = ("cos_full_decoupled", "grad_norm_full", "grad_norm_decoupled", "grad_norm_render_term")
 #: Keys that depend on the clock, not on the computation (excluded when comparing runs for determinism).
 TIMING_KEYS = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb")
 
@@ -193,6 +196,11 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int = 60) -> None:
     os.replace(tmp, path)
 
 
+def _utc(t: float) -> str:
+    """Seconds since the epoch as an ISO-8601 UTC timestamp (what the report prints as started/ended)."""
+    return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).isoformat(timespec="seconds")
+
+
 def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, started: float) -> dict:
     timed = [r for r in rows if r["iter"] > cfg.warmup_iters]
     plain = [r for r in timed if not r.get("probed")]
@@ -211,6 +219,7 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
     return {
         "status": status,
         "error": error,
+        "ended_utc": _utc(time.time()),
         "task": cfg.task,
         "mode": cfg.mode,
         "seed": cfg.seed,
@@ -334,6 +343,9 @@ def run(cfg: RunConfig) -> Path:
     else:
         atomic_write_json(run_dir / "config.json", {
             "config": dataclasses.asdict(resolved),
+            # which values the preset supplied and which flags overrode it (flag and preset value side by side)
+            "preset": preset_record(shac_part(cfg), trainer.cfg),
+            "started_utc": _utc(started),
             "environment": environment_info(device),
             "command": sys.argv,
         })

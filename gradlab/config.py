@@ -1,8 +1,9 @@
 """SHAC / D.Va configuration: one dataclass, field docstrings become the CLI's ``--help`` (tyro).
 
-Fields left at ``None`` take the task's reference value (docs/design.md, "A SHAC window";
-notes/dva-reference.md) when the trainer is built; ``config.json`` of a run stores the resolved values.
-``ModePlan`` is everything the ``mode`` switch decides, in one place.
+Fields left at ``None`` take the value of the chosen preset (:mod:`gradlab.presets`: the reference code's
+per-task hyperparameters, with their sources) when the trainer is built; ``config.json`` of a run stores the
+resolved values and which of them the preset supplied. ``ModePlan`` is everything the ``mode`` switch
+decides, in one place.
 """
 
 from __future__ import annotations
@@ -11,20 +12,9 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["SHACConfig", "TASK_DEFAULTS", "MODES", "ModePlan", "resolve_config"]
+from gradlab.presets import PRESET_FIELDS, PRESETS, preset_values
 
-#: Per-task reference hyperparameters (D.Va / SHAC configs).
-TASK_DEFAULTS: dict[str, dict] = {
-    "cartpole": dict(critic_lr=2e-4, target_alpha=0.2, trunk_dim=64, actor_hidden=(64, 64),
-                     critic_hidden=(64, 64)),
-    "hopper": dict(critic_lr=2e-4, target_alpha=0.2, trunk_dim=128, actor_hidden=(128, 64, 32),
-                   critic_hidden=(64, 64)),
-    "ant": dict(critic_lr=2e-3, target_alpha=0.2, trunk_dim=128, actor_hidden=(128, 64, 32),
-                critic_hidden=(64, 64)),
-    "humanoid": dict(critic_lr=5e-4, target_alpha=0.995, trunk_dim=256, actor_hidden=(256, 128),
-                     critic_hidden=(128, 128)),
-}
-
+__all__ = ["SHACConfig", "MODES", "ModePlan", "resolve_config"]
 
 @dataclass(frozen=True)
 class ModePlan:
@@ -88,7 +78,13 @@ class SHACConfig:
     """SHAC with one switch between full APG through pixels and decoupled D.Va."""
 
     task: str = "cartpole"
-    """Task: cartpole, hopper, ant or humanoid."""
+    """Task: cartpole (D.Va's, with joint springs), cartpole-swingup (SHAC's spring-free swing-up), hopper,
+    ant or humanoid (docs/tasks.md lists every constant and its source)."""
+    preset: Literal["dva", "shac-diffrender", "project"] = "dva"
+    """Hyperparameters every field left unset takes (gradlab/presets.py, with sources): dva, D.Va's per-task
+    configs (SHAC's state-based ones for --mode state where they differ); shac-diffrender, the paper's
+    full-APG baseline (its decay length, the hard rasterizer); project, this toolkit's earlier defaults.
+    Explicit flags override the preset; config.json records both."""
     mode: Literal["full", "decoupled", "state", "blind"] = "decoupled"
     """full: gradients flow through the rendered images into the robot state; decoupled (D.Va): the image
     stack is detached at the actor's input; state: the actor sees the state vector (upper bound); blind: the
@@ -96,10 +92,12 @@ class SHACConfig:
     learns one open-loop action distribution for every state: the floor any result from pixels must beat.
     Blind runs render nothing during training and run no probes."""
     iters: int = 500
-    """Training iterations (one iteration = num_envs x horizon env steps). Also the length of the linear
-    learning-rate decay."""
-    num_envs: int = 64
-    """Parallel environments."""
+    """Training iterations (one iteration = num_envs x horizon env steps)."""
+    lr_decay_iters: int | None = None
+    """Iterations over which both learning rates decay linearly to 1e-5 (the reference's max_epochs:
+    D.Va 4000 cartpole, 30000 hopper/ant, 60000 humanoid); None: the preset's (project: --iters)."""
+    num_envs: int | None = None
+    """Parallel environments; None: the preset's (64; SHAC's state-based hopper 256)."""
     horizon: int = 32
     """Steps per SHAC window (the backpropagation horizon)."""
     seed: int = 0
@@ -108,11 +106,10 @@ class SHACConfig:
     """Discount."""
     lam: float = 0.95
     """TD(lambda) for the critic targets."""
-    actor_lr: float = 2e-3
-    """Actor learning rate (decays linearly to 1e-5)."""
+    actor_lr: float | None = None
+    """Actor learning rate (decays linearly to 1e-5); None: the preset's (2e-3; SHAC's state cartpole 1e-2)."""
     critic_lr: float | None = None
-    """Critic learning rate; None: the task's reference value (2e-4 cartpole/hopper, 2e-3 ant, 5e-4
-    humanoid)."""
+    """Critic learning rate; None: the preset's (2e-4 cartpole/hopper, 2e-3 ant, 5e-4 humanoid)."""
     betas: tuple[float, float] = (0.7, 0.95)
     """Adam betas (actor and critic)."""
     grad_clip: float = 1.0
@@ -129,6 +126,17 @@ class SHACConfig:
     """Actor MLP widths; None: task reference ([64,64], [128,64,32], [256,128])."""
     critic_hidden: tuple[int, ...] | None = None
     """Critic MLP widths; None: [64,64] ([128,128] humanoid)."""
+    actor_init: Literal["default", "orthogonal"] | None = None
+    """Initialisation of the actor's MLP: default (PyTorch's nn.Linear init, as the reference's actor:
+    initial mean actions of order 0.5 before the tanh) or orthogonal (gain sqrt(2), last layer 0.01: mean
+    actions near 0); None: the preset's (dva: default; project: orthogonal)."""
+    obs_clip: float | None = None
+    """Clip normalised state observations to +-obs_clip; 0 disables (the reference does not clip); None: the
+    preset's (dva: 0; project: 5)."""
+    bootstrap_last_step: bool | None = None
+    """An episode that fails exactly on its last step is bootstrapped with the target critic (the reference
+    counts only episodes shorter than the episode length as early terminations) instead of ending with a zero
+    value; None: the preset's (dva: true; project: false)."""
     image_size: int = 84
     """Rendered image height and width in pixels."""
     frames: int = 3
@@ -144,11 +152,18 @@ class SHACConfig:
     """Soft-rasterizer edge softness in pixels; None: the renderer's default."""
     render_gamma: float | None = None
     """Soft-rasterizer depth-blend temperature; None: the renderer's default."""
-    render_blend: Literal["softmax", "alpha"] = "softmax"
-    """How faces meet the floor: softmax (the depth softmax of docs/design.md, "Image model", with the floor
-    as one more candidate) or alpha (faces softmax-blended among themselves, then composited over floor and sky
-    by coverage). alpha passes 2-3x more of the image's change at silhouettes to the gradient
-    (benchmarks/render.py --jump-share) and renders without back-face culling."""
+    raster_model: Literal["hard", "softmax", "alpha"] | None = None
+    """The rasterizer's image model, and so the gradient estimator of --mode full (docs/design.md, "Image
+    model"): hard, a z-buffer whose gradients flow only through interpolation and shading (the paper's
+    full-APG baseline, PyTorch3D at blur 0); softmax, SoftRas aggregation with the floor and sky as
+    candidates; alpha, faces composited over floor and sky by coverage. The soft models' silhouettes carry
+    gradient. None: the preset's (shac-diffrender: hard; else the soft default, gradlab.presets)."""
+    renderer: Literal["soft", "warp"] = "soft"
+    """Where the images the actor trains on come from: soft, the differentiable rasterizer; warp, the
+    forward-only Warp ray tracer (the rasterizer's sharp limit, cost nearly flat in mesh faces) for modes
+    whose images need no gradient (decoupled, blind, state's videos). Probe iterations render with the
+    rasterizer so that both gradients are taken through one differentiable image. Evaluation videos use it
+    too."""
     episode_length: int | None = None
     """Override the task's episode length (None: 240 cartpole, 1000 others)."""
     cosine_every: int = 10
@@ -173,12 +188,27 @@ class SHACConfig:
 
         if self.task not in TASKS:
             raise ValueError(f"unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
-        ModePlan.of(self.mode)  # raises for an unknown mode, naming the valid ones
-        for name in ("iters", "num_envs", "horizon", "critic_iterations", "critic_batches", "image_size",
+        plan = ModePlan.of(self.mode)  # raises for an unknown mode, naming the valid ones
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; valid presets: {', '.join(PRESETS)}")
+        if self.raster_model is not None and self.raster_model not in ("hard", "softmax", "alpha"):
+            raise ValueError(f"unknown raster_model {self.raster_model!r}; valid: hard, softmax, alpha")
+        if self.renderer not in ("soft", "warp"):
+            raise ValueError(f"unknown renderer {self.renderer!r}; valid renderers: soft, warp")
+        if self.renderer == "warp" and plan.grad_through_images:
+            raise ValueError(f"--renderer warp renders without gradient, but --mode {self.mode} backpropagates "
+                             "through the images: use --renderer soft (the differentiable rasterizer)")
+        for name in ("iters", "horizon", "critic_iterations", "critic_batches", "image_size",
                      "frames", "render_detail"):
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("num_envs", "lr_decay_iters"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, int) or v <= 0):
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.obs_clip is not None and not self.obs_clip >= 0:
+            raise ValueError(f"obs_clip must be >= 0 (0 disables clipping), got {self.obs_clip}")
         for name in ("extra_meshes", "cosine_every"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 0:
@@ -188,11 +218,11 @@ class SHACConfig:
             raise ValueError(f"extra_mesh_verts must be >= 6, got {self.extra_mesh_verts}")
         if not 0 < self.gamma <= 1 or not 0 <= self.lam <= 1:
             raise ValueError(f"gamma must be in (0, 1] and lam in [0, 1], got {self.gamma}, {self.lam}")
-        if self.actor_lr <= 0 or (self.critic_lr is not None and self.critic_lr <= 0):
+        if any(v is not None and v <= 0 for v in (self.actor_lr, self.critic_lr)):
             raise ValueError("learning rates must be positive")
         if self.grad_clip <= 0:
             raise ValueError(f"grad_clip must be positive, got {self.grad_clip}")
-        if self.critic_batches > self.num_envs * self.horizon:
+        if self.num_envs is not None and self.critic_batches > self.num_envs * self.horizon:
             raise ValueError("critic_batches cannot exceed num_envs * horizon")
         if self.episode_length is not None and self.episode_length <= 0:
             raise ValueError(f"episode_length must be positive, got {self.episode_length}")
@@ -201,11 +231,14 @@ class SHACConfig:
 
 
 def resolve_config(cfg: SHACConfig) -> SHACConfig:
-    """A copy with every None field replaced by the task's reference value (validated first)."""
+    """A copy with every None field the preset sets replaced by the preset's value for the task and mode
+    (validated before and after)."""
     cfg.validate()
-    defaults = TASK_DEFAULTS[cfg.task]
-    updates = {k: v for k, v in defaults.items() if getattr(cfg, k) is None}
-    out = dataclasses.replace(cfg, **updates)
+    table = preset_values(cfg.preset, cfg.task, cfg.mode)
+    out = dataclasses.replace(cfg, **{k: table[k] for k in PRESET_FIELDS if getattr(cfg, k) is None})
+    if out.lr_decay_iters is None:  # the project preset decays over the run's own length
+        out.lr_decay_iters = out.iters
     out.actor_hidden = tuple(out.actor_hidden)
     out.critic_hidden = tuple(out.critic_hidden)
+    out.validate()
     return out

@@ -86,12 +86,16 @@ class PixelEncoder(nn.Module):
 class _GaussianTanhPolicy(nn.Module):
     """Shared head: features -> mean; learnable state-independent log-std."""
 
-    def __init__(self, feat_dim: int, hidden: Sequence[int], act_dim: int, init_log_std: float = -1.0):
+    def __init__(self, feat_dim: int, hidden: Sequence[int], act_dim: int, *, init: str = "orthogonal",
+                 init_log_std: float = -1.0):
         super().__init__()
         self.mu = MLP(feat_dim, hidden, act_dim)
-        orthogonal_init(self.mu, gain=2.0**0.5)
-        # The last layer small so initial actions sit near 0 (the tanh's linear region).
-        nn.init.orthogonal_(self.mu[-1].weight, gain=0.01)
+        if init == "orthogonal":
+            orthogonal_init(self.mu, gain=2.0**0.5)
+            # The last layer small so initial actions sit near 0 (the tanh's linear region).
+            nn.init.orthogonal_(self.mu[-1].weight, gain=0.01)
+        elif init != "default":  # "default": nn.Linear's own init, as the reference's ActorStochasticMLP
+            raise ValueError(f"unknown actor init {init!r}; valid: default, orthogonal")
         self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
 
     def features(self, obs: torch.Tensor) -> torch.Tensor:
@@ -124,8 +128,8 @@ class StateActor(_GaussianTanhPolicy):
     obs: (B, obs_dim) -> action (B, act_dim) in [-1, 1].
     """
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int]):
-        super().__init__(obs_dim, hidden, act_dim)
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], *, init: str = "orthogonal"):
+        super().__init__(obs_dim, hidden, act_dim, init=init)
 
 
 class VisualActor(_GaussianTanhPolicy):
@@ -135,8 +139,8 @@ class VisualActor(_GaussianTanhPolicy):
     """
 
     def __init__(self, in_channels: int, height: int, width: int, act_dim: int, trunk_dim: int,
-                 hidden: Sequence[int]):
-        super().__init__(trunk_dim, hidden, act_dim)
+                 hidden: Sequence[int], *, init: str = "orthogonal"):
+        super().__init__(trunk_dim, hidden, act_dim, init=init)
         self.encoder = PixelEncoder(in_channels, height, width, trunk_dim)
 
     def features(self, obs: torch.Tensor) -> torch.Tensor:

@@ -42,10 +42,11 @@ class RunningMeanStd:
         return self.mean.clone(), torch.sqrt(self.var + 1e-5)
 
     @staticmethod
-    def apply(x: torch.Tensor, stats: tuple[torch.Tensor, torch.Tensor], clip: float = 5.0) -> torch.Tensor:
-        """Normalise x with (mean, std) from ``snapshot``, clipped to +-clip."""
+    def apply(x: torch.Tensor, stats: tuple[torch.Tensor, torch.Tensor], clip: float | None = None) -> torch.Tensor:
+        """Normalise x with (mean, std) from ``snapshot``, clipped to +-clip unless ``clip`` is None or 0."""
         mean, std = stats
-        return torch.clamp((x - mean) / std, -clip, clip)
+        y = (x - mean) / std
+        return torch.clamp(y, -clip, clip) if clip else y
 
     def state_dict(self) -> dict:
         return {"mean": self.mean.clone(), "var": self.var.clone(), "count": self.count.clone()}

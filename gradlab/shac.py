@@ -86,10 +86,10 @@ class SHAC:
                 # kernel stays off: on an H200 its backward produced NaN image gradients in full mode.)
                 self.renderer.compile()
         if self.plan.actor_input == "state":
-            self.actor = StateActor(self.task.num_obs, self.task.num_act, cfg.actor_hidden)
+            self.actor = StateActor(self.task.num_obs, self.task.num_act, cfg.actor_hidden, init=cfg.actor_init)
         else:
             self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
-                                     cfg.trunk_dim, cfg.actor_hidden)
+                                     cfg.trunk_dim, cfg.actor_hidden, init=cfg.actor_init)
         self.critic = Critic(self.task.num_obs, cfg.critic_hidden)
         self.actor.to(self.device)
         self.critic.to(self.device)
@@ -135,11 +135,12 @@ class SHAC:
 
     def _render_options(self) -> dict:
         cfg = self.cfg
-        # save_blend_state: a full-mode window keeps 5 numbers per pixel per frame (9 MB per 64-image frame at
-        # 84 px, flat in faces) so that each render backward skips a second forward pass (fused backend)
+        # save_blend_state: a full-mode window keeps 7 numbers per pixel per frame (12.6 MB per 64-image frame
+        # at 84 px, flat in faces) so that each render backward skips a second forward pass (fused backend)
         options = dict(detail=cfg.render_detail, extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts,
-                       sigma=cfg.sigma, gamma=cfg.render_gamma, blend=cfg.render_blend, save_blend_state=True)
-        if cfg.render_blend == "alpha":
+                       sigma=cfg.sigma, gamma=cfg.render_gamma, raster_model=cfg.raster_model,
+                       renderer=cfg.renderer, save_blend_state=True)
+        if cfg.raster_model == "alpha":
             options["cull_backfaces"] = False  # alpha coverage sums over all faces, hidden ones included
         return options
 
@@ -150,9 +151,10 @@ class SHAC:
 
     # ------------------------------------------------------------------ state the windows hand on
     def _render(self, *, grad: bool) -> torch.Tensor:
-        """Images of the task's current state: (B, 3, H, W) in [0, 1]; differentiable in qpos if ``grad``."""
+        """Images of the task's current state: (B, 3, H, W) in [0, 1]; differentiable in qpos if ``grad``
+        (always the rasterizer: the ray tracer of ``--renderer warp`` has no gradient)."""
         if grad:
-            return self.renderer(self.task.qpos)
+            return self.renderer.soft(self.task.qpos)
         with torch.no_grad():
             return self.renderer(self.task.qpos)
 
@@ -178,6 +180,14 @@ class SHAC:
         # A probe renders with grad whatever the mode: both gradients need the render graph.
         return self._rollout(render_grad=self.plan.grad_through_images or probe)
 
+    def _ends_without_value(self, info: dict) -> torch.Tensor:
+        """(B,) bool: the step ended the episode with a zero terminal value. An early termination does; with
+        ``bootstrap_last_step`` a failure on the episode's last step does not (the reference bootstraps every
+        episode that reached its length), but a non-finite or runaway state always does."""
+        if self.cfg.bootstrap_last_step:
+            return info["invalid"] | (info["terminated"] & ~info["time_limit"])
+        return info["terminated"]
+
     def _rollout(self, *, render_grad: bool) -> tuple[torch.Tensor, dict]:
         """One SHAC window. Returns the actor loss (0-d, differentiable) and the window's (T, B) buffers."""
         cfg, task = self.cfg, self.task
@@ -202,7 +212,7 @@ class SHAC:
         self.flags.reset()
         for t in range(T):
             with torch.no_grad():
-                critic_obs[t] = RunningMeanStd.apply(obs, stats)
+                critic_obs[t] = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
             if self.plan.actor_input == "images":
                 actor_in = self.frames.stacked()
                 if render_grad:
@@ -211,7 +221,7 @@ class SHAC:
             elif self.plan.actor_input == "blank":
                 actor_in = self.blank_images
             else:
-                actor_in = RunningMeanStd.apply(obs, stats)
+                actor_in = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
             action = self.actor.sample(self._actor_mean(actor_in))
             self.flags.watch_grad(t, "action", action)
 
@@ -222,8 +232,8 @@ class SHAC:
             self.flags.check(t, "reward", reward)
 
             # Value of the state reached by this step (before any reset); zero after an early termination.
-            v_next = self._target_value(RunningMeanStd.apply(info["obs_before_reset"], stats))
-            v_next = torch.where(info["terminated"], torch.zeros_like(v_next), v_next)
+            v_next = self._target_value(RunningMeanStd.apply(info["obs_before_reset"], stats, cfg.obs_clip))
+            v_next = torch.where(self._ends_without_value(info), torch.zeros_like(v_next), v_next)
             self.flags.check(t, "terminal_value", v_next)
 
             rew_acc = rew_acc + discount * reward
@@ -304,8 +314,9 @@ class SHAC:
 
     # ------------------------------------------------------------------ one training iteration
     def _lr(self, base: float) -> float:
-        """Linear decay from ``base`` to 1e-5 over ``iters`` (the reference's schedule)."""
-        frac = min(self.iteration / self.cfg.iters, 1.0)
+        """Linear decay from ``base`` to 1e-5 over ``lr_decay_iters`` (the reference's schedule over its
+        ``max_epochs``), held at 1e-5 after."""
+        frac = min(self.iteration / self.cfg.lr_decay_iters, 1.0)
         return base + (1e-5 - base) * frac
 
     def _set_learning_rates(self) -> None:
@@ -406,7 +417,7 @@ class SHAC:
             frames.reset(renderer(task.qpos))
         if record:
             video = TaskRenderer(task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2),
-                                 sigma=None, gamma=None)
+                                 sigma=None, gamma=None, renderer=cfg.renderer)
         total = torch.zeros(num_envs, device=self.device)
         alive = torch.ones(num_envs, device=self.device, dtype=torch.bool)
         out_frames: list[np.ndarray] = []
@@ -419,7 +430,7 @@ class SHAC:
             elif self.plan.actor_input == "blank":
                 actor_in = blank
             else:
-                actor_in = RunningMeanStd.apply(obs, stats)
+                actor_in = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
             action = self.actor(actor_in, deterministic=True)
             obs, reward, done, _ = task.step(action)
             total += reward * alive

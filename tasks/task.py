@@ -231,9 +231,10 @@ class Task(abc.ABC):
         action: (B, num_act) in [-1, 1] (clipped; torque = action * gear * action_scale).
         Returns ``obs (B, num_obs)`` (after resets), ``reward (B,)``, ``done (B,) bool`` (terminated or
         truncated) and ``info`` with ``obs_before_reset``, ``qpos_before_reset``, ``qvel_before_reset``
-        (differentiable; the state this step reached), ``terminated`` and ``truncated`` (B,) bool.
-        Finished environments are reset in place (new state without gradient; ``progress`` and
-        ``prev_actions`` zeroed).
+        (differentiable; the state this step reached), ``terminated`` and ``truncated`` (B,) bool, and
+        ``invalid`` (a non-finite or runaway state, a kind of termination) and ``time_limit`` (the episode
+        reached its length, whether or not it also terminated), (B,) bool. Finished environments are reset in
+        place (new state without gradient; ``progress`` and ``prev_actions`` zeroed).
         """
         self._check_action(action)
         a = torch.clamp(action, -1.0, 1.0)
@@ -287,6 +288,8 @@ class Task(abc.ABC):
             "qvel_before_reset": qvel,
             "terminated": terminated,
             "truncated": truncated,
+            "invalid": invalid,
+            "time_limit": progress >= self.episode_length,
         }
         return new_qpos, new_qvel, new_progress, new_prev, obs, reward, done, info
 

@@ -28,7 +28,7 @@ def strip_timing(rows: list[dict]) -> list[dict]:
 
 
 @pytest.mark.parametrize("task", ["cartpole", "ant"])
-@pytest.mark.parametrize("mode", ["full", "decoupled", "state"])
+@pytest.mark.parametrize("mode", ["full", "decoupled", "state", "blind"])
 def test_smoke_every_mode(tmp_path, task, mode, capsys):
     ablate("--task", task, "--mode", mode, "--iters", "2", "--cosine-every", "2", "--video-every", "2",
            "--video-steps", "3", "--out", str(tmp_path), "--name", "run", *TINY)
@@ -39,16 +39,20 @@ def test_smoke_every_mode(tmp_path, task, mode, capsys):
     for r in rows:
         assert set(REQUIRED_KEYS) <= set(r)
     probed = [r for r in rows if r["probed"]]
-    if mode == "state":
+    if mode in ("state", "blind"):
         assert not probed
     else:
         assert len(probed) == 1 and set(PROBE_KEYS) <= set(probed[0])
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["config"]["task"] == task and cfg["config"]["mode"] == mode
-    assert cfg["config"]["critic_lr"] == {"cartpole": 2e-4, "ant": 2e-3}[task]  # task default resolved
+    # the dva preset resolved: D.Va's critic lr, SHAC's state-based one for state cartpole (1e-3)
+    assert cfg["config"]["critic_lr"] == {"cartpole": 1e-3 if mode == "state" else 2e-4, "ant": 2e-3}[task]
+    assert cfg["preset"]["name"] == "dva" and cfg["preset"]["supplied"]["critic_lr"] == cfg["config"]["critic_lr"]
+    assert cfg["started_utc"].endswith("+00:00")
     assert (run / "git.txt").read_text().startswith(("commit ", "git information unavailable"))
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"] == "finished" and summary["iterations"] == 2
+    assert summary["ended_utc"] >= cfg["started_utc"]
     assert (run / "checkpoints" / "ckpt_000002.pt").exists()
     video = run / "videos" / "iter_000002.mp4"
     assert video.exists() and video.stat().st_size > 1000
@@ -146,12 +150,15 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize(("args", "message"), [
-    (["--task", "cartpol"], "unknown task 'cartpol'; valid tasks: cartpole, hopper, ant, humanoid"),
+    (["--task", "cartpol"], "unknown task 'cartpol'; valid tasks: cartpole, cartpole-swingup, hopper, ant, humanoid"),
     (["--mode", "ful"], "full"),  # tyro lists the valid choices
     (["--num-envs", "0"], "num_envs must be a positive integer"),
     (["--horizon", "-2"], "horizon must be a positive integer"),
     (["--iters", "0"], "iters must be a positive integer"),
     (["--device", "tpu"], "unknown device 'tpu'"),
+    (["--preset", "paper"], "--preset"),  # tyro names the flag and lists dva, shac-diffrender, project
+    (["--raster-model", "blurry"], "--raster-model"),
+    (["--mode", "full", "--renderer", "warp"], "--renderer warp renders without gradient, but --mode full"),
 ])
 def test_bad_input_is_one_clear_line_before_any_work(tmp_path, args, message):
     r = run_cli(*args, "--out", str(tmp_path / "o"), "--no-progress")
