@@ -28,16 +28,18 @@ from pathlib import Path
 import torch
 
 import diffrender
-from gradlab import SHAC, SHACConfig, resolve_device
+from gradlab import SHAC, ModePlan, SHACConfig, resolve_device
 from gradlab.timing import median
 
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
 
 
-def measure(task: str, mode: str, args) -> dict:
+def measure(task: str, mode: str, args, *, renderer: str = "soft") -> dict:
     cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
-                     iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile)
-    row = {"task": task, "mode": mode, "num_envs": args.num_envs, "horizon": args.horizon,
+                     iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
+                     raster_model=args.raster_model, extra_meshes=args.extra_meshes,
+                     extra_mesh_verts=args.extra_mesh_verts)
+    row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": args.num_envs, "horizon": args.horizon,
            "image_size": args.image_size, "compile": args.compile, "status": "ok"}
     try:
         t0 = time.perf_counter()
@@ -45,6 +47,8 @@ def measure(task: str, mode: str, args) -> dict:
         row["setup_s"] = time.perf_counter() - t0
         if trainer.renderer is not None:  # which rasterizer backend "auto" resolved to (fused / tiled)
             row["render_backend"] = diffrender.backend_for(trainer.renderer.settings, trainer.device)
+            row["faces"] = trainer.renderer.num_faces
+            row["raster_model"] = trainer.cfg.raster_model
         t0 = time.perf_counter()
         for _ in range(args.warmup):
             trainer.train_iteration()
@@ -54,7 +58,7 @@ def measure(task: str, mode: str, args) -> dict:
             vals = [r[k] for r in rows if r.get(k) is not None]
             row[k] = median(vals) if vals else None
         row["grad_norm"] = median([r["grad_norm"] for r in rows])
-        if mode != "state" and args.probe_every > 0:
+        if ModePlan.of(mode).probes and args.probe_every > 0:
             trainer.cfg.cosine_every = 1  # from now on every iteration is probed
             # warm-up: with --compile the first probe runs eagerly (compiling the grad-mode render), the second
             # captures the probe graphs; neither is timed
@@ -95,6 +99,12 @@ def main() -> None:
     p.add_argument("--iters", type=int, default=4, help="measured iterations")
     p.add_argument("--probe-every", type=int, default=10, help="K for the probe-overhead estimate (0: skip)")
     p.add_argument("--compile", action="store_true", help="the trainer's --compile path")
+    p.add_argument("--renderers", nargs="+", choices=["soft", "warp"], default=["soft"],
+                   help="image sources to time (warp: the ray tracer, for modes without image gradient)")
+    p.add_argument("--raster-model", choices=["hard", "softmax", "alpha"], default=None,
+                   help="the rasterizer's image model (default: the preset's)")
+    p.add_argument("--extra-meshes", type=int, default=0, help="extra meshes on the robot's links (scene size)")
+    p.add_argument("--extra-mesh-verts", type=int, default=64, help="vertices per extra mesh")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("iteration.json"))
     args = p.parse_args()
@@ -108,29 +118,31 @@ def main() -> None:
     if args.device.startswith("cuda"):
         env["gpu"] = torch.cuda.get_device_name()
     results = []
-    for task in args.tasks:
-        for mode in args.modes:
-            row = measure(task, mode, args)
-            results.append(row)
-            print(json.dumps(row), flush=True)
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            # The format ablate-report reads: provenance at the top level, one row per (task, mode).
-            doc = {"date": env["date"], "command": env["command"], "device": args.device, "gpu": env.get("gpu"),
-                   "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
-            args.out.write_text(json.dumps(doc, indent=2))
+    runs = [(t, m, r) for t in args.tasks for m in args.modes for r in args.renderers
+            if r == "soft" or not ModePlan.of(m).grad_through_images]
+    for task, mode, renderer in runs:
+        row = measure(task, mode, args, renderer=renderer)
+        results.append(row)
+        print(json.dumps(row), flush=True)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        # The format ablate-report reads: provenance at the top level, one row per (task, mode).
+        doc = {"date": env["date"], "command": env["command"], "device": args.device, "gpu": env.get("gpu"),
+               "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
+        args.out.write_text(json.dumps(doc, indent=2))
 
     print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
-    print(f"{'task':9} {'mode':9} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'iter ms':>9} {'alloc MB':>9} "
-          f"{'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
+    print(f"{'task':9} {'mode':9} {'render':6} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'iter ms':>9} "
+          f"{'alloc MB':>9} {'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
     for r in results:
         if r["status"] != "ok":
-            print(f"{r['task']:9} {r['mode']:9} {r['status']}: {r.get('error', '')[:80]}")
+            print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r['status']}: {r.get('error', '')[:80]}")
             continue
         ov = r.get("probe_overhead_at_k")
-        print(f"{r['task']:9} {r['mode']:9} {fmt(r['fwd_ms']):>9} {fmt(r['bwd_ms']):>9} {fmt(r['critic_ms']):>8} "
-              f"{fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} {fmt(r['peak_reserved_mb'], 0):>9} "
+        print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {fmt(r['fwd_ms']):>9} {fmt(r['bwd_ms']):>9} "
+              f"{fmt(r['critic_ms']):>8} {fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} "
+              f"{fmt(r['peak_reserved_mb'], 0):>9} "
               f"{fmt(r['saved_mb'], 1):>9} {('-' if ov is None else f'{100 * ov:.1f}'):>8} "
               f"{fmt(r.get('cos_full_decoupled'), 3):>6}")
 
