@@ -4,18 +4,28 @@
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
 # Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
 # in ~95 s (H100) before a stage prints its first row.
-# Stages: env, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
+# Stages: env, nvdiffrast, anchor, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
   || { echo "wheel install failed"; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+# Warp travels in two halves (the bundle alone is near the 64 MiB a call carries): a call carrying .gpuwarp1
+# leaves its half in /tmp/w, the next call (while the machine is warm) carries .gpuwarp2 and unpacks both.
+mkdir -p /tmp/w; cp .gpuwarp1/* .gpuwarp2/* /tmp/w/ 2>/dev/null
+if [ ! -d /tmp/site/warp ] && [ -f /tmp/w/warppart.00 ] && [ -f /tmp/w/warppart.01 ]; then
+  cat /tmp/w/warppart.0* | xz -dc | tar -x -C /tmp/site && echo "warp unpacked"
+fi
 run() { local secs=$1; shift; echo "=== $* (limit ${secs}s)"; timeout "$secs" "$@" 2>&1 | tail -n 40; }
 for spec in "$@"; do
   stage=${spec%%:*}; secs=${spec#*:}; [ "$secs" = "$spec" ] && secs=300
   case $stage in
     env) nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv
          python3 -c "import torch, mujoco, pytorch_kinematics, trimesh, tyro; print(torch.__version__, torch.version.cuda, mujoco.__version__)";;
+    nvdiffrast) # the renderer anchor (never vendored): source from .shared/nvdiffrast, built into /tmp/nvdr
+       NVDR_SRC=$PWD/.shared/nvdiffrast source .shared/nvdiffrast-build.sh;;
+    anchor) # ours (each raster model), the Warp ray tracer and nvdiffrast on one scene; silhouette IoU
+       run "$secs" python3 benchmarks/anchor.py ${ANCHOR_ARGS:-} --out "$OUT/anchor.json";;
     cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/diffrender -q -x -m "cuda" -p no:cacheprovider;;
     sim) run "$secs" python3 benchmarks/sim.py --device cuda --quick --modes ${SIM_MODES:-eager compiled graph} \
            --out "$OUT/sim_quick.json";;
@@ -63,13 +73,16 @@ for spec in "$@"; do
            --out "$OUT/config_replay_$n.json"; done
        python3 benchmarks/config_diff.py "/tmp/simpar/${fast}_"*.json "/tmp/simpar/${slow}_"*.json | head -n 80;;
     graph-test) run "$secs" python3 -m pytest tests/test_cuda.py -q -x -p no:cacheprovider -k "captured and cartpole";;
-    learn) # LEARN="task:mode:seed ..." runs concurrently on the one GPU, each stopping after LEARN_MIN minutes;
-           # the run folders (without checkpoints) and ablate-plot's PNGs come back as one tarball.
+    learn) # LEARN="task:mode:seed[:flag=value,flag=value] ..." runs concurrently on the one GPU, each stopping
+           # after LEARN_MIN minutes (LEARN_FLAGS: more ablate flags for all, e.g. --compile); the run folders
+           # (without checkpoints) and ablate-plot's PNGs come back as one tarball.
        mkdir -p /tmp/runs
-       for spec in ${LEARN:-cartpole:decoupled:0 cartpole:full:0}; do IFS=: read -r t m s <<< "$spec"
-         python3 -m ablations ablate --task "$t" --mode "$m" --seed "$s" --compile --device cuda --iters ${LEARN_ITERS:-4000} \
+       for spec in ${LEARN:-cartpole:decoupled:0 cartpole:full:0}; do IFS=: read -r t m s x <<< "$spec"
+         extra=(); tag=""; for kv in ${x//,/ }; do extra+=("--${kv%%=*}" "${kv#*=}"); tag="${tag}_${kv#*=}"; done
+         name="${t}_${m}${tag}_seed${s}"
+         python3 -m ablations ablate --task "$t" --mode "$m" --seed "$s" --device cuda --iters ${LEARN_ITERS:-4000} \
            --time-limit-min "${LEARN_MIN:-6}" --cosine-every ${LEARN_K:-10} --video-every 100000 --out /tmp/runs \
-           --name "${t}_${m}_seed${s}" --no-progress > "/tmp/runs/${t}_${m}_seed${s}.log" 2>&1 &
+           --name "$name" --no-progress ${LEARN_FLAGS:---compile} "${extra[@]}" > "/tmp/runs/$name.log" 2>&1 &
        done; wait
        tail -n 3 /tmp/runs/*.log; python3 -m ablations plot /tmp/runs/*/ --out /tmp/runs/plots 2>&1 | tail -3
        tar -C /tmp/runs --exclude=checkpoints -czf "$OUT/runs.tgz" . ;;
