@@ -14,8 +14,8 @@ Sections:
        did not record them show the files' modification times, marked "(file time)" (a copy or a checkout
        changes those).
 
-The sections are functions (``table1_section``, ``curves_section``, ``memory_section``,
-``provenance_section``) that ``ablate-paper`` composes into its own report.
+The sections are functions (``table1_section``, ``curves_section`` = ``figure_lines`` + ``floors_section`` +
+``runs_table``, ``memory_section``, ``provenance_section``) that ``ablate-paper`` composes into its report.
 
 Where our backward times come from, in order of precedence per (task, mode):
     a benchmark JSON (``--benchmark``), then the runs' summary.json ``median_bwd_ms`` (warm-up and probe
@@ -51,7 +51,8 @@ from gradlab.timing import median
 
 __all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
-           "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN"]
+           "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN",
+           "figure_lines", "runs_table"]
 
 TASKS = ("cartpole", "hopper", "ant", "humanoid")
 _PAPER = load_paper_numbers()
@@ -286,7 +287,7 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
     return [*out, ""]
 
 
-def floors_section(runs: list[Run], floors: Floors, plot: PlotResult | None = None) -> list[str]:
+def floors_section(runs: list[Run], floors: Floors) -> list[str]:
     """The zero- and random-action return floors of the runs' tasks, their source, and the tasks without one."""
     tasks = list(dict.fromkeys(t for t, _ in group_runs(runs)))
     out = ["### Return floors", ""]
@@ -314,25 +315,20 @@ def floors_section(runs: list[Run], floors: Floors, plot: PlotResult | None = No
     return [*out, ""]
 
 
-def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors, label=None,
-                   heading: str = "## 2. Training curves", figures: tuple[str, ...] | None = None) -> list[str]:
-    """The ablate-plot figures (drawn into ``fig_dir``, linked relative to ``base``), the floors and a runs table.
-
-    figures: the FIGURES to include, in this order (default: all).
-    """
-    out = [heading, ""]
-    if not runs:
-        return [*out, "No training runs were given.", ""]
-    res = make_plots(runs, fig_dir, floors=floors, label=label)
-    out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends).", ""]
-    for name in figures or tuple(FIGURES):
+def figure_lines(res: PlotResult, names, base: Path) -> list[str]:
+    """Markdown for the named figures of a make_plots result (links relative to ``base``), or why one is missing."""
+    out = []
+    for name in names:
         caption = FIGURES[name]
         if name in res.files:
             out += [f"![{caption}]({_rel(res.files[name], base)})", "", f"*{caption}*", ""]
         elif name in res.skipped:
             out += [f"*{name} not drawn: {res.skipped[name]}.*", ""]
-    out += floors_section(runs, floors, res)
-    out += ["### Runs", ""]
+    return out
+
+
+def runs_table(runs: list[Run], *, label=None) -> list[str]:
+    """One row per run: its group, status, size, final return, medians of time and memory."""
     rows = []
     for (_task, lab), rs in group_runs(runs, label=label).items():
         for r in rs:
@@ -344,10 +340,23 @@ def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors
                          s.get("final_return", last.get("return_mean")), s.get("median_fwd_ms"), run_bwd_ms(r),
                          peak if peak is not None else s.get("median_saved_mb"),
                          "alloc" if peak is not None else "saved" if s.get("median_saved_mb") is not None else ""])
-    out += markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps", "final return",
-                           "median fwd [ms]", "median bwd [ms]", "memory [MB]", "memory kind"], rows)
-    out += ["", "memory kind: alloc = CUDA peak allocated; saved = median bytes saved for backward (CPU runs)."]
-    return [*out, ""]
+    out = markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps", "final return",
+                          "median fwd [ms]", "median bwd [ms]", "memory [MB]", "memory kind"], rows)
+    return [*out, "", "memory kind: alloc = CUDA peak allocated; saved = median bytes saved for backward (CPU runs).",
+            ""]
+
+
+def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors,
+                   heading: str = "## 2. Training curves") -> list[str]:
+    """The ablate-plot figures (drawn into ``fig_dir``, linked relative to ``base``), the floors and a runs table."""
+    out = [heading, ""]
+    if not runs:
+        return [*out, "No training runs were given.", ""]
+    res = make_plots(runs, fig_dir, floors=floors)
+    out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends).", ""]
+    out += figure_lines(res, FIGURES, base)
+    out += floors_section(runs, floors)
+    return [*out, "### Runs", "", *runs_table(runs)]
 
 
 def memory_section(sweeps: list[Path], fig_dir: Path, base: Path, *, heading: str = "## 3. Memory sweep"

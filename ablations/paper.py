@@ -1,0 +1,387 @@
+"""``ablate-paper``: the D.Va paper's experiment set as one ``ablate-sweep``, and one report of it.
+
+Per task (default hopper and ant) and seed, every arm of :data:`ARMS` runs under a wall-clock budget
+(``--time-limit-min``); an arm is a named set of ``ablate`` flags. The report (``<out>/report/report.md``,
+figures beside it; ``--report-only DIR`` redraws it from an existing sweep folder) has:
+
+    1. the arms and how many of their runs finished;
+    2. return against wall-clock time and against environment steps, mean +- one standard deviation across
+       seeds, with the zero- and random-action floors (``docs/floors.json`` or ``--floors``);
+    3. the paper's Fig. 3: the full and the decoupled gradient norms and their cosine over training, from the
+       probe iterations (both gradients of the same rollout), with the render term by parameter group and the
+       per-frame image sensitivity, and a table of their medians;
+    4. our numbers beside the paper's (ablations/paper_numbers.json, each with its citation; "~" marks values
+       read off a plot): final return, return at the paper's comparison time, wall-clock time to the paper's
+       return at that time, backward time per iteration;
+    5. Table 1 (backward time per iteration) from a ``benchmarks/iteration.py`` JSON (``--benchmark``), else
+       from the runs; 6. the memory sweep (Fig. 10) of ``ablate-memory`` folders (``--memory``); 7. provenance.
+
+Nothing is estimated: a comparison without our measurement says "not run" or "not reached".
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+from ablations.paper_numbers import PaperNumbers, format_value, load_paper_numbers
+from ablations.plot import Run, load_floors, load_run, make_plots
+from ablations.report import (
+    NOT_RUN,
+    collect_bwd,
+    figure_lines,
+    floors_section,
+    load_benchmark,
+    load_memory_sweeps,
+    markdown_table,
+    memory_section,
+    provenance_section,
+    runs_table,
+    table1_section,
+)
+
+__all__ = ["ARMS", "PaperConfig", "sweep_config", "build_paper_report", "main"]
+
+#: The arms: name -> mode, extra ablate flags, what it stands for, and the paper's method it reproduces.
+ARMS: dict[str, dict] = {
+    "decoupled": {"mode": "decoupled", "flags": {}, "paper": "dva",
+                  "about": "D.Va: the actor's image input is detached; the dva preset"},
+    "full-hard": {"mode": "full", "flags": {"preset": "shac-diffrender"}, "paper": "shac-diffrender",
+                  "about": "the paper's full-APG baseline: gradients through the hard rasterizer (silhouettes "
+                           "carry none), the baseline's learning-rate decay length"},
+    "full-soft": {"mode": "full", "flags": {}, "paper": None,
+                  "about": "full APG through this toolkit's default soft raster model (silhouettes carry "
+                           "gradient); the dva preset"},
+    "state": {"mode": "state", "flags": {}, "paper": None,
+              "about": "the actor sees the state vector: the upper bound of learning from pixels"},
+    "blind": {"mode": "blind", "flags": {}, "paper": None,
+              "about": "the actor sees a constant black image: the floor of a policy that cannot see"},
+}
+#: Flags ablate-paper sets itself (through its own options).
+_OWN_FLAGS = {"iters": "--iters", "time_limit_min": "--time-limit-min"}
+_RETURN_FIGURES = ("return_vs_wall_clock.png", "return_vs_env_steps.png", "return_vs_iter.png")
+_FIG3_FIGURES = ("probe_grad_norms.png", "cosine_vs_iter.png", "cosine_hist.png", "render_term_groups.png",
+                 "image_sensitivity.png")
+_COST_FIGURES = ("timing.png", "memory.png", "grad_norm.png")
+
+
+@dataclass
+class PaperConfig:
+    """Run the D.Va paper's experiment set (arms x tasks x seeds on ablate-sweep, a wall-clock budget per run) and
+    write one report; --report-only DIR redraws the report of an existing sweep folder."""
+
+    out: Path = Path("paper")
+    """The sweep folder (sweep.json, runs/, logs/; rerun to resume); the report goes to <out>/report/."""
+    tasks: tuple[str, ...] = ("hopper", "ant")
+    """Tasks."""
+    arms: tuple[str, ...] = tuple(ARMS)
+    """Arms to run: decoupled (D.Va), full-hard (--mode full --preset shac-diffrender: the paper's baseline),
+    full-soft (--mode full: our soft rasterizer), state, blind."""
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """Seeds per task and arm."""
+    time_limit_min: float | None = 60.0
+    """Wall-clock budget of every run in minutes (ablate --time-limit-min); None: run --iters iterations."""
+    iters: int = 100_000
+    """Iteration cap of every run (the budget usually ends a run first; the presets' learning-rate decay
+    lengths do not depend on it)."""
+    set: tuple[str, ...] = ()
+    """More ablate flags for every run, as FLAG=VALUE (e.g. compile=true cosine-every=10 device=cuda)."""
+    gpus_per_run: float = 1.0
+    """GPUs Ray reserves per run (0.25: four runs share a GPU; 0: CPU runs)."""
+    cpus_per_run: float = 1.0
+    """CPUs Ray reserves per run."""
+    address: str | None = None
+    """Ray cluster to join (see ablate-sweep --address); None: a local cluster."""
+    max_retries: int = 3
+    """Retries of a run whose worker died (each resumes from its last checkpoint)."""
+    progress: bool = True
+    """Live table of the runs."""
+    dry_run: bool = False
+    """List the runs (ablate command of each) and exit; starts nothing."""
+    report_only: Path | None = None
+    """Write the report of this existing sweep folder and exit; runs nothing."""
+    report: Path | None = None
+    """The report's markdown file; None: <sweep folder>/report/report.md."""
+    benchmark: Path | None = None
+    """benchmarks/iteration.py JSON for Table 1 (backward time per iteration); without it the runs' own."""
+    memory: tuple[Path, ...] = ()
+    """ablate-memory folders for the memory sweep (Fig. 10)."""
+    floors: Path | None = None
+    """task-floors JSON of the zero- and random-action return floors; None: docs/floors.json of this checkout."""
+
+
+def _arm_table(names: tuple[str, ...]) -> dict[str, dict]:
+    unknown = [n for n in names if n not in ARMS]
+    if unknown or not names:
+        raise ValueError(f"--arms {' '.join(unknown) or '(none)'}: choose from {', '.join(ARMS)}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"--arms lists an arm twice: {list(names)}")
+    return {n: {"mode": ARMS[n]["mode"], "flags": dict(ARMS[n]["flags"]), "about": ARMS[n]["about"]}
+            for n in names}
+
+
+def sweep_config(cfg: PaperConfig):
+    """(SweepConfig, arms) of the experiment set; ValueError naming a bad option."""
+    from ablations.sweep import SweepConfig
+
+    arms = _arm_table(cfg.arms)
+    for item in cfg.set:
+        key = item.split("=", 1)[0].strip().lstrip("-").replace("-", "_")
+        if key in _OWN_FLAGS:
+            raise ValueError(f"--set {item}: ablate-paper sets it; use {_OWN_FLAGS[key]}")
+    if cfg.iters <= 0:
+        raise ValueError(f"--iters must be positive, got {cfg.iters}")
+    if cfg.time_limit_min is not None and cfg.time_limit_min <= 0:
+        raise ValueError(f"--time-limit-min must be positive, got {cfg.time_limit_min}")
+    own = [f"iters={cfg.iters}"] + ([f"time-limit-min={cfg.time_limit_min:g}"] if cfg.time_limit_min else [])
+    modes = tuple(dict.fromkeys(a["mode"] for a in arms.values()))
+    sweep = SweepConfig(out=cfg.out, tasks=cfg.tasks, modes=modes, seeds=cfg.seeds, set=(*own, *cfg.set),
+                        gpus_per_run=cfg.gpus_per_run, cpus_per_run=cfg.cpus_per_run, address=cfg.address,
+                        max_retries=cfg.max_retries, progress=cfg.progress)
+    return sweep, arms
+
+
+# ---------------------------------------------------------------------------------------------- the report
+def _sweep_runs(folder: Path) -> tuple[dict, list[Run], dict[str, str], list[str]]:
+    """(manifest, runs with a run folder, run folder name -> arm, ids of runs without a folder)."""
+    from ablations.sweep import load_manifest
+
+    if not folder.is_dir():
+        raise ValueError(f"--report-only {folder}: no such folder")
+    manifest = load_manifest(folder)
+    if manifest is None:
+        raise ValueError(f"--report-only {folder}: no sweep.json there (not an ablate-paper or ablate-sweep folder)")
+    runs, arm_of, missing = [], {}, []
+    for run_id, rec in manifest.get("runs", {}).items():
+        path = folder / rec.get("folder", f"runs/{run_id}")
+        if not (path / "config.json").exists():
+            missing.append(run_id)
+            continue
+        run = load_run(path)
+        runs.append(run)
+        arm_of[path.name] = rec.get("arm") or rec.get("mode") or run.mode
+    return manifest, runs, arm_of, missing
+
+
+def _mean_std(vals: list[float]) -> str:
+    if not vals:
+        return NOT_RUN
+    std = f" +- {np.std(vals, ddof=1):.4g}" if len(vals) > 1 else ""
+    return f"{np.mean(vals):.4g}{std} (n={len(vals)})"
+
+
+def _final_return(run: Run) -> float | None:
+    s = run.summary or {}
+    if isinstance(s.get("final_return"), (int, float)):
+        return float(s["final_return"])
+    vals = run.series("iter", "return_mean")[1]
+    return float(vals[-1]) if len(vals) else None
+
+
+def _return_at(run: Run, seconds: float) -> float | None:
+    """Return at a wall-clock time (linear between logged iterations); None if the run stopped before it."""
+    x, y = run.series("wall_s", "return_mean")
+    if not len(x) or x[-1] < seconds or x[0] > seconds:
+        return None
+    return float(np.interp(seconds, x, y))
+
+
+def _time_to(run: Run, threshold: float) -> float | None:
+    """Wall-clock seconds at the first logged iteration whose return reaches the threshold; None if never."""
+    x, y = run.series("wall_s", "return_mean")
+    hit = np.nonzero(y >= threshold)[0]
+    return float(x[hit[0]]) if len(hit) else None
+
+
+def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks: list[str], paper: PaperNumbers,
+                cells) -> list[str]:
+    out = ["## 4. Our numbers beside the paper's", "",
+           "Ours: mean +- sample standard deviation across seeds (n = seeds with the measurement). Paper: as "
+           "published, with its source; `~` marks a value read off a plot. D.Va is our `decoupled` arm, SHAC with "
+           "a differentiable renderer our `full-hard` arm (the hard rasterizer and the baseline's decay length); "
+           "other arms have no counterpart in the paper. Wall-clock times depend on the device: the paper's "
+           "are on its device, ours on the device of each run (provenance below).", ""]
+    method_of = {a: ARMS[a]["paper"] for a in arms}
+    by = {(t, a): [r for r in runs if r.task == t and arm_of.get(r.path.name) == a] for t in tasks for a in arms}
+    rows = []
+    for task in tasks:
+        for arm in arms:
+            rs, method = by[(task, arm)], method_of[arm]
+            finals = [v for r in rs if (v := _final_return(r)) is not None]
+            minutes = [r.series("wall_s", "return_mean")[0][-1] / 60 for r in rs
+                       if len(r.series("wall_s", "return_mean")[0])]
+            ours = _mean_std(finals) + (f", after {np.mean(minutes):.0f} min" if minutes else "")
+            entries = [e for e in paper.final_return if e["task"] == task and e["method"] == method]
+            for e in entries or [None]:
+                rows.append([task, "final return", arm, ours,
+                             format_value(e) + (f" ({e['note']})" if e.get("note") else "") if e else "-",
+                             paper.cite(e["source"]) if e else "-"])
+        for e in (x for x in paper.return_at_time if x["task"] == task):
+            for arm in arms:
+                method = method_of[arm]
+                rs = by[(task, arm)]
+                at = [v for r in rs if (v := _return_at(r, 60 * e["minutes"])) is not None]
+                ours = _mean_std(at) if at else (NOT_RUN if not rs else f"not reached ({len(rs)} runs stopped "
+                                                                        f"before {e['minutes']:g} min)")
+                paper_value = format_value(e, method) if method in e else "-"
+                rows.append([task, f"return at {e['minutes']:g} min", arm, ours, paper_value,
+                             paper.cite(e["source"]) if method in e else "-"])
+                if method in e:
+                    threshold = e[method]
+                    times = [t / 60 for r in rs if (t := _time_to(r, threshold)) is not None]
+                    reached = f"{_mean_std(times)} min" if times else "not reached"
+                    rows.append([task, f"minutes to return {threshold:g}", arm,
+                                 f"{reached}; {len(times)}/{len(rs)} seeds reached it" if rs else NOT_RUN,
+                                 f"{'~' if e['approx'] else ''}<= {e['minutes']:g}", paper.cite(e["source"])])
+        for e in (x for x in paper.backward_s if x["task"] == task):
+            for arm in arms:
+                method = method_of[arm]
+                if method not in e:
+                    continue
+                cell = cells.get((task, arm))
+                ours = f"{cell.ms:.4g} ms ({cell.source}, {cell.device})" if cell else NOT_RUN
+                rows.append([task, "backward per iteration", arm, ours, f"{1000 * e[method]:.4g} ms",
+                             paper.cite(e["source"])])
+    out += markdown_table(["task", "quantity", "arm", "ours", "paper", "paper's source"], rows)
+    return [*out, ""]
+
+
+def _probe_table(runs: list[Run], arm_of: dict[str, str]) -> list[str]:
+    keys = ("grad_norm_full", "grad_norm_decoupled", "cos_full_decoupled", "grad_norm_render_term")
+    rows = []
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for r in runs:
+        groups.setdefault((r.task, arm_of.get(r.path.name, r.mode)), []).append(r)
+    for (task, arm), rs in sorted(groups.items()):
+        vals = {k: [v for r in rs for v in r.series("iter", k)[1]] for k in keys}
+        if not vals["cos_full_decoupled"]:
+            continue
+        rows.append([task, arm, len(vals["cos_full_decoupled"]),
+                     *(f"{np.median(vals[k]):.4g}" if vals[k] else "-" for k in keys)])
+    if not rows:
+        return ["No run has probe iterations (full and decoupled runs with --cosine-every > 0 have).", ""]
+    return [*markdown_table(["task", "arm", "probes", "median norm of full", "median norm of decoupled",
+                             "median cos(full, decoupled)", "median norm of render term"], rows), ""]
+
+
+def build_paper_report(folder: str | Path, *, out: str | Path | None = None, benchmark: str | Path | None = None,
+                       memory: tuple = (), floors: str | Path | None = None) -> Path:
+    """Write the report of an ablate-paper sweep folder (figures beside it); returns its path.
+
+    ValueError naming the input when the folder is not a sweep, or a --benchmark/--memory/--floors input is bad.
+    """
+    folder = Path(folder)
+    manifest, runs, arm_of, missing = _sweep_runs(folder)
+    out = Path(out) if out is not None else folder / "report" / "report.md"
+    if out.suffix.lower() != ".md":
+        raise ValueError(f"--report {out}: the report is a markdown file; give a path ending in .md")
+    benchmarks = [(Path(benchmark), *load_benchmark(benchmark))] if benchmark is not None else []
+    sweeps = load_memory_sweeps(memory)
+    floor_data = load_floors(floors)
+    paper = load_paper_numbers()
+    base = out.parent
+    fig_dir = base / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+
+    sweep = manifest.get("sweep", {})
+    arm_specs = sweep.get("arms") or {m: {"mode": m, "flags": {}} for m in sweep.get("modes", [])}
+    arms = list(arm_specs)
+    tasks = list(sweep.get("tasks") or dict.fromkeys(r.task for r in runs))
+    label = (lambda r: arm_of.get(r.path.name, r.mode))  # noqa: E731 - the group label of a run is its arm
+
+    lines = [f"# D.Va paper experiments: {', '.join(tasks)}", "",
+             f"Sweep folder `{folder}`; {len(runs)} of {len(manifest.get('runs', {}))} runs have a run folder. "
+             "Nothing here is estimated: a number without a measurement says so.", "",
+             "## 1. Arms", ""]
+    counts = {a: {} for a in arms}
+    for rec in manifest.get("runs", {}).values():
+        a = rec.get("arm") or rec.get("mode")
+        if a in counts:
+            counts[a][rec.get("status")] = counts[a].get(rec.get("status"), 0) + 1
+    rows = [[a, spec.get("mode"), " ".join(f"--{k.replace('_', '-')} {v}" for k, v in spec.get("flags", {}).items())
+             or "-", spec.get("about") or ARMS.get(a, {}).get("about", ""),
+             ", ".join(f"{n} {s}" for s, n in sorted(counts[a].items())) or "-"] for a, spec in arm_specs.items()]
+    lines += markdown_table(["arm", "mode", "extra ablate flags", "what it is", "runs"], rows)
+    shared = sweep.get("set") or {}
+    lines += ["", "Every run: " + (" ".join(f"--{k.replace('_', '-')} {v}" for k, v in shared.items()) or
+                                   "ablate's defaults") + f"; seeds {sweep.get('seeds', '?')}."]
+    if missing:
+        lines += ["", f"Runs without a run folder yet (queued or failed before starting): {', '.join(missing)}."]
+    lines.append("")
+
+    res = make_plots(runs, fig_dir, floors=floor_data, label=label) if runs else None
+    lines += ["## 2. Return against wall-clock time and environment steps", ""]
+    if res is None:
+        lines += ["No run has a run folder yet.", ""]
+    else:
+        lines += ["Mean +- one sample standard deviation across seeds (n in the legends), with the zero- and "
+                  "random-action floors as horizontal lines.", ""]
+        lines += figure_lines(res, _RETURN_FIGURES, base)
+        lines += floors_section(runs, floor_data)
+    lines += ["## 3. Full and decoupled gradients of the same rollout (the paper's Fig. 3)", ""]
+    if res is not None:
+        lines += ["On probe iterations the trainer computes both gradients of one rollout: the full one "
+                  "(through the renderer) and the decoupled one (the image input detached), whatever mode it "
+                  "trains with; the render term is their difference.", ""]
+        lines += figure_lines(res, _FIG3_FIGURES, base)
+        lines += _probe_table(runs, arm_of)
+    cells = collect_bwd(runs, benchmarks, label=label)
+    lines += _comparison(runs, arm_of, arms, tasks, paper, cells)
+    lines += table1_section(cells, heading="## 5. Backward time per iteration (Table 1)")
+    if res is not None:
+        lines += ["### Cost over training", "", *figure_lines(res, _COST_FIGURES, base)]
+    lines += memory_section(sweeps, fig_dir, base, heading="## 6. Memory against scene complexity (Fig. 10)")
+    lines += ["## 7. Runs", "", *(runs_table(runs, label=label) if runs else ["No run folders.", ""])]
+    lines += provenance_section(runs, sweeps, benchmarks, heading="## 8. Provenance")
+    lines += [f"Sweep command: `{' '.join(str(c) for c in manifest.get('command', [])) or '?'}`; sweep created "
+              f"{manifest.get('created', '?')}, updated {manifest.get('updated', '?')}; report "
+              f"{_dt.datetime.now().astimezone().isoformat(timespec='seconds')}."]
+
+    from gradlab.checkpoint import atomic_write_text
+
+    atomic_write_text(out, "\n".join(lines).rstrip() + "\n")
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``ablate-paper [--tasks hopper ant] [--seeds 0 1 2] [--time-limit-min 60] ...``; see --help."""
+    cfg = tyro.cli(PaperConfig, args=argv, description=PaperConfig.__doc__)
+    try:
+        if cfg.report_only is not None:
+            print(build_paper_report(cfg.report_only, out=cfg.report, benchmark=cfg.benchmark, memory=cfg.memory,
+                                     floors=cfg.floors))
+            return
+        from ablations.sweep import dry_run, run_sweep
+
+        sweep, arms = sweep_config(cfg)
+        if cfg.dry_run:
+            dry_run(sweep, arms=arms)
+            return
+        # Inputs of the report are checked before hours of training, not after.
+        if cfg.benchmark is not None:
+            load_benchmark(cfg.benchmark)
+        load_memory_sweeps(cfg.memory)
+        load_floors(cfg.floors)
+        manifest = run_sweep(sweep, arms=arms, argv=argv)
+        print(build_paper_report(cfg.out, out=cfg.report, benchmark=cfg.benchmark, memory=cfg.memory,
+                                 floors=cfg.floors))
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"interrupted; rerun the same command to resume ({cfg.out})", file=sys.stderr)
+        raise SystemExit(130) from None
+    failed = [k for k, r in manifest["runs"].items() if r["status"] == "failed"]
+    for run_id in failed:
+        print(f"failed {run_id}: {manifest['runs'][run_id]['error']}", file=sys.stderr)
+    if failed:
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,239 @@
+"""ablate-paper: the arm table as a sweep (planned, not run), and its report from fixture run folders."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from ablations import paper
+from ablations.paper import ARMS, PaperConfig, build_paper_report, main, sweep_config
+from ablations.paper_numbers import format_value, load_paper_numbers
+from ablations.sweep import plan
+from tests.ablations.conftest import write_run
+from tests.ablations.test_report import write_sweep
+
+#: Ten minutes of wall clock per iteration: twelve iterations span two hours, past the paper's 55-minute mark.
+WALL = 600.0
+
+
+def test_arms_expand_to_the_papers_sweep():
+    cfg = PaperConfig(out=Path("p"), time_limit_min=55.0, set=("cosine-every=5",))
+    sweep, arms = sweep_config(cfg)
+    specs = plan(sweep, arms=arms)
+    assert len(specs) == 2 * len(ARMS) * 3  # hopper, ant x five arms x seeds 0 1 2
+    assert list(ARMS) == ["decoupled", "full-hard", "full-soft", "state", "blind"]
+    by_id = {s.run_id: s for s in specs}
+    hard = by_id["hopper_full-hard_seed2"]
+    assert hard.mode == "full" and hard.arm == "full-hard"
+    assert list(hard.args) == ["--task", "hopper", "--mode", "full", "--seed", "2", "--iters", "100000",
+                               "--time-limit-min", "55", "--cosine-every", "5", "--preset", "shac-diffrender"]
+    soft = by_id["ant_full-soft_seed0"]
+    assert soft.mode == "full" and "--preset" not in soft.args and "--raster-model" not in soft.args
+    assert {by_id[f"ant_{m}_seed1"].mode for m in ("decoupled", "state", "blind")} == {"decoupled", "state", "blind"}
+    assert sweep.gpus_per_run == 1.0 and sweep.modes == ("decoupled", "full", "state", "blind")
+
+
+def test_dry_run_lists_the_runs_and_starts_nothing(tmp_path, capsys):
+    main(["--dry-run", "--out", str(tmp_path / "p"), "--tasks", "hopper", "--arms", "decoupled", "full-hard",
+          "--seeds", "0", "--time-limit-min", "None", "--iters", "50", "--gpus-per-run", "0"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["start    hopper_decoupled_seed0: ablate --task hopper --mode decoupled --seed 0 --iters 50",
+                     "start    hopper_full-hard_seed0: ablate --task hopper --mode full --seed 0 --iters 50 "
+                     "--preset shac-diffrender",
+                     "2 runs; 1.0 CPU and 0.0 GPU each"]
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--arms", "full-medium"], "--arms full-medium: choose from decoupled, full-hard"),
+    (["--arms", "state", "state"], "--arms lists an arm twice"),
+    (["--set", "iters=5"], "--set iters=5: ablate-paper sets it; use --iters"),
+    (["--set", "time-limit-min=5"], "use --time-limit-min"),
+    (["--time-limit-min", "0"], "--time-limit-min must be positive"),
+    (["--tasks", "hoper"], "run hoper_decoupled_seed0: unknown task 'hoper'"),
+])
+def test_bad_options_are_one_line_errors(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as e:
+        main(["--dry-run", "--out", str(tmp_path / "p"), *argv])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err, err
+
+
+def paper_sweep(folder: Path, *, seeds=(0, 1)) -> Path:
+    """A finished ablate-paper folder: sweep.json and hopper runs of every arm (one run queued, no folder)."""
+    arms = {n: {"mode": a["mode"], "flags": a["flags"], "about": a["about"]} for n, a in ARMS.items()}
+    runs = {}
+    for arm, spec in arms.items():
+        for seed in seeds:
+            run_id = f"hopper_{arm}_seed{seed}"
+            runs[run_id] = {"task": "hopper", "mode": spec["mode"], "arm": arm, "seed": seed, "status": "done",
+                            "folder": f"runs/{run_id}"}
+            settings = {"preset": "shac-diffrender" if arm == "full-hard" else "dva",
+                        "raster_model": "hard" if arm == "full-hard" else "alpha"}
+            write_run(folder / "runs", task="hopper", mode=spec["mode"], seed=seed, name=run_id,
+                      bwd_ms=30.0 if arm == "full-hard" else 10.0, wall_per_iter=WALL, settings=settings,
+                      probe_every=3 if spec["mode"] in ("full", "decoupled") else 0)
+    runs["hopper_blind_seed9"] = {"task": "hopper", "mode": "blind", "arm": "blind", "seed": 9, "status": "queued",
+                                  "folder": "runs/hopper_blind_seed9"}
+    (folder / "sweep.json").write_text(json.dumps({
+        "version": 1, "id": "abc", "created": "2026-05-01T10:00:00", "updated": "2026-05-01T12:00:00",
+        "command": ["ablate-paper", "--tasks", "hopper"], "runs": runs,
+        "sweep": {"tasks": ["hopper"], "modes": ["decoupled", "full", "state", "blind"], "seeds": list(seeds),
+                  "set": {"iters": "100000", "time_limit_min": "120"}, "vary": {}, "arms": arms}}))
+    return folder
+
+
+@pytest.fixture
+def floors(tmp_path):
+    path = tmp_path / "floors.json"
+    path.write_text(json.dumps({"tasks": {"hopper": {"zero": {"mean": 12.5, "std": 1.0, "episodes": 64},
+                                                     "random": {"mean": 33.0, "std": 2.0, "episodes": 64}}}}))
+    return path
+
+
+def rows_of(text: str, prefix: str) -> list[list[str]]:
+    return [[c.strip() for c in ln.strip("|").split("|")] for ln in text.splitlines() if ln.startswith(prefix)]
+
+
+def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
+    folder = paper_sweep(tmp_path / "p")
+    seen = []
+    real = paper.make_plots
+
+    def spy(runs, out, **kw):
+        res = real(runs, out, **kw)
+        seen.append(res)
+        return res
+
+    monkeypatch.setattr(paper, "make_plots", spy)
+    out = build_paper_report(folder, floors=floors, memory=(write_sweep(tmp_path / "mem"),))
+    assert out == folder / "report" / "report.md"
+    text = out.read_text()
+
+    # Arms, with their flags and run counts; the queued run without a folder is named.
+    assert rows_of(text, "| full-hard |")[0][:3] == ["full-hard", "full", "--preset shac-diffrender"]
+    assert rows_of(text, "| blind |")[0][4] == "2 done, 1 queued"
+    assert "hopper_blind_seed9" in text
+
+    # Return curves with seed bands (two seeds per arm) and the floors, linked and drawn.
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    for name in ("return_vs_wall_clock.png", "return_vs_env_steps.png", "probe_grad_norms.png",
+                 "cosine_vs_iter.png", "render_term_groups.png", "image_sensitivity.png", "memory_bwd.png"):
+        link = next(lk for lk in links if lk.endswith(name))
+        assert (out.parent / link).read_bytes()[:4] == b"\x89PNG", name
+    assert "(n=2)" in text or "mean +- one sample standard deviation" in text.lower()
+    (res,) = seen
+    assert not res.warnings and "return_vs_wall_clock.png" in res.files
+    assert "| hopper | 12.5 +- 1 | 33 +- 2 | 64 |" in text
+
+    # Fig. 3 series: medians over every probe of both seeds (grad_norm_full = 2 + seed).
+    fig3 = {r[1]: r for r in rows_of(text, "| hopper | ") if len(r) == 7 and r[2].isdigit()}
+    assert set(fig3) == {"decoupled", "full-hard", "full-soft"}
+    assert fig3["full-hard"][2:5] == ["8", "2.5", "1"]  # 4 probes x 2 seeds; medians of |g_full|, |g_decoupled|
+
+    # Our numbers beside the paper's, each paper number with its citation.
+    numbers = load_paper_numbers()
+    comparison = rows_of(text, "| hopper | ")
+    final = next(r for r in comparison if r[1] == "final return" and r[2] == "decoupled")
+    assert final[3].startswith("120.5 +- 0.7071 (n=2)") and final[4] == "~5k"
+    assert numbers.cite("readme") in final[5] and "read off plots" in final[5]
+    assert next(r for r in comparison if r[1] == "final return" and r[2] == "blind")[4:] == ["-", "-"]
+    at55 = next(r for r in comparison if r[1] == "return at 55 min" and r[2] == "full-hard")
+    # 55 min = 3300 s lies between iterations 5 (3000 s) and 6 (3600 s): returns 55 and 56 for seeds 0 and 1.
+    assert at55[3] == "55.5 +- 0.7071 (n=2)" and at55[4] == "~3.8k"
+    reach = next(r for r in comparison if r[1] == "minutes to return 4300" and r[2] == "decoupled")
+    assert reach[3] == "not reached; 0/2 seeds reached it" and reach[4] == "~<= 55"
+    bwd = next(r for r in comparison if r[1] == "backward per iteration" and r[2] == "full-hard")
+    assert bwd[3].startswith("30 ms (runs") and bwd[4] == "510 ms" and numbers.cite("table1") in bwd[5]
+
+    # Table 1 from the runs (no benchmark given): full-hard 30 ms against decoupled 10 ms.
+    table1 = [r for r in rows_of(text, "| hopper | 10.0 |")]
+    assert any(r[2:4] == ["30.0", "3.00x"] and "full-hard" in r[4] for r in table1)
+    # Memory sweep and provenance.
+    assert "## 6. Memory against scene complexity (Fig. 10)" in text and "| full | 8 | 64 |" in text
+    assert "Sweep command: `ablate-paper --tasks hopper`" in text
+
+
+def test_report_uses_a_benchmark_for_table1(tmp_path, floors):
+    folder = paper_sweep(tmp_path / "p", seeds=(0,))
+    bench = tmp_path / "iteration.json"
+    results = [{"task": "hopper", "mode": "decoupled", "bwd_ms": 4.0, "num_envs": 64, "horizon": 32,
+                "image_size": 84, "status": "ok"},
+               {"task": "hopper", "mode": "full", "bwd_ms": None, "status": "oom"}]
+    bench.write_text(json.dumps({"date": "2026-05-02", "gpu": "NVIDIA H100",
+                                 "command": "python benchmarks/iteration.py", "results": results}))
+    out = build_paper_report(folder, floors=floors, benchmark=bench, out=tmp_path / "r" / "paper.md")
+    text = out.read_text()
+    rows = rows_of(text, "| hopper | 4 |")  # the benchmark's decoupled time wins over the runs' 10 ms
+    assert rows and all("decoupled: 64x32 84px, NVIDIA H100, benchmark iteration.json (n=1)" in r[4] for r in rows)
+    assert "python benchmarks/iteration.py" in text
+
+
+def test_missing_inputs_are_named(tmp_path, floors, capsys):
+    with pytest.raises(ValueError, match="no such folder"):
+        build_paper_report(tmp_path / "none")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match=r"no sweep\.json there"):
+        build_paper_report(tmp_path / "empty")
+    folder = paper_sweep(tmp_path / "p", seeds=(0,))
+    with pytest.raises(ValueError, match=r"--benchmark .*: no such file"):
+        build_paper_report(folder, benchmark=tmp_path / "nope.json")
+    with pytest.raises(ValueError, match=r"--memory .*: no memory\.csv"):
+        build_paper_report(folder, memory=(tmp_path / "empty",))
+    with pytest.raises(ValueError, match=r"--floors .*: no such file"):
+        build_paper_report(folder, floors=tmp_path / "f.json")
+    with pytest.raises(ValueError, match=r"ending in \.md"):
+        build_paper_report(folder, out=tmp_path / "r.txt")
+    with pytest.raises(SystemExit) as e:
+        main(["--report-only", str(tmp_path / "empty")])
+    assert e.value.code == 2 and "no sweep.json" in capsys.readouterr().err
+    # A task without floors is named once, in the report and as a warning.
+    flo = tmp_path / "other.json"
+    flo.write_text(json.dumps({"tasks": {"ant": {"zero": {"mean": 1.0}}}}))
+    with pytest.warns(UserWarning, match="no return floor for task 'hopper'"):
+        text = build_paper_report(folder, floors=flo).read_text()
+    assert text.count("**Warning:** no return floor for task 'hopper'") == 1
+
+
+def test_report_only_regenerates_from_the_command_line(tmp_path, floors, capsys):
+    folder = paper_sweep(tmp_path / "p", seeds=(0,))
+    main(["--report-only", str(folder), "--floors", str(floors)])
+    out = Path(capsys.readouterr().out.strip())
+    assert out == folder / "report" / "report.md" and out.read_text().startswith("# D.Va paper experiments: hopper")
+
+
+def test_wall_clock_helpers(tmp_path):
+    run = paper.load_run(write_run(tmp_path, task="hopper", mode="decoupled", seed=1, wall_per_iter=WALL))
+    assert paper._time_to(run, 50.0) == 5 * WALL  # return 10 * iter + 1 first reaches 50 at iteration 5
+    assert paper._time_to(run, 1e6) is None
+    assert paper._return_at(run, 3300.0) == pytest.approx(56.0)
+    assert paper._return_at(run, 12 * WALL + 1) is None  # the run stopped before
+
+
+def test_paper_numbers_say_where_they_come_from_and_how():
+    numbers = load_paper_numbers()
+    for table in (numbers.final_return, numbers.return_at_time, numbers.backward_s):
+        for entry in table:
+            assert numbers.cite(entry["source"])  # every number has a citation
+    plot_read = [e for e in numbers.final_return if e["approx"]]
+    assert {format_value(e) for e in plot_read} >= {"~5k", "~7.5-8k", "~1.8k"}
+    stated = next(e for e in numbers.final_return if not e["approx"])
+    assert format_value(stated) == "7475.77 +- 812.48" and "OpenReview" in numbers.cite(stated["source"])
+    assert {e["task"]: e["minutes"] for e in numbers.return_at_time} == {"cartpole": 45, "hopper": 55, "ant": 360,
+                                                                         "humanoid": 360}
+
+
+def test_bad_paper_numbers_file_is_named(tmp_path):
+    good = json.loads(load_paper_numbers().path.read_text())
+    bad = dict(good, backward_s=[{"task": "ant", "dva": 0.2, "approx": False, "source": "blog"}])
+    (tmp_path / "n.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"backward_s\[0\]: source 'blog' is not in 'sources'"):
+        load_paper_numbers(tmp_path / "n.json")
+    bad = dict(good, final_return=[{"task": "ant", "method": "dva", "approx": True, "source": "readme"}])
+    (tmp_path / "n.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="needs a numeric value, or low and high"):
+        load_paper_numbers(tmp_path / "n.json")
