@@ -152,16 +152,23 @@ def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]]
     :func:`ablations.plot.group_runs` with ``label`` (see the module docstring)."""
     cells: dict[tuple[str, str], Cell] = {}
     for path, meta, results in benchmarks:
+        # Rows of one mode that differ in raster model or renderer (benchmarks/iteration.py records both) are
+        # told apart as runs are: "full (hard)" beside "full (alpha)".
+        varying = {m: [k for k in ("raster_model", "renderer")
+                       if len({json.dumps(r.get(k)) for r in results if r["mode"] == m}) > 1]
+                   for m in {r["mode"] for r in results}}
         by_key: dict[tuple[str, str], list[dict]] = {}
         for r in results:
-            by_key.setdefault((r["task"], r["mode"]), []).append(r)
+            keys = varying[r["mode"]]
+            lab = f"{r['mode']} ({', '.join(str(r.get(k)) for k in keys)})" if keys else r["mode"]
+            by_key.setdefault((r["task"], lab), []).append(r)
         for key, rs in by_key.items():
             if key in cells:
                 continue  # the first benchmark given wins
             settings = sorted({_setting(r) for r in rs})
             cells[key] = Cell(ms=median([r["bwd_ms"] for r in rs]), n=len(rs), source=f"benchmark {path.name}",
                               setting=" / ".join(settings), device=str(meta.get("gpu") or meta.get("device") or "?"),
-                              mode=key[1])
+                              mode=rs[0]["mode"])
     for (task, lab), rs in group_runs(runs, label=label).items():
         if (task, lab) in cells:
             continue

@@ -189,3 +189,15 @@ def test_paper_numbers_come_from_the_cited_file():
     assert PAPER_TABLE1_MS == {r["task"]: (1000 * r["dva"], 1000 * r["shac-diffrender"]) for r in numbers.backward_s}
     assert PAPER_TABLE1_MS["hopper"] == pytest.approx((190.0, 510.0))
     assert "Table 1" in numbers.cite("table1") and "RTX 4080" in numbers.cite("table1")
+
+
+def test_benchmark_rows_of_several_raster_models_stay_apart(tmp_path):
+    bench = tmp_path / "b.json"
+    rows = [{"task": "ant", "mode": "decoupled", "bwd_ms": 10.0, "raster_model": "alpha", "renderer": "soft"},
+            {"task": "ant", "mode": "full", "bwd_ms": 30.0, "raster_model": "hard", "renderer": "soft"},
+            {"task": "ant", "mode": "full", "bwd_ms": 50.0, "raster_model": "alpha", "renderer": "soft"}]
+    bench.write_text(json.dumps({"results": rows}))
+    text = build_report(ReportConfig(benchmark=(bench,), out=tmp_path / "r.md")).read_text()
+    ant = [[c.strip() for c in ln.strip("|").split("|")] for ln in text.splitlines() if ln.startswith("| ant |")]
+    assert [r[1:4] for r in ant] == [["10.0", "50.0", "5.00x"], ["10.0", "30.0", "3.00x"]]
+    assert "full (alpha):" in ant[0][4] and "full (hard):" in ant[1][4]
