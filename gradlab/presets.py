@@ -32,7 +32,9 @@ from typing import Any
 __all__ = ["PRESETS", "PRESET_FIELDS", "SILHOUETTE_RASTER_MODEL", "preset_values", "preset_record"]
 
 #: The soft raster model whose silhouettes carry gradient: what ``--mode full`` uses unless told otherwise.
-SILHOUETTE_RASTER_MODEL = "alpha"
+#: softmax and alpha pass the same share of the image's change at silhouettes to the gradient (BENCHMARKS.md,
+#: renderer); softmax also lets the floor hide parts below it and keeps back-face culling (half the work).
+SILHOUETTE_RASTER_MODEL = "softmax"
 
 #: Config fields a preset sets (every one of them defaults to None in SHACConfig).
 PRESET_FIELDS = ("num_envs", "actor_lr", "critic_lr", "target_alpha", "trunk_dim", "actor_hidden", "critic_hidden",

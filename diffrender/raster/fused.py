@@ -377,7 +377,7 @@ if triton is not None:
                 coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB, xc, yc,
                 inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly,
                 lz, FB)
-            _, _, kn, kc, _ = _cover_coefficients(den, w_sum, cov_sum)
+            _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
             out_r = kn * num_r + kc * cb_r
             out_g = kn * num_g + kc * cb_g
             out_b = kn * num_b + kc * cb_b
@@ -444,7 +444,7 @@ if triton is not None:
             g_fzn = tl.zeros_like(m_t)
             k_fc = shown
         else:
-            _, _, kn_t, kc_t, _ = _cover_coefficients(s1_t, s2_t, s3_t)
+            _a_t, _icq_t, kn_t, kc_t, _cov_t = _cover_coefficients(s1_t, s2_t, s3_t)
             g_fb = gr_t * (fr - bg_r) + gg_t * (fg - bg_g) + gb_t * (fb - bg_b)
             g_fzn = tl.where(fhit, kc_t * g_fb * r_f * (1.0 - r_f) / gamma, 0.0)
             k_fc = kc_t * r_f
@@ -587,10 +587,12 @@ if triton is not None:
                                     den_p = tl.load(pst + HW)
                                     wsum_p = tl.load(pst + 2 * HW)
                                     csum_p = tl.load(pst + 3 * HW)
-                                    a, inv_cq, kn, _, _ = _cover_coefficients(den_p, wsum_p, csum_p)
+                                    # distinct names, not "_": Triton types a name once per scope, and "_"
+                                    # already holds a mask outside this branch
+                                    a, inv_cq, kn, _kc_p, _cov_p = _cover_coefficients(den_p, wsum_p, csum_p)
                                     fpp = floor_ptr + env * 5 * HW + pyi * W + pxi
-                                    _, _, _, _, _, _, pcb_r, pcb_g, pcb_b, _, _, _ = _floor_start(
-                                        fpp, prm, 0, 0, pin, HW, gamma)
+                                    (_fz, _fr, _fg, _fb, _fh, _frf, pcb_r, pcb_g, pcb_b, _bg_r, _bg_g,
+                                     _bg_b) = _floor_start(fpp, prm, 0, 0, pin, HW, gamma)
                                     g_out = gr * out_r + gg * out_g + gb * out_b
                                     g_cb = gr * pcb_r + gg * pcb_g + gb * pcb_b
                                     # d colour / d A = W (colour - C_b) / (A Q) while sum D < 1

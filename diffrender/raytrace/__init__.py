@@ -290,7 +290,15 @@ class RayTracer:
             stream = self._streams[torch_stream.cuda_stream] = self._wp.stream_from_torch(torch_stream)
         # no sync on entry: the work is already ordered on this one stream, and a cross-stream wait would
         # pull Warp's own stream into a graph being captured
-        return self._wp.ScopedStream(stream, sync_enter=False)
+        scope = self._wp.ScopedStream(stream, sync_enter=False)
+        if not torch.cuda.is_current_stream_capturing():
+            return scope
+        # Inside a torch.cuda.graph capture Warp must know that a capture is under way (external=True), so that
+        # its BVH refit allocates and launches in the capture-safe way instead of invalidating the capture.
+        stack = contextlib.ExitStack()
+        stack.enter_context(scope)
+        stack.enter_context(self._wp.ScopedCapture(device=self._wp_device, stream=stream, external=True))
+        return stack
 
     def __repr__(self) -> str:
         return (f"RayTracer(num_envs={self.num_envs}, num_verts={self.num_verts}, num_faces={self.num_faces}, "
