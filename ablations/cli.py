@@ -50,11 +50,11 @@ def memory_main(argv: list[str] | None = None) -> None:
 
 def plot_main(argv: list[str] | None = None) -> None:
     """``ablate-plot RUN_DIR... --out DIR``: training curves, mean +- std across seeds, as PNG files."""
-    from ablations.plot import PlotConfig, find_runs, make_plots
+    from ablations.plot import PlotConfig, plot_runs
 
     cfg = tyro.cli(PlotConfig, args=argv)
     try:
-        res = make_plots(find_runs(list(cfg.runs)), cfg.out)
+        res = plot_runs(cfg)
     except ValueError as e:
         _fail(str(e))
     for path in res.files.values():

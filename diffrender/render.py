@@ -194,11 +194,18 @@ def render(
             _, new_capacity = measure_capacity(verts, camera.rotation, camera.eye, faces, settings,
                                                tiled_static(settings, camera))
             new_capacity = max(new_capacity, capacity + 64)
-            warnings.warn(f"diffrender: automatic bin capacity grown from {capacity} to {new_capacity} (pairs "
-                          f"needed {flags[-1]}); the tiled kernel's shapes change once", stacklevel=2)
+            global _growth_warned
+            if not _growth_warned:  # once per process: a moving robot grows it a few times, all alike
+                _growth_warned = True
+                warnings.warn(f"diffrender: automatic bin capacity grown from {capacity} to {new_capacity} "
+                              f"(pairs needed {flags[-1]}); the tiled kernel's shapes change with it (further "
+                              "growths are not reported)", stacklevel=2)
             _capacity_cache[key] = new_capacity
             img, _ = rasterize_tiled(verts, normals, colors, camera, faces, settings, new_capacity)
     return img
+
+
+_growth_warned = False  # the automatic capacity's growth has been reported in this process
 
 
 def _overflow_message(verts, camera, faces, settings, need, capacity) -> str:

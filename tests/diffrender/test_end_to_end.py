@@ -56,7 +56,9 @@ def test_image_gradient_wrt_joints_and_base_pose_matches_finite_differences(ant,
         h = 1e-6
         fd = (loss(q + h * direction) - loss(q - h * direction)).item() / (2 * h)
         ad = float(grad @ direction[0])
-        assert abs(ad - fd) < 1e-6 * abs(fd) + 1e-9, (part, ad, fd)
+        # relative to the terms' magnitude, not their sum: along all of qpos they nearly cancel, and the
+        # central difference's own error (~5e-7 here) does not shrink with the sum
+        assert abs(ad - fd) < 1e-6 * float(grad.abs() @ direction[0].abs()) + 1e-9, (part, ad, fd)
 
 
 def test_base_position_gradient_comes_from_the_textured_floor(ant):

@@ -1,8 +1,10 @@
 """The soft rasterizer: gradients, backend agreement, limits, symmetries, robustness, memory, errors."""
 
 import dataclasses
+import importlib
 import itertools
 import math
+import warnings
 
 import pytest
 import torch
@@ -474,7 +476,9 @@ def test_bin_overflow_raises_with_numbers_or_poisons_without_sync(ant64):
     assert torch.equal(torch.isnan(img).flatten(1).all(1), per_env > cap) and (per_env > cap).any()
 
 
-def test_automatic_capacity_grows_instead_of_failing(ant64):
+def test_automatic_capacity_grows_instead_of_failing(ant64, monkeypatch):
+    render_module = importlib.import_module("diffrender.render")
+    monkeypatch.setattr(render_module, "_growth_warned", False)  # as in a fresh process
     verts, _, cam = _ant_inputs(ant64, batch=2, size=24)
     small = ant64.to(dtype=F64)  # a fresh faces tensor: a fresh automatic capacity
     # first frame: the robots half out of view set a small capacity
@@ -488,6 +492,13 @@ def test_automatic_capacity_grows_instead_of_failing(ant64):
         img = dr.render(verts, small.faces, small.colors, cam)
     ref = dr.render(verts, small.faces, small.colors, cam, dr.RasterSettings(backend="dense"))
     assert (img - ref).abs().max() < 1e-12
+    # later growths render as completely but say nothing more (a warning once, not every frame)
+    for key in [k for k in render_module._capacity_cache if k[0] == small.faces.data_ptr()]:
+        render_module._capacity_cache[key] = 64
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = dr.render(verts, small.faces, small.colors, cam)
+    assert (again - ref).abs().max() < 1e-12
 
 
 def test_bad_inputs_raise_clear_errors():
