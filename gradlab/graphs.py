@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gradlab.timing import MemoryProbe, RegionTimer, SavedTensorBytes
+from gradlab.timing import MemoryProbe, RegionTimer, SavedTensorMeter
 
 __all__ = ["WARMUP_ITERS", "LiveState", "Window", "WindowGraphs", "GraphedCriticPhase", "zero_grads_"]
 
@@ -99,7 +99,7 @@ class _CapturedWindow:
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         torch.cuda.synchronize(owner.device)
         with torch.cuda.graph(self.fwd, pool=pool):
-            with SavedTensorBytes() as saved:
+            with SavedTensorMeter() as saved:
                 self.loss, self.buffers = owner.forward(probe)
         with torch.cuda.graph(self.bwd, pool=pool):
             self.probe_metrics = owner.backward(self.loss, probe)
@@ -155,7 +155,7 @@ class WindowGraphs:
                 loss, buffers, probe_metrics, saved_bytes = (graph.loss, graph.buffers, graph.probe_metrics,
                                                              graph.saved_bytes)
             else:
-                with self.timer("fwd"), SavedTensorBytes() as saved:
+                with self.timer("fwd"), SavedTensorMeter() as saved:
                     loss, buffers = self.forward(probe)
                 with self.timer("bwd"):
                     probe_metrics = self.backward(loss, probe)

@@ -18,10 +18,7 @@ import torch
 
 from diffrender.profiling import SavedTensorMeter
 
-__all__ = ["RegionTimer", "MemoryProbe", "SavedTensorMeter", "SavedTensorBytes", "median"]
-
-#: The name gradlab.shac and tests/gradlab import; the same class as :class:`SavedTensorMeter`.
-SavedTensorBytes = SavedTensorMeter
+__all__ = ["RegionTimer", "MemoryProbe", "SavedTensorMeter", "median"]
 
 
 def median(xs: list[float]) -> float:

@@ -263,17 +263,17 @@ def test_atomic_checkpoint_roundtrip(tmp_path):
 
 
 def test_saved_tensor_bytes_counts_live_saved_storage_once():
-    from gradlab.timing import SavedTensorBytes
+    from gradlab.timing import SavedTensorMeter
 
     x = torch.randn(1000, requires_grad=True)  # 4000 bytes
-    with SavedTensorBytes() as s:
+    with SavedTensorMeter() as s:
         y = x.exp()  # saves its result (4000 B)
         z = (y * y).sum()  # saves y twice: one storage
         w = x.sin().sum()  # saves x (another 4000 B)
         with torch.no_grad():
             x.cos()  # nothing saved
     assert s.bytes == 8000
-    with SavedTensorBytes() as s2:
+    with SavedTensorMeter() as s2:
         (x.exp() * 2).sum()  # graph dropped at once: nothing kept for backward
     assert s2.bytes == 0
     del z, w
