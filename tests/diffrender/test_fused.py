@@ -50,7 +50,8 @@ def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
 
 
 @pytest.mark.parametrize("kw", [dict(), dict(cull_backfaces=False, floor=None, save_blend_state=True),
-                                dict(sigma=0.3, gamma=1e-3),
+                                # the Triton interpreter takes ~45 s for this one: on CPUs with -m slow
+                                pytest.param(dict(sigma=0.3, gamma=1e-3), marks=pytest.mark.slow),
                                 dict(raster_model="alpha", cull_backfaces=False),
                                 dict(raster_model="alpha", floor=None, save_blend_state=True),
                                 dict(raster_model="hard"),
@@ -61,7 +62,7 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
 
 
-@pytest.mark.parametrize(("bwd_tile", "sub_block"), [(8, 64), (4, 16)])
+@pytest.mark.parametrize(("bwd_tile", "sub_block"), [(8, 64), pytest.param(4, 16, marks=pytest.mark.slow)])
 def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, sub_block):
     """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
     the backward uses to skip them (no atomics, pixels skipped); the gradients must still equal dense's, with
@@ -122,7 +123,7 @@ def test_fused_degenerate_faces_match_dense(cull):
     assert v.grad[0, :3].abs().sum() > 0 and v.grad[0, 12:18].abs().sum() == 0
 
 
-@pytest.mark.parametrize("keep_state", [False, True])
+@pytest.mark.parametrize("keep_state", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_fused_saved_memory_is_flat_in_faces(ant64, keep_state):
     """Saved for backward: the inputs (and with save_blend_state 7 numbers per pixel: image, blend maximum,
     denominator, the faces' weight and coverage sums), the same bytes for 3x the faces."""
@@ -146,7 +147,7 @@ def test_fused_saved_memory_is_flat_in_faces(ant64, keep_state):
     assert saved[0] > per_pixel * keep_state
 
 
-@pytest.mark.parametrize("shared_colors", [True, False])
+@pytest.mark.parametrize("shared_colors", [True, pytest.param(False, marks=pytest.mark.slow)])
 def test_fused_chunks_over_environments_change_nothing(ant64, monkeypatch, shared_colors):
     """Rendering 3 environments 2 at a time (a ragged last chunk) gives the image and gradients of one pass."""
     q = ant_pose(3, seed=2).to(DEV)
