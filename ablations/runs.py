@@ -44,7 +44,7 @@ from gradlab.probes import NonFiniteError
 from gradlab.seeding import resolve_device
 from gradlab.timing import median
 
-__all__ = ["RunConfig", "run", "read_metrics", "git_info", "environment_info", "write_video"]
+__all__ = ["RunConfig", "check_writable", "environment_info", "git_info", "read_metrics", "run", "write_video"]
 
 #: Keys every metrics line has.
 REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "critic_loss", "grad_norm",
@@ -243,7 +243,7 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
     }
 
 
-def _check_writable(folder: Path) -> None:
+def check_writable(folder: Path) -> None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
         # A unique name: several runs may start in the same folder at once.
@@ -313,16 +313,16 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device, LoadedCheckp
             raise ValueError(f"--resume {run_dir}: no config.json there (not a run folder)")
         cfg = _stored_config(run_dir, cfg_path, cfg)
         device = resolve_device(cfg.device)
-        _check_writable(run_dir)
+        check_writable(run_dir)
         return cfg, run_dir, device, _resume_point(run_dir, device)
     cfg.validate()
     device = resolve_device(cfg.device)
     name = cfg.name or f"{cfg.task}_{cfg.mode}_seed{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir = Path(cfg.out) / name
-    _check_writable(Path(cfg.out))
+    check_writable(Path(cfg.out))
     if run_dir.exists() and any(run_dir.iterdir()):
         raise ValueError(f"run folder {run_dir} exists and is not empty: pass --resume {run_dir} or another --name")
-    _check_writable(run_dir)
+    check_writable(run_dir)
     return cfg, run_dir, device, None
 
 

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ablations.runs import check_writable
 from gradlab.checkpoint import (
     atomic_write_bytes,
     atomic_write_json,
@@ -896,13 +897,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
     set_table = _set_table(cfg.set) if set_table is None else set_table
     vary_table = _vary_table(cfg.vary) if vary_table is None else vary_table
     out = Path(cfg.out).resolve()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=out, prefix=".write-test.")
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        raise ValueError(f"--out {cfg.out}: the sweep folder is not writable: {e}") from None
+    check_writable(out)
     manifest, todo = _prepare_manifest(cfg, specs, set_table, vary_table, argv, arms)
     unknown = sorted(set(cfg.kill_once) - {s.run_id for s in specs})
     if unknown:
