@@ -22,7 +22,7 @@ _capacity_cache: dict[tuple, int] = {}
 
 # Faces tensors already checked for out-of-range indices, keyed by identity and version: the index check
 # needs a host sync, and the faces of a robot never change, so it runs once per faces tensor.
-_checked_faces: dict[tuple, bool] = {}
+_checked_faces: dict[tuple, torch.Tensor] = {}
 
 
 def _check_float(name: str, x, shape_desc: str) -> None:
@@ -146,7 +146,9 @@ def render(
                 raise ValueError(f"faces index vertices {lo}..{hi} but there are {nv} vertices")
             if len(_checked_faces) > 64:
                 _checked_faces.clear()
-            _checked_faces[key] = True
+            # the value keeps the tensor alive: while cached, its storage cannot be freed and reused by another
+            # faces tensor at the same address, which would then skip its check
+            _checked_faces[key] = faces
 
     named = [("verts", verts), ("colors", colors), ("normals", normals),
              ("camera.eye", camera.eye), ("camera.rotation", camera.rotation)]

@@ -501,6 +501,24 @@ def test_automatic_capacity_grows_instead_of_failing(ant64, monkeypatch):
     assert (again - ref).abs().max() < 1e-12
 
 
+def test_a_new_faces_tensor_at_a_freed_address_is_checked_again():
+    """The index check is cached per faces tensor (keyed by its storage); a freed tensor's address reused by a
+    new faces tensor with bad indices must not hit that cache."""
+    verts, faces, colors = tiny_scene()
+    _, _, cam = tiny_camera()
+    s = tiny_settings()
+    for _ in range(20):  # the allocator hands a freed block of the same size back
+        good = faces.clone()
+        dr.render(verts, good, colors, cam, s)
+        del good
+        last = torch.zeros_like(faces, dtype=torch.bool)
+        last[-1, -1] = True
+        bad = faces.masked_fill(last, verts.shape[1])  # a fresh tensor (version 0), one index out of range
+        with pytest.raises(ValueError, match="faces index vertices"):
+            dr.render(verts, bad, colors, cam, s)
+        del bad
+
+
 def test_bad_inputs_raise_clear_errors():
     verts, faces, colors = tiny_scene()
     _, _, cam = tiny_camera()
