@@ -34,7 +34,7 @@ import traceback
 from pathlib import Path
 
 import torch
-from render import Scene
+from render import Scene, graphed
 
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
@@ -60,20 +60,6 @@ def _median_ms(fn, *, warmup: int, repeats: int) -> float:
         end.synchronize()
         times.append(start.elapsed_time(end))
     return statistics.median(times)
-
-
-def _graphed(fn):
-    """``fn`` captured in a CUDA graph after warm-up on a side stream; returns the replay."""
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        for _ in range(3):
-            fn()
-    torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        fn()
-    return graph.replay
 
 
 def _peak(fn) -> dict:
@@ -184,8 +170,8 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
             def fwd_nograd(render=render):
                 with torch.no_grad():
                     render(verts0)
-            row["fwd_ms"] = _median_ms(_graphed(fwd_nograd), warmup=args.warmup, repeats=args.repeats)
-            row["fwdbwd_ms"] = _median_ms(_graphed(step), warmup=args.warmup, repeats=args.repeats)
+            row["fwd_ms"] = _median_ms(graphed(fwd_nograd, "cuda", warmup=3), warmup=args.warmup, repeats=args.repeats)
+            row["fwdbwd_ms"] = _median_ms(graphed(step, "cuda", warmup=3), warmup=args.warmup, repeats=args.repeats)
         except Exception as e:  # an OOM or a failed capture is a result: record it and go on
             row["error"] = f"{type(e).__name__}: {e}"
             traceback.print_exc()
@@ -205,7 +191,7 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
         row["fwd_eager_ms"] = _median_ms(trace, warmup=args.warmup, repeats=args.repeats)
         row["images_per_s_eager"] = args.batch / row["fwd_eager_ms"] * 1e3
         if args.warp_graph:  # a failed capture leaves the CUDA context unusable: opt in
-            row["fwd_ms"] = _median_ms(_graphed(trace), warmup=args.warmup, repeats=args.repeats)
+            row["fwd_ms"] = _median_ms(graphed(trace, "cuda", warmup=3), warmup=args.warmup, repeats=args.repeats)
             row["images_per_s"] = args.batch / row["fwd_ms"] * 1e3
     except Exception as e:
         row["error"] = f"{type(e).__name__}: {e}"

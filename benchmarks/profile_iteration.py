@@ -27,6 +27,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import torch
+from render import graphed  # benchmarks/render.py, beside this script
 
 from gradlab import SHAC, SHACConfig, resolve_device
 from gradlab.networks import PixelEncoder
@@ -131,16 +132,7 @@ def encoder_bench(args) -> dict:
     for name, fn in (("per_step", per_step), ("batched", batched)):
         for p in enc.parameters():
             p.grad = torch.zeros_like(p)
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            for _ in range(3):
-                fn()
-        torch.cuda.current_stream().wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            fn()
-        res[name] = profile_replay(graph.replay, args.iters)
+        res[name] = profile_replay(graphed(fn, torch.device("cuda"), warmup=3), args.iters)
         res[name].pop("top")
         grads = [p.grad.clone() for p in enc.parameters()]
         res[name]["grad_sum"] = float(sum(gr.double().abs().sum() for gr in grads))

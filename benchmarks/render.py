@@ -70,13 +70,14 @@ def _time(fn, device, *, warmup: int, repeats: int) -> tuple[float, float]:
     return statistics.median(times), first
 
 
-def _graphed(fn, device):
-    """``fn`` captured in a CUDA graph (after two warm-up calls on a side stream); returns its replay.
-    This is how the trainer runs the renderer under ``--compile``: kernel-launch overhead disappears."""
+def graphed(fn, device, *, warmup: int = 2):
+    """``fn`` captured in a CUDA graph (after ``warmup`` calls on a side stream); returns its replay.
+    This is how the trainer runs the renderer under ``--compile``: kernel-launch overhead disappears.
+    The other benchmark scripts capture with it too."""
     side = torch.cuda.Stream(device)
     side.wait_stream(torch.cuda.current_stream(device))
     with torch.cuda.stream(side):
-        for _ in range(2):
+        for _ in range(warmup):
             fn()
     torch.cuda.current_stream(device).wait_stream(side)
     graph = torch.cuda.CUDAGraph()
@@ -202,9 +203,9 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
         rec["fwdbwd_ms"], _ = _time(fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
         rec["fk_fwdbwd_ms"], _ = _time(fk_fwdbwd, device, warmup=args.warmup, repeats=args.repeats)
         if device.type == "cuda" and args.graphs and backend != "dense" and not compile:
-            rec["fwd_graph_ms"], _ = _time(_graphed(fwd, device), device, warmup=args.warmup,
+            rec["fwd_graph_ms"], _ = _time(graphed(fwd, device), device, warmup=args.warmup,
                                            repeats=args.repeats)
-            rec["fwdbwd_graph_ms"], _ = _time(_graphed(fwdbwd, device), device, warmup=args.warmup,
+            rec["fwdbwd_graph_ms"], _ = _time(graphed(fwdbwd, device), device, warmup=args.warmup,
                                               repeats=args.repeats)
         check_grads()
         # memory of one fwd+bwd
