@@ -45,7 +45,7 @@ from ablations.report import (
     table1_section,
 )
 
-__all__ = ["ARMS", "PaperConfig", "sweep_config", "build_paper_report", "main"]
+__all__ = ["ARMS", "DEFAULT_ARMS", "PaperConfig", "sweep_config", "build_paper_report", "main"]
 
 #: The arms: name -> mode, extra ablate flags, what it stands for, and the paper's method it reproduces.
 ARMS: dict[str, dict] = {
@@ -57,11 +57,17 @@ ARMS: dict[str, dict] = {
     "full-soft": {"mode": "full", "flags": {}, "paper": None,
                   "about": "full APG through this toolkit's default soft raster model (silhouettes carry "
                            "gradient); the dva preset"},
+    "full-alpha": {"mode": "full", "flags": {"raster-model": "alpha"}, "paper": None,
+                   "about": "full APG through coverage compositing over floor and sky (the other raster model "
+                            "whose silhouettes carry gradient); the dva preset"},
     "state": {"mode": "state", "flags": {}, "paper": None,
               "about": "the actor sees the state vector: the upper bound of learning from pixels"},
     "blind": {"mode": "blind", "flags": {}, "paper": None,
               "about": "the actor sees a constant black image: the floor of a policy that cannot see"},
 }
+#: The arms run unless --arms names others: one full arm per kind of image gradient (none at silhouettes, the
+#: default soft model's), the two controls and D.Va.
+DEFAULT_ARMS = ("decoupled", "full-hard", "full-soft", "state", "blind")
 #: Flags ablate-paper sets itself (through its own options).
 _OWN_FLAGS = {"iters": "--iters", "time_limit_min": "--time-limit-min"}
 _RETURN_FIGURES = ("return_vs_wall_clock.png", "return_vs_env_steps.png", "return_vs_iter.png")
@@ -79,9 +85,10 @@ class PaperConfig:
     """The sweep folder (sweep.json, runs/, logs/; rerun to resume); the report goes to <out>/report/."""
     tasks: tuple[str, ...] = ("hopper", "ant")
     """Tasks."""
-    arms: tuple[str, ...] = tuple(ARMS)
+    arms: tuple[str, ...] = DEFAULT_ARMS
     """Arms to run: decoupled (D.Va), full-hard (--mode full --preset shac-diffrender: the paper's baseline),
-    full-soft (--mode full: our soft rasterizer), state, blind."""
+    full-soft (--mode full: the default soft raster model, softmax), full-alpha (--mode full --raster-model
+    alpha; not in the default set), state, blind."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Seeds per task and arm."""
     time_limit_min: float | None = 60.0

@@ -66,7 +66,8 @@ class RunConfig(SHACConfig):
     name: str | None = None
     """Run folder name; None: <task>_<mode>_seed<seed>_<date>-<time>."""
     resume: Path | None = None
-    """Continue the run in this folder from its last checkpoint (its config.json wins over other flags)."""
+    """Continue the run in this folder from its last checkpoint. Its config.json wins over other flags except
+    --device, --iters and --time-limit-min, which a resume may change (e.g. to train the same run longer)."""
     checkpoint_every: int = 50
     """Iterations between checkpoints (and always at the end)."""
     keep_checkpoints: int = 2
@@ -76,8 +77,9 @@ class RunConfig(SHACConfig):
     video_steps: int | None = 300
     """Steps per evaluation video (at most one episode; 300 steps = 5 s at 60 fps); None: one episode."""
     time_limit_min: float | None = None
-    """Stop cleanly (final checkpoint, video and summary) once this many minutes of training have passed;
-    None: run all iterations."""
+    """Stop cleanly (final checkpoint, video and summary) once the run's training wall-clock (the sum of its
+    iterations' times, compilation included, carried across --resume) reaches this many minutes; None: run all
+    iterations."""
     warmup_iters: int = 2
     """Iterations excluded from the timing medians in summary.json (allocator and kernel warm-up)."""
     tensorboard: bool = False
@@ -273,8 +275,11 @@ def _stored_config(run_dir: Path, cfg_path: Path, overrides: RunConfig) -> RunCo
             stored[k] = tuple(stored[k])
     stored["out"] = Path(stored.get("out", run_dir.parent))
     stored.update(resume=run_dir, progress=overrides.progress)
-    if overrides.device != "auto":
-        stored["device"] = overrides.device
+    # What a resume may change: where it runs, and how long it goes on (a longer run extends the same curve).
+    defaults = RunConfig()
+    for k in ("device", "iters", "time_limit_min"):
+        if getattr(overrides, k) != getattr(defaults, k):
+            stored[k] = getattr(overrides, k)
     try:
         cfg = RunConfig(**stored)
         cfg.validate()
@@ -369,11 +374,14 @@ def run(cfg: RunConfig) -> Path:
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
     try:
-        deadline = None if cfg.time_limit_min is None else time.monotonic() + 60.0 * cfg.time_limit_min
-        while trainer.iteration < cfg.iters:
+        # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
+        # the same training time as one that ran through, so that return-against-time curves stay comparable.
+        budget_s = None if cfg.time_limit_min is None else 60.0 * cfg.time_limit_min
+        spent = budget_s is not None and trainer.wall_s >= budget_s  # a resumed run whose budget is used up
+        while trainer.iteration < cfg.iters and not spent:
             m = trainer.train_iteration()
             it = m["iter"]
-            last = it == cfg.iters or (deadline is not None and time.monotonic() >= deadline)
+            last = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
             if cfg.video_every and (it % cfg.video_every == 0 or last):
                 steps = min(cfg.video_steps or trainer.task.episode_length, trainer.task.episode_length)
                 eval_return, frames = trainer.evaluate(steps=steps, record=True)

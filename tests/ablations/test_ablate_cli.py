@@ -194,3 +194,11 @@ def test_time_limit_stops_cleanly(tmp_path):
     summary = json.loads((tmp_path / "t" / "summary.json").read_text())
     assert summary["status"] == "time_limit" and summary["iterations"] == 1
     assert (tmp_path / "t" / "checkpoints" / "ckpt_000001.pt").exists()
+    # The budget is training wall-clock carried by the checkpoint: a resumed run whose budget is spent trains no
+    # further iteration, and one given a larger budget goes on from where it stopped.
+    ablate("--resume", str(tmp_path / "t"), "--time-limit-min", "0.0001", "--video-every", "0")
+    summary = json.loads((tmp_path / "t" / "summary.json").read_text())
+    assert summary["status"] == "time_limit" and summary["iterations"] == 1
+    ablate("--resume", str(tmp_path / "t"), "--iters", "2", "--time-limit-min", "100", "--video-every", "0")
+    summary = json.loads((tmp_path / "t" / "summary.json").read_text())
+    assert summary["status"] == "finished" and summary["iterations"] == 2

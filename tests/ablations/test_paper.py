@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from ablations import paper
-from ablations.paper import ARMS, PaperConfig, build_paper_report, main, sweep_config
+from ablations.paper import ARMS, DEFAULT_ARMS, PaperConfig, build_paper_report, main, sweep_config
 from ablations.paper_numbers import format_value, load_paper_numbers
 from ablations.sweep import plan
 from tests.ablations.conftest import write_run
@@ -23,8 +23,9 @@ def test_arms_expand_to_the_papers_sweep():
     cfg = PaperConfig(out=Path("p"), time_limit_min=55.0, set=("cosine-every=5",))
     sweep, arms = sweep_config(cfg)
     specs = plan(sweep, arms=arms)
-    assert len(specs) == 2 * len(ARMS) * 3  # hopper, ant x five arms x seeds 0 1 2
-    assert list(ARMS) == ["decoupled", "full-hard", "full-soft", "state", "blind"]
+    assert len(specs) == 2 * len(DEFAULT_ARMS) * 3  # hopper, ant x five arms x seeds 0 1 2
+    assert list(DEFAULT_ARMS) == ["decoupled", "full-hard", "full-soft", "state", "blind"]
+    assert set(DEFAULT_ARMS) < set(ARMS)
     by_id = {s.run_id: s for s in specs}
     hard = by_id["hopper_full-hard_seed2"]
     assert hard.mode == "full" and hard.arm == "full-hard"
@@ -33,6 +34,11 @@ def test_arms_expand_to_the_papers_sweep():
     soft = by_id["ant_full-soft_seed0"]
     assert soft.mode == "full" and "--preset" not in soft.args and "--raster-model" not in soft.args
     assert {by_id[f"ant_{m}_seed1"].mode for m in ("decoupled", "state", "blind")} == {"decoupled", "state", "blind"}
+    # full-alpha (not a default arm) is the full estimator through coverage compositing
+    alpha_sweep, alpha_arms = sweep_config(PaperConfig(out=Path("p"), tasks=("ant",), arms=("full-alpha",),
+                                                       seeds=(0,)))
+    (alpha,) = plan(alpha_sweep, arms=alpha_arms)
+    assert alpha.mode == "full" and list(alpha.args[-2:]) == ["--raster-model", "alpha"]
     assert sweep.gpus_per_run == 1.0 and sweep.modes == ("decoupled", "full", "state", "blind")
 
 
@@ -132,7 +138,7 @@ def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
 
     # Fig. 3 series: medians over every probe of both seeds (grad_norm_full = 2 + seed).
     fig3 = {r[1]: r for r in rows_of(text, "| hopper | ") if len(r) == 7 and r[2].isdigit()}
-    assert set(fig3) == {"decoupled", "full-hard", "full-soft"}
+    assert set(fig3) == {"decoupled", "full-hard", "full-soft", "full-alpha"}
     assert fig3["full-hard"][2:5] == ["8", "2.5", "1"]  # 4 probes x 2 seeds; medians of |g_full|, |g_decoupled|
 
     # Our numbers beside the paper's, each paper number with its citation.
