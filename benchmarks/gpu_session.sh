@@ -4,7 +4,7 @@
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
 # Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
 # in ~95 s (H100) before a stage prints its first row.
-# Stages: env, nvdiffrast, anchor, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay, profile, render, render-fused, iter, iter-compiled, learn, sweep (see each case below).
+# Stages: env, nvdiffrast, anchor, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay, profile, render, render-fused, iter, iter-compiled, learn, paper, sweep (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
@@ -86,6 +86,17 @@ for spec in "$@"; do
        done; wait
        tail -n 3 /tmp/runs/*.log; python3 -m ablations plot /tmp/runs/*/ --out /tmp/runs/plots 2>&1 | tail -3
        tar -C /tmp/runs --exclude=checkpoints -czf "$OUT/runs.tgz" . ;;
+    paper) # ablate-paper on this GPU (PAPER_ARGS: --tasks --arms --seeds --time-limit-min --gpus-per-run ...); the
+       # sweep folder (PAPER_OUT, default /tmp/paper) outlives the call while the machine is warm, so a next call
+       # resumes and extends it. A first sweep of the same grid with "--iters 3 --time-limit-min None" in another
+       # folder compiles every graph once, so that the measured runs start from inductor's warm caches instead of
+       # spending their wall-clock budgets compiling side by side. Its runs (without checkpoints) come back as
+       # one tarball; the report is drawn on the CPU machine.
+       [ -d .gpuray ] && python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
+         .gpuray/*.whl >/dev/null 2>&1; export PATH=/tmp/site/bin:$PATH
+       TORCHINDUCTOR_COMPILE_THREADS=4 timeout "$secs" python3 -m ablations.paper --out ${PAPER_OUT:-/tmp/paper} ${PAPER_ARGS:-} \
+         --set device=cuda compile=true video-every=100000 ${PAPER_SET:-} --no-progress 2>&1 | tail -n 60
+       out=${PAPER_OUT:-/tmp/paper}; tar -C "$(dirname "$out")" --exclude=checkpoints -czf "$OUT/paper.tgz" "$(basename "$out")";;
     sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs)
        timeout "$secs" python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes decoupled full --meshes ${SWEEP_MESHES:-0 16 64} \
          --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 --image-size 84 --warmup-iters 1 --iters 2 \
