@@ -8,8 +8,14 @@ sharp limit (sigma, gamma -> 0): one ray per pixel centre, nearest surface wins.
 Design:
 
 - One ``wp.Mesh`` holds the triangles of all B environments; environment b's triangles are BVH group b, and
-  the rays of environment b traverse only that group's subtree (``wp.mesh_get_group_root``), so there is one
-  BVH, one refit and one kernel launch over all B x H x W pixels per frame.
+  the rays of environment b traverse only that group's subtree, so there is one BVH, one refit and one kernel
+  launch over all B x H x W pixels per frame. The subtree roots are found once when the BVH is built (a refit
+  keeps the tree's topology), not per pixel.
+- Threads are grouped by pixel tiles (``tile``, 4 x 8 by default): the 32 rays of a warp start close together
+  and walk the same BVH nodes, where a warp along an image row would spread over 32 pixels.
+- :meth:`RayTracer.refit` (posed vertices into the BVH) and :meth:`RayTracer.trace` (the image of the last
+  refitted geometry) are the two halves of a call, public so that each can be timed
+  (``benchmarks/raytrace.py``).
 - Persistent buffers per instance: a frame copies the posed vertices into the mesh's point buffer (and the
   normals, colours and camera into theirs), refits the BVH and launches the kernel. Nothing is allocated but
   the returned image (and the normals where they are computed), and with ``sync_checks=False`` nothing waits
@@ -41,7 +47,10 @@ from ..render import _can_sync
 from ..settings import RasterSettings
 from ..shading import unit_light
 
-__all__ = ["RayTracer", "render_raytraced"]
+__all__ = ["BVH_CONSTRUCTORS", "RayTracer", "render_raytraced"]
+
+#: Warp's BVH builders that a grouped mesh supports (``RayTracer(bvh_constructor=...)``).
+BVH_CONSTRUCTORS = ("sah", "median", "lbvh")
 
 # Far limit [m] of faces in the "alpha" model, where the rasterizer keeps faces beyond zfar.
 _NO_FAR_LIMIT = 1.0e30
@@ -61,6 +70,10 @@ def _warp() -> tuple[Any, Any]:
     from . import kernels
 
     return wp, kernels
+
+
+def _not_int(x) -> bool:
+    return isinstance(x, bool) or not isinstance(x, int)
 
 
 def _check_float(name: str, x, shape_desc: str) -> None:
@@ -87,13 +100,29 @@ class RayTracer:
         shadows: cast a shadow ray towards the light from every visible robot or floor point; a point whose
             ray hits the robot of its environment gets only the ambient term. Off by default (the rasterizer
             has no shadows).
+        bvh_constructor: how the BVH's tree is built (once, at the first call; later frames refit it):
+            ``"sah"`` (surface-area heuristic, built on the host: the best tree for rays), ``"median"`` (host,
+            faster to build, worse tree) or ``"lbvh"`` (built on the GPU, fastest to build; on the CPU Warp has
+            no LBVH and ``"sah"`` is built instead). The tree changes which triangle a ray meets first only
+            where two meet it at the same distance (a shared edge), so images agree to float rounding.
+        bvh_leaf_size: triangles per BVH leaf (None: Warp's default for meshes, 4). Fewer: more tree to
+            refit and walk, fewer triangle tests per leaf.
+        tile: (rows, columns) of the pixel block that consecutive threads shade, e.g. (4, 8) for one 32-thread
+            warp; None: image rows (thread order b, i, j). Same image whatever the tile.
+        rays_per_thread: pixels per thread, ``tile`` rows apart (1: one pixel per thread). Same image.
+        block_dim: CUDA threads per block of the trace kernel (a multiple of 32); ignored on the CPU.
 
     Raises:
-        ValueError: bad faces (type, shape, indices outside ``0 .. num_verts - 1``), sizes or settings.
+        ValueError: bad faces (type, shape, indices outside ``0 .. num_verts - 1``), sizes, settings or options
+            (naming the option).
         ImportError: Warp (``warp-lang``) is not installed.
 
     The constructor compiles (first use on a machine, then cached in Warp's kernel cache) and loads the kernel
     on the device; the first call builds the BVH.
+
+    Work per frame on CUDA: four small copies (points, normals, colours, camera), Warp's mesh refit (triangle
+    edge lengths and their scan, triangle bounds, a counter reset and the bottom-up refit: about seven
+    launches) and one trace launch.
     """
 
     def __init__(
@@ -105,6 +134,11 @@ class RayTracer:
         device: torch.device | str | None = None,
         settings: RasterSettings | None = None,
         shadows: bool = False,
+        bvh_constructor: str = "sah",
+        bvh_leaf_size: int | None = None,
+        tile: tuple[int, int] | None = (4, 8),
+        rays_per_thread: int = 1,
+        block_dim: int = 256,
     ):
         settings = RasterSettings() if settings is None else settings
         if not isinstance(settings, RasterSettings):
@@ -119,6 +153,17 @@ class RayTracer:
                 raise ValueError(f"{name} must be a positive int, got {n!r}")
         if not isinstance(shadows, bool):
             raise ValueError(f"shadows must be a bool, got {shadows!r}")
+        if bvh_constructor not in BVH_CONSTRUCTORS:
+            raise ValueError(f"bvh_constructor must be one of {', '.join(BVH_CONSTRUCTORS)}, got {bvh_constructor!r}")
+        if bvh_leaf_size is not None and (_not_int(bvh_leaf_size) or bvh_leaf_size < 1):
+            raise ValueError(f"bvh_leaf_size must be None or a positive int, got {bvh_leaf_size!r}")
+        if tile is not None and (not isinstance(tile, (tuple, list)) or len(tile) != 2
+                                 or any(_not_int(t) or t < 1 for t in tile)):
+            raise ValueError(f"tile must be None or (rows, columns) of positive ints, got {tile!r}")
+        if _not_int(rays_per_thread) or rays_per_thread < 1:
+            raise ValueError(f"rays_per_thread must be a positive int, got {rays_per_thread!r}")
+        if _not_int(block_dim) or block_dim < 32 or block_dim % 32 or block_dim > 1024:
+            raise ValueError(f"block_dim must be a multiple of 32 in 32..1024, got {block_dim!r}")
         device = faces.device if device is None else torch.device(device)
         if device.type not in ("cpu", "cuda"):
             raise ValueError(f"device must be a CPU or CUDA device, got {device}")
@@ -130,9 +175,14 @@ class RayTracer:
                 raise ValueError(f"faces index vertices {lo}..{hi} but num_verts is {num_verts}")
 
         wp, kernels = _warp()
-        self._wp, self._kernel = wp, kernels.trace
+        self._wp, self._kernel, self._roots_kernel = wp, kernels.trace, kernels.group_roots
         self._wp_device = wp.device_from_torch(device)
         self.settings, self.shadows, self.device = settings, shadows, device
+        # Warp has no LBVH builder on the host: build what it would fall back to, without its warning
+        self.bvh_constructor = "sah" if bvh_constructor == "lbvh" and device.type == "cpu" else bvh_constructor
+        self.bvh_leaf_size = bvh_leaf_size
+        self.tile = None if tile is None else (int(tile[0]), int(tile[1]))
+        self.rays_per_thread, self.block_dim = rays_per_thread, block_dim
         self.num_envs, self.num_verts = num_envs, num_verts
         self.faces = faces.to(device=device, dtype=torch.long)
         self.num_faces = int(faces.shape[0])
@@ -154,6 +204,8 @@ class RayTracer:
         self._wp_eye = wp.from_torch(self._eye, dtype=wp.vec3)
         self._wp_indices = wp.from_torch(self._indices, dtype=wp.int32)
         self._wp_groups = wp.from_torch(self._groups, dtype=wp.int32)
+        self._roots = torch.full((b,), -1, dtype=torch.int32, device=device)  # group b's subtree root node
+        self._wp_roots = wp.from_torch(self._roots, dtype=wp.int32)
         self._mesh = None  # built by the first call, from its poses
         self._streams: dict[int, Any] = {}
         self._launches: dict[tuple[int, int], Any] = {}
@@ -249,34 +301,85 @@ class RayTracer:
         with torch.no_grad():
             if normals is None:
                 normals = vertex_normals(verts, self.faces)
-            self._points.view(b, nv, 3).copy_(verts)
-            self._normals.view(b, nv, 3).copy_(normals)
-            self._colors.view(b, nv, 3).copy_(colors.expand(b, nv, 3))
-            self._rotation.copy_(camera.rotation.expand(b, 3, 3))
-            self._eye.copy_(camera.eye.expand(b, 3))
-            image = torch.empty(b, 3, camera.height, camera.width, dtype=torch.float32, device=self.device)
-            wp = self._wp
-            with self._stream_scope():
-                if self.num_faces:
-                    if self._mesh is None:
-                        self._mesh = wp.Mesh(points=self._wp_points, indices=self._wp_indices,
-                                             groups=self._wp_groups)
-                    else:
-                        self._mesh.refit()
-                size = (camera.height, camera.width)
-                launch = self._launches.get(size)
-                if launch is None:
-                    # recorded once per image size and replayed with the changing arguments set: far less host
-                    # work per frame than a full wp.launch
-                    launch = self._launches[size] = wp.launch(
-                        self._kernel, dim=(b, *size), device=self._wp_device, record_cmd=True, inputs=[
-                            self._mesh.id if self._mesh is not None else 0, int(self._mesh is not None),
-                            self._wp_rotation, self._wp_eye, self._wp_indices, self._wp_points, self._wp_normals,
-                            self._wp_colors, float(camera.focal), *self._constants.values(), wp.from_torch(image)])
-                else:
-                    launch.set_param_by_name("focal", float(camera.focal))
-                    launch.set_param_by_name_from_ctype("image", wp.from_torch(image, return_ctype=True))
-                launch.launch()
+            self._refit(verts)
+            return self._trace(colors, camera, normals, dtype)
+
+    def refit(self, verts: torch.Tensor) -> None:
+        """Move the BVH to new vertices: copy ``verts`` (B, V, 3) [m] into the mesh's point buffer and refit
+        (the first call builds the tree). The first half of :meth:`__call__`, which also checks the inputs."""
+        b, nv = self.num_envs, self.num_verts
+        _check_float("verts", verts, f"({b}, {nv}, 3)")
+        if tuple(verts.shape) != (b, nv, 3) or verts.device != self.device:
+            raise ValueError(f"verts must have shape ({b}, {nv}, 3) on {self.device}, got {tuple(verts.shape)} on "
+                             f"{verts.device}")
+        with torch.no_grad():
+            self._refit(verts)
+
+    def trace(self, colors: torch.Tensor, camera: Camera, *, normals: torch.Tensor) -> torch.Tensor:
+        """The image (B, 3, H, W), float32, of the geometry of the last :meth:`refit`, shaded with ``colors``
+        ((V, 3) or (B, V, 3)) and ``normals`` (B, V, 3) seen by ``camera``. The second half of
+        :meth:`__call__`, without its input checks (use the call unless timing the halves)."""
+        if self._mesh is None and self.num_faces:
+            raise RuntimeError("RayTracer.trace before the first refit: there is no BVH yet")
+        with torch.no_grad():
+            return self._trace(colors, camera, normals, torch.float32)
+
+    def rebuild(self) -> None:
+        """Build the BVH anew from the current point buffer with ``bvh_constructor`` (as the first
+        :meth:`refit` does). Allocates device memory, so it cannot run inside a CUDA-graph capture; a frame
+        refits instead, which keeps the tree's topology."""
+        if not self.num_faces:
+            return
+        with self._stream_scope():
+            self._build()
+
+    def _build(self) -> None:
+        wp = self._wp
+        self._mesh = wp.Mesh(points=self._wp_points, indices=self._wp_indices, groups=self._wp_groups,
+                             bvh_constructor=self.bvh_constructor, bvh_leaf_size=self.bvh_leaf_size)
+        wp.launch(self._roots_kernel, dim=self.num_envs, inputs=[self._mesh.id, self._wp_roots],
+                  device=self._wp_device)
+        self._launches.clear()  # they hold the old mesh's id
+
+    def _refit(self, verts: torch.Tensor) -> None:
+        self._points.view(self.num_envs, self.num_verts, 3).copy_(verts)
+        if not self.num_faces:
+            return
+        with self._stream_scope():
+            if self._mesh is None:
+                self._build()
+            else:
+                self._mesh.refit()
+
+    def _trace(self, colors: torch.Tensor, camera: Camera, normals: torch.Tensor,
+               dtype: torch.dtype) -> torch.Tensor:
+        b, nv = self.num_envs, self.num_verts
+        wp = self._wp
+        self._normals.view(b, nv, 3).copy_(normals)
+        self._colors.view(b, nv, 3).copy_(colors.expand(b, nv, 3))
+        self._rotation.copy_(camera.rotation.expand(b, 3, 3))
+        self._eye.copy_(camera.eye.expand(b, 3))
+        height, width = camera.height, camera.width
+        image = torch.empty(b, 3, height, width, dtype=torch.float32, device=self.device)
+        with self._stream_scope():
+            launch = self._launches.get((height, width))
+            if launch is None:
+                tile_h, tile_w = self.tile if self.tile is not None else (1, width)
+                rows = tile_h * self.rays_per_thread
+                dim = (b, -(-height // rows), -(-width // tile_w), tile_h * tile_w)
+                # recorded once per image size and replayed with the changing arguments set: far less host
+                # work per frame than a full wp.launch
+                launch = self._launches[(height, width)] = wp.launch(
+                    self._kernel, dim=dim, device=self._wp_device, record_cmd=True,
+                    block_dim=self.block_dim if self.device.type == "cuda" else None, inputs=[
+                        self._mesh.id if self._mesh is not None else 0, int(self._mesh is not None),
+                        self._wp_roots, tile_h, tile_w, self.rays_per_thread,
+                        self._wp_rotation, self._wp_eye, self._wp_indices, self._wp_points, self._wp_normals,
+                        self._wp_colors, float(camera.focal), *self._constants.values(), wp.from_torch(image)])
+            else:
+                launch.set_param_by_name("focal", float(camera.focal))
+                launch.set_param_by_name_from_ctype("image", wp.from_torch(image, return_ctype=True))
+            launch.launch()
         return image if dtype == torch.float32 else image.to(dtype)
 
     def _stream_scope(self):
@@ -302,7 +405,9 @@ class RayTracer:
 
     def __repr__(self) -> str:
         return (f"RayTracer(num_envs={self.num_envs}, num_verts={self.num_verts}, num_faces={self.num_faces}, "
-                f"device={self.device}, shadows={self.shadows})")
+                f"device={self.device}, shadows={self.shadows}, bvh_constructor={self.bvh_constructor!r}, "
+                f"bvh_leaf_size={self.bvh_leaf_size}, tile={self.tile}, rays_per_thread={self.rays_per_thread}, "
+                f"block_dim={self.block_dim})")
 
 
 # Ray tracers of render_raytraced, keyed by the faces tensor (held with the tracer, so its storage cannot be

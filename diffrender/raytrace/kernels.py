@@ -1,4 +1,4 @@
-"""Warp kernels of the ray tracer: one thread per pixel of every environment.
+"""Warp kernels of the ray tracer: a thread per pixel (or a few pixels) of every environment.
 
 Imported only by :class:`diffrender.raytrace.RayTracer` (importing this module imports and configures Warp).
 The image model is :func:`diffrender.render`'s in its sharp limit (sigma, gamma -> 0), evaluated by casting
@@ -16,7 +16,7 @@ import warp as wp
 
 from ..floor import _MAX_SHARPNESS
 
-__all__ = ["trace"]
+__all__ = ["group_roots", "trace"]
 
 # Back faces skipped along one ray when culling (a ray leaving a closed mesh meets at most a few).
 _MAX_CULLED = wp.constant(16)
@@ -36,11 +36,26 @@ def _lambert(n: wp.vec3, light: wp.vec3, ambient: float, diffuse: float) -> floa
 
 
 @wp.kernel(enable_backward=False)
-def trace(
+def group_roots(mesh: wp.uint64, roots: wp.array(dtype=wp.int32)):
+    """``roots[b]``: the BVH node under which environment b's triangles (group b) lie. A refit keeps the
+    tree's topology, so these stay valid until the BVH is built anew; the trace kernel reads them instead of
+    searching the leaves and climbing to their common ancestor for every pixel."""
+    b = wp.tid()
+    roots[b] = wp.mesh_get_group_root(mesh, b)
+
+
+@wp.func
+def _shade(
+    b: int,
+    i: int,
+    j: int,
+    height: int,
+    width: int,
     mesh: wp.uint64,
     has_mesh: int,
-    rotation: wp.array(dtype=wp.mat33),
-    eye: wp.array(dtype=wp.vec3),
+    root: int,
+    rot: wp.mat33,
+    origin: wp.vec3,
     indices: wp.array(dtype=wp.int32),
     points: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
@@ -60,20 +75,8 @@ def trace(
     cull_backfaces: int,
     floor_occludes: int,
     shadows: int,
-    image: wp.array4d(dtype=wp.float32),
-):
-    """Shade pixel (i, j) of environment b into ``image[b, :, i, j]`` (B, 3, H, W).
-
-    ``mesh`` holds every environment's triangles, environment b's as group b (``indices``: the mesh's
-    (B * F * 3) global vertex ids; ``points`` (the mesh's), ``normals``, ``colors``: (B * V) per global
-    vertex). ``rotation``,
-    ``eye``: (B) world -> camera. Flags are 0/1 ints.
-    """
-    b, i, j = wp.tid()
-    height = image.shape[2]
-    width = image.shape[3]
-    rot = rotation[b]
-    origin = eye[b]
+) -> wp.vec3:
+    """The colour of pixel (i, j) of environment b (see :func:`trace`)."""
     dxc = (float(j) + 0.5 - 0.5 * float(width)) / focal
     dyc = (float(i) + 0.5 - 0.5 * float(height)) / focal
     # world ray direction R^T (dxc, dyc, 1): its camera z is 1, so a ray parameter is the camera depth [m]
@@ -91,9 +94,6 @@ def trace(
     far = zfar
     if floor_hit != 0 and floor_occludes != 0:
         far = wp.min(far, t_floor)
-    root = int(-1)
-    if has_mesh != 0:
-        root = wp.mesh_get_group_root(mesh, b)
     face = int(-1)
     bu = float(0.0)
     bv = float(0.0)
@@ -150,7 +150,69 @@ def trace(
             if wp.mesh_query_ray_anyhit(mesh, p, light, _SHADOW_RAY_LENGTH, root):
                 shade = ambient
         color = (color_b + mix * (color_a - color_b)) * shade
-    image[b, 0, i, j] = color[0]
-    image[b, 1, i, j] = color[1]
-    image[b, 2, i, j] = color[2]
+    return color
 
+
+@wp.kernel(enable_backward=False)
+def trace(
+    mesh: wp.uint64,
+    has_mesh: int,
+    roots: wp.array(dtype=wp.int32),
+    tile_h: int,
+    tile_w: int,
+    rays_per_thread: int,
+    rotation: wp.array(dtype=wp.mat33),
+    eye: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    focal: float,
+    znear: float,
+    zfar: float,
+    light: wp.vec3,
+    ambient: float,
+    diffuse: float,
+    background: wp.vec3,
+    has_floor: int,
+    square_size: float,
+    color_a: wp.vec3,
+    color_b: wp.vec3,
+    edge_px: float,
+    cull_backfaces: int,
+    floor_occludes: int,
+    shadows: int,
+    image: wp.array4d(dtype=wp.float32),
+):
+    """Shade ``rays_per_thread`` pixels of environment b into ``image[b, :, i, j]`` (B, 3, H, W).
+
+    Launched over (B, tiles down, tiles across, tile_h * tile_w): the threads of one tile (consecutive, so
+    one warp for a 32-pixel tile) cover a tile_h x tile_w block of pixels, whose rays are close together and
+    so walk the same BVH nodes; a thread shades its pixel in ``rays_per_thread`` such blocks stacked
+    downwards. Pixels beyond the image (a partial last tile) are skipped.
+
+    ``mesh`` holds every environment's triangles, environment b's as group b, whose subtree is ``roots[b]``
+    (``indices``: the mesh's (B * F * 3) global vertex ids; ``points`` (the mesh's), ``normals``,
+    ``colors``: (B * V) per global vertex). ``rotation``, ``eye``: (B) world -> camera. Flags are 0/1 ints.
+    """
+    b, ty, tx, lane = wp.tid()
+    height = image.shape[2]
+    width = image.shape[3]
+    j = tx * tile_w + lane % tile_w
+    if j >= width:
+        return
+    rot = rotation[b]
+    origin = eye[b]
+    root = int(-1)
+    if has_mesh != 0:
+        root = roots[b]
+    i0 = ty * tile_h * rays_per_thread + lane // tile_w
+    for r in range(rays_per_thread):
+        i = i0 + r * tile_h
+        if i < height:
+            color = _shade(b, i, j, height, width, mesh, has_mesh, root, rot, origin, indices, points, normals,
+                           colors, focal, znear, zfar, light, ambient, diffuse, background, has_floor, square_size,
+                           color_a, color_b, edge_px, cull_backfaces, floor_occludes, shadows)
+            image[b, 0, i, j] = color[0]
+            image[b, 1, i, j] = color[1]
+            image[b, 2, i, j] = color[2]

@@ -214,6 +214,83 @@ def test_alpha_model_keeps_faces_below_the_floor():
     assert red(images["alpha"]) > red(images["hard"]) + 10
 
 
+# ------------------------------------------------------------------------------------------------ options
+def _ant_frames(seeds=(0, 1), size=(30, 34)):
+    """The ant (detail 0) in two environments at poses of ``seeds``: (robot, [(verts, normals, camera)])
+    float32, at an image size that tiles of 4 x 8 and 3 x 5 do not divide."""
+    robot = dr.RobotModel.from_mjcf(asset("ant"), dtype=F64, detail=0)
+    frames = []
+    for seed in seeds:
+        q = ant_pose(2, seed=seed)
+        verts, normals = robot.world_vertices_and_normals(q)
+        cam = ant_camera(q, size=32)
+        cam = dr.Camera(rotation=cam.rotation.float(), eye=cam.eye.float(), focal=cam.focal, height=size[0],
+                        width=size[1])
+        frames.append((verts.float(), normals.float(), cam))
+    return robot, frames
+
+
+@pytest.mark.parametrize("options", [
+    dict(tile=None), dict(tile=(3, 5)), dict(tile=(1, 1)), dict(tile=(2, 16), rays_per_thread=3),
+    dict(rays_per_thread=2), dict(block_dim=64), dict(bvh_leaf_size=1), dict(bvh_leaf_size=8),
+    dict(bvh_constructor="median"), dict(bvh_constructor="lbvh", bvh_leaf_size=2)])
+def test_options_render_the_default_image(options):
+    """Pixel tiles, rays per thread and block size change only which thread shades a pixel: the default's
+    image exactly. Another tree (constructor, leaf size) can only change which of two triangles at the same
+    distance a ray meets (a shared edge, where both interpolate the same normals and colours): float32
+    rounding. Over two frames, so the refitted tree is compared too."""
+    robot, frames = _ant_frames()
+    s = dr.RasterSettings(raster_model="hard")
+    default = RayTracer(robot.faces, num_envs=2, num_verts=robot.num_vertices, settings=s)
+    other = RayTracer(robot.faces, num_envs=2, num_verts=robot.num_vertices, settings=s, **options)
+    same_tree = not ({"bvh_constructor", "bvh_leaf_size"} & set(options))
+    for verts, normals, cam in frames:
+        ref = default(verts, robot.colors.float(), cam, normals=normals)
+        img = other(verts, robot.colors.float(), cam, normals=normals)
+        assert ref.shape == img.shape == (2, 3, 30, 34)
+        assert (ref[:, 0] != ref[:, 0, :1, :1]).any()  # not a blank image
+        if same_tree:
+            assert torch.equal(img, ref)
+        else:
+            assert (img - ref).abs().max() <= 1e-5
+
+
+def test_refit_and_trace_are_the_call():
+    """refit + trace (the halves a benchmark times) render what one call renders; rebuild (a new tree from
+    the current points) renders the same; trace before any refit is an error."""
+    robot, frames = _ant_frames(seeds=(0, 1, 2))
+    s = dr.RasterSettings(raster_model="hard")
+    colors = robot.colors.float()
+    whole = RayTracer(robot.faces, num_envs=2, num_verts=robot.num_vertices, settings=s)
+    halves = RayTracer(robot.faces, num_envs=2, num_verts=robot.num_vertices, settings=s, bvh_constructor="median")
+    with pytest.raises(RuntimeError, match="before the first refit"):
+        halves.trace(colors, frames[0][2], normals=frames[0][1])
+    for k, (verts, normals, cam) in enumerate(frames):
+        halves.refit(verts)
+        if k == 2:
+            halves.rebuild()
+        img = halves.trace(colors, cam, normals=normals)
+        assert (img - whole(verts, colors, cam, normals=normals)).abs().max() <= 1e-5
+    with pytest.raises(ValueError, match=r"verts must have shape \(2, "):
+        halves.refit(frames[0][0][:1])
+
+
+def test_bad_options_are_named():
+    faces = torch.tensor([[0, 1, 2]])
+    cases = [
+        (dict(bvh_constructor="bvh"), "bvh_constructor must be one of sah, median, lbvh"),
+        (dict(bvh_constructor="cubql"), "bvh_constructor must be one of"),
+        (dict(bvh_leaf_size=0), "bvh_leaf_size must be None or a positive int"),
+        (dict(tile=(4,)), r"tile must be None or \(rows, columns\)"),
+        (dict(tile=(0, 8)), "tile must be"),
+        (dict(rays_per_thread=0), "rays_per_thread must be a positive int"),
+        (dict(block_dim=100), "block_dim must be a multiple of 32"),
+    ]
+    for options, message in cases:
+        with pytest.raises(ValueError, match=message):
+            RayTracer(faces, num_envs=1, num_verts=3, **options)
+
+
 # ------------------------------------------------------------------------------------------------ shadows
 def test_shadow_of_a_plate_on_the_floor():
     """A horizontal square 0.5 m above the floor, light straight down, seen from the side so that its whole
