@@ -395,3 +395,29 @@ def test_bad_input_is_named():
                              torch.tensor([0.0, 0.0, 0.7], dtype=F64), (0.0, 0.0, 1.0), 40.0, 7, 6)
     with pytest.raises(ValueError, match="camera has 4 views but the ray tracer renders 2 environments"):
         tracer(verts, colors, four)
+
+
+# ------------------------------------------------------------------------------------------------ benchmark
+def test_benchmark_runs_on_the_cpu(tmp_path, capsys):
+    """benchmarks/raytrace.py --tiny on Warp's CPU device: every variant timed, its image the default's, the
+    JSON with its provenance and the table printed last."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "raytrace.py"
+    spec = importlib.util.spec_from_file_location("bench_raytrace", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "rt.json"
+    assert bench.main(["--device", "cpu", "--tiny", "--repeats", "2", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert {"device", "date", "command", "commit", "warp"} <= set(doc["meta"])
+    rows = doc["rows"]
+    assert [r["variant"] for r in rows] == list(bench.TINY_VARIANTS)
+    for r in rows:
+        assert r["status"] == "ok", r
+        assert r["refit_ms"] > 0 and r["trace_ms"] > 0 and r["frame_ms"] > 0 and r["images_per_s"] > 0
+        assert r["max_abs_diff_vs_first"] <= 1e-5
+    assert 0 < rows[0]["robot_ray_share"] < 1
+    assert capsys.readouterr().out.rstrip().splitlines()[-1].split()[1] == bench.TINY_VARIANTS[-1]
