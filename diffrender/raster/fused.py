@@ -10,12 +10,14 @@ backend), organised for the GPU:
   the corners' normals and albedos: ``C = 45`` numbers per face, laid out (B, C, F) so a kernel reads one
   coefficient of a block of consecutive faces with one coalesced load.
 * **Forward kernel**: one program per (tile of TILE x TILE pixels, environment; 4 x 4 by default). It walks
-  the faces in blocks of ``FACE_BLOCK``, skips a block whose screen bounding box misses the tile, evaluates
+  the faces in blocks of ``FACE_BLOCK`` on two levels (a super-block of ``SUPER_BLOCK`` blocks, then its blocks),
+  skips a super-block or block whose screen bounding box misses the tile, evaluates
   the block's faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online
   softmax (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). It writes
   the image and, when asked, each pixel's blend state (final maximum, denominator, the faces' weight and
   coverage sums): no pair lists, no bins, no capacity to overflow.
-* **Backward kernel**: one program per (tile of BWD_TILE x BWD_TILE pixels, environment). From each pixel's
+* **Backward kernel**: one program per (tile of BWD_TILE x BWD_TILE pixels, environment; BWD_TILE_DENSE where
+  faces crowd, :func:`backward_tile`), walking the faces as the forward does. From each pixel's
   blend state and colour (kept by the forward, or from a second forward pass), it forms the gradient of
   every pixel-face pair in closed form. Faces are taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane:
   the face's 45 coefficients stay in registers while a loop over the tile's pixels accumulates its 45
@@ -56,7 +58,8 @@ try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack
 except ImportError:  # pragma: no cover - exercised on machines without triton
     triton = None
 
-__all__ = ["NUM_COEFFS", "available", "face_coefficients", "rasterize_fused"]
+__all__ = ["NUM_COEFFS", "available", "backward_tile", "face_coefficients", "rasterize_fused",
+           "super_block_boxes"]
 
 NUM_COEFFS = 45
 # Rows of the (B, C, F) layout (k: the edge opposite vertex k, or corner k): LA_k 0-2, LX_k 3-5, LY_k 6-8,
@@ -69,10 +72,19 @@ FACE_BLOCK = 64
 BWD_TILE = 8
 BWD_SUB_BLOCK = 64  # H100, 64 ants at 84 px, state kept: 4.35 ms forward + backward (32: 4.52; tile 4: 4.52)
 BWD_WARPS: int | None = None
+#: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px]
+#: (see :func:`backward_tile`).
+BWD_TILE_DENSE = 4
+DENSE_FACES_PER_PIXEL = 1.0
+#: face blocks per super-block: the coarse level of the kernels' walk over the faces (see
+#: :func:`super_block_boxes`)
+SUPER_BLOCK = 16
 _BIG = 1e30  # empty bounding box of a dropped face
 #: per-face coefficients held at once (environments are rendered in chunks of at most this many
-#: coefficients): bounds the renderer's working set, ~5x this in bytes at float32, at any face count
-COEF_ELEMS = 1 << 24
+#: coefficients): bounds the renderer's working set at any face count. Every chunk is a kernel launch whose
+#: time is at least that of its busiest tile, and a few hundred setup kernels: 64 images of 100k faces
+#: fit in one chunk (1.2 GB of coefficients at float32; peak memory in BENCHMARKS.md, section 2).
+COEF_ELEMS = 1 << 29
 #: numbers per pixel the forward keeps for the backward besides the image (see ``_fused_forward``)
 STATE_PER_PIXEL = 4
 _MODEL_CODE = {"hard": 0, "softmax": 1, "alpha": 2}  # the kernels' MODEL constant
@@ -114,40 +126,60 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
         normals = vertex_normals(verts, faces)
     if colors.ndim == 2:
         colors = colors.expand(b, nv, 3)
-    fuvz = uvz[:, faces]  # (B, F, 3 corners, 3)
-    valid = face_validity(fuvz.detach(), st)  # (B, F)
+    nfp = -(-nf // face_block) * face_block
+    pad = nfp - nf
+    # Built in the kernels' (B, C, Fp) layout from the start, padding faces included, so the largest array
+    # (45 numbers per face) is written once: at 100k faces it is most of the setup's memory traffic.
+    fuvz = torch.nn.functional.pad(uvz[:, faces], (0, 0, 0, 0, 0, pad))  # (B, Fp, 3 corners, 3)
+    valid = torch.nn.functional.pad(face_validity(fuvz[:, :nf].detach(), st), (0, pad), value=False)  # (B, Fp)
     # dropped faces get a harmless unit triangle so no inf/NaN is ever formed (they are never drawn)
     # (corners (0, 0), (1, 0), (0, 1) at depth 1, built from eye(3): item assignment would copy from the host)
     eye3 = torch.eye(3, dtype=verts.dtype, device=verts.device)
     dummy = torch.stack([eye3[:, 1], eye3[:, 2], torch.ones_like(eye3[:, 0])], dim=-1)
     fuvz = torch.where(valid[..., None, None], fuvz, dummy)
-    u, v, z = fuvz.unbind(-1)  # (B, F, 3)
+    u, v, z = (c.transpose(1, 2) for c in fuvz.unbind(-1))  # (B, 3 corners, Fp)
     # edge k runs from vertex k+1 (ua, va) to vertex k+2, as in kernel.render_pairs
-    ua, va = u.roll(-1, -1), v.roll(-1, -1)
-    ex, ey = u.roll(-2, -1) - ua, v.roll(-2, -1) - va
-    area2 = ex[..., :1] * (v[..., :1] - va[..., :1]) - ey[..., :1] * (u[..., :1] - ua[..., :1])
+    ua, va = u.roll(-1, 1), v.roll(-1, 1)
+    ex, ey = u.roll(-2, 1) - ua, v.roll(-2, 1) - va
+    area2 = ex[:, :1] * (v[:, :1] - va[:, :1]) - ey[:, :1] * (u[:, :1] - ua[:, :1])
     area2 = torch.where(area2 == 0, torch.ones_like(area2), area2)
     inv_area = 1.0 / area2
     len2 = ex * ex + ey * ey
     inv_len2 = 1.0 / len2
+
+    def corners(attr):  # (B, V, 3) -> (B, 9, Fp), corner-major as the kernels read it
+        return torch.nn.functional.pad(attr[:, faces].reshape(b, nf, 9), (0, 0, 0, pad)).transpose(1, 2)
+
     coef = torch.cat([
         (ey * ua - ex * va) * inv_area, -ey * inv_area, ex * inv_area,  # lambda_k
         -(ex * ua + ey * va) * inv_len2, ex * inv_len2, ey * inv_len2,  # s_k, position along edge k
         area2.abs() * torch.sqrt(inv_len2), len2, 1.0 / z,  # H_k, |e_k|^2, 1 / z_k
-        normals[:, faces].reshape(b, nf, 9), colors[:, faces].reshape(b, nf, 9),
-    ], dim=-1)  # (B, F, 45)
-    nfp = -(-nf // face_block) * face_block
-    coef = torch.nn.functional.pad(coef, (0, 0, 0, nfp - nf)).transpose(1, 2).contiguous()
+        corners(normals), corners(colors),
+    ], dim=1)  # (B, 45, Fp)
     with torch.no_grad():
         r = st.cutoff_radius + BBOX_MARGIN
-        box = torch.stack([u.amin(-1) - r, u.amax(-1) + r, v.amin(-1) - r, v.amax(-1) + r], dim=1)  # (B, 4, F)
-        empty = _empty_box(b, box.dtype, box.device)
-        box = torch.where(valid[:, None, :], box, empty)
-        box = torch.cat([box, empty.expand(b, 4, nfp - nf)], dim=2).contiguous()
-        blocks = box.view(b, 4, nfp // face_block, face_block)
-        block_box = torch.stack([blocks[:, 0].amin(-1), blocks[:, 1].amax(-1), blocks[:, 2].amin(-1),
-                                 blocks[:, 3].amax(-1)], dim=1).contiguous()
+        box = torch.stack([u.amin(1) - r, u.amax(1) + r, v.amin(1) - r, v.amax(1) + r], dim=1)  # (B, 4, Fp)
+        box = torch.where(valid[:, None, :], box, _empty_box(b, box.dtype, box.device)).contiguous()
+        block_box = _union_boxes(box, face_block)
     return coef, box, block_box
+
+
+def _union_boxes(box: torch.Tensor, group: int) -> torch.Tensor:
+    """(B, 4, N) boxes -> (B, 4, N // group): the union of each run of ``group`` consecutive boxes."""
+    g = box.view(box.shape[0], 4, -1, group)
+    return torch.stack([g[:, 0].amin(-1), g[:, 1].amax(-1), g[:, 2].amin(-1), g[:, 3].amax(-1)], dim=1).contiguous()
+
+
+def super_block_boxes(block_box: torch.Tensor, super_block: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The coarse level of the kernels' face walk: block boxes (B, 4, NB) padded with empty boxes to a
+    multiple of ``super_block`` blocks, and the union of each run of ``super_block`` blocks (B, 4, NSB).
+    A tile skips a whole super-block (``super_block`` x ``FACE_BLOCK`` faces) with one test, so a program's
+    walk costs O(F / (FACE_BLOCK super_block)) tests plus the blocks near its tile, not O(F / FACE_BLOCK)."""
+    b, _, nb = block_box.shape
+    nsb = max(1, -(-nb // super_block))
+    empty = _empty_box(b, block_box.dtype, block_box.device)
+    padded = torch.cat([block_box, empty.expand(b, 4, nsb * super_block - nb)], dim=2).contiguous()
+    return padded, _union_boxes(padded, super_block)
 
 
 def _empty_box(b: int, dtype, device) -> torch.Tensor:
@@ -251,62 +283,70 @@ if triton is not None:
         return sd, zn, ar * shade, ag * shade, ab * shade
 
     @triton.jit
-    def _blend_pass(coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp, NB,
+    def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp,
+                    NB, NSB,
                     xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
                     sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
-                    FB: tl.constexpr):
+                    FB: tl.constexpr, SB: tl.constexpr):
         """Soft models: online depth softmax over all faces, starting from the given sums (floor and
         background for "softmax", zero for "alpha"); also the faces' weight sum and coverage sum."""
         fo = tl.arange(0, FB)
         cbase = coef_ptr + env * 45 * Fp
-        for blk in range(0, NB):
-            if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                f = blk * FB + fo
-                fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
-                cp = cbase + f[:, None]
-                sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                                ambient, diffuse)
-                keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
-                m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
-                scale = tl.exp((m - m_new) / gamma)
-                cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
-                w = tl.where(keep, cov * tl.exp(tl.minimum((zn - m_new[None, :]) / gamma, cap)), 0.0)
-                num_r = num_r * scale + tl.sum(w * cr, axis=0)
-                num_g = num_g * scale + tl.sum(w * cg, axis=0)
-                num_b = num_b * scale + tl.sum(w * cb, axis=0)
-                den = den * scale + tl.sum(w, axis=0)
-                w_sum = w_sum * scale + tl.sum(w, axis=0)
-                cov_sum = cov_sum + tl.sum(tl.where(keep, cov, 0.0), axis=0)
-                m = m_new
+        for sb in range(0, NSB):  # coarse: a super-block's box, then its blocks' boxes
+            if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
+                for j in range(0, SB):
+                    blk = sb * SB + j
+                    if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
+                        f = blk * FB + fo
+                        fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                        cp = cbase + f[:, None]
+                        sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                                        ambient, diffuse)
+                        keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
+                        m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
+                        scale = tl.exp((m - m_new) / gamma)
+                        cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+                        w = tl.where(keep, cov * tl.exp(tl.minimum((zn - m_new[None, :]) / gamma, cap)), 0.0)
+                        num_r = num_r * scale + tl.sum(w * cr, axis=0)
+                        num_g = num_g * scale + tl.sum(w * cg, axis=0)
+                        num_b = num_b * scale + tl.sum(w * cb, axis=0)
+                        den = den * scale + tl.sum(w, axis=0)
+                        w_sum = w_sum * scale + tl.sum(w, axis=0)
+                        cov_sum = cov_sum + tl.sum(tl.where(keep, cov, 0.0), axis=0)
+                        m = m_new
         return num_r, num_g, num_b, den, w_sum, cov_sum, m
 
     @triton.jit
-    def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
+    def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
+                      NSB,
                       xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz,
-                      FB: tl.constexpr):
+                      FB: tl.constexpr, SB: tl.constexpr):
         """Hard model: the nearest face whose triangle contains the pixel centre, strictly nearer than ``m``
         (the floor or background); the lowest face index among exact ties, as the faces come in order. Returns
         its colour, its index (as a float; -1 for none) and its normalised depth."""
         fo = tl.arange(0, FB)
         cbase = coef_ptr + env * 45 * Fp
-        for blk in range(0, NB):
-            if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                f = blk * FB + fo
-                fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
-                cp = cbase + f[:, None]
-                sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                                ambient, diffuse)
-                keep = fm[:, None] & inb[None, :] & (sd >= 0)
-                zk = tl.where(keep, zn, -float("inf"))
-                best = tl.max(zk, axis=0)
-                first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
-                one = f[:, None] == first[None, :]
-                upd = best > m
-                col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
-                col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
-                col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
-                nearest = tl.where(upd, first.to(nearest.dtype), nearest)
-                m = tl.where(upd, best, m)
+        for sb in range(0, NSB):  # coarse: a super-block's box, then its blocks' boxes
+            if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
+                for j in range(0, SB):
+                    blk = sb * SB + j
+                    if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
+                        f = blk * FB + fo
+                        fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                        cp = cbase + f[:, None]
+                        sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                                        ambient, diffuse)
+                        keep = fm[:, None] & inb[None, :] & (sd >= 0)
+                        zk = tl.where(keep, zn, -float("inf"))
+                        best = tl.max(zk, axis=0)
+                        first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
+                        one = f[:, None] == first[None, :]
+                        upd = best > m
+                        col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
+                        col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
+                        col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
+                        nearest = tl.where(upd, first.to(nearest.dtype), nearest)
+                        m = tl.where(upd, best, m)
         return col_r, col_g, col_b, nearest, m
 
     @triton.jit
@@ -340,8 +380,9 @@ if triton is not None:
         return a, inv_q, kn, kc, has
 
     @triton.jit
-    def _fused_forward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, out_ptr, state_ptr, Fp, NB, H, W, TX,
-                       TILE_: tl.constexpr, FB: tl.constexpr, SAVE: tl.constexpr, MODEL: tl.constexpr):
+    def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, Fp, NB, NSB, H,
+                       W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr, SAVE: tl.constexpr,
+                       MODEL: tl.constexpr):
         """MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel (SAVE): soft models the blend's maximum, its
         denominator, the faces' weight sum and coverage sum; hard the maximum and the chosen face (-1: none)."""
         tile = tl.program_id(0)
@@ -355,9 +396,9 @@ if triton is not None:
         if MODEL == 0:
             nearest = tl.full(m.shape, -1.0, m.dtype)
             out_r, out_g, out_b, nearest, m = _nearest_pass(
-                coef_ptr, box_ptr, bbox_ptr, tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g),
-                tl.where(fhit, fb, bg_b), nearest, m, env, Fp, NB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear,
-                zfar, ambient, diffuse, lx, ly, lz, FB)
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g),
+                tl.where(fhit, fb, bg_b), nearest, m, env, Fp, NB, NSB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear,
+                zfar, ambient, diffuse, lx, ly, lz, FB, SB)
             s1 = nearest
             s2 = tl.zeros_like(m)
             s3 = tl.zeros_like(m)
@@ -374,9 +415,9 @@ if triton is not None:
                 m = zero - 1e4
                 num_r, num_g, num_b, den = zero, zero, zero, zero
             num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_pass(
-                coef_ptr, box_ptr, bbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB, xc, yc,
-                inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly,
-                lz, FB)
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB, NSB,
+                xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx,
+                ly, lz, FB, SB)
             _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
             out_r = kn * num_r + kc * cb_r
             out_g = kn * num_g + kc * cb_g
@@ -414,9 +455,9 @@ if triton is not None:
         tl.atomic_add(gq + (row + 8) * Fp, g8, mask=live)
 
     @triton.jit
-    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gcoef_ptr,
-                        gfloor_ptr, Fp, NB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SUB: tl.constexpr,
-                        MODEL: tl.constexpr):
+    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr,
+                        gcoef_ptr, gfloor_ptr, Fp, NB, NSB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr,
+                        SB: tl.constexpr, SUB: tl.constexpr, MODEL: tl.constexpr):
         """One program per (tile, environment). Floor gradients per pixel; then, per sub-block of SUB faces
         (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
         registers, and one atomic add per face and coefficient at the end (no cross-lane reductions).
@@ -469,233 +510,239 @@ if triton is not None:
         cbase = coef_ptr + env * 45 * Fp
         gbase = gcoef_ptr + env * 45 * Fp
         inv_zr = 1.0 / (zfar - znear)
-        for blk in range(0, NB):
-            if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                for sub in range(0, FB // SUB):
-                    f = blk * FB + sub * SUB + fo
-                    fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
-                    if tl.max(fm.to(tl.int32), axis=0) > 0:
-                        cp = cbase + f
-                        la0, la1, la2 = tl.load(cp), tl.load(cp + Fp), tl.load(cp + 2 * Fp)
-                        lx0, lx1, lx2 = tl.load(cp + 3 * Fp), tl.load(cp + 4 * Fp), tl.load(cp + 5 * Fp)
-                        ly0, ly1, ly2 = tl.load(cp + 6 * Fp), tl.load(cp + 7 * Fp), tl.load(cp + 8 * Fp)
-                        pa0, pa1, pa2 = tl.load(cp + 9 * Fp), tl.load(cp + 10 * Fp), tl.load(cp + 11 * Fp)
-                        px0, px1, px2 = tl.load(cp + 12 * Fp), tl.load(cp + 13 * Fp), tl.load(cp + 14 * Fp)
-                        py0, py1, py2 = tl.load(cp + 15 * Fp), tl.load(cp + 16 * Fp), tl.load(cp + 17 * Fp)
-                        h0, h1, h2 = tl.load(cp + 18 * Fp), tl.load(cp + 19 * Fp), tl.load(cp + 20 * Fp)
-                        l20, l21, l22 = tl.load(cp + 21 * Fp), tl.load(cp + 22 * Fp), tl.load(cp + 23 * Fp)
-                        iz0, iz1, iz2 = tl.load(cp + 24 * Fp), tl.load(cp + 25 * Fp), tl.load(cp + 26 * Fp)
-                        n0x, n0y, n0z = tl.load(cp + 27 * Fp), tl.load(cp + 28 * Fp), tl.load(cp + 29 * Fp)
-                        n1x, n1y, n1z = tl.load(cp + 30 * Fp), tl.load(cp + 31 * Fp), tl.load(cp + 32 * Fp)
-                        n2x, n2y, n2z = tl.load(cp + 33 * Fp), tl.load(cp + 34 * Fp), tl.load(cp + 35 * Fp)
-                        a0r, a0g, a0b = tl.load(cp + 36 * Fp), tl.load(cp + 37 * Fp), tl.load(cp + 38 * Fp)
-                        a1r, a1g, a1b = tl.load(cp + 39 * Fp), tl.load(cp + 40 * Fp), tl.load(cp + 41 * Fp)
-                        a2r, a2g, a2b = tl.load(cp + 42 * Fp), tl.load(cp + 43 * Fp), tl.load(cp + 44 * Fp)
-                        zero = tl.zeros([SUB], dtype=la0.dtype)
-                        # the 45 coefficient gradients of the sub-block's faces, summed over the pixels
-                        gla0, gla1, gla2, glx0, glx1, glx2, gly0, gly1, gly2 = (zero, zero, zero, zero, zero, zero,
-                                                                               zero, zero, zero)
-                        gpa0, gpa1, gpa2, gpx0, gpx1, gpx2, gpy0, gpy1, gpy2 = (zero, zero, zero, zero, zero, zero,
-                                                                               zero, zero, zero)
-                        gh0, gh1, gh2, gl20, gl21, gl22, giz0, giz1, giz2 = (zero, zero, zero, zero, zero, zero,
-                                                                             zero, zero, zero)
-                        gn0x, gn0y, gn0z, gn1x, gn1y, gn1z, gn2x, gn2y, gn2z = (zero, zero, zero, zero, zero, zero,
-                                                                               zero, zero, zero)
-                        ga0r, ga0g, ga0b, ga1r, ga1g, ga1b, ga2r, ga2g, ga2b = (zero, zero, zero, zero, zero, zero,
-                                                                               zero, zero, zero)
-                        wmax = zero
-                        for p in range(0, TILE_ * TILE_):
-                            pxi = tx0 + p % TILE_
-                            pyi = ty0 + p // TILE_
-                            pin = (pxi < W) & (pyi < H)
-                            x = pxi.to(sigma.dtype) + 0.5
-                            y = pyi.to(sigma.dtype) + 0.5
-                            # ---- forward recompute of the pairs (face, this pixel)
-                            lam0 = la0 + lx0 * x + ly0 * y
-                            lam1 = la1 + lx1 * x + ly1 * y
-                            lam2 = la2 + lx2 * x + ly2 * y
-                            s0 = pa0 + px0 * x + py0 * y
-                            s1 = pa1 + px1 * x + py1 * y
-                            s2 = pa2 + px2 * x + py2 * y
-                            dl0 = lam0 * h0
-                            dl1 = lam1 * h1
-                            dl2 = lam2 * h2
-                            ov0 = s0 - tl.minimum(tl.maximum(s0, 0.0), 1.0)
-                            ov1 = s1 - tl.minimum(tl.maximum(s1, 0.0), 1.0)
-                            ov2 = s2 - tl.minimum(tl.maximum(s2, 0.0), 1.0)
-                            ds0 = dl0 * dl0 + l20 * (ov0 * ov0)
-                            ds1 = dl1 * dl1 + l21 * (ov1 * ov1)
-                            ds2 = dl2 * dl2 + l22 * (ov2 * ov2)
-                            dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
-                            dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
-                            inside = dmin >= 0
-                            root = tl.sqrt(dsmin + 1e-20)
-                            sd = tl.where(inside, dmin, -root)
-                            pst = state_ptr + env * 4 * HW + pyi * W + pxi
-                            if MODEL == 0:  # the face the forward chose (-1: none)
-                                keep = fm & pin & (f == tl.load(pst + HW, mask=pin, other=-1.0).to(tl.int32))
-                            else:
-                                keep = fm & pin & (sd > -cutoff)
-                            if tl.max(keep.to(tl.int32), axis=0) > 0:
-                                q_off = env * 3 * HW + pyi * W + pxi
-                                gr = tl.load(gout_ptr + q_off)
-                                gg = tl.load(gout_ptr + q_off + HW)
-                                gb = tl.load(gout_ptr + q_off + 2 * HW)
-                                out_r = tl.load(img_ptr + q_off)
-                                out_g = tl.load(img_ptr + q_off + HW)
-                                out_b = tl.load(img_ptr + q_off + 2 * HW)
-                                m = tl.load(pst)
-                                lc0 = tl.maximum(lam0, 0.0)
-                                lc1 = tl.maximum(lam1, 0.0)
-                                lc2 = tl.maximum(lam2, 0.0)
-                                q0 = lc0 * iz0
-                                q1 = lc1 * iz1
-                                q2 = lc2 * iz2
-                                qs = q0 + q1 + q2
-                                inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
-                                lcs = lc0 + lc1 + lc2
-                                zn = (zfar - lcs * inv_q) * inv_zr
-                                cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
-                                e = (zn - m) / gamma
-                                ew = tl.exp(tl.minimum(e, cap))
-                                if MODEL == 0:
-                                    w = tl.where(keep, 1.0, 0.0)
-                                else:
-                                    w = tl.where(keep, cov * ew, 0.0)
-                                b0 = q0 * inv_q
-                                b1 = q1 * inv_q
-                                b2 = q2 * inv_q
-                                nx = b0 * n0x + b1 * n1x + b2 * n2x
-                                ny = b0 * n0y + b1 * n1y + b2 * n2y
-                                nz = b0 * n0z + b1 * n1z + b2 * n2z
-                                ar = b0 * a0r + b1 * a1r + b2 * a2r
-                                ag = b0 * a0g + b1 * a1g + b2 * a2g
-                                ab = b0 * a0b + b1 * a1b + b2 * a2b
-                                nl = nx * lx + ny * ly + nz * lz
-                                il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
-                                cosl = nl * il
-                                shade = ambient + diffuse * tl.maximum(cosl, 0.0)
-                                # ---- backward: blend
-                                if MODEL == 0:  # the chosen face's colour is the pixel's; nothing else
-                                    gcr = gr * w
-                                    gcg = gg * w
-                                    gcb = gb * w
-                                    gzn = tl.zeros_like(w)
-                                    gsd = tl.zeros_like(w)
-                                    wmax = tl.maximum(wmax, w)
-                                else:
-                                    den_p = tl.load(pst + HW)
-                                    wsum_p = tl.load(pst + 2 * HW)
-                                    csum_p = tl.load(pst + 3 * HW)
-                                    # distinct names, not "_": Triton types a name once per scope, and "_"
-                                    # already holds a mask outside this branch
-                                    a, inv_cq, kn, _kc_p, _cov_p = _cover_coefficients(den_p, wsum_p, csum_p)
-                                    fpp = floor_ptr + env * 5 * HW + pyi * W + pxi
-                                    (_fz, _fr, _fg, _fb, _fh, _frf, pcb_r, pcb_g, pcb_b, _bg_r, _bg_g,
-                                     _bg_b) = _floor_start(fpp, prm, 0, 0, pin, HW, gamma)
-                                    g_out = gr * out_r + gg * out_g + gb * out_b
-                                    g_cb = gr * pcb_r + gg * pcb_g + gb * pcb_b
-                                    # d colour / d A = W (colour - C_b) / (A Q) while sum D < 1
-                                    g_a = tl.where(csum_p < 1.0, wsum_p * (g_out - g_cb) * inv_cq / a, 0.0)
-                                    # a face weight enters num, den and W
-                                    gw = tl.where(keep, kn * (gr * ar * shade + gg * ag * shade + gb * ab * shade
-                                                              - g_out) + (1.0 - a) * inv_cq * (g_cb - g_out), 0.0)
-                                    wd = w * kn
-                                    gcr = gr * wd  # d loss / d colour of the pair
-                                    gcg = gg * wd
-                                    gcb = gb * wd
-                                    gzn = tl.where(e < cap, gw * w / gamma, 0.0)
-                                    gsd = tl.where(keep, (gw * ew + g_a) * cov * (1.0 - cov) / sigma, 0.0)
-                                    # where sum D < 1 a kept face reaches the image through A even when its
-                                    # depth weight is 0 (hidden): it stays live
-                                    wmax = tl.maximum(wmax, tl.where(keep, tl.where(csum_p < 1.0, 1.0, w), 0.0))
-                                # ---- colour = albedo * shade(normal)
-                                gar = gcr * shade
-                                gag = gcg * shade
-                                gab = gcb * shade
-                                gsh = tl.where(cosl > 0, (gcr * ar + gcg * ag + gcb * ab) * diffuse, 0.0)
-                                il3 = il * il * il
-                                gnx = gsh * (lx * il - nl * nx * il3)
-                                gny = gsh * (ly * il - nl * ny * il3)
-                                gnz = gsh * (lz * il - nl * nz * il3)
-                                # per-corner normals and albedos enter through the barycentrics
-                                gn0x += gnx * b0
-                                gn0y += gny * b0
-                                gn0z += gnz * b0
-                                gn1x += gnx * b1
-                                gn1y += gny * b1
-                                gn1z += gnz * b1
-                                gn2x += gnx * b2
-                                gn2y += gny * b2
-                                gn2z += gnz * b2
-                                ga0r += gar * b0
-                                ga0g += gag * b0
-                                ga0b += gab * b0
-                                ga1r += gar * b1
-                                ga1g += gag * b1
-                                ga1b += gab * b1
-                                ga2r += gar * b2
-                                ga2g += gag * b2
-                                ga2b += gab * b2
-                                # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
-                                gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
-                                gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
-                                gb2 = gnx * n2x + gny * n2y + gnz * n2z + gar * a2r + gag * a2g + gab * a2b
-                                gdep = -gzn * inv_zr
-                                gbb = gb0 * b0 + gb1 * b1 + gb2 * b2
-                                gq_common = -gbb * inv_q - gdep * lcs * inv_q * inv_q
-                                gq0 = gb0 * inv_q + gq_common
-                                gq1 = gb1 * inv_q + gq_common
-                                gq2 = gb2 * inv_q + gq_common
-                                giz0 += gq0 * lc0
-                                giz1 += gq1 * lc1
-                                giz2 += gq2 * lc2
-                                glc0 = gq0 * iz0 + gdep * inv_q
-                                glc1 = gq1 * iz1 + gdep * inv_q
-                                glc2 = gq2 * iz2 + gdep * inv_q
-                                # ---- signed distance: inside the nearest edge line, outside the nearest segment
-                                a0 = (dl0 <= dl1) & (dl0 <= dl2)
-                                a1 = (~a0) & (dl1 <= dl2)
-                                a2 = (~a0) & (~a1)
-                                gsq = tl.where(inside, 0.0, -gsd * 0.5 / root)
-                                c0 = (ds0 <= ds1) & (ds0 <= ds2)
-                                c1 = (~c0) & (ds1 <= ds2)
-                                c2 = (~c0) & (~c1)
-                                gds0 = tl.where(c0, gsq, 0.0)
-                                gds1 = tl.where(c1, gsq, 0.0)
-                                gds2 = tl.where(c2, gsq, 0.0)
-                                gdl0 = tl.where(inside & a0, gsd, 0.0) + 2.0 * dl0 * gds0
-                                gdl1 = tl.where(inside & a1, gsd, 0.0) + 2.0 * dl1 * gds1
-                                gdl2 = tl.where(inside & a2, gsd, 0.0) + 2.0 * dl2 * gds2
-                                gh0 += gdl0 * lam0
-                                gh1 += gdl1 * lam1
-                                gh2 += gdl2 * lam2
-                                gl20 += gds0 * ov0 * ov0
-                                gl21 += gds1 * ov1 * ov1
-                                gl22 += gds2 * ov2 * ov2
-                                gs0 = tl.where((s0 < 0) | (s0 > 1), 2.0 * l20 * ov0 * gds0, 0.0)
-                                gs1 = tl.where((s1 < 0) | (s1 > 1), 2.0 * l21 * ov1 * gds1, 0.0)
-                                gs2 = tl.where((s2 < 0) | (s2 > 1), 2.0 * l22 * ov2 * gds2, 0.0)
-                                glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
-                                glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
-                                glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
-                                gla0, glx0, gly0 = _affine_acc(gla0, glx0, gly0, glam0, x, y)
-                                gla1, glx1, gly1 = _affine_acc(gla1, glx1, gly1, glam1, x, y)
-                                gla2, glx2, gly2 = _affine_acc(gla2, glx2, gly2, glam2, x, y)
-                                gpa0, gpx0, gpy0 = _affine_acc(gpa0, gpx0, gpy0, gs0, x, y)
-                                gpa1, gpx1, gpy1 = _affine_acc(gpa1, gpx1, gpy1, gs1, x, y)
-                                gpa2, gpx2, gpy2 = _affine_acc(gpa2, gpx2, gpy2, gs2, x, y)
-                        # Every term of a pair's gradient carries its weight w (coverage x depth softmax), except
-                        # the coverage term where sum D < 1 (counted in wmax as 1): a face whose weight is exactly
-                        # 0 at all of the tile's pixels (hidden behind nearer surfaces, or only within the box
-                        # margin) and that touches no partly covered pixel adds nothing, so it issues no atomics.
-                        live = fm & (wmax > 0.0)
-                        gq = gbase + f
-                        _store_grads(gq, Fp, 0, gla0, gla1, gla2, glx0, glx1, glx2, gly0, gly1, gly2, live)
-                        _store_grads(gq, Fp, 9, gpa0, gpa1, gpa2, gpx0, gpx1, gpx2, gpy0, gpy1, gpy2, live)
-                        _store_grads(gq, Fp, 18, gh0, gh1, gh2, gl20, gl21, gl22, giz0, giz1, giz2, live)
-                        _store_grads(gq, Fp, 27, gn0x, gn0y, gn0z, gn1x, gn1y, gn1z, gn2x, gn2y, gn2z, live)
-                        _store_grads(gq, Fp, 36, ga0r, ga0g, ga0b, ga1r, ga1g, ga1b, ga2r, ga2g, ga2b, live)
+        for sb in range(0, NSB):  # coarse: a super-block's box, then its blocks' boxes
+            if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
+                for j in range(0, SB):
+                    blk = sb * SB + j
+                    if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
+                        for sub in range(0, FB // SUB):
+                            f = blk * FB + sub * SUB + fo
+                            fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                            if tl.max(fm.to(tl.int32), axis=0) > 0:
+                                cp = cbase + f
+                                la0, la1, la2 = tl.load(cp), tl.load(cp + Fp), tl.load(cp + 2 * Fp)
+                                lx0, lx1, lx2 = tl.load(cp + 3 * Fp), tl.load(cp + 4 * Fp), tl.load(cp + 5 * Fp)
+                                ly0, ly1, ly2 = tl.load(cp + 6 * Fp), tl.load(cp + 7 * Fp), tl.load(cp + 8 * Fp)
+                                pa0, pa1, pa2 = tl.load(cp + 9 * Fp), tl.load(cp + 10 * Fp), tl.load(cp + 11 * Fp)
+                                px0, px1, px2 = tl.load(cp + 12 * Fp), tl.load(cp + 13 * Fp), tl.load(cp + 14 * Fp)
+                                py0, py1, py2 = tl.load(cp + 15 * Fp), tl.load(cp + 16 * Fp), tl.load(cp + 17 * Fp)
+                                h0, h1, h2 = tl.load(cp + 18 * Fp), tl.load(cp + 19 * Fp), tl.load(cp + 20 * Fp)
+                                l20, l21, l22 = tl.load(cp + 21 * Fp), tl.load(cp + 22 * Fp), tl.load(cp + 23 * Fp)
+                                iz0, iz1, iz2 = tl.load(cp + 24 * Fp), tl.load(cp + 25 * Fp), tl.load(cp + 26 * Fp)
+                                n0x, n0y, n0z = tl.load(cp + 27 * Fp), tl.load(cp + 28 * Fp), tl.load(cp + 29 * Fp)
+                                n1x, n1y, n1z = tl.load(cp + 30 * Fp), tl.load(cp + 31 * Fp), tl.load(cp + 32 * Fp)
+                                n2x, n2y, n2z = tl.load(cp + 33 * Fp), tl.load(cp + 34 * Fp), tl.load(cp + 35 * Fp)
+                                a0r, a0g, a0b = tl.load(cp + 36 * Fp), tl.load(cp + 37 * Fp), tl.load(cp + 38 * Fp)
+                                a1r, a1g, a1b = tl.load(cp + 39 * Fp), tl.load(cp + 40 * Fp), tl.load(cp + 41 * Fp)
+                                a2r, a2g, a2b = tl.load(cp + 42 * Fp), tl.load(cp + 43 * Fp), tl.load(cp + 44 * Fp)
+                                zero = tl.zeros([SUB], dtype=la0.dtype)
+                                # the 45 coefficient gradients of the sub-block's faces, summed over the pixels
+                                gla0, gla1, gla2, glx0, glx1, glx2, gly0, gly1, gly2 = (
+                                    zero, zero, zero, zero, zero, zero, zero, zero, zero)
+                                gpa0, gpa1, gpa2, gpx0, gpx1, gpx2, gpy0, gpy1, gpy2 = (
+                                    zero, zero, zero, zero, zero, zero, zero, zero, zero)
+                                gh0, gh1, gh2, gl20, gl21, gl22, giz0, giz1, giz2 = (
+                                    zero, zero, zero, zero, zero, zero, zero, zero, zero)
+                                gn0x, gn0y, gn0z, gn1x, gn1y, gn1z, gn2x, gn2y, gn2z = (
+                                    zero, zero, zero, zero, zero, zero, zero, zero, zero)
+                                ga0r, ga0g, ga0b, ga1r, ga1g, ga1b, ga2r, ga2g, ga2b = (
+                                    zero, zero, zero, zero, zero, zero, zero, zero, zero)
+                                wmax = zero
+                                for p in range(0, TILE_ * TILE_):
+                                    pxi = tx0 + p % TILE_
+                                    pyi = ty0 + p // TILE_
+                                    pin = (pxi < W) & (pyi < H)
+                                    x = pxi.to(sigma.dtype) + 0.5
+                                    y = pyi.to(sigma.dtype) + 0.5
+                                    # ---- forward recompute of the pairs (face, this pixel)
+                                    lam0 = la0 + lx0 * x + ly0 * y
+                                    lam1 = la1 + lx1 * x + ly1 * y
+                                    lam2 = la2 + lx2 * x + ly2 * y
+                                    s0 = pa0 + px0 * x + py0 * y
+                                    s1 = pa1 + px1 * x + py1 * y
+                                    s2 = pa2 + px2 * x + py2 * y
+                                    dl0 = lam0 * h0
+                                    dl1 = lam1 * h1
+                                    dl2 = lam2 * h2
+                                    ov0 = s0 - tl.minimum(tl.maximum(s0, 0.0), 1.0)
+                                    ov1 = s1 - tl.minimum(tl.maximum(s1, 0.0), 1.0)
+                                    ov2 = s2 - tl.minimum(tl.maximum(s2, 0.0), 1.0)
+                                    ds0 = dl0 * dl0 + l20 * (ov0 * ov0)
+                                    ds1 = dl1 * dl1 + l21 * (ov1 * ov1)
+                                    ds2 = dl2 * dl2 + l22 * (ov2 * ov2)
+                                    dmin = tl.minimum(tl.minimum(dl0, dl1), dl2)
+                                    dsmin = tl.minimum(tl.minimum(ds0, ds1), ds2)
+                                    inside = dmin >= 0
+                                    root = tl.sqrt(dsmin + 1e-20)
+                                    sd = tl.where(inside, dmin, -root)
+                                    pst = state_ptr + env * 4 * HW + pyi * W + pxi
+                                    if MODEL == 0:  # the face the forward chose (-1: none)
+                                        keep = fm & pin & (f == tl.load(pst + HW, mask=pin, other=-1.0).to(tl.int32))
+                                    else:
+                                        keep = fm & pin & (sd > -cutoff)
+                                    if tl.max(keep.to(tl.int32), axis=0) > 0:
+                                        q_off = env * 3 * HW + pyi * W + pxi
+                                        gr = tl.load(gout_ptr + q_off)
+                                        gg = tl.load(gout_ptr + q_off + HW)
+                                        gb = tl.load(gout_ptr + q_off + 2 * HW)
+                                        out_r = tl.load(img_ptr + q_off)
+                                        out_g = tl.load(img_ptr + q_off + HW)
+                                        out_b = tl.load(img_ptr + q_off + 2 * HW)
+                                        m = tl.load(pst)
+                                        lc0 = tl.maximum(lam0, 0.0)
+                                        lc1 = tl.maximum(lam1, 0.0)
+                                        lc2 = tl.maximum(lam2, 0.0)
+                                        q0 = lc0 * iz0
+                                        q1 = lc1 * iz1
+                                        q2 = lc2 * iz2
+                                        qs = q0 + q1 + q2
+                                        inv_q = 1.0 / tl.where(qs > 0, qs, 1.0)
+                                        lcs = lc0 + lc1 + lc2
+                                        zn = (zfar - lcs * inv_q) * inv_zr
+                                        cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+                                        e = (zn - m) / gamma
+                                        ew = tl.exp(tl.minimum(e, cap))
+                                        if MODEL == 0:
+                                            w = tl.where(keep, 1.0, 0.0)
+                                        else:
+                                            w = tl.where(keep, cov * ew, 0.0)
+                                        b0 = q0 * inv_q
+                                        b1 = q1 * inv_q
+                                        b2 = q2 * inv_q
+                                        nx = b0 * n0x + b1 * n1x + b2 * n2x
+                                        ny = b0 * n0y + b1 * n1y + b2 * n2y
+                                        nz = b0 * n0z + b1 * n1z + b2 * n2z
+                                        ar = b0 * a0r + b1 * a1r + b2 * a2r
+                                        ag = b0 * a0g + b1 * a1g + b2 * a2g
+                                        ab = b0 * a0b + b1 * a1b + b2 * a2b
+                                        nl = nx * lx + ny * ly + nz * lz
+                                        il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
+                                        cosl = nl * il
+                                        shade = ambient + diffuse * tl.maximum(cosl, 0.0)
+                                        # ---- backward: blend
+                                        if MODEL == 0:  # the chosen face's colour is the pixel's; nothing else
+                                            gcr = gr * w
+                                            gcg = gg * w
+                                            gcb = gb * w
+                                            gzn = tl.zeros_like(w)
+                                            gsd = tl.zeros_like(w)
+                                            wmax = tl.maximum(wmax, w)
+                                        else:
+                                            den_p = tl.load(pst + HW)
+                                            wsum_p = tl.load(pst + 2 * HW)
+                                            csum_p = tl.load(pst + 3 * HW)
+                                            # distinct names, not "_": Triton types a name once per scope, and "_"
+                                            # already holds a mask outside this branch
+                                            a, inv_cq, kn, _kc_p, _cov_p = _cover_coefficients(den_p, wsum_p, csum_p)
+                                            fpp = floor_ptr + env * 5 * HW + pyi * W + pxi
+                                            (_fz, _fr, _fg, _fb, _fh, _frf, pcb_r, pcb_g, pcb_b, _bg_r, _bg_g,
+                                             _bg_b) = _floor_start(fpp, prm, 0, 0, pin, HW, gamma)
+                                            g_out = gr * out_r + gg * out_g + gb * out_b
+                                            g_cb = gr * pcb_r + gg * pcb_g + gb * pcb_b
+                                            # d colour / d A = W (colour - C_b) / (A Q) while sum D < 1
+                                            g_a = tl.where(csum_p < 1.0, wsum_p * (g_out - g_cb) * inv_cq / a, 0.0)
+                                            # a face weight enters num, den and W
+                                            gw = tl.where(keep, kn * (gr * ar * shade + gg * ag * shade
+                                                                      + gb * ab * shade - g_out)
+                                                          + (1.0 - a) * inv_cq * (g_cb - g_out), 0.0)
+                                            wd = w * kn
+                                            gcr = gr * wd  # d loss / d colour of the pair
+                                            gcg = gg * wd
+                                            gcb = gb * wd
+                                            gzn = tl.where(e < cap, gw * w / gamma, 0.0)
+                                            gsd = tl.where(keep, (gw * ew + g_a) * cov * (1.0 - cov) / sigma, 0.0)
+                                            # where sum D < 1 a kept face reaches the image through A even when its
+                                            # depth weight is 0 (hidden): it stays live
+                                            wmax = tl.maximum(wmax, tl.where(keep, tl.where(csum_p < 1.0, 1.0, w), 0.0))
+                                        # ---- colour = albedo * shade(normal)
+                                        gar = gcr * shade
+                                        gag = gcg * shade
+                                        gab = gcb * shade
+                                        gsh = tl.where(cosl > 0, (gcr * ar + gcg * ag + gcb * ab) * diffuse, 0.0)
+                                        il3 = il * il * il
+                                        gnx = gsh * (lx * il - nl * nx * il3)
+                                        gny = gsh * (ly * il - nl * ny * il3)
+                                        gnz = gsh * (lz * il - nl * nz * il3)
+                                        # per-corner normals and albedos enter through the barycentrics
+                                        gn0x += gnx * b0
+                                        gn0y += gny * b0
+                                        gn0z += gnz * b0
+                                        gn1x += gnx * b1
+                                        gn1y += gny * b1
+                                        gn1z += gnz * b1
+                                        gn2x += gnx * b2
+                                        gn2y += gny * b2
+                                        gn2z += gnz * b2
+                                        ga0r += gar * b0
+                                        ga0g += gag * b0
+                                        ga0b += gab * b0
+                                        ga1r += gar * b1
+                                        ga1g += gag * b1
+                                        ga1b += gab * b1
+                                        ga2r += gar * b2
+                                        ga2g += gag * b2
+                                        ga2b += gab * b2
+                                        # ---- barycentrics b_k = q_k / sum q, depth = sum lc / sum q, q_k = lc_k / z_k
+                                        gb0 = gnx * n0x + gny * n0y + gnz * n0z + gar * a0r + gag * a0g + gab * a0b
+                                        gb1 = gnx * n1x + gny * n1y + gnz * n1z + gar * a1r + gag * a1g + gab * a1b
+                                        gb2 = gnx * n2x + gny * n2y + gnz * n2z + gar * a2r + gag * a2g + gab * a2b
+                                        gdep = -gzn * inv_zr
+                                        gbb = gb0 * b0 + gb1 * b1 + gb2 * b2
+                                        gq_common = -gbb * inv_q - gdep * lcs * inv_q * inv_q
+                                        gq0 = gb0 * inv_q + gq_common
+                                        gq1 = gb1 * inv_q + gq_common
+                                        gq2 = gb2 * inv_q + gq_common
+                                        giz0 += gq0 * lc0
+                                        giz1 += gq1 * lc1
+                                        giz2 += gq2 * lc2
+                                        glc0 = gq0 * iz0 + gdep * inv_q
+                                        glc1 = gq1 * iz1 + gdep * inv_q
+                                        glc2 = gq2 * iz2 + gdep * inv_q
+                                        # ---- signed distance: inside the nearest edge line, outside the nearest
+                                        # segment
+                                        a0 = (dl0 <= dl1) & (dl0 <= dl2)
+                                        a1 = (~a0) & (dl1 <= dl2)
+                                        a2 = (~a0) & (~a1)
+                                        gsq = tl.where(inside, 0.0, -gsd * 0.5 / root)
+                                        c0 = (ds0 <= ds1) & (ds0 <= ds2)
+                                        c1 = (~c0) & (ds1 <= ds2)
+                                        c2 = (~c0) & (~c1)
+                                        gds0 = tl.where(c0, gsq, 0.0)
+                                        gds1 = tl.where(c1, gsq, 0.0)
+                                        gds2 = tl.where(c2, gsq, 0.0)
+                                        gdl0 = tl.where(inside & a0, gsd, 0.0) + 2.0 * dl0 * gds0
+                                        gdl1 = tl.where(inside & a1, gsd, 0.0) + 2.0 * dl1 * gds1
+                                        gdl2 = tl.where(inside & a2, gsd, 0.0) + 2.0 * dl2 * gds2
+                                        gh0 += gdl0 * lam0
+                                        gh1 += gdl1 * lam1
+                                        gh2 += gdl2 * lam2
+                                        gl20 += gds0 * ov0 * ov0
+                                        gl21 += gds1 * ov1 * ov1
+                                        gl22 += gds2 * ov2 * ov2
+                                        gs0 = tl.where((s0 < 0) | (s0 > 1), 2.0 * l20 * ov0 * gds0, 0.0)
+                                        gs1 = tl.where((s1 < 0) | (s1 > 1), 2.0 * l21 * ov1 * gds1, 0.0)
+                                        gs2 = tl.where((s2 < 0) | (s2 > 1), 2.0 * l22 * ov2 * gds2, 0.0)
+                                        glam0 = tl.where(lam0 >= 0, glc0, 0.0) + gdl0 * h0
+                                        glam1 = tl.where(lam1 >= 0, glc1, 0.0) + gdl1 * h1
+                                        glam2 = tl.where(lam2 >= 0, glc2, 0.0) + gdl2 * h2
+                                        gla0, glx0, gly0 = _affine_acc(gla0, glx0, gly0, glam0, x, y)
+                                        gla1, glx1, gly1 = _affine_acc(gla1, glx1, gly1, glam1, x, y)
+                                        gla2, glx2, gly2 = _affine_acc(gla2, glx2, gly2, glam2, x, y)
+                                        gpa0, gpx0, gpy0 = _affine_acc(gpa0, gpx0, gpy0, gs0, x, y)
+                                        gpa1, gpx1, gpy1 = _affine_acc(gpa1, gpx1, gpy1, gs1, x, y)
+                                        gpa2, gpx2, gpy2 = _affine_acc(gpa2, gpx2, gpy2, gs2, x, y)
+                                # Every term of a pair's gradient carries its weight w (coverage x depth softmax),
+                                # except the coverage term where sum D < 1 (counted in wmax as 1): a face whose weight
+                                # is exactly 0 at all of the tile's pixels (hidden behind nearer surfaces, or only
+                                # within the box margin) and that touches no partly covered pixel adds nothing, so it
+                                # issues no atomics.
+                                live = fm & (wmax > 0.0)
+                                gq = gbase + f
+                                _store_grads(gq, Fp, 0, gla0, gla1, gla2, glx0, glx1, glx2, gly0, gly1, gly2, live)
+                                _store_grads(gq, Fp, 9, gpa0, gpa1, gpa2, gpx0, gpx1, gpx2, gpy0, gpy1, gpy2, live)
+                                _store_grads(gq, Fp, 18, gh0, gh1, gh2, gl20, gl21, gl22, giz0, giz1, giz2, live)
+                                _store_grads(gq, Fp, 27, gn0x, gn0y, gn0z, gn1x, gn1y, gn1z, gn2x, gn2y, gn2z, live)
+                                _store_grads(gq, Fp, 36, ga0r, ga0g, ga0b, ga1r, ga1g, ga1b, ga2r, ga2g, ga2b, live)
 
 
 def _floor_planes(rotation, eye, st: Static, dtype, device) -> torch.Tensor:
@@ -722,11 +769,13 @@ def _warps(tile: int, fb: int) -> int:
     return 4 if tile * tile * fb <= 1024 else 8
 
 
-def _setup(verts, normals, colors, rotation, eye, faces, st: Static, fb: int):
-    """Everything the kernels read for one chunk of environments: :func:`face_coefficients` (coef, face_box,
-    block_box) and the floor planes (B, 5, H, W). Differentiable PyTorch, O(B * F + B * H * W)."""
+def _setup(verts, normals, colors, rotation, eye, faces, st: Static, fb: int, sb: int):
+    """Everything the kernels read for one chunk of environments: :func:`face_coefficients` (coef, face_box),
+    :func:`super_block_boxes` of its block boxes (block_box padded, super_box) and the floor planes
+    (B, 5, H, W). Differentiable PyTorch, O(B * F + B * H * W)."""
     coef, box, bbox = face_coefficients(verts, normals, colors, rotation, eye, faces, st, fb)
-    return coef, box, bbox, _floor_planes(rotation, eye, st, verts.dtype, verts.device)
+    bbox, sbox = super_block_boxes(bbox, sb)
+    return coef, box, bbox, sbox, _floor_planes(rotation, eye, st, verts.dtype, verts.device)
 
 
 @functools.cache
@@ -736,15 +785,23 @@ def _setup_fn(compile_: bool):
     return torch.compile(_setup, dynamic=False) if compile_ else _setup
 
 
-def _launch_forward(coef, box, bbox, floor, st: Static, tile: int, fb: int, out: torch.Tensor,
+def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int, out: torch.Tensor,
                     state: torch.Tensor | None) -> None:
     """Blend one chunk's image into ``out`` (b, 3, H, W) and, if ``state`` (b, 4, H, W) is given, what the
     backward needs of each pixel's blend into it (see ``_fused_forward``)."""
     grid, tx = _launch_grid(st, out.shape[0], tile)
-    _fused_forward[grid](coef, box, bbox, floor, _params(st, out.dtype, out.device), out,
-                         out if state is None else state, coef.shape[2], bbox.shape[2], st.height, st.width, tx,
-                         TILE_=tile, FB=fb, SAVE=state is not None, MODEL=_MODEL_CODE[st.raster_model],
-                         num_warps=_warps(tile, fb))
+    _fused_forward[grid](coef, box, bbox, sbox, floor, _params(st, out.dtype, out.device), out,
+                         out if state is None else state, coef.shape[2], bbox.shape[2], sbox.shape[2], st.height,
+                         st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], SAVE=state is not None,
+                         MODEL=_MODEL_CODE[st.raster_model], num_warps=_warps(tile, fb))
+
+
+def backward_tile(num_faces: int, height: int, width: int) -> int:
+    """The backward kernel's tile side [px]: ``BWD_TILE``, or ``BWD_TILE_DENSE`` where there are more than
+    ``DENSE_FACES_PER_PIXEL`` faces per pixel of the image. Each backward program walks its tile's pixels once
+    per block of faces near it, so its time grows with (faces near the tile) x (tile area); where small faces
+    crowd together (many per pixel) the smaller tile splits the busiest tiles' work over more programs."""
+    return BWD_TILE_DENSE if num_faces > DENSE_FACES_PER_PIXEL * height * width else BWD_TILE
 
 
 class _FusedRasterize(torch.autograd.Function):
@@ -754,7 +811,7 @@ class _FusedRasterize(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, verts, normals, colors, rotation, eye, faces, st: Static, tile: int, fb: int, chunk: int,
-                compile_: bool, keep_state: bool):
+                compile_: bool, keep_state: bool, bwd_tile: int):
         b = verts.shape[0]
         dt, dev = verts.dtype, verts.device
         setup = _setup_fn(compile_)
@@ -764,23 +821,24 @@ class _FusedRasterize(torch.autograd.Function):
         save = keep_state and any(ctx.needs_input_grad[:5])
         state = torch.empty(b, STATE_PER_PIXEL, st.height, st.width, dtype=dt, device=dev) if save else None
         for sl in chunks(b, chunk):
-            coef, box, bbox, floor = setup(verts[sl], rows(normals, sl), rows(colors, sl, shared_ok=True),
-                                           rotation[sl], eye[sl], faces, st, fb)
-            _launch_forward(coef, box, bbox, floor, st, tile, fb, out[sl], None if state is None else state[sl])
+            coef, box, bbox, sbox, floor = setup(verts[sl], rows(normals, sl), rows(colors, sl, shared_ok=True),
+                                                 rotation[sl], eye[sl], faces, st, fb, SUPER_BLOCK)
+            _launch_forward(coef, box, bbox, sbox, floor, st, tile, fb, out[sl],
+                            None if state is None else state[sl])
         if save:
             ctx.save_for_backward(verts, normals, colors, rotation, eye, faces, out, state)
         else:
             ctx.save_for_backward(verts, normals, colors, rotation, eye, faces)
-        ctx.cfg = (st, tile, fb, chunk, compile_, save)
+        ctx.cfg = (st, tile, fb, chunk, compile_, save, bwd_tile)
         # an undefined incoming gradient (e.g. gradlab's closed ImageGate) stays None: no recompute at all
         ctx.set_materialize_grads(False)
         return out
 
     @staticmethod
     def backward(ctx, grad_img):
-        st, tile, fb, chunk, compile_, saved_state = ctx.cfg
+        st, tile, fb, chunk, compile_, saved_state, bwd_tile = ctx.cfg
         if grad_img is None:
-            return (None,) * 12
+            return (None,) * 13
         verts, normals, colors, rotation, eye, faces, *kept = ctx.saved_tensors
         setup = _setup_fn(compile_)
         need = ctx.needs_input_grad[:5]
@@ -793,7 +851,7 @@ class _FusedRasterize(torch.autograd.Function):
             with torch.enable_grad():
                 leaves = [None if x is None else rows(x, sl, shared_ok=i == 2).detach().requires_grad_(bool(nd))
                           for i, (x, nd) in enumerate(zip(inputs, need))]
-                coef, box, bbox, floor = setup(*leaves, faces, st, fb)
+                coef, box, bbox, sbox, floor = setup(*leaves, faces, st, fb, SUPER_BLOCK)
                 floor_diff = floor[:, :4]  # depth and colour (the hit flag has no gradient)
             wanted = [i for i, leaf in enumerate(leaves) if leaf is not None and leaf.requires_grad]
             gcoef = torch.zeros_like(coef)
@@ -807,11 +865,12 @@ class _FusedRasterize(torch.autograd.Function):
                 nb = sl.stop - sl.start
                 out = torch.empty(nb, 3, st.height, st.width, dtype=dt, device=dev)
                 state = torch.empty(nb, STATE_PER_PIXEL, st.height, st.width, dtype=dt, device=dev)
-                _launch_forward(coef.detach(), box, bbox, floor.detach(), st, tile, fb, out, state)
-            grid, tx = _launch_grid(st, sl.stop - sl.start, BWD_TILE)
-            _fused_backward[grid](coef.detach(), box, bbox, floor.detach(), _params(st, dt, dev), out,
-                                  state, grad_img[sl], gcoef, gfloor, coef.shape[2], bbox.shape[2], st.height,
-                                  st.width, tx, TILE_=BWD_TILE, FB=fb, SUB=sub, MODEL=_MODEL_CODE[st.raster_model],
+                _launch_forward(coef.detach(), box, bbox, sbox, floor.detach(), st, tile, fb, out, state)
+            grid, tx = _launch_grid(st, sl.stop - sl.start, bwd_tile)
+            _fused_backward[grid](coef.detach(), box, bbox, sbox, floor.detach(), _params(st, dt, dev), out,
+                                  state, grad_img[sl], gcoef, gfloor, coef.shape[2], bbox.shape[2], sbox.shape[2],
+                                  st.height, st.width, tx, TILE_=bwd_tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2],
+                                  SUB=sub, MODEL=_MODEL_CODE[st.raster_model],
                                   num_warps=BWD_WARPS or max(1, sub // 32))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
@@ -822,7 +881,7 @@ class _FusedRasterize(torch.autograd.Function):
                     grads[i] += g
                 else:
                     grads[i][sl] += g
-        return (*grads, None, None, None, None, None, None, None)
+        return (*grads, None, None, None, None, None, None, None, None)
 
 
 def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
@@ -846,5 +905,6 @@ def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: t
     nfp = max(1, -(-faces.shape[0] // face_block)) * face_block
     chunk = max(1, COEF_ELEMS // (NUM_COEFFS * nfp))
     return _FusedRasterize.apply(verts, normals, colors, camera.rotation, camera.eye, faces, st, tile,
-                                 face_block, chunk, settings.compile, settings.save_blend_state)
+                                 face_block, chunk, settings.compile, settings.save_blend_state,
+                                 backward_tile(faces.shape[0], camera.height, camera.width))
 

@@ -62,6 +62,38 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
 
 
+@pytest.mark.parametrize("model", ["softmax", "hard", pytest.param("alpha", marks=pytest.mark.slow)])
+def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeypatch, model):
+    """Super-blocks of two 16-face blocks (the 944 faces make 30 of them, most far from most tiles, so the
+    coarse test skips whole runs of blocks) and the backward tile chosen for crowded faces: the image and
+    gradients of the dense reference."""
+    monkeypatch.setattr(fused, "FACE_BLOCK", 16)
+    monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
+    monkeypatch.setattr(fused, "DENSE_FACES_PER_PIXEL", 0.0)
+    monkeypatch.setattr(fused, "BWD_SUB_BLOCK", 16)
+    q = ant_pose(2, seed=6).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=12)
+    assert fused.backward_tile(ant64.num_faces, cam.height, cam.width) == fused.BWD_TILE_DENSE
+    _compare(verts, ant64.faces, ant64.colors, cam, dict(raster_model=model, save_blend_state=model != "hard"))
+
+
+def test_super_block_boxes_are_unions_of_their_blocks():
+    """Each super-box is the union of its blocks' boxes; padding blocks are empty and touch no pixel."""
+    g = torch.Generator().manual_seed(0)
+    lo = torch.rand(2, 2, 7, generator=g) * 50
+    block = torch.stack([lo[:, 0], lo[:, 0] + 3, lo[:, 1], lo[:, 1] + 5], dim=1)  # (2, 4, 7)
+    padded, sup = fused.super_block_boxes(block, 4)
+    assert padded.shape == (2, 4, 8) and sup.shape == (2, 4, 2)
+    assert torch.equal(padded[:, :, :7], block)
+    assert (padded[:, 0, 7] > padded[:, 1, 7]).all() and (padded[:, 2, 7] > padded[:, 3, 7]).all()
+    for k, (a, b) in enumerate(((0, 4), (4, 7))):
+        for row, reduce in enumerate((torch.amin, torch.amax, torch.amin, torch.amax)):
+            assert torch.equal(sup[:, row, k], reduce(block[:, row, a:b], -1))
+    assert fused.backward_tile(100_000, 84, 84) == fused.BWD_TILE_DENSE
+    assert fused.backward_tile(1856, 84, 84) == fused.BWD_TILE
+
+
 @pytest.mark.parametrize(("bwd_tile", "sub_block"), [(8, 64), pytest.param(4, 16, marks=pytest.mark.slow)])
 def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, sub_block):
     """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
