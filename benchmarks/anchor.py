@@ -8,13 +8,20 @@ Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up t
   it under ``--compile``); ``warp`` (forward only, eager and graph-replayed); ``nvdiffrast`` (rasterize +
   interpolate colours and normals + Lambert shading + antialias; eager), when it is importable
   (``source ../shared/tools/nvdiffrast-build.sh``). The backward is that of a fixed random weighting of the
-  image, into the world vertices.
+  image, into the world vertices. nvdiffrast is timed first, so each fused row carries ``anchor_fwd_ms`` and
+  ``anchor_fwdbwd_ms`` and the ratios; and the device time of one eager fwd+bwd by stage (torch.profiler,
+  kernels by name: ``raster_fwd_ms`` the forward kernel, ``raster_bwd_ms`` the backward kernel, ``setup_fwd_ms``
+  everything else of a no-grad render, i.e. the per-face setup with its box levels and the floor, and
+  ``setup_bwd_ms`` the rest of the fwd+bwd: the backward's recompute of the setup and its autograd).
+  ``--variants`` times the fused backend again with some of ``diffrender.raster.fused``'s module constants
+  changed (e.g. the former single-level walk and small chunks), each row tagged with its ``variant``.
 - ``iou``: the sharp-limit silhouette of each of our models and of the ray tracer against nvdiffrast's
   coverage (no floor, black background, white unlit robot), 64 ant poses: intersection over union and our
   mask's size relative to the anchor's.
 
     python benchmarks/anchor.py --out benchmarks/results/anchor.json            # both parts
     python benchmarks/anchor.py --faces 0 --models softmax --repeats 5         # a quick look
+    python benchmarks/anchor.py --parts time --variants default COEF_ELEMS=16777216,SUPER_BLOCK=1
 
 The scene, poses and camera are ``benchmarks/render.py``'s ``Scene`` (the ant task's tracking camera).
 """
@@ -60,6 +67,56 @@ def _median_ms(fn, *, warmup: int, repeats: int) -> float:
         end.synchronize()
         times.append(start.elapsed_time(end))
     return statistics.median(times)
+
+
+def _apply_variant(variant: str) -> dict:
+    """Set ``diffrender.raster.fused``'s module constants named in ``variant`` ("default" or
+    "NAME=VALUE,NAME=VALUE"), after restoring the defaults; returns the values in force."""
+    from diffrender.raster import fused
+
+    for name, value in _FUSED_DEFAULTS.items():
+        setattr(fused, name, value)
+    if variant != "default":
+        for item in variant.split(","):
+            name, value = item.split("=")
+            if name not in _FUSED_DEFAULTS:
+                raise ValueError(f"--variants: {name!r} is not one of {', '.join(_FUSED_DEFAULTS)}")
+            setattr(fused, name, type(_FUSED_DEFAULTS[name] or 0)(float(value)))
+    return {name: getattr(fused, name) for name in _FUSED_DEFAULTS}
+
+
+def _fused_defaults() -> dict:
+    from diffrender.raster import fused
+
+    return {name: getattr(fused, name) for name in ("COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE",
+                                                    "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK")}
+
+
+_FUSED_DEFAULTS = _fused_defaults()
+
+
+def _stages(fn_fwd, fn_fwdbwd) -> dict:
+    """Device time [ms] of one call of each, by stage: the fused kernels by name, the rest as setup."""
+    from torch.profiler import ProfilerActivity, profile
+
+    def by_kernel(fn) -> dict:
+        _sync()
+        with profile(activities=[ProfilerActivity.CUDA]) as prof:
+            fn()
+            _sync()
+        out = {"fwd": 0.0, "bwd": 0.0, "other": 0.0, "kernels": 0}
+        for e in prof.events():
+            if e.device_type != torch.autograd.DeviceType.CUDA:
+                continue
+            key = "fwd" if "_fused_forward" in e.name else "bwd" if "_fused_backward" in e.name else "other"
+            out[key] += e.time_range.elapsed_us() / 1e3
+            out["kernels"] += 1
+        return out
+
+    f, fb = by_kernel(fn_fwd), by_kernel(fn_fwdbwd)
+    return {"setup_fwd_ms": f["other"], "raster_fwd_ms": f["fwd"], "raster_bwd_ms": fb["bwd"],
+            "setup_bwd_ms": max(0.0, fb["other"] - f["other"]), "kernels_fwd": f["kernels"],
+            "kernels_fwdbwd": fb["kernels"]}
 
 
 def _peak(fn) -> dict:
@@ -149,71 +206,89 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
             (render_fn(verts) * weights).sum().backward()
         return step, verts
 
-    for model in args.models:
-        settings = dr.RasterSettings(raster_model=model, backend="fused", sync_checks=False,
-                                     save_blend_state=True)
-        row = dict(base, backend="fused", raster_model=model)
-        try:
-            def render(v, settings=settings):
-                return dr.render(v, robot.faces, robot.colors, cam, settings)
-            with torch.no_grad():
-                row["fwd_eager_ms"] = _median_ms(lambda: render(verts0), warmup=args.warmup,
-                                                 repeats=args.repeats)
-            step, _ = fwdbwd_of(render)
-            row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
-            row.update(_peak(step))
-            with SavedTensorMeter(exclude=[robot.faces]) as meter:
-                kept = render(verts0.clone().requires_grad_(True))  # alive: its graph holds the saved tensors
-            row["saved_mb"] = meter.bytes / 2**20
-            del kept
-
-            def fwd_nograd(render=render):
-                with torch.no_grad():
-                    render(verts0)
-            row["fwd_ms"] = _median_ms(graphed(fwd_nograd, "cuda", warmup=3), warmup=args.warmup, repeats=args.repeats)
-            row["fwdbwd_ms"] = _median_ms(graphed(step, "cuda", warmup=3), warmup=args.warmup, repeats=args.repeats)
-        except Exception as e:  # an OOM or a failed capture is a result: record it and go on
-            row["error"] = f"{type(e).__name__}: {e}"
-            traceback.print_exc()
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-
-    row = dict(base, backend="warp", raster_model="hard")
-    try:
-        settings = dr.RasterSettings(sync_checks=False)
-        tracer = dr.RayTracer(robot.faces, num_envs=args.batch, num_verts=robot.num_vertices,
-                              device="cuda", settings=settings)
-
-        def trace():
-            with torch.no_grad():
-                tracer(verts0, robot.colors, cam)
-        trace()
-        row["fwd_eager_ms"] = _median_ms(trace, warmup=args.warmup, repeats=args.repeats)
-        row["images_per_s_eager"] = args.batch / row["fwd_eager_ms"] * 1e3
-        if args.warp_graph:  # a failed capture leaves the CUDA context unusable: opt in
-            row["fwd_ms"] = _median_ms(graphed(trace, "cuda", warmup=3), warmup=args.warmup, repeats=args.repeats)
-            row["images_per_s"] = args.batch / row["fwd_ms"] * 1e3
-    except Exception as e:
-        row["error"] = f"{type(e).__name__}: {e}"
-        traceback.print_exc()
-    rows.append(row)
-    print(json.dumps(row), flush=True)
-
+    anchor_row = None
     if anchor_ok:
-        row = dict(base, backend="nvdiffrast", raster_model="hard+antialias")
+        anchor_row = dict(base, backend="nvdiffrast", raster_model="hard+antialias")
         try:
             anchor = Anchor(robot, dr.RasterSettings(floor=None), args.res)
             with torch.no_grad():
-                row["fwd_eager_ms"] = _median_ms(lambda: anchor.image(verts0, cam), warmup=args.warmup,
-                                                 repeats=args.repeats)
+                anchor_row["fwd_eager_ms"] = _median_ms(lambda: anchor.image(verts0, cam), warmup=args.warmup,
+                                                        repeats=args.repeats)
             step, _ = fwdbwd_of(lambda v: anchor.image(v, cam))
-            row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
-            row.update(_peak(step))
+            anchor_row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
+            anchor_row.update(_peak(step))
+        except Exception as e:
+            anchor_row["error"] = f"{type(e).__name__}: {e}"
+            traceback.print_exc()
+        print(json.dumps(anchor_row), flush=True)
+
+    for variant in args.variants:
+        constants = _apply_variant(variant)
+        for model in args.models:
+            settings = dr.RasterSettings(raster_model=model, backend="fused", sync_checks=False,
+                                         save_blend_state=True)
+            row = dict(base, backend="fused", raster_model=model, variant=variant, fused_constants=constants)
+            try:
+                def render(v, settings=settings):
+                    return dr.render(v, robot.faces, robot.colors, cam, settings)
+
+                def fwd_nograd(render=render):
+                    with torch.no_grad():
+                        render(verts0)
+                row["fwd_eager_ms"] = _median_ms(fwd_nograd, warmup=args.warmup, repeats=args.repeats)
+                step, _ = fwdbwd_of(render)
+                row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
+                row.update(_peak(step))
+                with SavedTensorMeter(exclude=[robot.faces]) as meter:
+                    kept = render(verts0.clone().requires_grad_(True))  # alive: its graph holds the saved tensors
+                row["saved_mb"] = meter.bytes / 2**20
+                del kept
+                try:
+                    row.update(_stages(fwd_nograd, step))
+                except Exception as e:  # the breakdown is optional: a profiler failure keeps the timings
+                    row["stages_error"] = f"{type(e).__name__}: {e}"
+                row["fwd_ms"] = _median_ms(graphed(fwd_nograd, "cuda", warmup=3), warmup=args.warmup,
+                                           repeats=args.repeats)
+                row["fwdbwd_ms"] = _median_ms(graphed(step, "cuda", warmup=3), warmup=args.warmup,
+                                              repeats=args.repeats)
+            except Exception as e:  # an OOM or a failed capture is a result: record it and go on
+                row["error"] = f"{type(e).__name__}: {e}"
+                traceback.print_exc()
+            if anchor_row is not None and "fwdbwd_eager_ms" in anchor_row:
+                row["anchor_fwd_ms"] = anchor_row["fwd_eager_ms"]
+                row["anchor_fwdbwd_ms"] = anchor_row["fwdbwd_eager_ms"]
+                for key in ("fwd_ms", "fwdbwd_ms", "fwd_eager_ms", "fwdbwd_eager_ms"):
+                    if key in row:
+                        anchor_key = "anchor_fwd_ms" if key.startswith("fwd_") else "anchor_fwdbwd_ms"
+                        row[key.replace("_ms", "_vs_anchor")] = row[key] / row[anchor_key]
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    _apply_variant("default")
+
+    if args.warp:
+        row = dict(base, backend="warp", raster_model="hard")
+        try:
+            settings = dr.RasterSettings(sync_checks=False)
+            tracer = dr.RayTracer(robot.faces, num_envs=args.batch, num_verts=robot.num_vertices,
+                                  device="cuda", settings=settings)
+
+            def trace():
+                with torch.no_grad():
+                    tracer(verts0, robot.colors, cam)
+            trace()
+            row["fwd_eager_ms"] = _median_ms(trace, warmup=args.warmup, repeats=args.repeats)
+            row["images_per_s_eager"] = args.batch / row["fwd_eager_ms"] * 1e3
+            if args.warp_graph:  # a failed capture leaves the CUDA context unusable: opt in
+                row["fwd_ms"] = _median_ms(graphed(trace, "cuda", warmup=3), warmup=args.warmup,
+                                           repeats=args.repeats)
+                row["images_per_s"] = args.batch / row["fwd_ms"] * 1e3
         except Exception as e:
             row["error"] = f"{type(e).__name__}: {e}"
             traceback.print_exc()
         rows.append(row)
         print(json.dumps(row), flush=True)
+    if anchor_row is not None:
+        rows.append(anchor_row)
     return rows
 
 
@@ -270,8 +345,12 @@ def _commit() -> str:
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| faces | backend | model | fwd ms (graph) | fwd+bwd ms (graph) | fwd+bwd ms (eager) | saved MB | "
-             "peak MB |", "|---|---|---|---|---|---|---|---|"]
+    """Markdown: per face count and backend the times [ms] (graph-replayed and eager), nvdiffrast's in the same
+    process, the ratios, memory [MB] and the fused backend's stages [ms] of one eager fwd+bwd."""
+    lines = ["| faces | backend | model | variant | fwd graph | fwd+bwd graph | fwd eager | fwd+bwd eager | "
+             "nvdiffrast fwd | nvdiffrast fwd+bwd | fwd+bwd graph / nvdr | fwd+bwd eager / nvdr | "
+             "fwd graph / nvdr | saved MB | peak MB | setup fwd | raster fwd | raster bwd | setup bwd |",
+             "|" + "---|" * 19]
 
     def f(r, k):
         v = r.get(k)
@@ -279,20 +358,14 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         if r.get("part") == "iou":
             continue
-        lines.append(f"| {r['faces']} | {r['backend']} | {r['raster_model']} | {f(r, 'fwd_ms')} | "
-                     f"{f(r, 'fwdbwd_ms')} | {f(r, 'fwdbwd_eager_ms')} | {f(r, 'saved_mb')} | "
-                     f"{f(r, 'peak_alloc_mb')} |" + (f" {r['error'][:60]}" if "error" in r else ""))
-    anchors = {r["faces"]: r for r in rows if r.get("backend") == "nvdiffrast" and "fwdbwd_eager_ms" in r}
-    if anchors:
-        lines += ["", "| faces | model | fwd+bwd graph / nvdiffrast | fwd graph / nvdiffrast fwd | "
-                  "fwd+bwd eager / nvdiffrast |", "|---|---|---|---|---|"]
-        for r in rows:
-            a = anchors.get(r.get("faces"))
-            if a is None or r.get("backend") != "fused" or "fwdbwd_ms" not in r:
-                continue
-            lines.append(f"| {r['faces']} | {r['raster_model']} | {r['fwdbwd_ms'] / a['fwdbwd_eager_ms']:.2f} | "
-                         f"{r['fwd_ms'] / a['fwd_eager_ms']:.2f} | "
-                         f"{r['fwdbwd_eager_ms'] / a['fwdbwd_eager_ms']:.2f} |")
+        lines.append("| " + " | ".join([str(r["faces"]), r["backend"], r["raster_model"], r.get("variant", "-")]
+                                       + [f(r, k) for k in ("fwd_ms", "fwdbwd_ms", "fwd_eager_ms", "fwdbwd_eager_ms",
+                                                            "anchor_fwd_ms", "anchor_fwdbwd_ms",
+                                                            "fwdbwd_vs_anchor", "fwdbwd_eager_vs_anchor",
+                                                            "fwd_vs_anchor", "saved_mb", "peak_alloc_mb",
+                                                            "setup_fwd_ms", "raster_fwd_ms", "raster_bwd_ms",
+                                                            "setup_bwd_ms")])
+                     + " |" + (f" {r['error'][:60]}" if "error" in r else ""))
     ious = [r for r in rows if r.get("part") == "iou" and "iou" in r]
     if ious:
         lines += ["", "| silhouette vs nvdiffrast | model | IoU | size / anchor |", "|---|---|---|---|"]
@@ -314,6 +387,10 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=20, help="timed calls; the median is reported")
     p.add_argument("--iou-sigma", type=float, default=0.02, help="sigma [px] of the sharp-limit silhouettes")
     p.add_argument("--iou-gamma", type=float, default=1e-4, help="gamma of the sharp-limit silhouettes")
+    p.add_argument("--variants", nargs="*", default=["default"],
+                   help="fused backend settings to time: 'default', or NAME=VALUE,NAME=VALUE of diffrender.raster."
+                        f"fused's constants ({', '.join(_FUSED_DEFAULTS)})")
+    p.add_argument("--no-warp", dest="warp", action="store_false", help="leave the Warp ray tracer out")
     p.add_argument("--warp-graph", action="store_true",
                    help="also time the ray tracer replayed from a CUDA graph (a failed capture ends the process)")
     p.add_argument("--parts", nargs="*", choices=["time", "iou"], default=["iou", "time"])
