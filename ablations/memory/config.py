@@ -6,11 +6,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-__all__ = ["MemoryConfig", "SWEPT_MODES", "TASKS", "point_id"]
+__all__ = ["MemoryConfig", "RENDERERS", "SWEPT_MODES", "TASKS", "point_id"]
 
 #: Gradient modes a sweep can compare (state mode renders nothing, so it has no rendering cost to sweep).
 SWEPT_MODES = ("full", "decoupled")
 TASKS = ("cartpole", "hopper", "ant", "humanoid")
+#: Image sources (``SHACConfig.renderer``): the soft rasterizer, or the Warp ray tracer for modes whose images
+#: need no gradient.
+RENDERERS = ("soft", "warp")
 
 
 @dataclass
@@ -25,6 +28,9 @@ class MemoryConfig:
     """Task: cartpole, hopper, ant or humanoid."""
     modes: tuple[Literal["full", "decoupled"], ...] = ("decoupled", "full")
     """Gradient modes to sweep (full: through the rendered images; decoupled: D.Va)."""
+    renderer: Literal["soft", "warp"] = "soft"
+    """Image source of every point: soft (the differentiable rasterizer) or warp (the forward-only ray tracer,
+    decoupled mode only). One renderer per sweep folder: sweep the other into another --out."""
     meshes: tuple[int, ...] = (0, 4, 16, 64)
     """Numbers of extra meshes attached to robot links (0: the robot alone, measured once per mode)."""
     verts: tuple[int, ...] = (64, 256, 1024)
@@ -62,6 +68,11 @@ class MemoryConfig:
         for m in self.modes:
             if m not in SWEPT_MODES:
                 raise ValueError(f"mode {m!r} cannot be swept (no rendering cost); use full and/or decoupled")
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"unknown renderer {self.renderer!r}; valid renderers: {', '.join(RENDERERS)}")
+        if self.renderer == "warp" and "full" in self.modes:
+            raise ValueError("--renderer warp renders without gradient, so --modes full (gradients through the "
+                             "images) needs --renderer soft; sweep --modes decoupled with warp")
         if not self.meshes or any(not isinstance(m, int) or m < 0 for m in self.meshes):
             raise ValueError(f"--meshes must be non-negative integers, got {self.meshes!r}")
         # diffrender's sweep spheres (latlong_sphere_mesh) need 6 vertices at least: refuse here, not per point.
@@ -85,12 +96,15 @@ class MemoryConfig:
         """
         sizes = sorted({(0, 0) if m == 0 else (m, v) for m in self.meshes for v in self.verts},
                        key=lambda mv: (mv[0] * mv[1], mv))
-        fixed = dict(task=self.task, num_envs=self.num_envs, horizon=self.horizon, image_size=self.image_size,
-                     warmup_iters=self.warmup_iters, iters=self.iters, device=device, seed=self.seed)
+        fixed = dict(task=self.task, renderer=self.renderer, num_envs=self.num_envs, horizon=self.horizon,
+                     image_size=self.image_size, warmup_iters=self.warmup_iters, iters=self.iters, device=device,
+                     seed=self.seed)
         return [dict(fixed, mode=mode, meshes=m, verts_per_mesh=v) for m, v in sizes
                 for mode in sorted(set(self.modes), key=SWEPT_MODES.index)]
 
 
 def point_id(point: dict) -> str:
-    """File-name-safe name of a point, e.g. ``ant_full_m16_v256``."""
-    return f"{point['task']}_{point['mode']}_m{point['meshes']}_v{point['verts_per_mesh']}"
+    """File-name-safe name of a point, e.g. ``ant_full_m16_v256`` (``ant_decoupled_warp_m16_v256`` with the
+    ray tracer)."""
+    renderer = "" if point.get("renderer", "soft") == "soft" else f"_{point['renderer']}"
+    return f"{point['task']}_{point['mode']}{renderer}_m{point['meshes']}_v{point['verts_per_mesh']}"

@@ -50,8 +50,9 @@ def measure_point(point: dict, progress: Callable[[dict], None]) -> dict:
     warmup, iters = int(point["warmup_iters"]), int(point["iters"])
     meshes, verts = int(point["meshes"]), int(point["verts_per_mesh"])
     cfg = SHACConfig(
-        task=point["task"], mode=point["mode"], iters=warmup + iters, num_envs=int(point["num_envs"]),
-        horizon=int(point["horizon"]), seed=int(point["seed"]), image_size=int(point["image_size"]),
+        task=point["task"], mode=point["mode"], renderer=point.get("renderer", "soft"), iters=warmup + iters,
+        num_envs=int(point["num_envs"]), horizon=int(point["horizon"]), seed=int(point["seed"]),
+        image_size=int(point["image_size"]),
         extra_meshes=meshes, extra_mesh_verts=verts if meshes else SHACConfig.extra_mesh_verts,
         # No probe iterations: they differentiate twice and would measure neither mode. The cost of a random
         # policy is what is measured here, so the learning-stability abort is off (the NaN guard stays on).

@@ -61,6 +61,7 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
 
     styles = {"full": ("-", "o"), "decoupled": ("--", "s")}
     task = rows[0]["task"]
+    renderer = rows[0].get("renderer") or "soft"  # one per sweep (a FIXED column)
     written = []
 
     def lines(ax, key: str) -> None:
@@ -74,7 +75,8 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
                 if not pts:
                     continue
                 ls, mk = styles.get(mode, ("-", "o"))
-                label = f"{mode}, {v} verts/mesh" if verts else mode
+                name = mode if renderer == "soft" else f"{mode} ({renderer})"
+                label = f"{name}, {v} verts/mesh" if verts else name
                 ax.plot([p[0] for p in pts], [p[1] for p in pts], ls, marker=mk, color=color(mode, v),
                         label=label, ms=4)
                 drawn = True

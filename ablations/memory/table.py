@@ -15,7 +15,7 @@ __all__ = ["COLUMNS", "FIXED", "FINAL_STATUSES", "TIMED_COLUMNS", "point_key", "
 
 #: Columns of memory.csv, in order. Units: ms (medians over the measured iterations), MB = 2**20 bytes.
 COLUMNS = (
-    "task", "mode", "meshes", "verts_per_mesh", "status",
+    "task", "mode", "renderer", "meshes", "verts_per_mesh", "status",
     "scene_faces", "scene_verts",
     "fwd_ms", "bwd_ms", "critic_ms", "iter_ms",
     "peak_alloc_mb", "peak_reserved_mb", "saved_mb", "max_rss_mb",
@@ -29,7 +29,7 @@ _FLOAT_COLUMNS = {"fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "
 #: Measurements that a failed point does not have (emptied in its row: they would not be measurements).
 TIMED_COLUMNS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
 #: Settings every row of one memory.csv must share (otherwise its rows are not comparable).
-FIXED = ("task", "num_envs", "horizon", "image_size", "warmup_iters", "iters", "device", "seed")
+FIXED = ("task", "renderer", "num_envs", "horizon", "image_size", "warmup_iters", "iters", "device", "seed")
 #: Statuses that are results: a restarted sweep never re-runs them.
 FINAL_STATUSES = ("ok", "oom")
 
@@ -63,7 +63,11 @@ def read_csv(path: str | os.PathLike) -> list[dict]:
                    (reader.fieldnames or [])]
         if missing:
             raise ValueError(f"{path} is not an ablate-memory CSV: columns {missing} missing")
-        return [{k: _parse(k, v if v is not None else "") for k, v in r.items() if k in COLUMNS} for r in reader]
+        rows = [{k: _parse(k, v if v is not None else "") for k, v in r.items() if k in COLUMNS} for r in reader]
+    for r in rows:  # sweeps from before the renderer column rendered with the soft rasterizer
+        if r.get("renderer") is None:
+            r["renderer"] = "soft"
+    return rows
 
 
 def csv_text(rows: list[dict]) -> str:

@@ -255,3 +255,50 @@ def test_worker_result_lines_merge_and_a_torn_line_is_ignored(tmp_path):
     path.write_text('{"status": "running", "scene_faces": 132}\n{"status": "ok", "bwd_ms": 1.5}\n')
     assert worker.read_result(path) == {"status": "ok", "scene_faces": 132, "bwd_ms": 1.5}
     assert worker.read_result(tmp_path / "missing.jsonl") == {}
+
+
+def test_renderer_is_a_setting_of_the_sweep(tmp_path, fake_env):
+    """--renderer warp: decoupled points only (full is refused up front), the renderer in every row and in
+    the worker's point, the points' log names; one renderer per folder; a CSV from before the column reads as
+    the soft renderer's."""
+    for bad, match in ((dict(renderer="warp"), "--renderer warp renders without gradient, so --modes full"),
+                       (dict(renderer="nvdiffrast"), "unknown renderer 'nvdiffrast'")):
+        with pytest.raises(ValueError, match=match):
+            cfg_for(tmp_path, **bad).validate()
+    cfg = cfg_for(tmp_path / "warp", renderer="warp", modes=("decoupled",))
+    assert {p["renderer"] for p in cfg.points("cpu")} == {"warp"}
+    assert memory.point_id(cfg.points("cpu")[1]) == "cartpole_decoupled_warp_m2_v8"
+    assert memory.point_id(cfg_for(tmp_path).points("cpu")[0]) == "cartpole_full_m0_v0"
+
+    out = tmp_path / "warp"
+    fake_env({}, out)
+    rows = sweep(cfg, measure=FAKE)
+    assert [(r["mode"], r["renderer"], r["status"]) for r in rows] == [("decoupled", "warp", "ok")] * 2
+    assert {r["renderer"] for r in read_csv(out / "memory.csv")} == {"warp"}
+    assert sorted(p.name for p in (out / "logs").iterdir()) == ["cartpole_decoupled_warp_m0_v0.log",
+                                                                "cartpole_decoupled_warp_m2_v8.log"]
+    with pytest.raises(ValueError, match="renderer: 'warp' there vs 'soft' now"):
+        sweep(cfg_for(out, modes=("decoupled",)), measure=FAKE)
+
+    old = tmp_path / "old.csv"
+    text = memory.csv_text([dict(rows[0], renderer=None)])
+    old.write_text(text)
+    assert read_csv(old)[0]["renderer"] == "soft"
+
+
+@pytest.mark.slow
+def test_real_sweep_with_the_ray_tracer(tmp_path):
+    """The real trainer with --renderer warp (Warp's CPU device), decoupled, the robot alone and with two
+    extra meshes: both points measured, the scene counted, decoupled's saved bytes flat in the scene."""
+    pytest.importorskip("warp")
+    out = tmp_path / "sweep"
+    cfg = MemoryConfig(task="cartpole", modes=("decoupled",), renderer="warp", meshes=(0, 2), verts=(14,),
+                       num_envs=2, horizon=2, image_size=16, warmup_iters=1, iters=1, device="cpu", out=out,
+                       timeout_s=300.0, progress=False)
+    rows = sweep(cfg)
+    pts = {r["meshes"]: r for r in rows}
+    for m, r in pts.items():
+        assert r["status"] == "ok", f"{m}: {r['error']}\n{(out / r['log']).read_text()[-3000:]}"
+        assert r["renderer"] == "warp" and r["fwd_ms"] > 0 and r["bwd_ms"] > 0 and r["iter_ms"] > 0
+    assert pts[2]["scene_faces"] > pts[0]["scene_faces"]
+    assert pts[2]["saved_mb"] == pytest.approx(pts[0]["saved_mb"], abs=1e-6)
