@@ -19,16 +19,18 @@ Rows also give images/s of ``frame`` and the share of rays that see the robot. A
 against the default variant's (max abs difference; options other than the tree give the same image).
 
 Where the time should go (64 ant environments, 118,784 triangles, 451,584 rays; H100, graph-replayed). A frame is
-about 13 dependent kernels: four small copies (vertices, normals, colours, camera), Warp's mesh refit (triangle
-edge lengths, a CUB scan of them with its temporary allocation, their mean, triangle bounds, a counter reset and
-the bottom-up refit: seven kernels and two memory nodes) and the trace. Bytes are no limit: about 12 MB in all
-(5.4 MB of image), a few microseconds of bandwidth. Predicted: ~0.03 ms of launch gaps and copies; the refit
-~0.1 ms, bound by the latency of its leaf-to-root climb (a fence and an atomic per tree level, ~30 levels in an
-LBVH, ~20 in an SAH tree with 4 triangles per leaf); the trace ~0.15 ms with 4 x 8 pixel tiles and the group
-roots found once per build (each pixel used to search the leaves and climb to their common ancestor: ~200
-dependent loads). So ~0.25-0.3 ms per frame, against 0.43 ms before those two changes. At ~100k faces per robot
-(6.4M triangles) bytes do count: an LBVH keeps 2 nodes per triangle (12.8M nodes, ~0.8 GB of node traffic per
-refit, ~3 ms), an SAH tree with 4 triangles per leaf a quarter of that, so ~1 ms per frame with ``"sah"``.
+about 13 dependent kernels: five small copies (vertices, normals, colours, camera rotation and eye), Warp's mesh
+refit (triangle edge lengths, a CUB scan of them with its temporary allocation, their mean, triangle bounds, a
+counter reset and the bottom-up refit: seven kernels and two memory nodes) and the trace. Bytes are no limit:
+about 12 MB in all (5.4 MB of image), a few microseconds of bandwidth. Predicted: ~0.03 ms of launch gaps and
+copies; the refit ~0.1 ms, bound by the latency of its leaf-to-root climb (a fence and an atomic per tree level,
+~30 levels in an LBVH, ~20 in an SAH tree with 4 triangles per leaf); the trace ~0.15 ms with 4 x 8 pixel tiles
+and each group's subtree root looked up once per build (found per pixel, it costs two binary searches over the
+leaves and two leaf-to-root climbs: ~200 dependent loads per pixel). So ~0.25-0.3 ms per frame; BENCHMARKS.md
+section 2 has the frame time of a tracer that found the roots per pixel (``lbvh_rows`` is otherwise that tracer).
+At ~100k faces per robot (6.4M triangles) bytes do count: an LBVH keeps 2 nodes per triangle (12.8M nodes,
+~0.8 GB of node traffic per refit, ~3 ms), an SAH tree with 4 triangles per leaf a quarter of that, so ~1 ms per
+frame with ``"sah"``.
 
     python benchmarks/raytrace.py --out benchmarks/results/raytrace.json          # CUDA, < 4 min on an H100
     python benchmarks/raytrace.py --faces 0 --out /tmp/raytrace_ant.json          # the ant scene only

@@ -120,9 +120,9 @@ class RayTracer:
     The constructor compiles (first use on a machine, then cached in Warp's kernel cache) and loads the kernel
     on the device; the first call builds the BVH.
 
-    Work per frame on CUDA: four small copies (points, normals, colours, camera), Warp's mesh refit (triangle
-    edge lengths and their scan, triangle bounds, a counter reset and the bottom-up refit: about seven
-    launches) and one trace launch.
+    Work per frame on CUDA: five small copies (points, normals, colours, camera rotation and eye), Warp's mesh
+    refit (triangle edge lengths and their scan, triangle bounds, a counter reset and the bottom-up refit:
+    about seven launches) and one trace launch.
     """
 
     def __init__(
