@@ -155,7 +155,7 @@ def face_coefficients(verts: torch.Tensor, normals: torch.Tensor | None, colors:
         -(ex * ua + ey * va) * inv_len2, ex * inv_len2, ey * inv_len2,  # s_k, position along edge k
         area2.abs() * torch.sqrt(inv_len2), len2, 1.0 / z,  # H_k, |e_k|^2, 1 / z_k
         corners(normals), corners(colors),
-    ], dim=1)  # (B, 45, Fp)
+    ], dim=1).contiguous()  # (B, 45, Fp); the kernels index it as contiguous (compiled setups included)
     with torch.no_grad():
         r = st.cutoff_radius + BBOX_MARGIN
         box = torch.stack([u.amin(1) - r, u.amax(1) + r, v.amin(1) - r, v.amax(1) + r], dim=1)  # (B, 4, Fp)
