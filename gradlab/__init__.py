@@ -9,6 +9,7 @@ to each frame; every iteration reports CUDA-synchronised times and peak memory; 
 naming the iteration, the horizon step and the tensor.
 """
 
+from gradlab.compiling import CompileCache, CompileCacheWarning, CompileWatch, resolve_cache_root
 from gradlab.config import MODES, ModePlan, SHACConfig, resolve_config
 from gradlab.presets import PRESETS, preset_record, preset_values
 from gradlab.probes import ImageGate, NonFiniteError, cosine, flat_grad
@@ -16,6 +17,9 @@ from gradlab.seeding import resolve_device, seed_everything
 from gradlab.shac import SHAC
 
 __all__ = [
+    "CompileCache",
+    "CompileCacheWarning",
+    "CompileWatch",
     "MODES",
     "ModePlan",
     "SHAC",
@@ -28,6 +32,7 @@ __all__ = [
     "preset_record",
     "preset_values",
     "resolve_device",
+    "resolve_cache_root",
     "resolve_config",
     "seed_everything",
 ]

@@ -1,0 +1,400 @@
+"""Where ``torch.compile`` keeps what it compiled, and what it is compiling now.
+
+:class:`CompileCache` is one folder per torch, Triton and Python version and device kind (``cpu``, ``cuda-sm90``)
+under a root the user chooses (``--compile-cache``, else ``$PIXELGRAD_COMPILE_CACHE``, else
+``~/.cache/pixelgrad/compile``) and may delete at any time::
+
+    <root>/torch2.13.0-triton3.9.0-py3.11-cuda-sm90/
+        manifest.json        the versions the contents were compiled with
+        inductor/            TORCHINDUCTOR_CACHE_DIR: FX graph cache, AOTAutograd cache, autotuning results
+        triton/              TRITON_CACHE_DIR: Triton binaries (inductor's and the renderer's own kernels)
+        artifacts/<label>.bin  torch.compiler.save_cache_artifacts of one run's settings, checksummed
+
+The on-disk caches make a second process on the same machine warm; the artifact file carries the same
+entries to another machine (a Ray worker given the folder or the file starts warm). A manifest that records
+other versions, or an artifact file that fails its checksum or torch's own loader, is moved aside with one
+warning (:class:`CompileCacheWarning`) and the run compiles afresh: a damaged cache costs time, never a crash
+or a wrong kernel. Torch's own cache keys (graph, config, versions) decide every hit.
+
+:class:`CompileWatch` counts this process's compilations and names the part of the trainer being compiled
+("physics step", "renderer", ...) so that a progress display can say what the first iterations wait for.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import logging
+import os
+import re
+import sys
+import time
+import warnings
+import weakref
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from gradlab.checkpoint import atomic_write_bytes, atomic_write_json
+
+__all__ = ["CACHE_ENV_VAR", "DEFAULT_CACHE_ROOT", "CompileCache", "CompileCacheWarning", "CompileWatch",
+           "cache_versions", "compile_counters", "resolve_cache_root"]
+
+#: Environment variable naming the cache root (a path, or ``off`` for torch's own cache locations).
+CACHE_ENV_VAR = "PIXELGRAD_COMPILE_CACHE"
+#: The cache root when neither the flag nor the environment variable names one.
+DEFAULT_CACHE_ROOT = Path("~/.cache/pixelgrad/compile")
+#: Values of the flag or the environment variable that leave torch's cache locations alone.
+OFF_VALUES = ("off", "none", "0", "false", "no")
+
+_FORMAT = 1  # of the manifest and the artifact files; a change moves older folders aside
+_MAGIC = b"pixelgrad-compile-artifacts\n"
+
+
+class CompileCacheWarning(UserWarning):
+    """The compile cache was moved aside, rebuilt or is unavailable; the run goes on compiling afresh."""
+
+
+def _warn(message: str) -> None:
+    warnings.warn(message, CompileCacheWarning, stacklevel=3)
+
+
+def resolve_cache_root(path: str | os.PathLike | None = None, *, env: dict | None = None) -> Path | None:
+    """The cache root: ``path`` (a flag), else ``$PIXELGRAD_COMPILE_CACHE``, else ``~/.cache/pixelgrad/compile``;
+    None where the chosen value is ``off`` (torch's own locations). ``~`` is expanded; the result is absolute."""
+    env = os.environ if env is None else env
+    value = path if path is not None else env.get(CACHE_ENV_VAR) or None
+    if value is None:
+        return DEFAULT_CACHE_ROOT.expanduser().resolve()
+    if str(value).strip().lower() in OFF_VALUES:
+        return None
+    if not str(value).strip():
+        raise ValueError(f"compile cache folder is empty; give a folder, or 'off' ({CACHE_ENV_VAR}, --compile-cache)")
+    return Path(value).expanduser().resolve()
+
+
+def _triton_version() -> str | None:
+    try:
+        import triton
+    except ImportError:
+        return None
+    return triton.__version__
+
+
+def cache_versions(device: torch.device) -> dict:
+    """What a compiled artifact depends on beyond its graph: torch, Triton, Python, CUDA and the device kind
+    (``cpu`` or ``cuda-sm<major><minor>``). The folder name and the manifest are made of these."""
+    kind = device.type
+    if device.type == "cuda":
+        major, minor = torch.cuda.get_device_capability(device)
+        kind = f"cuda-sm{major}{minor}"
+    return {"format": _FORMAT, "torch": torch.__version__, "triton": _triton_version(),
+            "python": ".".join(map(str, sys.version_info[:2])), "cuda": torch.version.cuda, "device": kind}
+
+
+def _folder_name(versions: dict) -> str:
+    name = f"torch{versions['torch']}-triton{versions['triton'] or 'none'}-py{versions['python']}-{versions['device']}"
+    return re.sub(r"[^A-Za-z0-9.+_-]", "_", name)
+
+
+def _aside(path: Path, suffix: str) -> Path:
+    """Rename ``path`` to ``<name><suffix>`` (replacing an older one of that name); returns the new path."""
+    import shutil
+
+    target = path.with_name(path.name + suffix)
+    if target.is_dir():
+        shutil.rmtree(target, ignore_errors=True)
+    elif target.exists():
+        target.unlink()
+    os.replace(path, target)
+    return target
+
+
+def _pack(payload: bytes, versions: dict) -> bytes:
+    header = {"sha256": hashlib.sha256(payload).hexdigest(), "bytes": len(payload), **versions}
+    return _MAGIC + json.dumps(header, sort_keys=True).encode() + b"\n" + payload
+
+
+def _unpack(data: bytes, versions: dict) -> bytes:
+    """The payload of an artifact file; ValueError saying what is wrong with it."""
+    if not data.startswith(_MAGIC):
+        raise ValueError("not a pixelgrad artifact file")
+    head, sep, payload = data[len(_MAGIC):].partition(b"\n")
+    if not sep:
+        raise ValueError("no header")
+    try:
+        header = json.loads(head)
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"unreadable header ({e})") from None
+    if not isinstance(header, dict):
+        raise ValueError("unreadable header")
+    other = {k: header.get(k) for k in versions if header.get(k) != versions[k]}
+    if other:
+        raise ValueError(f"written with {other}, this process has " + str({k: versions[k] for k in other}))
+    if header.get("bytes") != len(payload) or header.get("sha256") != hashlib.sha256(payload).hexdigest():
+        raise ValueError("checksum mismatch (truncated or damaged)")
+    return payload
+
+
+class CompileCache:
+    """The compile cache folder of one device (see the module docstring for its layout).
+
+    Args:
+        root: the cache root (:func:`resolve_cache_root`); the folder is ``root / <versions>``.
+        device: the device the compiled code runs on.
+
+    Opening checks the manifest (moving a mismatched or unreadable folder aside to ``<folder>.stale``);
+    :meth:`activate` points torch at the folder and loads a run's artifact file; :meth:`save` writes it.
+    """
+
+    def __init__(self, root: str | os.PathLike, device: torch.device | str):
+        device = torch.device(device)
+        self.versions = cache_versions(device)
+        self.folder = Path(root) / _folder_name(self.versions)
+        self.portable = hasattr(torch.compiler, "save_cache_artifacts") and hasattr(torch.compiler,
+                                                                                     "load_cache_artifacts")
+        self.loaded: dict = {}  # artifact counts by kind, from the file :meth:`activate` loaded
+        self._check_manifest()
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.folder / "manifest.json"
+
+    def artifact_path(self, label: str) -> Path:
+        """The artifact file of ``label`` (e.g. ``ant_decoupled_64envs``)."""
+        return self.folder / "artifacts" / (re.sub(r"[^A-Za-z0-9._-]", "_", label) + ".bin")
+
+    def _check_manifest(self) -> None:
+        path = self.manifest_path
+        why = None
+        if path.exists():
+            try:
+                recorded = json.loads(path.read_text())
+                if not isinstance(recorded, dict):
+                    raise ValueError("not a JSON object")
+            except (OSError, UnicodeDecodeError, ValueError) as e:
+                why = f"its manifest cannot be read ({type(e).__name__}: {e})"
+            else:
+                other = {k: recorded.get(k) for k in self.versions if recorded.get(k) != self.versions[k]}
+                if other:
+                    mine = {k: self.versions[k] for k in other}
+                    why = f"its manifest records {other}, this process has {mine}"
+        if why is not None:
+            try:
+                aside = _aside(self.folder, ".stale")
+                _warn(f"compile cache {self.folder}: {why}; moved aside to {aside.name}, compiling afresh")
+            except FileNotFoundError:  # another process moved it aside first
+                pass
+        self.folder.mkdir(parents=True, exist_ok=True)
+        if not path.exists():
+            atomic_write_json(path, {**self.versions, "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ",
+                                                                                    time.gmtime())})
+
+    def environment(self) -> dict[str, str]:
+        """The environment variables that point inductor and Triton at this folder."""
+        return {"TORCHINDUCTOR_CACHE_DIR": str(self.folder / "inductor"),
+                "TRITON_CACHE_DIR": str(self.folder / "triton")}
+
+    def activate(self, label: str | None = None) -> None:
+        """Point this process's inductor and Triton caches at the folder (FX graph and AOTAutograd caches on)
+        and load ``label``'s artifact file if there is one. Call before the process's first compilation."""
+        import torch._functorch.config as functorch_config
+        import torch._inductor.config as inductor_config
+
+        os.environ.update(self.environment())
+        inductor_config.fx_graph_cache = True
+        inductor_config.autotune_local_cache = True
+        functorch_config.enable_autograd_cache = True
+        # The simulator's custom autograd Functions (tasks.dynamics) are traced into the graph, forward and
+        # backward bodies both part of the cache key (an edited backward misses: tests/gradlab/
+        # test_compile_cache.py); without this the substep's and factorisation's AOTAutograd tracing is redone
+        # by every warm start.
+        if hasattr(functorch_config, "autograd_cache_allow_custom_autograd_functions"):
+            functorch_config.autograd_cache_allow_custom_autograd_functions = True
+        if not self.portable:
+            _warn(f"torch {torch.__version__} has no torch.compiler.save_cache_artifacts/load_cache_artifacts: "
+                  f"only this machine's on-disk caches in {self.folder} are kept")
+            return
+        if label is not None:
+            self.load(self.artifact_path(label))
+
+    def load(self, path: Path) -> bool:
+        """Hot-load an artifact file into the on-disk caches; a damaged or foreign one is renamed to
+        ``<name>.corrupt`` with a warning. Returns whether it loaded."""
+        if not path.exists():
+            return False
+        try:
+            payload = _unpack(path.read_bytes(), self.versions)
+            # torch logs its own traceback for a payload it cannot parse; the warning below says it once
+            torch_log = logging.getLogger("torch.compiler._cache")
+            level = torch_log.level
+            torch_log.setLevel(logging.ERROR)
+            try:
+                info = torch.compiler.load_cache_artifacts(payload)
+            finally:
+                torch_log.setLevel(level)
+            if info is None:
+                raise ValueError("torch could not read its contents")
+        except Exception as e:  # whatever torch raises on a payload it cannot use: a cache miss, not a failure
+            try:
+                aside = _aside(path, ".corrupt")
+                _warn(f"compile cache artifact {path} is unusable ({e}); moved aside to {aside.name}, "
+                      f"compiling afresh")
+            except OSError:
+                _warn(f"compile cache artifact {path} is unusable ({e}); compiling afresh")
+            return False
+        self.loaded = _artifact_counts(info)
+        return True
+
+    def save(self, label: str) -> Path | None:
+        """Write every artifact this process compiled or hit so far to ``label``'s file (atomically); None
+        where torch has nothing to save or no portable artifacts."""
+        if not self.portable:
+            return None
+        saved = torch.compiler.save_cache_artifacts()
+        if saved is None:
+            return None
+        path = self.artifact_path(label)
+        atomic_write_bytes(path, _pack(saved[0], self.versions))
+        return path
+
+
+def _artifact_counts(info: Any) -> dict:
+    """{kind: count} of a torch CacheInfo (``inductor``, ``aot_autograd``, ``autotune``, ...)."""
+    counts = {}
+    for kind in ("inductor", "aot_autograd", "autotune", "pgo", "precompile"):
+        items = getattr(info, f"{kind}_artifacts", None)
+        if items:
+            counts[kind] = len(items)
+    return counts
+
+
+def compile_counters() -> dict:
+    """Torch's cache counters of this process: FX graph and AOTAutograd cache hits, misses and bypasses, and
+    the number of distinct graphs dynamo compiled."""
+    from torch._dynamo.utils import counters
+
+    inductor, aot, stats = counters["inductor"], counters["aot_autograd"], counters["stats"]
+    return {
+        "fxgraph_cache_hit": inductor["fxgraph_cache_hit"],
+        "fxgraph_cache_miss": inductor["fxgraph_cache_miss"],
+        "fxgraph_cache_bypass": inductor["fxgraph_cache_bypass"],
+        "autograd_cache_hit": aot["autograd_cache_hit"],
+        "autograd_cache_miss": aot["autograd_cache_miss"],
+        "autograd_cache_bypass": aot["autograd_cache_bypass"],
+        "unique_graphs": stats["unique_graphs"],
+    }
+
+
+# ---------------------------------------------------------------------------------------------- CompileWatch
+_watches: weakref.WeakSet = weakref.WeakSet()
+_hooked = False
+
+
+def _hook_dynamo() -> bool:
+    """Register one start and one end callback with dynamo for the process; False where torch has none."""
+    global _hooked
+    if _hooked:
+        return True
+    try:
+        from torch._dynamo.callback import callback_handler
+    except ImportError:
+        return False
+
+    def start(args: Any = None) -> None:
+        for w in list(_watches):
+            w._compile_started(args)
+
+    def end(args: Any = None) -> None:
+        for w in list(_watches):
+            w._compile_ended(args)
+
+    callback_handler.register_start_callback(start)
+    callback_handler.register_end_callback(end)
+    _hooked = True
+    return True
+
+
+def _compile_id(args: Any) -> tuple[str, bool]:
+    """(trigger name, is a recompile) of dynamo's callback arguments (``compile_id`` "frame/attempt")."""
+    trigger = getattr(getattr(args, "callback_trigger", None), "name", "DYNAMO")
+    match = re.search(r"(\d+)/(\d+)", str(getattr(args, "compile_id", "")))
+    return trigger, bool(match and int(match.group(2)) > 0)
+
+
+class CompileWatch:
+    """This process's compilations, seen from one trainer: how many, how long, and which part is compiling.
+
+    ``labelled(part, fn)`` wraps a callable so that a compilation it triggers is reported as compiling that
+    ``part``; ``on_change(text)`` is called with a short status ("compiling physics step (3 done)", a text given
+    to :meth:`announce`, or None when there is nothing to say). Counts every compilation of the process while
+    the watch lives, whichever trainer triggered it.
+
+    Attributes:
+        compiles: dynamo frame compilations (recompiles included); recompiles: those of a frame compiled before;
+        backward_compiles: backward graphs compiled on first use; compile_s: seconds spent compiling.
+    """
+
+    def __init__(self, on_change: Callable[[str | None], None] | None = None):
+        self.on_change = on_change
+        self.compiles = self.recompiles = self.backward_compiles = 0
+        self.compile_s = 0.0
+        self.available = _hook_dynamo()
+        self.text: str | None = None
+        self._parts: list[str] = []
+        self._started: float | None = None
+        _watches.add(self)
+
+    @property
+    def done(self) -> int:
+        return self.compiles + self.backward_compiles
+
+    def labelled(self, part: str, fn: Callable) -> Callable:
+        """``fn`` reporting its compilations as compiling ``part``."""
+
+        @functools.wraps(fn)
+        def call(*args, **kwargs):
+            with self.part(part):
+                return fn(*args, **kwargs)
+
+        return call
+
+    @contextlib.contextmanager
+    def part(self, name: str) -> Iterator[None]:
+        self._parts.append(name)
+        try:
+            yield
+        finally:
+            self._parts.pop()
+
+    def announce(self, text: str | None) -> None:
+        """Show ``text`` (None: nothing), calling ``on_change`` only when it differs from what is shown."""
+        if text != self.text:
+            self.text = text
+            if self.on_change is not None:
+                self.on_change(text)
+
+    def _compile_started(self, args: Any) -> None:
+        self._started = time.perf_counter()
+        what = self._parts[-1] if self._parts else "model"
+        self.announce(f"compiling {what} ({self.done} done)")
+
+    def _compile_ended(self, args: Any) -> None:
+        trigger, recompile = _compile_id(args)
+        if trigger == "LAZY_BACKWARD":
+            self.backward_compiles += 1
+        elif trigger == "DYNAMO":
+            self.compiles += 1
+            self.recompiles += recompile
+        if self._started is not None:
+            self.compile_s += time.perf_counter() - self._started
+            self._started = None
+
+    def summary(self) -> dict:
+        """Counts for a run's summary: compiles, recompiles, backward_compiles, compile_s."""
+        return {"compiles": self.compiles, "recompiles": self.recompiles,
+                "backward_compiles": self.backward_compiles, "compile_s": self.compile_s}

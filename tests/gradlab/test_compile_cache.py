@@ -1,0 +1,202 @@
+"""The compile cache folder (resolution, manifest, artifact files) and the compile watch (CPU, tiny graphs)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from gradlab import CompileCache, CompileCacheWarning, CompileWatch, resolve_cache_root
+from gradlab.compiling import CACHE_ENV_VAR, cache_versions
+
+CPU = torch.device("cpu")
+
+
+@pytest.fixture
+def clean_env(monkeypatch):
+    """The variables a cache sets, restored after the test (activate() writes them into os.environ)."""
+    for name in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR", CACHE_ENV_VAR):
+        monkeypatch.delenv(name, raising=False)
+    return monkeypatch
+
+
+def test_root_is_the_flag_then_the_environment_then_the_default(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    env = {CACHE_ENV_VAR: str(tmp_path / "from-env")}
+    assert resolve_cache_root(tmp_path / "flag", env=env) == (tmp_path / "flag").resolve()
+    assert resolve_cache_root(None, env=env) == (tmp_path / "from-env").resolve()
+    assert resolve_cache_root(None, env={}) == (tmp_path / "home" / ".cache/pixelgrad/compile").resolve()
+    assert resolve_cache_root("~/c", env={}) == (tmp_path / "home" / "c").resolve()
+    assert resolve_cache_root(None, env={CACHE_ENV_VAR: ""}) == (tmp_path / "home/.cache/pixelgrad/compile").resolve()
+    for off in ("off", "OFF", "none", "0"):
+        assert resolve_cache_root(off, env=env) is None
+        assert resolve_cache_root(None, env={CACHE_ENV_VAR: off}) is None
+    with pytest.raises(ValueError, match="compile cache folder is empty"):
+        resolve_cache_root("  ", env={})
+
+
+def test_folder_is_keyed_by_versions_and_points_inductor_and_triton_there(tmp_path, clean_env):
+    cache = CompileCache(tmp_path, CPU)
+    versions = cache_versions(CPU)
+    assert cache.folder.parent == tmp_path
+    assert torch.__version__ in cache.folder.name and cache.folder.name.endswith("-cpu")
+    manifest = json.loads(cache.manifest_path.read_text())
+    assert {k: manifest[k] for k in versions} == versions
+    cache.activate("cartpole_decoupled")  # no artifact file yet: nothing loaded, no warning
+    assert cache.loaded == {}
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(cache.folder / "inductor")
+    assert os.environ["TRITON_CACHE_DIR"] == str(cache.folder / "triton")
+    import torch._functorch.config as functorch_config
+    import torch._inductor.config as inductor_config
+
+    assert inductor_config.fx_graph_cache and functorch_config.enable_autograd_cache
+    # a second opening of a matching folder keeps it as it is
+    (cache.folder / "inductor").mkdir()
+    (cache.folder / "inductor" / "entry").write_text("kept")
+    again = CompileCache(tmp_path, CPU)
+    assert (again.folder / "inductor" / "entry").read_text() == "kept"
+
+
+@pytest.mark.parametrize("manifest", ['{"format": 1, "torch": "1.0.0"}', "\x00 not json", "[1, 2]"])
+def test_a_mismatched_or_unreadable_manifest_moves_the_folder_aside_with_one_warning(tmp_path, manifest):
+    folder = CompileCache(tmp_path, CPU).folder
+    (folder / "inductor").mkdir()
+    (folder / "inductor" / "old-entry").write_text("from another torch")
+    (folder / "manifest.json").write_text(manifest)
+    with pytest.warns(CompileCacheWarning, match="moved aside") as record:
+        cache = CompileCache(tmp_path, CPU)
+    assert len(record) == 1
+    assert "1.0.0" in str(record[0].message) or "cannot be read" in str(record[0].message)
+    stale = folder.with_name(folder.name + ".stale")
+    assert (stale / "inductor" / "old-entry").read_text() == "from another torch"
+    assert not (cache.folder / "inductor").exists()  # rebuilt empty
+    assert json.loads(cache.manifest_path.read_text())["torch"] == torch.__version__
+
+
+def _compile_and_check(fn, *args):
+    compiled = torch.compile(fn, dynamic=False)
+    torch.testing.assert_close(compiled(*args), fn(*args))
+
+
+def _poly(x):
+    return (x.sin() * 3.0 + x.cos().pow(2)).sum(-1)
+
+
+@pytest.mark.parametrize("damage", ["random", "flipped", "truncated"])
+def test_a_damaged_artifact_file_is_moved_aside_with_one_warning_and_compiling_still_works(tmp_path, clean_env,
+                                                                                          damage):
+    cache = CompileCache(tmp_path, CPU)
+    path = cache.artifact_path("tiny")
+    path.parent.mkdir(parents=True)
+    rng = torch.Generator().manual_seed(0)
+    if damage == "random":
+        data = bytes(torch.randint(0, 256, (4096,), generator=rng, dtype=torch.uint8).tolist())
+    else:  # a real file, damaged after it was written
+        _compile_and_check(_poly, torch.randn(3, 5))
+        assert cache.save("tiny") == path
+        data = bytearray(path.read_bytes())
+        if damage == "flipped":
+            data[-10] ^= 0xFF
+        else:
+            data = data[: len(data) // 2]
+        data = bytes(data)
+    path.write_bytes(data)
+    with pytest.warns(CompileCacheWarning, match="unusable") as record:
+        cache.activate("tiny")
+    assert len(record) == 1
+    assert not path.exists() and path.with_name(path.name + ".corrupt").read_bytes() == data
+    assert cache.loaded == {}
+    _compile_and_check(_poly, torch.randn(4, 6))
+
+
+_WARM = textwrap.dedent("""
+    import json, os, sys
+    import torch
+    from gradlab import CompileCache
+    from gradlab.compiling import compile_counters
+
+    SCALE = float(os.environ.get("BACKWARD_SCALE", "1"))
+
+    class Square(torch.autograd.Function):  # a custom backward, as the simulator's
+        @staticmethod
+        def forward(ctx, x):
+            ctx.save_for_backward(x)
+            return x * x
+
+        @staticmethod
+        def backward(ctx, g):
+            (x,) = ctx.saved_tensors
+            return g * x * (2.0 * SCALE)
+
+    def loss(x):
+        return (Square.apply(x).sin() * 3.0 + x.cos()).sum()
+
+    cache = CompileCache(sys.argv[1], torch.device("cpu"))
+    cache.activate("tiny")
+    x = torch.linspace(-1.0, 1.0, 7, dtype=torch.float64, requires_grad=True)
+    value = torch.compile(loss, dynamic=False)(x)
+    (grad,) = torch.autograd.grad(value, x)
+    expected = torch.cos(x * x) * 3.0 * (2.0 * SCALE) * x - torch.sin(x)
+    torch.testing.assert_close(grad, expected.detach())
+    torch.testing.assert_close(value, loss(x))
+    cache.save("tiny")
+    print(json.dumps({"loaded": cache.loaded, **compile_counters()}))
+""")
+
+
+def _fresh_process(root: Path, **env_vars: str) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR")}
+    out = subprocess.run([sys.executable, "-c", _WARM, str(root)], capture_output=True, text=True,
+                         env={**env, **env_vars}, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_the_artifact_file_alone_makes_another_machines_first_compile_a_cache_hit(tmp_path):
+    cold = _fresh_process(tmp_path / "machine-a")
+    assert cold["fxgraph_cache_hit"] == 0 and cold["fxgraph_cache_miss"] >= 1 and cold["loaded"] == {}
+    assert cold["autograd_cache_miss"] >= 1 and cold["autograd_cache_bypass"] == 0
+    # another machine: an empty root that is given only the artifact file
+    src = CompileCache(tmp_path / "machine-a", CPU).artifact_path("tiny")
+    dst = CompileCache(tmp_path / "machine-b", CPU).artifact_path("tiny")
+    dst.parent.mkdir(parents=True)
+    dst.write_bytes(src.read_bytes())
+    warm = _fresh_process(tmp_path / "machine-b")
+    assert warm["loaded"].get("inductor", 0) >= 1 and warm["loaded"].get("aot_autograd", 0) >= 1
+    assert warm["fxgraph_cache_hit"] >= 1 and warm["fxgraph_cache_miss"] == 0
+    assert warm["autograd_cache_hit"] >= 1 and warm["autograd_cache_miss"] == 0
+    # an edited custom backward is a miss, never the cached gradient (the script checks the gradient's value)
+    edited = _fresh_process(tmp_path / "machine-b", BACKWARD_SCALE="3")
+    assert edited["autograd_cache_miss"] >= 1
+
+
+def test_the_watch_names_the_part_that_compiles_and_counts_recompiles():
+    shown = []
+    watch = CompileWatch(on_change=shown.append)
+    assert watch.available
+
+    def step(x):
+        return x * 2.0 + 1.0
+
+    compiled = watch.labelled("physics step", torch.compile(step, backend="eager", dynamic=False))
+    compiled(torch.ones(3))
+    compiled(torch.ones(3))  # no compilation: nothing new to say
+    assert shown == ["compiling physics step (0 done)"]
+    assert (watch.compiles, watch.recompiles) == (1, 0)
+    compiled(torch.ones(3, requires_grad=True))  # a guard fails: dynamo compiles the frame again
+    assert shown[-1] == "compiling physics step (1 done)"
+    assert (watch.compiles, watch.recompiles) == (2, 1)
+    assert watch.compile_s > 0
+    watch.announce("capturing CUDA graphs (window 1/2)")
+    watch.announce(None)
+    watch.announce(None)  # said once
+    assert shown[-2:] == ["capturing CUDA graphs (window 1/2)", None]
+    summary = watch.summary()
+    assert summary["compiles"] == 2 and summary["recompiles"] == 1
