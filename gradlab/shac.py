@@ -36,9 +36,10 @@ import torch
 from torch import nn
 
 import tasks
+from gradlab.compiling import CompileWatch
 from gradlab.config import ModePlan, SHACConfig, resolve_config
 from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
-from gradlab.graphs import GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
+from gradlab.graphs import WARMUP_ITERS, GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
 from gradlab.networks import Critic, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
 from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad, group_norms, image_sensitivity
@@ -100,9 +101,15 @@ class SHAC:
         # through). Compiled, their small layers (bias, ReLU, LayerNorm, ELU and their backward) fuse; the
         # convolutions and GEMMs stay cuDNN/cuBLAS calls. The action noise stays eager (same draws).
         self._actor_mean, self._target_value = self.actor.mean, self.target_critic
+        # What this process compiles, and which part of the iteration is compiling (a progress display's text).
+        self.compile_watch = CompileWatch()
         if cfg.compile:
-            self._actor_mean = torch.compile(self.actor.mean, dynamic=False)
-            self._target_value = torch.compile(self.target_critic, dynamic=False)
+            watch = self.compile_watch
+            self._actor_mean = watch.labelled("actor", torch.compile(self.actor.mean, dynamic=False))
+            self._target_value = watch.labelled("critic", torch.compile(self.target_critic, dynamic=False))
+            self._step = watch.labelled("physics step", self.task.step)
+            if self.renderer is not None:
+                self._render = watch.labelled("renderer", self._render)
         # CUDA graphs (compile on a CUDA device) capture the critic phase too, so its Adam must be capturable
         # and read its learning rate from a tensor that the decay updates in place.
         self.graphs = cfg.compile and self.device.type == "cuda"
@@ -127,7 +134,8 @@ class SHAC:
         self.recent_lengths: deque[int] = deque(maxlen=100)
         self._started = False
         self.live = LiveState()
-        self.window = WindowGraphs(forward=self._window_forward, backward=self._backward, commit=self._commit_state,
+        backward = self.compile_watch.labelled("backward pass", self._backward) if cfg.compile else self._backward
+        self.window = WindowGraphs(forward=self._window_forward, backward=backward, commit=self._commit_state,
                                    params=list(self.actor.parameters()), timer=self.timer, device=self.device,
                                    capture=self.graphs)
         self.critic_phase = (GraphedCriticPhase(self._critic_phase, self.critic, self.device) if self.graphs
@@ -157,6 +165,9 @@ class SHAC:
             return self.renderer.soft(self.task.qpos)
         with torch.no_grad():
             return self.renderer(self.task.qpos)
+
+    def _step(self, action: torch.Tensor) -> tuple:
+        return self.task.step(action)
 
     def _start(self) -> None:
         """First reset: state, frame stack tiled with the first image, running stats seeded."""
@@ -225,7 +236,7 @@ class SHAC:
             action = self.actor.sample(self._actor_mean(actor_in))
             self.flags.watch_grad(t, "action", action)
 
-            obs, reward, done, info = task.step(action)
+            obs, reward, done, info = self._step(action)
             self.flags.watch_grad(t, "qpos", task.qpos)
             self.flags.watch_grad(t, "qvel", task.qvel)
             self.flags.check(t, "state_obs", info["obs_before_reset"])
@@ -328,6 +339,17 @@ class SHAC:
             else:
                 group["lr"] = self._lr(self.cfg.critic_lr)
 
+    def _announce_capture(self, probe: bool) -> None:
+        """Say so when this iteration's window will be captured as CUDA graphs (a first capture takes seconds).
+
+        Each kind of window (plain, probe) has run eagerly by the time ``WARMUP_ITERS`` have passed: the first
+        iteration is a probe and the second a plain one whenever both kinds occur."""
+        if not self.graphs or self.iteration < WARMUP_ITERS or probe in self.window.captured:
+            return
+        probing = self.plan.probes and self.cfg.cosine_every > 0
+        kinds = 2 if probing and self.cfg.cosine_every > 1 else 1
+        self.compile_watch.announce(f"capturing CUDA graphs (window {len(self.window.captured) + 1}/{kinds})")
+
     def train_iteration(self) -> dict:
         """Run one iteration; returns its metrics (Python scalars)."""
         cfg = self.cfg
@@ -339,6 +361,7 @@ class SHAC:
         self._set_learning_rates()
 
         # Actor: rollout window, loss and backward, timed ("fwd", "bwd") and memory-probed as one region.
+        self._announce_capture(probe)
         window = self.window.run(iteration=self.iteration, probe=probe)
         loss, buf = window.loss, window.buffers
         params = list(self.actor.parameters())
@@ -353,6 +376,8 @@ class SHAC:
         self.actor_opt.step()
 
         # Critic on TD(lambda) targets of the window, then the target network.
+        if self.graphs and self.critic_phase.graph is None:
+            self.compile_watch.announce("capturing CUDA graph (critic phase)")
         with self.timer("critic"):
             critic_loss = self.critic_phase(buf)
         self.obs_rms.update(buf["raw_obs"])
