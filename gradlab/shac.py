@@ -107,7 +107,7 @@ class SHAC:
             watch = self.compile_watch
             self._actor_mean = watch.labelled("actor", torch.compile(self.actor.mean, dynamic=False))
             self._target_value = watch.labelled("critic", torch.compile(self.target_critic, dynamic=False))
-            self._step = watch.labelled("physics step", self.task.step)
+            self._step = watch.labelled("physics step", self._step)
             if self.renderer is not None:
                 self._render = watch.labelled("renderer", self._render)
         # CUDA graphs (compile on a CUDA device) capture the critic phase too, so its Adam must be capturable
