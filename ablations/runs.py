@@ -5,7 +5,9 @@ A run folder holds:
                      and which flags overrode it, the start time (UTC) + versions
     git.txt          commit, branch, dirty status and diff stat of the code that ran (git.diff: the full diff)
     metrics.jsonl    one JSON object per iteration (``REQUIRED_KEYS``, plus ``PROBE_KEYS`` on probed iterations)
-    summary.json     written at the end (or when the run stops on an error): medians without warm-up, peaks
+    summary.json     written at the end (or when the run stops on an error): medians without warm-up, peaks,
+                     the seconds from process start to the end of its first iteration (``first_iter_s``) and,
+                     with --compile, what was compiled and how much came from the compile cache (``compile``)
     checkpoints/     ckpt_<iter>.pt (the last ``keep_checkpoints``), written atomically; a resume starts from
                      the newest one that loads and renames damaged newer ones to ckpt_<iter>.pt.damaged
     videos/          iter_<iter>.mp4 evaluation rollouts of the deterministic policy
@@ -22,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +41,8 @@ from gradlab.checkpoint import (
     prune_checkpoints,
     save_checkpoint,
 )
-from gradlab.config import SHACConfig
+from gradlab.compiling import CompileCache, CompileCacheWarning, compile_counters, resolve_cache_root
+from gradlab.config import SHACConfig, resolve_config
 from gradlab.presets import preset_record
 from gradlab.probes import NonFiniteError
 from gradlab.seeding import resolve_device
@@ -53,6 +57,7 @@ REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "cr
 PROBE_KEYS = ("cos_full_decoupled", "grad_norm_full", "grad_norm_decoupled", "grad_norm_render_term")
 #: Keys that depend on the clock, not on the computation (excluded when comparing runs for determinism).
 TIMING_KEYS = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb")
+_IMPORTED = time.time()  # when no better process start time is known (_process_started)
 
 
 @dataclass
@@ -67,7 +72,8 @@ class RunConfig(SHACConfig):
     """Run folder name; None: <task>_<mode>_seed<seed>_<date>-<time>."""
     resume: Path | None = None
     """Continue the run in this folder from its last checkpoint. Its config.json wins over other flags except
-    --device, --iters and --time-limit-min, which a resume may change (e.g. to train the same run longer)."""
+    --device, --iters, --time-limit-min and --compile-cache, which a resume may change (e.g. to train the same
+    run longer)."""
     checkpoint_every: int = 50
     """Iterations between checkpoints (and always at the end)."""
     keep_checkpoints: int = 2
@@ -86,6 +92,10 @@ class RunConfig(SHACConfig):
     """Also log the metrics to TensorBoard (needs the tensorboard package) in <run>/tb."""
     progress: bool = True
     """Show a progress bar."""
+    compile_cache: str | None = None
+    """With --compile: the root folder of torch.compile's caches (a subfolder per torch/Triton/device version;
+    delete it to start cold); None: $PIXELGRAD_COMPILE_CACHE, else ~/.cache/pixelgrad/compile; 'off': torch's
+    own cache locations and no artifact file."""
 
     def validate(self) -> None:
         """SHACConfig's checks plus the run options'."""
@@ -100,6 +110,8 @@ class RunConfig(SHACConfig):
             raise ValueError(f"video_steps must be positive, got {self.video_steps}")
         if self.time_limit_min is not None and self.time_limit_min <= 0:
             raise ValueError(f"time_limit_min must be positive, got {self.time_limit_min}")
+        if self.compile_cache is not None and not self.compile_cache.strip():
+            raise ValueError("compile_cache is empty: give a folder, or 'off' for torch's own cache locations")
 
 
 def shac_part(cfg: RunConfig) -> SHACConfig:
@@ -203,7 +215,24 @@ def _utc(t: float) -> str:
     return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).isoformat(timespec="seconds")
 
 
-def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, started: float) -> dict:
+def _process_started() -> float:
+    """When this process started, in seconds since the epoch: from /proc on Linux (interpreter start and imports
+    included), else when this module was imported."""
+    try:
+        # /proc/self/stat field 22 is the start time in clock ticks after boot; the 20th field after the
+        # parenthesised command name (which may itself hold spaces)
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        boot = next(int(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        started = boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return _IMPORTED
+    # a clock that disagrees with the import time (containers that fake /proc) is not trusted
+    return started if 0.0 <= _IMPORTED - started < 3600.0 else _IMPORTED
+
+
+def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, started: float, *,
+             first_iter_s: float | None = None, compiled: dict | None = None) -> dict:
     timed = [r for r in rows if r["iter"] > cfg.warmup_iters]
     plain = [r for r in timed if not r.get("probed")]
     probed = [r for r in timed if r.get("probed")]
@@ -242,6 +271,9 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
         "median_saved_mb": med("saved_mb", plain),
         "warmup_iters_excluded": cfg.warmup_iters,
         "session_seconds": time.time() - started,
+        # from this process's start to the end of its first training iteration (imports, setup, compilation)
+        "first_iter_s": first_iter_s,
+        "compile": compiled,
     }
 
 
@@ -277,7 +309,7 @@ def _stored_config(run_dir: Path, cfg_path: Path, overrides: RunConfig) -> RunCo
     stored.update(resume=run_dir, progress=overrides.progress)
     # What a resume may change: where it runs, and how long it goes on (a longer run extends the same curve).
     defaults = RunConfig()
-    for k in ("device", "iters", "time_limit_min"):
+    for k in ("device", "iters", "time_limit_min", "compile_cache"):
         if getattr(overrides, k) != getattr(defaults, k):
             stored[k] = getattr(overrides, k)
     try:
@@ -331,12 +363,40 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device, LoadedCheckp
     return cfg, run_dir, device, None
 
 
+def _open_compile_cache(cfg: RunConfig, device: torch.device) -> tuple[CompileCache | None, str]:
+    """The compile cache of a --compile run, activated, and the label of its artifact file; says where it is."""
+    resolved = resolve_config(shac_part(cfg))
+    label = f"{resolved.task}_{resolved.mode}_{resolved.num_envs}envs_{resolved.image_size}px"
+    root = resolve_cache_root(cfg.compile_cache)
+    if root is None:
+        print("compile cache: torch's own locations (--compile-cache off)", file=sys.stderr)
+        return None, label
+    try:
+        cache = CompileCache(root, device)
+        cache.activate(label)
+    except OSError as e:
+        warnings.warn(f"compile cache under {root} is not usable ({e}); compiling with torch's own caches",
+                      CompileCacheWarning, stacklevel=2)
+        return None, label
+    loaded = ", ".join(f"{n} {kind}" for kind, n in cache.loaded.items())
+    print(f"compile cache: {cache.folder}" + (f" (loaded {loaded} artifacts)" if loaded else ""), file=sys.stderr)
+    return cache, label
+
+
+def _save_compile_cache(cache: CompileCache, label: str) -> None:
+    try:
+        cache.save(label)
+    except OSError as e:  # a full disk loses the artifact file, not the run
+        warnings.warn(f"compile cache artifacts not saved to {cache.folder}: {e}", CompileCacheWarning, stacklevel=2)
+
+
 def run(cfg: RunConfig) -> Path:
     """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work."""
     from gradlab.shac import SHAC
 
     started = time.time()
     cfg, run_dir, device, resume_from = prepare(cfg)
+    cache, cache_label = _open_compile_cache(cfg, device) if cfg.compile else (None, "")
     trainer = SHAC(shac_part(cfg), device=device)
     shac_fields = dataclasses.fields(SHACConfig)
     resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
@@ -369,8 +429,14 @@ def run(cfg: RunConfig) -> Path:
 
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=f"{cfg.task}/{cfg.mode}",
-               unit="it", dynamic_ncols=True)
+    base = f"{cfg.task}/{cfg.mode}"
+    bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=base, unit="it",
+               dynamic_ncols=True)
+    watch = trainer.compile_watch
+    # The first iterations wait for the compiler: the bar says which part it compiles or captures, then its name.
+    watch.on_change = lambda text: bar.set_description(base if text is None else f"{base}: {text}")
+    saved_at = watch.done  # compilations the artifact file holds
+    first_iter_s = None
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
     try:
@@ -380,11 +446,16 @@ def run(cfg: RunConfig) -> Path:
         spent = budget_s is not None and trainer.wall_s >= budget_s  # a resumed run whose budget is used up
         while trainer.iteration < cfg.iters and not spent:
             m = trainer.train_iteration()
+            if first_iter_s is None:
+                first_iter_s = time.time() - _process_started()
+            watch.announce(None)
             it = m["iter"]
             last = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
             if cfg.video_every and (it % cfg.video_every == 0 or last):
                 steps = min(cfg.video_steps or trainer.task.episode_length, trainer.task.episode_length)
-                eval_return, frames = trainer.evaluate(steps=steps, record=True)
+                with watch.part("evaluation"):
+                    eval_return, frames = trainer.evaluate(steps=steps, record=True)
+                watch.announce(None)
                 m["eval_return"] = eval_return  # undiscounted, deterministic policy, over eval_steps steps
                 m["eval_steps"] = steps
                 write_video(run_dir / "videos" / f"iter_{it:06d}.mp4", frames)
@@ -399,6 +470,9 @@ def run(cfg: RunConfig) -> Path:
             if it % cfg.checkpoint_every == 0 or last:
                 save_checkpoint(checkpoint_path(ckpt_dir, it), trainer.state_dict())
                 prune_checkpoints(ckpt_dir, keep=cfg.keep_checkpoints)
+            if cache is not None and watch.done != saved_at:  # new compilations: keep them for the next process
+                _save_compile_cache(cache, cache_label)
+                saved_at = watch.done
             ret = m["return_mean"]
             bar.set_postfix(ret="-" if ret is None else f"{ret:.1f}", ms=f"{m['iter_ms']:.0f}",
                             gn=f"{m['grad_norm']:.2g}")
@@ -419,5 +493,13 @@ def run(cfg: RunConfig) -> Path:
         bar.close()
         if writer is not None:
             writer.close()
-        atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started))
+        compiled = None
+        if cfg.compile:
+            if cache is not None and watch.done != saved_at:
+                _save_compile_cache(cache, cache_label)
+            compiled = {"cache": None if cache is None else str(cache.folder),
+                        "artifacts_loaded": {} if cache is None else cache.loaded,
+                        **watch.summary(), **compile_counters()}
+        atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,
+                                                             first_iter_s=first_iter_s, compiled=compiled))
     return run_dir

@@ -200,3 +200,20 @@ def test_the_watch_names_the_part_that_compiles_and_counts_recompiles():
     assert shown[-2:] == ["capturing CUDA graphs (window 1/2)", None]
     summary = watch.summary()
     assert summary["compiles"] == 2 and summary["recompiles"] == 1
+
+
+def test_a_run_summary_has_its_time_to_the_first_iteration(tmp_path, monkeypatch):
+    import time
+
+    from ablations import runs
+
+    assert 0.0 <= time.time() - runs._process_started() < 24 * 3600  # the real start time is plausible
+    before = time.time()
+    monkeypatch.setattr(runs, "_process_started", lambda: before - 100.0)  # as if the process began 100 s earlier
+    cfg = runs.RunConfig(task="cartpole", mode="state", iters=2, num_envs=2, horizon=2, critic_iterations=1,
+                         device="cpu", out=tmp_path, name="r", video_every=0, progress=False)
+    summary = json.loads((runs.run(cfg) / "summary.json").read_text())
+    assert 100.0 < summary["first_iter_s"] < 100.0 + (time.time() - before)
+    assert summary["compile"] is None  # not a --compile run
+    with pytest.raises(ValueError, match="compile_cache is empty"):
+        runs.RunConfig(compile_cache=" ").validate()
