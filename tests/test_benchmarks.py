@@ -64,3 +64,25 @@ def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
     assert "3 kernels in both, 1 with different configs" in out and "k0 [s0]" in out and "k1" not in out
     with pytest.raises(SystemExit, match="no row with kernel_configs for num_envs=1024"):
         cd.main([str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--num-envs", "1024"])
+
+
+@pytest.mark.slow
+def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp_path):
+    startup = _load("startup")
+    out = tmp_path / "startup.json"
+    doc = startup.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "state", "--num-envs", "2",
+                        "--work", str(tmp_path / "work"), "--out", str(out), "--horizon", "2",
+                        "--critic-iterations", "1"])
+    assert json.loads(out.read_text()) == doc
+    assert {"device", "date", "command", "commit", "torch"} <= set(doc["meta"])
+    cold, warm = doc["rows"]
+    assert (cold["phase"], warm["phase"]) == ("cold", "warm")
+    for row in (cold, warm):
+        assert row["status"] == "finished", row
+        assert 0 < row["first_iter_s"] < row["process_s"]
+        assert len(row["iter_ms"]) == 2 and row["compiles"] >= 1 and row["recompiles"] >= 0
+    # cold: an empty folder, every graph compiled; warm: every graph inductor compiles comes from the cache
+    assert cold["fxgraph_cache_miss"] >= 1 and cold["artifacts_loaded"] == {}
+    assert warm["fxgraph_cache_hit"] >= 1 and warm["fxgraph_cache_miss"] == 0
+    assert warm["artifacts_loaded"].get("inductor", 0) >= 1
+    assert "--compile-cache" in cold["command"] and "--horizon 2" in cold["command"]

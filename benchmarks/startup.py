@@ -1,0 +1,148 @@
+"""Time to the first training iteration of ``ablate --compile``, cold and warm, per task and mode.
+
+For each task and mode, ``ablate --task T --mode M --compile --iters N`` runs twice in fresh processes: first
+with an empty compile cache folder (cold: every graph compiled), then again with the same folder (warm: what a
+second run of the same settings on the same machine pays). Each run's ``summary.json`` gives the seconds from
+process start to the end of its first iteration (``first_iter_s``), the compilations and recompilations
+dynamo made, and inductor's FX graph and AOTAutograd cache hits; the process's own wall time is measured
+around it. Arguments this script does not know are passed on to ``ablate`` (e.g. ``--horizon 4``).
+
+Not a test. Examples::
+
+    python benchmarks/startup.py --device cuda --tasks ant --modes decoupled --num-envs 64 --out startup.json
+    python benchmarks/startup.py --device cpu --tasks cartpole --modes state --num-envs 2 --image-size 16 \
+        --out /tmp/startup.json --horizon 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: summary.json["compile"] keys copied into each row
+COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "fxgraph_cache_hit",
+                "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
+                "artifacts_loaded")
+
+
+def ablate_command(task: str, mode: str, args, *, cache: Path, runs: Path, name: str) -> list[str]:
+    cmd = [sys.executable, "-m", "ablations", "ablate", "--task", task, "--mode", mode, "--compile",
+           "--iters", str(args.iters), "--device", args.device, "--compile-cache", str(cache), "--out", str(runs),
+           "--name", name, "--video-every", "0", "--no-progress"]
+    if args.num_envs is not None:
+        cmd += ["--num-envs", str(args.num_envs)]
+    if args.image_size is not None:
+        cmd += ["--image-size", str(args.image_size)]
+    return cmd + list(args.ablate_args)
+
+
+def run_once(cmd: list[str], run_dir: Path, *, timeout: float) -> dict:
+    """One ablate process: its wall time, and what its summary.json says about the start."""
+    env = {k: v for k, v in os.environ.items() if k not in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR")}
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=timeout)
+    row = {"process_s": time.perf_counter() - t0, "returncode": proc.returncode}
+    summary_path = run_dir / "summary.json"
+    if proc.returncode != 0 or not summary_path.exists():
+        row.update(status="error", error=(proc.stderr.strip().splitlines() or ["(no output)"])[-1][:500])
+        return row
+    summary = json.loads(summary_path.read_text())
+    compiled = summary.get("compile") or {}
+    row.update(status=summary["status"], first_iter_s=summary.get("first_iter_s"),
+               iter_ms=[m["iter_ms"] for m in map(json.loads, (run_dir / "metrics.jsonl").read_text().splitlines())],
+               **{k: compiled.get(k) for k in COMPILE_KEYS})
+    return row
+
+
+def measure(task: str, mode: str, args, *, work: Path) -> list[dict]:
+    """The cold and the warm run of one (task, mode), sharing one compile cache folder."""
+    cache, runs = work / f"cache_{task}_{mode}", work / "runs"
+    rows = []
+    for phase in ("cold", "warm"):
+        name = f"{task}_{mode}_{phase}"
+        cmd = ablate_command(task, mode, args, cache=cache, runs=runs, name=name)
+        row = {"task": task, "mode": mode, "phase": phase, "num_envs": args.num_envs, "image_size": args.image_size,
+               "iters": args.iters, "command": " ".join(cmd[1:])}
+        row.update(run_once(cmd, runs / name, timeout=args.timeout))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+        if row["status"] == "error":
+            break
+    return rows
+
+
+def _commit() -> str:
+    try:
+        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=30, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=30, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return head + (" (dirty)" if dirty else "")
+
+
+def meta(args, argv: list[str]) -> dict:
+    import torch
+
+    info = {"device": args.device, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+            "command": " ".join(["python", "benchmarks/startup.py", *argv]), "commit": _commit(),
+            "torch": torch.__version__, "python": platform.python_version(), "hostname": platform.node()}
+    if args.device.startswith("cuda") and torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name()
+    return info
+
+
+def fmt(v, nd=1) -> str:
+    return "-" if v is None else f"{v:.{nd}f}"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="cuda", help="cpu | cuda | cuda:N (passed to ablate)")
+    p.add_argument("--tasks", nargs="+", default=["ant"])
+    p.add_argument("--modes", nargs="+", default=["decoupled"])
+    p.add_argument("--num-envs", type=int, default=None, help="default: the preset's")
+    p.add_argument("--image-size", type=int, default=None, help="default: ablate's")
+    p.add_argument("--iters", type=int, default=2, help="iterations per run (the first one is what is timed)")
+    p.add_argument("--timeout", type=float, default=1800.0, help="seconds one ablate process may take")
+    p.add_argument("--work", type=Path, default=None,
+                   help="folder for the cache folders and run folders (kept); default: a temporary one, removed")
+    p.add_argument("--out", type=Path, default=Path("startup.json"))
+    args, args.ablate_args = p.parse_known_args(argv)
+    if args.iters < 1:
+        p.error(f"--iters must be >= 1, got {args.iters}")
+    doc = {"meta": meta(args, argv), "rows": []}
+    with tempfile.TemporaryDirectory(prefix="pixelgrad-startup-") as tmp:
+        work = args.work or Path(tmp)
+        for task in args.tasks:
+            for mode in args.modes:
+                doc["rows"].extend(measure(task, mode, args, work=work))
+                args.out.parent.mkdir(parents=True, exist_ok=True)
+                args.out.write_text(json.dumps(doc, indent=2))
+
+    print(f"\nstart of ablate --compile, {doc['meta'].get('gpu', args.device)}: seconds from process start to the "
+          f"end of the first iteration, and the whole {args.iters}-iteration process")
+    print(f"{'task':9} {'mode':9} {'phase':5} {'first it s':>10} {'process s':>9} {'compiles':>8} {'recompiles':>10} "
+          f"{'fx hit':>6} {'fx miss':>7}")
+    for r in doc["rows"]:
+        if r["status"] == "error":
+            print(f"{r['task']:9} {r['mode']:9} {r['phase']:5} error: {r['error'][:80]}")
+            continue
+        print(f"{r['task']:9} {r['mode']:9} {r['phase']:5} {fmt(r['first_iter_s']):>10} {fmt(r['process_s']):>9} "
+              f"{r['compiles']!s:>8} {r['recompiles']!s:>10} {r['fxgraph_cache_hit']!s:>6} "
+              f"{r['fxgraph_cache_miss']!s:>7}")
+    return doc
+
+
+if __name__ == "__main__":
+    main()
