@@ -305,13 +305,16 @@ def _hook_dynamo() -> bool:
     except ImportError:
         return False
 
+    # A display must never fail a compilation: an error in a watch (or in its on_change) is dropped here.
     def start(args: Any = None) -> None:
         for w in list(_watches):
-            w._compile_started(args)
+            with contextlib.suppress(Exception):
+                w._compile_started(args)
 
     def end(args: Any = None) -> None:
         for w in list(_watches):
-            w._compile_ended(args)
+            with contextlib.suppress(Exception):
+                w._compile_ended(args)
 
     callback_handler.register_start_callback(start)
     callback_handler.register_end_callback(end)
