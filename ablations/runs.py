@@ -490,6 +490,7 @@ def run(cfg: RunConfig) -> Path:
         status, error = "oom", str(e).splitlines()[0]
         raise
     finally:
+        watch.on_change = None
         bar.close()
         if writer is not None:
             writer.close()
