@@ -18,12 +18,31 @@ def _fail(msg: str) -> None:
     raise SystemExit(2)
 
 
+def _plain_compile_cache_warnings() -> None:
+    """A compile cache warning as one ``warning: ...`` line, like the run's other warnings, not Python's
+    file:line format."""
+    import warnings
+
+    from gradlab.compiling import CompileCacheWarning
+
+    show = warnings.showwarning
+
+    def show_plainly(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, CompileCacheWarning):
+            print(f"warning: {message}", file=sys.stderr)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show_plainly
+
+
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
     from ablations.runs import RunConfig, run
     from gradlab.probes import NonFiniteError
 
     cfg = tyro.cli(RunConfig, args=argv, description=RunConfig.__doc__)
+    _plain_compile_cache_warnings()
     try:
         run_dir = run(cfg)
     except ValueError as e:

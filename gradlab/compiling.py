@@ -242,10 +242,10 @@ class CompileCache:
         except Exception as e:  # whatever torch raises on a payload it cannot use: a cache miss, not a failure
             try:
                 aside = _aside(path, ".corrupt")
-                _warn(f"compile cache artifact {path} is unusable ({e}); moved aside to {aside.name}, "
-                      f"compiling afresh")
+                _warn(f"compile cache artifact {path} is unusable ({e}); moved aside to {aside.name}, the run goes "
+                      f"on without it")
             except OSError:
-                _warn(f"compile cache artifact {path} is unusable ({e}); compiling afresh")
+                _warn(f"compile cache artifact {path} is unusable ({e}); the run goes on without it")
             return False
         self.loaded = _artifact_counts(info)
         return True
