@@ -56,8 +56,10 @@ def run_once(cmd: list[str], run_dir: Path, *, timeout: float) -> dict:
         return row
     summary = json.loads(summary_path.read_text())
     compiled = summary.get("compile") or {}
+    metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    # the losses let a reader check that the warm run computed what the cold one did
     row.update(status=summary["status"], first_iter_s=summary.get("first_iter_s"),
-               iter_ms=[m["iter_ms"] for m in map(json.loads, (run_dir / "metrics.jsonl").read_text().splitlines())],
+               iter_ms=[m["iter_ms"] for m in metrics], actor_loss=[m["actor_loss"] for m in metrics],
                **{k: compiled.get(k) for k in COMPILE_KEYS})
     return row
 

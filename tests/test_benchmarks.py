@@ -85,4 +85,5 @@ def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp
     assert cold["fxgraph_cache_miss"] >= 1 and cold["artifacts_loaded"] == {}
     assert warm["fxgraph_cache_hit"] >= 1 and warm["fxgraph_cache_miss"] == 0
     assert warm["artifacts_loaded"].get("inductor", 0) >= 1
+    assert warm["actor_loss"] == cold["actor_loss"]  # the cached kernels compute what the compiled ones did (CPU)
     assert "--compile-cache" in cold["command"] and "--horizon 2" in cold["command"]
