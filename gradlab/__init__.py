@@ -6,7 +6,8 @@ policy gradients through the renderer), ``decoupled`` (D.Va: the image detached 
 the mode decides; presets (``gradlab.presets``) hold the reference code's hyperparameters. Probes measure
 both gradients of one rollout, their norms, cosine and split by parameter group, and the policy's sensitivity
 to each frame; every iteration reports CUDA-synchronised times and peak memory; a NaN/inf stops the run
-naming the iteration, the horizon step and the tensor.
+naming the iteration, the horizon step and the tensor. ``CompileCache`` keeps what ``--compile`` compiled in a
+folder the user can see and clear; ``CompileWatch`` names the part being compiled for a progress display.
 """
 
 from gradlab.compiling import CompileCache, CompileCacheWarning, CompileWatch, resolve_cache_root
