@@ -22,6 +22,7 @@ Nothing is estimated: a comparison without our measurement says "not run" or "no
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -114,8 +115,9 @@ class PaperConfig:
     """Write the report of this existing sweep folder and exit; runs nothing."""
     report: Path | None = None
     """The report's markdown file; None: <sweep folder>/report/report.md."""
-    benchmark: Path | None = None
-    """benchmarks/iteration.py JSON for Table 1 (backward time per iteration); without it the runs' own."""
+    benchmark: tuple[Path, ...] = ()
+    """benchmarks/iteration.py JSONs for Table 1 (backward time per iteration; the first file that has a task and
+    mode wins); without them the runs' own, which a GPU shared by several runs slows."""
     memory: tuple[Path, ...] = ()
     """ablate-memory folders for the memory sweep (Fig. 10)."""
     floors: Path | None = None
@@ -276,7 +278,7 @@ def _probe_table(runs: list[Run], arm_of: dict[str, str]) -> list[str]:
                              "median cos(full, decoupled)", "median norm of render term"], rows), ""]
 
 
-def build_paper_report(folder: str | Path, *, out: str | Path | None = None, benchmark: str | Path | None = None,
+def build_paper_report(folder: str | Path, *, out: str | Path | None = None, benchmark=(),
                        memory: tuple = (), floors: str | Path | None = None) -> Path:
     """Write the report of an ablate-paper sweep folder (figures beside it); returns its path.
 
@@ -287,7 +289,9 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
     out = Path(out) if out is not None else folder / "report" / "report.md"
     if out.suffix.lower() != ".md":
         raise ValueError(f"--report {out}: the report is a markdown file; give a path ending in .md")
-    benchmarks = [(Path(benchmark), *load_benchmark(benchmark))] if benchmark is not None else []
+    if isinstance(benchmark, (str, os.PathLike)):
+        benchmark = (benchmark,)
+    benchmarks = [(Path(b), *load_benchmark(b)) for b in benchmark or ()]
     sweeps = load_memory_sweeps(memory)
     floor_data = load_floors(floors)
     paper = load_paper_numbers()
@@ -370,8 +374,8 @@ def main(argv: list[str] | None = None) -> None:
             dry_run(sweep, arms=arms)
             return
         # Inputs of the report are checked before hours of training, not after.
-        if cfg.benchmark is not None:
-            load_benchmark(cfg.benchmark)
+        for b in cfg.benchmark:
+            load_benchmark(b)
         load_memory_sweeps(cfg.memory)
         load_floors(cfg.floors)
         manifest = run_sweep(sweep, arms=arms, argv=argv)

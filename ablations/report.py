@@ -274,8 +274,14 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
         paper = PAPER_TABLE1_MS.get(task)
         for full_label, full in of_mode(task, "full") or [("full", None)]:
             if dec and full:
-                ratio = f"{full.ms / dec.ms:.2f}x" if dec.setting == full.setting and dec.ms > 0 else \
-                    "n/a (settings differ)"
+                # A ratio of two times means something only when one process kind on one device measured both
+                # (a benchmark alone on its GPU; runs that shared theirs are slowed by their neighbours).
+                if dec.setting != full.setting:
+                    ratio = "n/a (settings differ)"
+                elif (dec.source, dec.device) != (full.source, full.device):
+                    ratio = "n/a (measured apart)"
+                else:
+                    ratio = f"{full.ms / dec.ms:.2f}x" if dec.ms > 0 else NOT_RUN
             else:
                 ratio = NOT_RUN
             info = []

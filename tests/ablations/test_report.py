@@ -96,6 +96,11 @@ def test_benchmark_json_wins_and_differing_settings_give_no_ratio(inputs, tmp_pa
     # full from the benchmark (64x32), decoupled from the runs (4x8): not comparable, so no ratio.
     assert cart[1:4] == ["11.0", "99.0", "n/a (settings differ)"]
     assert "No memory sweep was given" in text and "python -m benchmarks.bwd" in text
+    # Same setting but measured apart (a benchmark alone on its GPU against runs): no ratio either.
+    bench.write_text(json.dumps({"gpu": "NVIDIA H100", "results": [
+        {"task": "cartpole", "mode": "full", "bwd_ms": 99.0, "num_envs": 4, "horizon": 8, "image_size": 32}]}))
+    text = build_report(ReportConfig(runs=(runs,), benchmark=(bench,), out=tmp_path / "r2.md")).read_text()
+    assert table_row(text, "cartpole")[1:4] == ["11.0", "99.0", "n/a (measured apart)"]
 
 
 def test_report_from_a_benchmark_alone(tmp_path):
