@@ -96,7 +96,9 @@ for spec in "$@"; do
          .gpuray/*.whl >/dev/null 2>&1; export PATH=/tmp/site/bin:$PATH
        TORCHINDUCTOR_COMPILE_THREADS=4 timeout "$secs" python3 -m ablations.paper --out ${PAPER_OUT:-/tmp/paper} ${PAPER_ARGS:-} \
          --set device=cuda compile=true video-every=100000 ${PAPER_SET:-} --no-progress 2>&1 | tail -n 60
-       out=${PAPER_OUT:-/tmp/paper}; tar -C "$(dirname "$out")" --exclude=checkpoints -czf "$OUT/paper.tgz" "$(basename "$out")";;
+       # in parts of 15 MB: a file over 16 MiB does not come back from the GPU machine (cat paper.tgz.* | tar -xz)
+       out=${PAPER_OUT:-/tmp/paper}; tar -C "$(dirname "$out")" --exclude=checkpoints -cz "$(basename "$out")" \
+         | split -b 15M -d - "$OUT/paper.tgz.";;
     sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs)
        timeout "$secs" python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes decoupled full --meshes ${SWEEP_MESHES:-0 16 64} \
          --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 --image-size 84 --warmup-iters 1 --iters 2 \
