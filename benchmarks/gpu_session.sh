@@ -4,7 +4,9 @@
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
 # Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
 # in ~95 s (H100) before a stage prints its first row.
-# Stages: env, nvdiffrast, anchor, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay, profile, render, render-fused, iter, iter-compiled, learn, paper, sweep (see each case below).
+# Stages: env, nvdiffrast, anchor, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay,
+# profile, render, render-fused, raytrace, iter, iter-compiled, iter-warp, startup, learn, paper, sweep (see each
+# case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
@@ -99,11 +101,23 @@ for spec in "$@"; do
        # in parts of 15 MB: a file over 16 MiB does not come back from the GPU machine (cat paper.tgz.* | tar -xz)
        out=${PAPER_OUT:-/tmp/paper}; tar -C "$(dirname "$out")" --exclude=checkpoints -cz "$(basename "$out")" \
          | split -b 15M -d - "$OUT/paper.tgz.";;
-    sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs)
-       timeout "$secs" python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes decoupled full --meshes ${SWEEP_MESHES:-0 16 64} \
-         --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 --image-size 84 --warmup-iters 1 --iters 2 \
-         --device cuda --out /tmp/sweep --no-progress --timeout-s 240 2>&1 | tail -n 15
-       tar -C /tmp --exclude=logs -czf "$OUT/sweep.tgz" sweep ;;
+    raytrace) # the Warp ray tracer's variants (refit vs trace, eager vs graph) on the ant, 20k and 100k faces
+       run "$secs" python3 benchmarks/raytrace.py --device cuda ${RAYTRACE_ARGS:-} --out "$OUT/raytrace.json";;
+    iter-warp) # decoupled iterations with the soft rasterizer's forward against the ray tracer, one process;
+       # ITER_TAG names the output, ITER_ARGS adds flags (e.g. --extra-meshes 32 --extra-mesh-verts 1024)
+       run "$secs" python3 benchmarks/iteration.py --device cuda --compile --tasks ${TASKS:-ant} --modes decoupled \
+         --renderers soft warp --warmup 3 --iters 4 --probe-every 0 ${ITER_ARGS:-} --out "$OUT/iter_warp${ITER_TAG:-}.json";;
+    startup) # time to the first compiled iteration, cold (empty compile cache) then warm, fresh processes
+       run "$secs" python3 benchmarks/startup.py --device cuda --tasks ${TASKS:-ant} --modes ${MODES:-decoupled} \
+         --num-envs 64 --out "$OUT/startup.json";;
+    sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs);
+       # SWEEP_RENDERER=warp sweeps decoupled rollouts rendered by the ray tracer (SWEEP_MODES=decoupled)
+       r=${SWEEP_RENDERER:-soft}
+       timeout "$secs" python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes ${SWEEP_MODES:-decoupled full} \
+         --renderer "$r" --meshes ${SWEEP_MESHES:-0 16 64} --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 \
+         --image-size 84 --warmup-iters 1 --iters 2 --device cuda --out "/tmp/sweep_$r" --no-progress --timeout-s 240 \
+         2>&1 | tail -n 15
+       tar -C /tmp --exclude=logs -czf "$OUT/sweep_$r.tgz" "sweep_$r" ;;
     *) echo "unknown stage $stage";;
   esac
 done
