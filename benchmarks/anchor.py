@@ -34,13 +34,13 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 import traceback
 from pathlib import Path
 
 import torch
+from provenance import commit
 from render import Scene, graphed
 
 import diffrender as dr
@@ -336,12 +336,6 @@ def _nvdiffrast_available() -> bool:
     return True
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("PIXELGRAD_COMMIT", "unknown")
 
 
 def table(rows: list[dict]) -> str:
@@ -400,7 +394,7 @@ def main(argv=None) -> int:
         p.error("needs a CUDA device (nvdiffrast and the timed fused kernels are CUDA-only)")
     started = time.time()
     meta = dict(device=torch.cuda.get_device_name(), torch=torch.__version__, python=platform.python_version(),
-                date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), commit=_commit(),
+                date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), commit=commit(),
                 command="python benchmarks/anchor.py " + " ".join(argv if argv is not None else sys.argv[1:]),
                 args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
                 seconds=None)

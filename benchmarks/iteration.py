@@ -31,6 +31,9 @@ import diffrender
 from gradlab import SHAC, ModePlan, SHACConfig, resolve_device
 from gradlab.timing import median
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # run as a script or loaded by path
+from provenance import commit
+
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
 
 
@@ -114,7 +117,7 @@ def main() -> None:
         p.error(str(e))
 
     env = {"torch": torch.__version__, "python": platform.python_version(), "device": args.device,
-           "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv)}
+           "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv), "commit": commit()}
     if args.device.startswith("cuda"):
         env["gpu"] = torch.cuda.get_device_name()
     results = []
@@ -126,7 +129,8 @@ def main() -> None:
         print(json.dumps(row), flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         # The format ablate-report reads: provenance at the top level, one row per (task, mode).
-        doc = {"date": env["date"], "command": env["command"], "device": args.device, "gpu": env.get("gpu"),
+        doc = {"date": env["date"], "command": env["command"], "commit": env["commit"], "device": args.device,
+               "gpu": env.get("gpu"),
                "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
         args.out.write_text(json.dumps(doc, indent=2))
 

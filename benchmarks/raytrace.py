@@ -45,7 +45,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 import traceback
@@ -54,6 +53,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from provenance import commit
 from render import Scene, graphed
 
 import diffrender as dr
@@ -185,12 +185,6 @@ def time_scene(args, faces: int, names: list[str]) -> list[dict]:
     return rows
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("PIXELGRAD_COMMIT", "unknown")
 
 
 def table(rows: list[dict]) -> str:
@@ -234,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.time()
     meta = dict(device=torch.cuda.get_device_name() if args.device == "cuda" else f"cpu ({platform.processor()})",
                 torch=torch.__version__, python=platform.python_version(),
-                date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), commit=_commit(),
+                date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), commit=commit(),
                 command="python benchmarks/raytrace.py " + " ".join(argv if argv is not None else sys.argv[1:]),
                 args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}, targets_ms=TARGET_MS)
     try:

@@ -26,6 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # run as a script or loaded by path
+from provenance import commit
+
 ROOT = Path(__file__).resolve().parents[1]
 #: summary.json["compile"] keys copied into each row
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "fxgraph_cache_hit",
@@ -81,22 +84,13 @@ def measure(task: str, mode: str, args, *, work: Path) -> list[dict]:
     return rows
 
 
-def _commit() -> str:
-    try:
-        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True,
-                              timeout=30, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=30, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return head + (" (dirty)" if dirty else "")
 
 
 def meta(args, argv: list[str]) -> dict:
     import torch
 
     info = {"device": args.device, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-            "command": " ".join(["python", "benchmarks/startup.py", *argv]), "commit": _commit(),
+            "command": " ".join(["python", "benchmarks/startup.py", *argv]), "commit": commit(),
             "torch": torch.__version__, "python": platform.python_version(), "hostname": platform.node()}
     if args.device.startswith("cuda") and torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name()

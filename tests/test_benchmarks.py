@@ -2,6 +2,7 @@
 
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -87,3 +88,12 @@ def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp
     assert warm["artifacts_loaded"].get("inductor", 0) >= 1
     assert warm["actor_loss"] == cold["actor_loss"]  # the cached kernels compute what the compiled ones did (CPU)
     assert "--compile-cache" in cold["command"] and "--horizon 2" in cold["command"]
+
+
+def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
+    provenance = _load("provenance")
+    monkeypatch.delenv("PIXELGRAD_COMMIT", raising=False)
+    head = provenance.commit()
+    assert head == "unknown" or re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", head), head
+    monkeypatch.setenv("PIXELGRAD_COMMIT", "abc1234")
+    assert provenance.commit() == "abc1234"
