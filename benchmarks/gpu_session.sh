@@ -111,11 +111,13 @@ for spec in "$@"; do
        run "$secs" python3 benchmarks/startup.py --device cuda --tasks ${TASKS:-ant} --modes ${MODES:-decoupled} \
          --num-envs 64 --out "$OUT/startup.json";;
     sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs);
-       # SWEEP_RENDERER=warp sweeps decoupled rollouts rendered by the ray tracer (SWEEP_MODES=decoupled)
+       # SWEEP_RENDERER=warp sweeps decoupled rollouts rendered by the ray tracer (SWEEP_MODES=decoupled);
+       # SWEEP_JOBS=N runs N points at once (memory stays exact, times share the GPU)
        r=${SWEEP_RENDERER:-soft}
        timeout "$secs" python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes ${SWEEP_MODES:-decoupled full} \
          --renderer "$r" --meshes ${SWEEP_MESHES:-0 16 64} --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 \
          --image-size 84 --warmup-iters 1 --iters 2 --device cuda --out "/tmp/sweep_$r" --no-progress --timeout-s 240 \
+         --jobs ${SWEEP_JOBS:-1} \
          2>&1 | tail -n 15
        tar -C /tmp --exclude=logs -czf "$OUT/sweep_$r.tgz" "sweep_$r" ;;
     *) echo "unknown stage $stage";;

@@ -58,6 +58,9 @@ class MemoryConfig:
     """Re-run points whose existing row has status error or timeout (ok and oom rows are always kept)."""
     progress: bool = True
     """Show a progress bar over the points."""
+    jobs: int = 1
+    """Points run at once, each in its own process. Peak memory is each process's own, so it stays exact;
+    times and out-of-memory share the device: keep 1 for times of record and retry an "oom" point alone."""
 
     def validate(self) -> None:
         """Clear errors for bad values, before any work."""
@@ -78,7 +81,7 @@ class MemoryConfig:
         # diffrender's sweep spheres (latlong_sphere_mesh) need 6 vertices at least: refuse here, not per point.
         if not self.verts or any(not isinstance(v, int) or v < 6 for v in self.verts):
             raise ValueError(f"--verts must be integers >= 6 (the smallest sweep sphere), got {self.verts!r}")
-        for name in ("num_envs", "horizon", "iters"):
+        for name in ("num_envs", "horizon", "iters", "jobs"):
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0:
                 raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {v!r}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import json
 import os
@@ -61,13 +62,15 @@ def _classify_exit(rc: int | None, log_path: Path, rel_log: str) -> tuple[str, s
     return status, (f"{why}: {last}"[:500] if last else why)
 
 
-def run_point(point: dict, *, out: Path, timeout_s: float, measure: str = DEFAULT_MEASURE) -> dict:
+def run_point(point: dict, *, out: Path, timeout_s: float, measure: str = DEFAULT_MEASURE,
+              running: set | None = None) -> dict:
     """Run one point in a fresh process and return its CSV row (never raises for a failed point).
 
     Classification: ``ok``; ``oom`` for torch.OutOfMemoryError / MemoryError / an allocator failure in the
     worker, a worker killed by SIGKILL (exit -9 or 137: the kernel's out-of-memory killer), or a non-zero exit
     whose log reports running out of memory; ``timeout`` past ``timeout_s``; ``error`` (with the message)
-    otherwise. The worker's stdout and stderr go to ``out/logs/<point>.log``.
+    otherwise. The worker's stdout and stderr go to ``out/logs/<point>.log``. ``running``: a set the worker's
+    process is kept in while it runs (so that another thread can kill it).
     """
     pid = point_id(point)
     log_path = out / "logs" / f"{pid}.log"
@@ -87,6 +90,8 @@ def run_point(point: dict, *, out: Path, timeout_s: float, measure: str = DEFAUL
         # (compile workers), and the terminal's SIGINT reaches only the sweep, which then cleans up.
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 start_new_session=True)
+        if running is not None:
+            running.add(proc)
         try:
             rc = proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
@@ -95,6 +100,9 @@ def run_point(point: dict, *, out: Path, timeout_s: float, measure: str = DEFAUL
         except BaseException:
             _kill_group(proc)
             raise
+        finally:
+            if running is not None:
+                running.discard(proc)
     point_s = time.perf_counter() - t0
     result = read_result(result_path)
     result_path.unlink(missing_ok=True)
@@ -152,19 +160,39 @@ def sweep(cfg: MemoryConfig, *, measure: str = DEFAULT_MEASURE) -> list[dict]:
     todo = [p for p in points if point_key(p) not in done]
     bar = tqdm(total=len(points), initial=len(points) - len(todo), disable=not cfg.progress, unit="point",
                desc=f"memory {cfg.task}", dynamic_ncols=True)
+    def record(p: dict, row: dict) -> None:
+        nonlocal rows
+        env = row.pop("_environment", None)
+        if env and "environment" not in meta:
+            meta["environment"] = env
+        rows = [r for r in rows if point_key(r) != point_key(p)] + [row]
+        write_results(out, rows, meta)
+        bwd = row.get("bwd_ms")
+        bar.set_postfix(status=row["status"], bwd_ms="-" if bwd is None else f"{bwd:.0f}")
+        bar.update(1)
+
+    running: set = set()
     try:
         write_results(out, rows, meta)
-        for p in todo:
-            bar.set_description(point_id(p))
-            row = run_point(p, out=out, timeout_s=cfg.timeout_s, measure=measure)
-            env = row.pop("_environment", None)
-            if env and "environment" not in meta:
-                meta["environment"] = env
-            rows = [r for r in rows if point_key(r) != point_key(p)] + [row]
-            write_results(out, rows, meta)
-            bwd = row.get("bwd_ms")
-            bar.set_postfix(status=row["status"], bwd_ms="-" if bwd is None else f"{bwd:.0f}")
-            bar.update(1)
+        if cfg.jobs == 1:
+            for p in todo:
+                bar.set_description(point_id(p))
+                record(p, run_point(p, out=out, timeout_s=cfg.timeout_s, measure=measure))
+        else:
+            bar.set_description(f"memory {cfg.task}, {cfg.jobs} points at once")
+            with concurrent.futures.ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
+                futures = {pool.submit(run_point, p, out=out, timeout_s=cfg.timeout_s, measure=measure,
+                                       running=running): p for p in todo}
+                try:
+                    # rows are recorded (and the files written) by this thread alone, as points finish
+                    for future in concurrent.futures.as_completed(futures):
+                        record(futures[future], future.result())
+                except BaseException:  # Ctrl-C or a failed write: no worker outlives the sweep
+                    for future in futures:
+                        future.cancel()
+                    for proc in list(running):
+                        _kill_group(proc)
+                    raise
     finally:
         bar.close()
     rows = read_csv(csv_path)  # exactly what is on disk (numbers as the CSV stores them)

@@ -302,3 +302,39 @@ def test_real_sweep_with_the_ray_tracer(tmp_path):
         assert r["renderer"] == "warp" and r["fwd_ms"] > 0 and r["bwd_ms"] > 0 and r["iter_ms"] > 0
     assert pts[2]["scene_faces"] > pts[0]["scene_faces"]
     assert pts[2]["saved_mb"] == pytest.approx(pts[0]["saved_mb"], abs=1e-6)
+
+
+def test_jobs_run_points_at_once_with_the_rows_of_a_sequential_sweep(tmp_path, fake_env):
+    """--jobs 3: points overlap in time (each in its own process), failures and timeouts are still rows, and the
+    CSV holds what a one-at-a-time sweep writes, in the same order."""
+    behaviour = {"full_m2_v8": "oom", "decoupled_m3_v8": "error", "full_m3_v8": "hang"}
+    seq, par = tmp_path / "seq", tmp_path / "par"
+    fake_env(behaviour, seq)
+    sweep(cfg_for(seq, meshes=(0, 2, 3), timeout_s=4.0), measure=FAKE)
+    log = fake_env(behaviour, par)
+    t0 = time.perf_counter()
+    rows = sweep(cfg_for(par, meshes=(0, 2, 3), timeout_s=4.0, jobs=3), measure=FAKE)
+    assert time.perf_counter() - t0 < 30
+    assert len({c["pid"] for c in calls(log)[6:]}) == 6  # one fresh process per point (after the first sweep's 6)
+
+    def comparable(rs):
+        return [{k: v for k, v in r.items() if k not in ("started", "point_s")} for r in rs]
+
+    assert comparable(read_csv(par / "memory.csv")) == comparable(read_csv(seq / "memory.csv"))
+    assert by_point(rows)["full_m3_v8"]["status"] == "timeout"
+    # the point after the hung one started while it hung (one at a time, it would wait the 4 s timeout)
+    from datetime import datetime
+
+    def started(rs, point):
+        return datetime.fromisoformat(by_point(rs)[point]["started"])
+
+    assert (started(rows, "decoupled_m3_v8") - started(rows, "full_m3_v8")).total_seconds() < 4
+    seq_rows = read_csv(seq / "memory.csv")
+    assert (started(seq_rows, "decoupled_m3_v8") - started(seq_rows, "full_m3_v8")).total_seconds() >= 4
+    assert json.loads((par / "memory.json").read_text())["config"]["jobs"] == 3
+    assert not list((par / ".points").iterdir())
+
+
+def test_jobs_must_be_positive(tmp_path):
+    with pytest.raises(ValueError, match="--jobs must be a positive integer"):
+        cfg_for(tmp_path, jobs=0).validate()
