@@ -339,17 +339,20 @@ class CompileWatch:
 
     Attributes:
         compiles: dynamo frame compilations (recompiles included); recompiles: those of a frame compiled before;
-        backward_compiles: backward graphs compiled on first use; compile_s: seconds spent compiling.
+        backward_compiles: backward graphs compiled on first use; compile_s: seconds spent compiling;
+        compile_s_by_part: those seconds by the ``part`` that was compiling ("model" where none was named).
     """
 
     def __init__(self, on_change: Callable[[str | None], None] | None = None):
         self.on_change = on_change
         self.compiles = self.recompiles = self.backward_compiles = 0
         self.compile_s = 0.0
+        self.compile_s_by_part: dict[str, float] = {}
         self.available = _hook_dynamo()
         self.text: str | None = None
         self._parts: list[str] = []
         self._started: float | None = None
+        self._compiling = "model"
         _watches.add(self)
 
     @property
@@ -383,8 +386,8 @@ class CompileWatch:
 
     def _compile_started(self, args: Any) -> None:
         self._started = time.perf_counter()
-        what = self._parts[-1] if self._parts else "model"
-        self.announce(f"compiling {what} ({self.done} done)")
+        self._compiling = self._parts[-1] if self._parts else "model"
+        self.announce(f"compiling {self._compiling} ({self.done} done)")
 
     def _compile_ended(self, args: Any) -> None:
         trigger, recompile = _compile_id(args)
@@ -394,10 +397,14 @@ class CompileWatch:
             self.compiles += 1
             self.recompiles += recompile
         if self._started is not None:
-            self.compile_s += time.perf_counter() - self._started
+            elapsed = time.perf_counter() - self._started
+            self.compile_s += elapsed
+            by_part = self.compile_s_by_part
+            by_part[self._compiling] = by_part.get(self._compiling, 0.0) + elapsed
             self._started = None
 
     def summary(self) -> dict:
-        """Counts for a run's summary: compiles, recompiles, backward_compiles, compile_s."""
+        """Counts for a run's summary: compiles, recompiles, backward_compiles, compile_s, compile_s_by_part."""
         return {"compiles": self.compiles, "recompiles": self.recompiles,
-                "backward_compiles": self.backward_compiles, "compile_s": self.compile_s}
+                "backward_compiles": self.backward_compiles, "compile_s": self.compile_s,
+                "compile_s_by_part": {k: round(v, 3) for k, v in self.compile_s_by_part.items()}}

@@ -200,6 +200,11 @@ def test_the_watch_names_the_part_that_compiles_and_counts_recompiles():
     assert shown[-2:] == ["capturing CUDA graphs (window 1/2)", None]
     summary = watch.summary()
     assert summary["compiles"] == 2 and summary["recompiles"] == 1
+    # the seconds by part: all of them the physics step's, a compilation outside any part is the model's
+    assert set(summary["compile_s_by_part"]) == {"physics step"}
+    assert summary["compile_s_by_part"]["physics step"] == pytest.approx(watch.compile_s, abs=2e-3)
+    torch.compile(lambda x: x - 1.0, backend="eager", dynamic=False)(torch.ones(2))
+    assert set(watch.summary()["compile_s_by_part"]) == {"physics step", "model"}
 
 
 def test_a_run_summary_has_its_time_to_the_first_iteration(tmp_path, monkeypatch):
