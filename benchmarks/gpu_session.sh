@@ -116,7 +116,7 @@ for spec in "$@"; do
        r=${SWEEP_RENDERER:-soft}
        timeout "$secs" python3 -m ablations memory --task ${SWEEP_TASK:-ant} --modes ${SWEEP_MODES:-decoupled full} \
          --renderer "$r" --meshes ${SWEEP_MESHES:-0 16 64} --verts ${SWEEP_VERTS:-64 256 1024} --num-envs 64 --horizon 32 \
-         --image-size 84 --warmup-iters 1 --iters 2 --device cuda --out "/tmp/sweep_$r" --no-progress --timeout-s 240 \
+         --image-size 84 --warmup-iters 1 --iters 2 --device cuda --out "/tmp/sweep_$r" --no-progress --timeout-s ${SWEEP_POINT_S:-240} \
          --jobs ${SWEEP_JOBS:-1} \
          2>&1 | tail -n 15
        tar -C /tmp --exclude=logs -czf "$OUT/sweep_$r.tgz" "sweep_$r" ;;
