@@ -3,12 +3,14 @@
 Same image model and the same per-pixel arithmetic as :mod:`.kernel` (the dense reference and the tiled
 backend), organised for the GPU:
 
-* **Per-face coefficients** (PyTorch, differentiable, O(B * F)): :func:`face_coefficients` turns the
-  projected triangles into the constants of every per-pixel quantity, each affine in the pixel centre
-  ``(x, y)`` [px]: screen barycentrics ``lambda_k = LA_k + LX_k x + LY_k y``, the position along each edge
-  ``s_k = PA_k + PX_k x + PY_k y``, edge heights ``H_k``, squared edge lengths, inverse corner depths and
-  the corners' normals and albedos: ``C = 45`` numbers per face, laid out (B, C, F) so a kernel reads one
-  coefficient of a block of consecutive faces with one coalesced load.
+* **Per-face coefficients** (O(B * F)): the projected triangles become the constants of every per-pixel
+  quantity, each affine in the pixel centre ``(x, y)`` [px]: screen barycentrics
+  ``lambda_k = LA_k + LX_k x + LY_k y``, the position along each edge ``s_k = PA_k + PX_k x + PY_k y``, edge
+  heights ``H_k``, squared edge lengths, inverse corner depths and the corners' normals and albedos: ``C = 45``
+  numbers per face, laid out (B, C, F) so a kernel reads one coefficient of a block of consecutive faces with
+  one coalesced load. Projection and vertex normals are PyTorch (a few ops, differentiated by autograd); the
+  rest is two Triton kernels with a hand-written backward (:func:`.setup_kernels.face_setup`: coefficients,
+  face boxes, block and super-block boxes); :func:`face_coefficients` is its PyTorch reference.
 * **Forward kernel**: one program per (tile of TILE x TILE pixels, environment; 4 x 4 by default). It walks
   the faces in blocks of ``FACE_BLOCK`` on two levels (a super-block of ``SUPER_BLOCK`` blocks, then its blocks),
   skips a super-block or block whose screen bounding box misses the tile, evaluates
@@ -25,8 +27,9 @@ backend), organised for the GPU:
   where none of the sub-block's faces is kept is skipped, and a face whose blend weight is exactly 0 on all of
   the tile's pixels (hidden, or only inside its box's margin) and that touches no partly covered pixel
   (``sum D < 1``, where its coverage acts through ``A``) issues no atomics: every other term of its gradient
-  carries that weight. Floor gradients are per pixel. PyTorch's autograd maps the coefficient gradients back to
-  vertices, normals, colours and the camera (recomputing the per-face setup from the saved inputs).
+  carries that weight. Floor gradients are per pixel. The setup's backward kernel maps the coefficient
+  gradients to the projected vertices, normals and colours, and autograd the rest of the way to vertices and
+  camera (recomputing projection, normals, the floor and the setup's forward kernel from the saved inputs).
 
 Every image model (``RasterSettings.raster_model``) is one pair of kernels with a compile-time ``MODEL``:
 the soft models add the faces' weight and coverage sums to the online softmax and compose the colour at the
@@ -51,6 +54,7 @@ from ..floor import floor_candidate
 from ..settings import RasterSettings
 from .common import BBOX_MARGIN, chunks, rows
 from .kernel import Static, face_validity, project, vertex_normals
+from .setup_kernels import EMPTY_EXTENT, NUM_COEFFS, face_setup
 
 try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack it
     import triton
@@ -58,10 +62,9 @@ try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack
 except ImportError:  # pragma: no cover - exercised on machines without triton
     triton = None
 
-__all__ = ["NUM_COEFFS", "available", "backward_tile", "face_coefficients", "rasterize_fused",
+__all__ = ["NUM_COEFFS", "available", "backward_tile", "face_coefficients", "face_setup", "rasterize_fused",
            "super_block_boxes"]
 
-NUM_COEFFS = 45
 # Rows of the (B, C, F) layout (k: the edge opposite vertex k, or corner k): LA_k 0-2, LX_k 3-5, LY_k 6-8,
 # PA_k 9-11, PX_k 12-14, PY_k 15-17, H_k 18-20, |e_k|^2 21-23, 1/z_k 24-26, normal_k 27-35, albedo_k 36-44.
 #: pixels per tile side and faces per block of the kernels (tuned on an H200, see BENCHMARKS.md)
@@ -79,7 +82,7 @@ DENSE_FACES_PER_PIXEL = 1.0
 #: face blocks per super-block: the coarse level of the kernels' walk over the faces (see
 #: :func:`super_block_boxes`)
 SUPER_BLOCK = 16
-_BIG = 1e30  # empty bounding box of a dropped face
+_BIG = EMPTY_EXTENT  # empty bounding box of a dropped face
 #: per-face coefficients held at once (environments are rendered in chunks of at most this many
 #: coefficients): bounds the renderer's working set at any face count. Every chunk is a kernel launch whose
 #: time is at least that of its busiest tile, and a few hundred setup kernels: 64 images of 100k faces
@@ -769,20 +772,35 @@ def _warps(tile: int, fb: int) -> int:
     return 4 if tile * tile * fb <= 1024 else 8
 
 
-def _setup(verts, normals, colors, rotation, eye, faces, st: Static, fb: int, sb: int):
-    """Everything the kernels read for one chunk of environments: :func:`face_coefficients` (coef, face_box),
-    :func:`super_block_boxes` of its block boxes (block_box padded, super_box) and the floor planes
-    (B, 5, H, W). Differentiable PyTorch, O(B * F + B * H * W)."""
-    coef, box, bbox = face_coefficients(verts, normals, colors, rotation, eye, faces, st, fb)
-    bbox, sbox = super_block_boxes(bbox, sb)
-    return coef, box, bbox, sbox, _floor_planes(rotation, eye, st, verts.dtype, verts.device)
+def _camera_space(verts, normals, rotation, eye, faces, st: Static):
+    """The setup's PyTorch part: projected vertices (B, V, 3) ``(u [px], v [px], z [m])``, vertex normals
+    (B, V, 3) (the given ones, or area-weighted mesh normals) and the floor planes (B, 5, H, W)."""
+    uvz = project(verts, rotation, eye, st)
+    if normals is None:
+        normals = vertex_normals(verts, faces)
+    return uvz, normals, _floor_planes(rotation, eye, st, verts.dtype, verts.device)
+
+
+def _setup(verts, normals, colors, rotation, eye, faces, st: Static, fb: int, sb: int, *, camera_space=_camera_space):
+    """Everything the kernels read for one chunk of environments: :func:`.setup_kernels.face_setup`'s
+    coefficients (B, 45, Fp), face boxes (B, 4, Fp), block boxes padded to whole super-blocks and super-block
+    boxes, and the floor planes (B, 5, H, W). Differentiable (autograd through ``camera_space``, the setup
+    kernels' own backward), O(B * F + B * H * W)."""
+    uvz, normals, floor = camera_space(verts, normals, rotation, eye, faces, st)
+    coef, box, bbox, sbox = face_setup(uvz, normals, colors, faces, st, face_block=fb, super_block=sb)
+    return coef, box, bbox, sbox, floor
 
 
 @functools.cache
 def _setup_fn(compile_: bool):
-    """:func:`_setup`, or its ``torch.compile``'d version (``RasterSettings.compile``): eager, the setup is a
-    few hundred small kernels per render and as many in its backward (launch-bound at task sizes)."""
-    return torch.compile(_setup, dynamic=False) if compile_ else _setup
+    """:func:`_setup`, with its PyTorch part ``torch.compile``'d (``RasterSettings.compile``): eager, projection,
+    normals and floor are a few dozen small kernels per render and as many in the backward. The Triton setup
+    kernels stay outside the compiled region: they are already one launch each, and an autograd.Function
+    around user Triton kernels inside a compiled graph would have to be registered as a custom op (with
+    fake-tensor rules for its outputs) for dynamo to trace it, for no fewer launches."""
+    if not compile_:
+        return _setup
+    return functools.partial(_setup, camera_space=torch.compile(_camera_space, dynamic=False))
 
 
 def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int, out: torch.Tensor,

@@ -231,8 +231,8 @@ def test_fused_backward_skips_an_undefined_gradient(ant64, monkeypatch):
             return None
 
     calls = []
-    coefficients = fused.face_coefficients
-    monkeypatch.setattr(fused, "face_coefficients", lambda *a, **k: (calls.append(1), coefficients(*a, **k))[1])
+    setup = fused.face_setup
+    monkeypatch.setattr(fused, "face_setup", lambda *a, **k: (calls.append(1), setup(*a, **k))[1])
     q = ant_pose(1).to(DEV)
     verts = ant64.world_vertices(q).detach().requires_grad_()
     img = dr.render(verts, ant64.faces, ant64.colors, ant_camera(q, size=8), dr.RasterSettings(backend="fused"))
