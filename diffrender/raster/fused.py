@@ -10,7 +10,8 @@ backend), organised for the GPU:
   numbers per face, laid out (B, C, F) so a kernel reads one coefficient of a block of consecutive faces with
   one coalesced load. Projection and vertex normals are PyTorch (a few ops, differentiated by autograd); the
   rest is two Triton kernels with a hand-written backward (:func:`.setup_kernels.face_setup`: coefficients,
-  face boxes, block and super-block boxes); :func:`face_coefficients` is its PyTorch reference.
+  face boxes, block and super-block boxes); :func:`face_coefficients` is its PyTorch reference. The floor's
+  per-pixel depth and colour are one more kernel (:func:`.setup_kernels.floor_planes`).
 * **Forward kernel**: one program per (tile of TILE x TILE pixels, environment; 4 x 4 by default). It walks
   the faces in blocks of ``FACE_BLOCK`` on two levels (a super-block of ``SUPER_BLOCK`` blocks, then its blocks),
   skips a super-block or block whose screen bounding box misses the tile, evaluates
@@ -54,7 +55,7 @@ from ..floor import floor_candidate
 from ..settings import RasterSettings
 from .common import BBOX_MARGIN, chunks, rows
 from .kernel import Static, face_validity, project, vertex_normals
-from .setup_kernels import EMPTY_EXTENT, NUM_COEFFS, face_setup
+from .setup_kernels import EMPTY_EXTENT, NUM_COEFFS, face_setup, floor_planes
 
 try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack it
     import triton
@@ -750,7 +751,8 @@ if triton is not None:
 
 def _floor_planes(rotation, eye, st: Static, dtype, device) -> torch.Tensor:
     """(B, 5, H, W): the floor's normalised depth, lit colour (3) and hit flag (1.0 / 0.0) per pixel;
-    differentiable in the camera except the flag. Without a floor: never hit."""
+    differentiable in the camera except the flag. Without a floor: never hit. PyTorch, the reference of
+    :func:`.setup_kernels.floor_planes` (which renders use)."""
     b = rotation.shape[0]
     if st.floor is None:
         return torch.zeros(b, 5, st.height, st.width, dtype=dtype, device=device)
@@ -773,31 +775,35 @@ def _warps(tile: int, fb: int) -> int:
 
 
 def _camera_space(verts, normals, rotation, eye, faces, st: Static):
-    """The setup's PyTorch part: projected vertices (B, V, 3) ``(u [px], v [px], z [m])``, vertex normals
-    (B, V, 3) (the given ones, or area-weighted mesh normals) and the floor planes (B, 5, H, W)."""
+    """The setup's PyTorch part: projected vertices (B, V, 3) ``(u [px], v [px], z [m])`` and vertex normals
+    (B, V, 3) (the given ones, or area-weighted mesh normals)."""
     uvz = project(verts, rotation, eye, st)
     if normals is None:
         normals = vertex_normals(verts, faces)
-    return uvz, normals, _floor_planes(rotation, eye, st, verts.dtype, verts.device)
+    return uvz, normals
 
 
 def _setup(verts, normals, colors, rotation, eye, faces, st: Static, fb: int, sb: int, *, camera_space=_camera_space):
     """Everything the kernels read for one chunk of environments: :func:`.setup_kernels.face_setup`'s
     coefficients (B, 45, Fp), face boxes (B, 4, Fp), block boxes padded to whole super-blocks and super-block
-    boxes, and the floor planes (B, 5, H, W). Differentiable (autograd through ``camera_space``, the setup
-    kernels' own backward), O(B * F + B * H * W)."""
-    uvz, normals, floor = camera_space(verts, normals, rotation, eye, faces, st)
+    boxes, and the floor planes (B, 5, H, W) (:func:`.setup_kernels.floor_planes`). Differentiable (autograd
+    through ``camera_space``, the setup kernels' own backward), O(B * F + B * H * W)."""
+    uvz, normals = camera_space(verts, normals, rotation, eye, faces, st)
     coef, box, bbox, sbox = face_setup(uvz, normals, colors, faces, st, face_block=fb, super_block=sb)
+    if st.floor is None:
+        floor = torch.zeros(verts.shape[0], 5, st.height, st.width, dtype=verts.dtype, device=verts.device)
+    else:
+        floor = floor_planes(rotation, eye, st)
     return coef, box, bbox, sbox, floor
 
 
 @functools.cache
 def _setup_fn(compile_: bool):
-    """:func:`_setup`, with its PyTorch part ``torch.compile``'d (``RasterSettings.compile``): eager, projection,
-    normals and floor are a few dozen small kernels per render and as many in the backward. The Triton setup
-    kernels stay outside the compiled region: they are already one launch each, and an autograd.Function
-    around user Triton kernels inside a compiled graph would have to be registered as a custom op (with
-    fake-tensor rules for its outputs) for dynamo to trace it, for no fewer launches."""
+    """:func:`_setup`, with its PyTorch part ``torch.compile``'d (``RasterSettings.compile``): eager, projection
+    and normals are a few dozen small kernels per render and as many in the backward. The Triton setup
+    kernels (faces, floor) stay outside the compiled region: they are already one launch each, and an
+    autograd.Function around user Triton kernels inside a compiled graph would have to be registered as a
+    custom op (with fake-tensor rules for its outputs) for dynamo to trace it, for no fewer launches."""
     if not compile_:
         return _setup
     return functools.partial(_setup, camera_space=torch.compile(_camera_space, dynamic=False))

@@ -14,14 +14,20 @@ than saving them) and adds each face's gradient into its corners' vertices with 
 projected vertices (only for kept faces: a dropped face's corners are a constant triangle), the normals and
 the colours (for every real face, as autograd differentiates the reference; a zero gradient issues no atomic).
 Its time follows the memory traffic: the coefficient gradients read once, three gathers per face.
+
+:func:`floor_planes` is the analytic floor of :func:`diffrender.floor.floor_candidate` at every pixel centre
+(its reference) as one kernel, and its backward one more: per-pixel gradients summed over each program's
+pixels, then twelve atomic adds per program into the camera's rotation and eye.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 
 import torch
 
+from ..floor import _FAR_FLOOR_MARGIN, _MAX_SHARPNESS
 from .common import AREA_EPS, BBOX_MARGIN
 from .kernel import Static
 
@@ -31,7 +37,7 @@ try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack
 except ImportError:  # pragma: no cover - exercised on machines without triton
     triton = None
 
-__all__ = ["EMPTY_EXTENT", "NUM_COEFFS", "face_setup"]
+__all__ = ["EMPTY_EXTENT", "NUM_COEFFS", "face_setup", "floor_planes"]
 
 NUM_COEFFS = 45
 #: [px] the corners of an empty box (x_min = y_min = EMPTY_EXTENT, x_max = y_max = -EMPTY_EXTENT): it
@@ -47,12 +53,33 @@ def _setup_params(st: Static, dtype, device) -> torch.Tensor:
     return torch.tensor([st.znear, st.cutoff_radius + BBOX_MARGIN, AREA_EPS], dtype=dtype, device=device)
 
 
+#: pixels per program of the floor kernels
+FLOOR_BLOCK = 256
+_FLOOR_PARAMS = 17
+
+
+@functools.cache
+def _floor_params(st: Static, dtype, device) -> torch.Tensor:
+    """The floor's constants in the images' dtype, each rounded as :func:`diffrender.floor.floor_candidate`
+    rounds it (a Python float meets a tensor in the tensor's dtype): cx, cy, focal [px], znear, zfar,
+    zfar - znear [m], the normalised depth's floor, square size [m], pi * edge_px, pi, light factor, colour b
+    (3) and colour a - b (3). Cached as :func:`_setup_params`."""
+    fl = st.floor
+    light = st.ambient + st.diffuse * max(0.0, st.light[2])
+    vals = [st.cx, st.cy, st.focal, st.znear, st.zfar, st.zfar - st.znear, _FAR_FLOOR_MARGIN * st.gamma,
+            fl.square_size, math.pi * fl.edge_px, math.pi, light, *fl.color_b,
+            *(a - b for a, b in zip(fl.color_a, fl.color_b))]
+    return torch.tensor(vals, dtype=dtype, device=device)
+
+
 def _warps(face_block: int) -> int:
     return max(1, min(8, face_block // 32))
 
 
 if triton is not None:
-    _EMPTY = tl.constexpr(EMPTY_EXTENT)  # a jitted function reads module globals only as constexpr
+    # a jitted function reads module globals only as constexpr
+    _EMPTY = tl.constexpr(EMPTY_EXTENT)
+    _MAX_SHARP = tl.constexpr(_MAX_SHARPNESS)
 
     @triton.jit
     def _corners(uvz_ptr, faces_ptr, f, real, env_v):
@@ -316,6 +343,127 @@ if triton is not None:
                                  tl.load(gp + (36 + 3 * c + j) * Fp, mask=real, other=0.0), real)
 
 
+    @triton.jit
+    def _floor_rays(rot, eye, prm, pix, W):
+        """Per pixel centre: the camera-space ray (dxc, dyc, 1), the world ray's (dx, dy), the eye's height,
+        whether dz is usable (ok) and dz (1 where not), the hit flag, the hit's depth t (znear where there is
+        no hit) and the focal length [px]."""
+        cx = tl.load(prm)
+        cy = tl.load(prm + 1)
+        focal = tl.load(prm + 2)
+        znear = tl.load(prm + 3)
+        x = (pix % W).to(cx.dtype) + 0.5
+        y = (pix // W).to(cx.dtype) + 0.5
+        dxc = (x - cx) / focal
+        dyc = (y - cy) / focal
+        # world ray direction R^T (dxc, dyc, 1): its camera z is 1, so the hit parameter t is the hit's depth
+        dx = tl.load(rot) * dxc + tl.load(rot + 3) * dyc + tl.load(rot + 6)
+        dy = tl.load(rot + 1) * dxc + tl.load(rot + 4) * dyc + tl.load(rot + 7)
+        dz = tl.load(rot + 2) * dxc + tl.load(rot + 5) * dyc + tl.load(rot + 8)
+        ez = tl.load(eye + 2)
+        ok = tl.abs(dz) > 1e-12
+        dzs = tl.where(ok, dz, 1.0)
+        t0 = -ez / dzs
+        hit = ok & (t0 > znear)
+        t = tl.where(hit, t0, znear)
+        return dxc, dyc, dx, dy, ez, ok, dzs, hit, t, focal
+
+    @triton.jit
+    def _tanh(a):
+        """tanh from one exp (no tanh in Triton's core language); exact at +-inf."""
+        e = tl.exp(-2.0 * tl.abs(a))
+        th = (1.0 - e) / (1.0 + e)
+        return tl.where(a < 0, -th, th)
+
+    @triton.jit
+    def _floor_forward(rot_ptr, eye_ptr, prm, out_ptr, HW, W, BLOCK: tl.constexpr):
+        """One program per (BLOCK pixels, environment): the floor's normalised depth, lit colour and hit flag
+        (1.0 / 0.0) into out (B, 5, H, W)."""
+        env = tl.program_id(1).to(tl.int64)
+        pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        m = pix < HW
+        rot = rot_ptr + env * 9
+        eye = eye_ptr + env * 3
+        _, _, dx, dy, _, _, dzs, hit, t, focal = _floor_rays(rot, eye, prm, pix, W)
+        zfar = tl.load(prm + 4)
+        s = tl.load(prm + 7)
+        pi = tl.load(prm + 9)
+        light = tl.load(prm + 10)
+        xw = tl.load(eye) + t * dx
+        yw = tl.load(eye + 1) + t * dy
+        # pixel footprint on the floor [m]: depth / focal, stretched by the grazing angle
+        footprint = t / (focal * tl.abs(dzs))
+        sharp = tl.minimum(s / (tl.load(prm + 8) * footprint), _MAX_SHARP)
+        mix = 0.5 + 0.5 * _tanh(sharp * tl.sin(pi * xw / s) * tl.sin(pi * yw / s))
+        zn = tl.maximum((zfar - t) / tl.load(prm + 5), tl.load(prm + 6))
+        op = out_ptr + env * 5 * HW + pix
+        tl.store(op, zn, mask=m)
+        tl.store(op + HW, (tl.load(prm + 11) + tl.load(prm + 14) * mix) * light, mask=m)
+        tl.store(op + 2 * HW, (tl.load(prm + 12) + tl.load(prm + 15) * mix) * light, mask=m)
+        tl.store(op + 3 * HW, (tl.load(prm + 13) + tl.load(prm + 16) * mix) * light, mask=m)
+        tl.store(op + 4 * HW, tl.where(hit, 1.0, 0.0), mask=m)
+
+    @triton.jit
+    def _floor_backward(rot_ptr, eye_ptr, prm, g_ptr, G_ENV_STRIDE, grot_ptr, geye_ptr, HW, W,
+                        BLOCK: tl.constexpr):
+        """One program per (BLOCK pixels, environment): the gradients of its pixels' depth and colour planes
+        (g: (B, >= 4, H, W), rows 0-3 read) mapped to the camera's rotation (3, 3) and eye (3), summed over
+        the pixels, then added atomically."""
+        env = tl.program_id(1).to(tl.int64)
+        pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        m = pix < HW
+        rot = rot_ptr + env * 9
+        eye = eye_ptr + env * 3
+        dxc, dyc, dx, dy, ez, ok, dzs, hit, t, focal = _floor_rays(rot, eye, prm, pix, W)
+        zfar = tl.load(prm + 4)
+        s = tl.load(prm + 7)
+        pi = tl.load(prm + 9)
+        light = tl.load(prm + 10)
+        xw = tl.load(eye) + t * dx
+        yw = tl.load(eye + 1) + t * dy
+        adz = tl.abs(dzs)
+        footprint = t / (focal * adz)
+        sharp_raw = s / (tl.load(prm + 8) * footprint)
+        sharp = tl.minimum(sharp_raw, _MAX_SHARP)
+        ux = pi * xw / s
+        uy = pi * yw / s
+        sx = tl.sin(ux)
+        sy = tl.sin(uy)
+        th = _tanh(sharp * sx * sy)
+        gp = g_ptr + env * G_ENV_STRIDE + pix
+        g_zn = tl.load(gp, mask=m, other=0.0)
+        g_mix = light * (tl.load(prm + 14) * tl.load(gp + HW, mask=m, other=0.0)
+                         + tl.load(prm + 15) * tl.load(gp + 2 * HW, mask=m, other=0.0)
+                         + tl.load(prm + 16) * tl.load(gp + 3 * HW, mask=m, other=0.0))
+        g_a = g_mix * 0.5 * (1.0 - th * th)
+        g_sharp = tl.where(sharp_raw <= _MAX_SHARP, g_a * sx * sy, 0.0)
+        g_x = g_a * sharp * sy * tl.cos(ux) * pi / s
+        g_y = g_a * sharp * sx * tl.cos(uy) * pi / s
+        g_fp = -g_sharp * sharp_raw / footprint
+        g_t = g_fp / (focal * adz) + g_x * dx + g_y * dy
+        g_t += tl.where((zfar - t) / tl.load(prm + 5) >= tl.load(prm + 6), -g_zn / tl.load(prm + 5), 0.0)
+        g_dzs = -g_fp * footprint / adz * tl.where(dzs < 0, -1.0, 1.0)
+        g_t0 = tl.where(hit, g_t, 0.0)  # no hit: t is the constant znear
+        g_dzs += g_t0 * ez / (dzs * dzs)
+        g_dx = tl.where(m, g_x * t, 0.0)
+        g_dy = tl.where(m, g_y * t, 0.0)
+        g_dz = tl.where(m & ok, g_dzs, 0.0)
+        ge = geye_ptr + env * 3
+        tl.atomic_add(ge, tl.sum(tl.where(m, g_x, 0.0), axis=0))
+        tl.atomic_add(ge + 1, tl.sum(tl.where(m, g_y, 0.0), axis=0))
+        tl.atomic_add(ge + 2, tl.sum(tl.where(m, -g_t0 / dzs, 0.0), axis=0))
+        gr = grot_ptr + env * 9
+        tl.atomic_add(gr, tl.sum(g_dx * dxc, axis=0))
+        tl.atomic_add(gr + 1, tl.sum(g_dy * dxc, axis=0))
+        tl.atomic_add(gr + 2, tl.sum(g_dz * dxc, axis=0))
+        tl.atomic_add(gr + 3, tl.sum(g_dx * dyc, axis=0))
+        tl.atomic_add(gr + 4, tl.sum(g_dy * dyc, axis=0))
+        tl.atomic_add(gr + 5, tl.sum(g_dz * dyc, axis=0))
+        tl.atomic_add(gr + 6, tl.sum(g_dx, axis=0))
+        tl.atomic_add(gr + 7, tl.sum(g_dy, axis=0))
+        tl.atomic_add(gr + 8, tl.sum(g_dz, axis=0))
+
+
 class _FaceSetup(torch.autograd.Function):
     """:func:`face_setup` with its hand-written backward (see the module's docstring)."""
 
@@ -396,3 +544,48 @@ def face_setup(uvz: torch.Tensor, normals: torch.Tensor, colors: torch.Tensor, f
         raise ValueError(f"colors: (V, 3) or (B, V, 3) with B = {uvz.shape[0]}, got {tuple(colors.shape)}")
     return _FaceSetup.apply(uvz.contiguous(), normals.contiguous(), colors.contiguous(), faces.contiguous(), st,
                             face_block, super_block)
+
+
+class _FloorPlanes(torch.autograd.Function):
+    """:func:`floor_planes` with its hand-written backward."""
+
+    @staticmethod
+    def forward(ctx, rotation, eye, st: Static):
+        b = rotation.shape[0]
+        hw = st.height * st.width
+        out = torch.empty(b, 5, st.height, st.width, dtype=rotation.dtype, device=rotation.device)
+        _floor_forward[(triton.cdiv(hw, FLOOR_BLOCK), b)](rotation, eye, _floor_params(st, out.dtype, out.device),
+                                                          out, hw, st.width, BLOCK=FLOOR_BLOCK)
+        ctx.save_for_backward(rotation, eye)
+        ctx.st = st
+        ctx.set_materialize_grads(False)
+        return out
+
+    @staticmethod
+    def backward(ctx, g):
+        if g is None or not any(ctx.needs_input_grad[:2]):
+            return None, None, None
+        rotation, eye = ctx.saved_tensors
+        st = ctx.st
+        hw = st.height * st.width
+        if g.stride(3) != 1 or g.stride(2) != st.width or g.stride(1) != hw:
+            g = g.contiguous()
+        g_rot, g_eye = torch.zeros_like(rotation), torch.zeros_like(eye)
+        _floor_backward[(triton.cdiv(hw, FLOOR_BLOCK), rotation.shape[0])](
+            rotation, eye, _floor_params(st, g.dtype, g.device), g, g.stride(0), g_rot, g_eye, hw, st.width,
+            BLOCK=FLOOR_BLOCK)
+        return (g_rot if ctx.needs_input_grad[0] else None), (g_eye if ctx.needs_input_grad[1] else None), None
+
+
+def floor_planes(rotation: torch.Tensor, eye: torch.Tensor, st: Static) -> torch.Tensor:
+    """The analytic floor at every pixel centre (Triton; its PyTorch reference is
+    :func:`diffrender.floor.floor_candidate`), differentiable in the camera except the hit flag.
+
+    Args:
+        rotation: (B, 3, 3) world -> camera; eye: (B, 3) [m]; st: static settings with ``st.floor`` set.
+    Returns:
+        (B, 5, H, W): normalised depth, lit colour (3) and hit flag (1.0 / 0.0) per pixel.
+    """
+    if st.floor is None:
+        raise ValueError("floor_planes: st.floor is None (no floor to draw)")
+    return _FloorPlanes.apply(rotation.contiguous(), eye.contiguous(), st)

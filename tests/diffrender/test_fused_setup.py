@@ -5,6 +5,7 @@ backward (into vertices, normals, colours and the camera), float64.
 Runs on CUDA where there is a GPU, else on the CPU through Triton's interpreter; skipped without Triton.
 """
 
+import math
 import os
 
 import pytest
@@ -196,3 +197,58 @@ def test_face_setup_refuses_bad_options():
         fused.face_setup(uvz, n, colors, faces, st, face_block=8, super_block=0)
     with pytest.raises(ValueError, match="colors"):
         fused.face_setup(uvz, n, colors.expand(3, -1, -1), faces, st, face_block=8, super_block=2)
+
+
+def _floor_cameras():
+    """Three cameras: looking down at the floor, at the horizon from close above it (grazing rays, far hits
+    past zfar, squares sharper than the cap nearby), and from below the floor looking down (no hit)."""
+    eye = torch.tensor([[0.0, -3.0, 1.0], [0.4, -2.0, 0.15], [0.1, 0.2, -0.5]], dtype=F64)
+    target = torch.tensor([[0.0, 0.0, 0.0], [0.3, 4.0, 0.1], [0.0, 0.5, -2.0]], dtype=F64)
+    cam = dr.Camera.look_at(eye, target, (0.0, 0.0, 1.0), 70.0, 13, 17)
+    return dr.Camera(rotation=cam.rotation.to(DEV), eye=cam.eye.to(DEV), focal=cam.focal, height=13, width=17)
+
+
+def _floor_sharpness(cam: dr.Camera, st: Static) -> torch.Tensor:
+    """(B, H, W) the checker's sharpness before its cap (floor_candidate's formula), where the ray hits."""
+    py, px = torch.meshgrid(torch.arange(st.height, dtype=F64, device=DEV) + 0.5,
+                            torch.arange(st.width, dtype=F64, device=DEV) + 0.5, indexing="ij")
+    ray = torch.stack([(px - st.cx) / st.focal, (py - st.cy) / st.focal, torch.ones_like(px)], -1)  # camera
+    dz = torch.einsum("bij,hwi->bhwj", cam.rotation, ray)[..., 2]
+    t = -cam.eye[:, 2, None, None] / dz
+    footprint = t / (st.focal * dz.abs())
+    return st.floor.square_size / (math.pi * st.floor.edge_px * footprint)
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(gamma=1e-3, zfar=3.0, floor=dr.FloorSettings(square_size=0.2,
+                                                                                           edge_px=0.02))])
+def test_floor_planes_match_the_pytorch_floor(kw):
+    """floor_planes against the PyTorch floor planes (floor_candidate at every pixel centre): depth, colour and
+    hit flag, and the gradients of a random weighting of depth and colour into camera rotation and eye, with
+    hits and misses, far hits at the depth floor, and capped sharpness all present."""
+    cam = _floor_cameras()
+    st = _static(cam, **kw)
+    r_ref, e_ref, r_new, e_new = (x.clone().requires_grad_() for x in (cam.rotation, cam.eye) * 2)
+    ref = fused._floor_planes(r_ref, e_ref, st, F64, DEV)
+    new = fused.floor_planes(r_new, e_new, st)
+    hit = ref[:, 4] > 0.5
+    assert hit.any() and (~hit).any() and not hit[2].any()
+    if "zfar" in kw:
+        assert (ref[:, 0][hit] == 20.0 * st.gamma).any()  # beyond zfar: at the depth floor
+        sharp = _floor_sharpness(cam, st)[hit]
+        assert (sharp > 50.0).any() and (sharp < 50.0).any()  # floor.py caps it at 50
+    assert (new.detach() - ref.detach()).abs().max() <= 1e-14
+    w = torch.randn(ref.shape, dtype=F64, device=DEV, generator=torch.Generator(device=DEV).manual_seed(1))
+    w[:, 4] = 0.0
+    g_ref = torch.autograd.grad((ref * w).sum(), (r_ref, e_ref))
+    g_new = torch.autograd.grad((new * w).sum(), (r_new, e_new))
+    for gr, gn in zip(g_ref, g_new):
+        assert gr.abs().max() > 0
+        assert (gr - gn).abs().max() <= 1e-12 * gr.abs().max()
+
+
+def test_floor_planes_gradcheck():
+    cam = _floor_cameras()
+    st = _static(cam, gamma=0.05, zfar=6.0)
+    torch.autograd.gradcheck(lambda r, e: fused.floor_planes(r, e, st)[:, :4],
+                             (cam.rotation.clone().requires_grad_(), cam.eye.clone().requires_grad_()), eps=1e-7,
+                             atol=1e-6, rtol=1e-5, fast_mode=True)
