@@ -232,7 +232,8 @@ def _process_started() -> float:
 
 
 def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, started: float, *,
-             first_iter_s: float | None = None, compiled: dict | None = None) -> dict:
+             first_iter_s: float | None = None, compiled: dict | None = None,
+             startup: dict | None = None) -> dict:
     timed = [r for r in rows if r["iter"] > cfg.warmup_iters]
     plain = [r for r in timed if not r.get("probed")]
     probed = [r for r in timed if r.get("probed")]
@@ -273,6 +274,9 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
         "session_seconds": time.time() - started,
         # from this process's start to the end of its first training iteration (imports, setup, compilation)
         "first_iter_s": first_iter_s,
+        # seconds of each part of that: imports (process start to ablate's own code), opening the compile cache,
+        # building the trainer, its first reset and render, the first iteration (a resumed run: the ones it ran)
+        "startup_s": startup,
         "compile": compiled,
     }
 
@@ -396,8 +400,13 @@ def run(cfg: RunConfig) -> Path:
 
     started = time.time()
     cfg, run_dir, device, resume_from = prepare(cfg)
+    cache_opened = time.time()
     cache, cache_label = _open_compile_cache(cfg, device) if cfg.compile else (None, "")
+    trainer_built = time.time()
     trainer = SHAC(shac_part(cfg), device=device)
+    # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py)
+    startup = {"imports": started - _process_started(), "compile_cache": trainer_built - cache_opened,
+               "trainer": time.time() - trainer_built}
     shac_fields = dataclasses.fields(SHACConfig)
     resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
     ckpt_dir = run_dir / "checkpoints"
@@ -448,6 +457,7 @@ def run(cfg: RunConfig) -> Path:
             m = trainer.train_iteration()
             if first_iter_s is None:
                 first_iter_s = time.time() - _process_started()
+                startup.update(first_reset_render=trainer.start_s, first_iteration=m["iter_ms"] / 1e3)
             watch.announce(None)
             it = m["iter"]
             last = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
@@ -502,5 +512,6 @@ def run(cfg: RunConfig) -> Path:
                         "artifacts_loaded": {} if cache is None else cache.loaded,
                         **watch.summary(), **compile_counters()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,
-                                                             first_iter_s=first_iter_s, compiled=compiled))
+                                                             first_iter_s=first_iter_s, compiled=compiled,
+                                                             startup=startup))
     return run_dir

@@ -107,9 +107,12 @@ for spec in "$@"; do
        # ITER_TAG names the output, ITER_ARGS adds flags (e.g. --extra-meshes 32 --extra-mesh-verts 1024)
        run "$secs" python3 benchmarks/iteration.py --device cuda --compile --tasks ${TASKS:-ant} --modes decoupled \
          --renderers soft warp --warmup 3 --iters 4 --probe-every 0 ${ITER_ARGS:-} --out "$OUT/iter_warp${ITER_TAG:-}.json";;
-    startup) # time to the first compiled iteration, cold (empty compile cache) then warm, fresh processes
-       run "$secs" python3 benchmarks/startup.py --device cuda --tasks ${TASKS:-ant} --modes ${MODES:-decoupled} \
-         --num-envs 64 --out "$OUT/startup.json";;
+    startup) # time to the first compiled iteration, cold (empty compile cache) then warm, fresh processes; each
+       # run's summary and stderr come back (STARTUP_LOGS=recompiles sets TORCH_LOGS for the runs)
+       rm -rf /tmp/startup_work
+       TORCH_LOGS=${STARTUP_LOGS:-} run "$secs" python3 benchmarks/startup.py --device cuda --tasks ${TASKS:-ant} \
+         --modes ${MODES:-decoupled} --num-envs 64 --work /tmp/startup_work --out "$OUT/startup.json" ${STARTUP_ARGS:-}
+       tar -C /tmp/startup_work -czf "$OUT/startup_runs.tgz" --exclude=checkpoints runs;;
     sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs);
        # SWEEP_RENDERER=warp sweeps decoupled rollouts rendered by the ray tracer (SWEEP_MODES=decoupled);
        # SWEEP_JOBS=N runs N points at once (memory stays exact, times share the GPU)

@@ -53,6 +53,8 @@ def run_once(cmd: list[str], run_dir: Path, *, timeout: float) -> dict:
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=timeout)
     row = {"process_s": time.perf_counter() - t0, "returncode": proc.returncode}
+    if run_dir.is_dir():  # what the run printed (e.g. TORCH_LOGS=recompiles), beside its summary
+        (run_dir / "stderr.log").write_text(proc.stderr)
     summary_path = run_dir / "summary.json"
     if proc.returncode != 0 or not summary_path.exists():
         row.update(status="error", error=(proc.stderr.strip().splitlines() or ["(no output)"])[-1][:500])
@@ -63,7 +65,7 @@ def run_once(cmd: list[str], run_dir: Path, *, timeout: float) -> dict:
     # the losses let a reader check that the warm run computed what the cold one did
     row.update(status=summary["status"], first_iter_s=summary.get("first_iter_s"),
                iter_ms=[m["iter_ms"] for m in metrics], actor_loss=[m["actor_loss"] for m in metrics],
-               **{k: compiled.get(k) for k in COMPILE_KEYS})
+               startup_s=summary.get("startup_s"), **{k: compiled.get(k) for k in COMPILE_KEYS})
     if row["first_iter_s"] is not None and metrics:  # imports, trainer construction, whatever ran before it
         row["before_first_iter_s"] = row["first_iter_s"] - metrics[0]["iter_ms"] / 1e3
     return row
@@ -140,6 +142,14 @@ def main(argv: list[str] | None = None) -> dict:
               f"{fmt(r.get('before_first_iter_s')):>11} {fmt(r['process_s']):>9} {fmt(r['compile_s']):>9} "
               f"{r['compiles']!s:>8} {r['recompiles']!s:>10} {r['fxgraph_cache_hit']!s:>6} "
               f"{r['fxgraph_cache_miss']!s:>7}")
+    print("\nwhere the seconds went (startup_s: the parts before and of the first iteration; compiling, by part)")
+    for r in doc["rows"]:
+        if r["status"] == "error":
+            continue
+        parts = " ".join(f"{k} {fmt(v)}" for k, v in (r.get("startup_s") or {}).items())
+        by_part = " ".join(f"{k} {fmt(v)}" for k, v in sorted((r.get("compile_s_by_part") or {}).items(),
+                                                               key=lambda kv: -kv[1]))
+        print(f"{r['task']} {r['mode']} {r['phase']}: {parts} | compiling: {by_part}")
     return doc
 
 

@@ -133,6 +133,7 @@ class SHAC:
         self.recent_returns: deque[float] = deque(maxlen=100)
         self.recent_lengths: deque[int] = deque(maxlen=100)
         self._started = False
+        self.start_s: float | None = None  # seconds of the first reset and render (the first render compiles)
         self.live = LiveState()
         backward = self.compile_watch.labelled("backward pass", self._backward) if cfg.compile else self._backward
         self.window = WindowGraphs(forward=self._window_forward, backward=backward, commit=self._commit_state,
@@ -354,7 +355,9 @@ class SHAC:
         """Run one iteration; returns its metrics (Python scalars)."""
         cfg = self.cfg
         if not self._started:
+            t_start = time.perf_counter()
             self._start()
+            self.start_s = time.perf_counter() - t_start
         t_wall = time.perf_counter()
         probe = self.plan.probes and cfg.cosine_every > 0 and self.iteration % cfg.cosine_every == 0
         self.timer.reset()
