@@ -19,15 +19,18 @@ Not a test. Examples::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import platform
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 import torch
 
 import diffrender
+import tasks
 from gradlab import SHAC, ModePlan, SHACConfig, resolve_device
 from gradlab.timing import median
 
@@ -37,7 +40,26 @@ from provenance import commit
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
 
 
-def measure(task: str, mode: str, args, *, renderer: str = "soft") -> dict:
+@contextlib.contextmanager
+def window_start(kind: str):
+    """``leaf``: the trainer as it is (under --compile a window starts from a leaf that requires grad, so the
+    first step shares the later steps' compiled graphs); ``detached``: every window starts from a plain cut
+    (``Task.detach()`` ignoring ``requires_grad``), for the same-process A/B of that choice."""
+    if kind == "leaf":
+        yield
+        return
+    plain = tasks.Task.detach
+    with mock.patch.object(tasks.Task, "detach", lambda self, *, requires_grad=False: plain(self)):
+        yield
+
+
+def measure(task: str, mode: str, args, *, renderer: str = "soft", start: str = "leaf") -> dict:
+    with window_start(start):
+        row = _measure(task, mode, args, renderer=renderer)
+    return {**row, "window_start": start}
+
+
+def _measure(task: str, mode: str, args, *, renderer: str = "soft") -> dict:
     cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
                      iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
                      raster_model=args.raster_model, extra_meshes=args.extra_meshes,
@@ -108,6 +130,9 @@ def main() -> None:
                    help="the rasterizer's image model (default: the preset's)")
     p.add_argument("--extra-meshes", type=int, default=0, help="extra meshes on the robot's links (scene size)")
     p.add_argument("--extra-mesh-verts", type=int, default=64, help="vertices per extra mesh")
+    p.add_argument("--window-starts", nargs="+", choices=["leaf", "detached"], default=["leaf"],
+                   help="how a window's start state is cut: leaf (the trainer's) or detached (the plain cut), "
+                        "each timed in this process (an A/B of the choice; see window_start)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("iteration.json"))
     args = p.parse_args()
@@ -121,10 +146,10 @@ def main() -> None:
     if args.device.startswith("cuda"):
         env["gpu"] = torch.cuda.get_device_name()
     results = []
-    runs = [(t, m, r) for t in args.tasks for m in args.modes for r in args.renderers
+    runs = [(t, m, r, w) for t in args.tasks for m in args.modes for r in args.renderers for w in args.window_starts
             if r == "soft" or not ModePlan.of(m).grad_through_images]
-    for task, mode, renderer in runs:
-        row = measure(task, mode, args, renderer=renderer)
+    for task, mode, renderer, start in runs:
+        row = measure(task, mode, args, renderer=renderer, start=start)
         results.append(row)
         print(json.dumps(row), flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -137,14 +162,16 @@ def main() -> None:
     print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
-    print(f"{'task':9} {'mode':9} {'render':6} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'iter ms':>9} "
+    print(f"{'task':9} {'mode':9} {'render':6} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'iter ms':>9} "
           f"{'alloc MB':>9} {'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
     for r in results:
         if r["status"] != "ok":
-            print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r['status']}: {r.get('error', '')[:80]}")
+            print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r['window_start']:8} {r['status']}: "
+                  f"{r.get('error', '')[:80]}")
             continue
         ov = r.get("probe_overhead_at_k")
-        print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {fmt(r['fwd_ms']):>9} {fmt(r['bwd_ms']):>9} "
+        print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r['window_start']:8} {fmt(r['fwd_ms']):>9} "
+              f"{fmt(r['bwd_ms']):>9} "
               f"{fmt(r['critic_ms']):>8} {fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} "
               f"{fmt(r['peak_reserved_mb'], 0):>9} "
               f"{fmt(r['saved_mb'], 1):>9} {('-' if ov is None else f'{100 * ov:.1f}'):>8} "

@@ -205,7 +205,9 @@ class SHAC:
         cfg, task = self.cfg, self.task
         T, B = cfg.horizon, cfg.num_envs
         stats = self.obs_rms.snapshot()
-        task.detach()
+        # SHAC's truncation. Compiled, the cut state requires grad (a leaf): the window's first step then shares
+        # the later steps' compiled graphs instead of compiling its own (Task.detach).
+        task.detach(requires_grad=cfg.compile)
         self.frames.detach()
         obs = task.state_obs().detach()
 

@@ -293,10 +293,20 @@ class Task(abc.ABC):
         }
         return new_qpos, new_qvel, new_progress, new_prev, obs, reward, done, info
 
-    def detach(self) -> None:
-        """Cut the autograd graph at the current state (call at every SHAC window start)."""
+    def detach(self, *, requires_grad: bool = False) -> None:
+        """Cut the autograd graph at the current state (call at every SHAC window start).
+
+        With ``requires_grad`` the cut state (``qpos``, ``qvel``) is a fresh leaf that requires grad, so that the
+        first control step sees the same grad pattern as every later one: a compiled step then has one guard
+        set (one compilation) instead of one per pattern (three for the substep: the start state, the first
+        step's later substeps, the later steps' mass matrices). Gradients into the parameters are unchanged;
+        the leaf's own gradient is computed and dropped.
+        """
         self.qpos = self.qpos.detach()
         self.qvel = self.qvel.detach()
+        if requires_grad:
+            self.qpos.requires_grad_(True)
+            self.qvel.requires_grad_(True)
         self.prev_actions = self.prev_actions.detach()
 
     def get_state(self) -> dict[str, torch.Tensor]:
@@ -352,7 +362,7 @@ class Task(abc.ABC):
         # elsewhere) lets each kernel be scheduled while the one before it drains, and at ~2 us per dependent
         # kernel that latency is most of a substep's time.
         kw = {"dynamic": False, **compile_kwargs}
-        if "mode" not in kw:  # torch.compile takes a mode or options, not both
+        if "mode" not in kw and kw.get("backend", "inductor") == "inductor":  # a mode or options, not both
             # PDL with every kernel waiting before its first access (see tasks._pdl for the race it avoids)
             kw["options"] = _pdl.options({**DEFAULT_INDUCTOR_OPTIONS, **(kw.get("options") or {})})
         self._substep = torch.compile(functools.partial(self._chained_substep, copy=True), **kw)

@@ -269,6 +269,52 @@ def test_detach_cuts_the_graph():
     assert not env.qpos.requires_grad and not env.qvel.requires_grad and not env.prev_actions.requires_grad
 
 
+def test_detach_with_requires_grad_starts_a_leaf_that_leaves_parameter_gradients_alone():
+    env = tasks.make("cartpole", 2)
+    env.reset()
+    env.step(torch.zeros(2, 1, requires_grad=True))
+    env.detach(requires_grad=True)
+    assert env.qpos.is_leaf and env.qpos.requires_grad and env.qvel.is_leaf and env.qvel.requires_grad
+    assert env.qpos.grad_fn is None and not env.prev_actions.requires_grad  # the cut holds
+
+    grads = []
+    for leaf in (False, True):  # the same window from the same state: the action parameter's gradient
+        env = tasks.make("cartpole", 2, seed=1, dtype=torch.float64)
+        env.reset()
+        env.detach(requires_grad=leaf)
+        w = torch.tensor([[0.3]], dtype=torch.float64, requires_grad=True)
+        loss = sum(env.step(torch.tanh(w * (t + 1)).expand(2, 1))[1].sum() for t in range(3))
+        grads.append(torch.autograd.grad(loss, w)[0])
+    assert torch.equal(grads[0], grads[1])
+
+
+def test_a_window_started_from_a_leaf_compiles_each_step_once():
+    """Task.compile's graphs guard on which inputs require grad. A window from a plainly detached state calls the
+    substep with three grad patterns (the start state without grad; the first step's later substeps; the later
+    steps, whose cached mass matrix requires grad) and the factorisation with two; from a leaf that requires
+    grad (SHAC under --compile) each once. Counted as the graphs dynamo makes (eager backend: no code generation);
+    the per-step reward and reset is one graph either way."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    def graphs(leaf: bool) -> int:
+        torch._dynamo.reset()
+        counters.clear()
+        env = tasks.make("cartpole", 2, seed=0).compile(backend="eager")
+        env.reset()
+        w = torch.tensor([[0.3]], requires_grad=True)
+        for _ in range(2):  # two windows
+            env.detach(requires_grad=leaf)
+            sum(env.step(torch.tanh(w).expand(2, 1))[1].sum() for _ in range(3)).backward()
+        return counters["stats"]["unique_graphs"]
+
+    try:
+        assert graphs(leaf=False) == 3 + 2 + 1
+        assert graphs(leaf=True) == 1 + 1 + 1
+    finally:
+        torch._dynamo.reset()
+
+
 def test_bad_actions_raise_clear_errors():
     env = tasks.make("cartpole", 2)
     env.reset()
