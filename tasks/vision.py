@@ -173,6 +173,10 @@ class TaskRenderer:
                                  normals=normals)
 
     def _posed(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, diffrender.Camera]:
+        if not torch.is_grad_enabled():
+            # compiled, the scene guards on requires_grad even where no gradient is taken: one no-grad graph
+            # for states with and without grad (a window's start state is a leaf that requires grad)
+            qpos = qpos.detach()
         verts, normals, rotation, eye = self._scene(qpos)
         camera = diffrender.Camera(rotation=rotation, eye=eye, focal=self.focal, height=self.height,
                                    width=self.width)

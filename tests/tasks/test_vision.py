@@ -40,3 +40,18 @@ def test_warp_renderer_refuses_a_gradient_and_soft_keeps_one(ant):
 def test_unknown_renderer_is_named(ant):
     with pytest.raises(ValueError, match=r"unknown renderer 'raytrace'.*soft, warp"):
         TaskRenderer(ant, renderer="raytrace")
+
+
+def test_a_render_without_grad_hands_the_scene_a_state_without_grad(ant):
+    """Compiled, the scene guards on requires_grad even under no_grad; a state that requires grad (a SHAC window
+    starts from such a leaf) is detached there, so that no-grad renders share one graph; with grad it is not."""
+    renderer = TaskRenderer(ant, height=16, width=16)
+    seen, scene = [], renderer._scene
+    renderer._scene = lambda q: seen.append(q.requires_grad) or scene(q)
+    qpos = ant.qpos.clone().requires_grad_()
+    with torch.no_grad():
+        plain = renderer(qpos)
+    assert seen == [False] and not plain.requires_grad
+    image = renderer(qpos)
+    assert seen == [False, True] and image.requires_grad
+    torch.testing.assert_close(image.detach(), plain, rtol=0, atol=0)
