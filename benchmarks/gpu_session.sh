@@ -18,7 +18,11 @@ mkdir -p /tmp/w; cp .gpuwarp1/* .gpuwarp2/* /tmp/w/ 2>/dev/null
 if [ ! -d /tmp/site/warp ] && [ -f /tmp/w/warppart.00 ] && [ -f /tmp/w/warppart.01 ]; then
   cat /tmp/w/warppart.0* | xz -dc | tar -x -C /tmp/site && echo "warp unpacked"
 fi
-run() { local secs=$1; shift; echo "=== $* (limit ${secs}s)"; timeout "$secs" "$@" 2>&1 | tail -n 40; }
+# each run's whole output is kept under $OUT (log_N.txt): the reply's tail can cut a test summary off
+nlog=0
+run() { local secs=$1; shift; nlog=$((nlog + 1)); echo "=== $* (limit ${secs}s)"
+  timeout "$secs" "$@" > "$OUT/log_$nlog.txt" 2>&1; local rc=$?; tail -n 40 "$OUT/log_$nlog.txt"
+  echo "=== rc $rc ($OUT/log_$nlog.txt)"; }
 for spec in "$@"; do
   stage=${spec%%:*}; secs=${spec#*:}; [ "$secs" = "$spec" ] && secs=300
   case $stage in
