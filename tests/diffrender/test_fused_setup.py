@@ -236,14 +236,20 @@ def test_floor_planes_match_the_pytorch_floor(kw):
         assert (ref[:, 0][hit] == 20.0 * st.gamma).any()  # beyond zfar: at the depth floor
         sharp = _floor_sharpness(cam, st)[hit]
         assert (sharp > 50.0).any() and (sharp < 50.0).any()  # floor.py caps it at 50
-    assert (new.detach() - ref.detach()).abs().max() <= 1e-14
+    # 1e-12, not ~1e-15: at grazing rays the checker edge (sharpness capped at 50 per square of 0.2 m) turns the
+    # rounding of a hit point metres away into ~100x larger colour differences, and the kernel's fused
+    # multiply-adds round differently from PyTorch's separate ones (3e-14 seen on an H100); a wrong formula
+    # would differ by orders more
+    assert (new.detach() - ref.detach()).abs().max() <= 1e-12
     w = torch.randn(ref.shape, dtype=F64, device=DEV, generator=torch.Generator(device=DEV).manual_seed(1))
     w[:, 4] = 0.0
     g_ref = torch.autograd.grad((ref * w).sum(), (r_ref, e_ref))
     g_new = torch.autograd.grad((new * w).sum(), (r_new, e_new))
     for gr, gn in zip(g_ref, g_new):
         assert gr.abs().max() > 0
-        assert (gr - gn).abs().max() <= 1e-12 * gr.abs().max()
+        # the same edges square that amplification in the gradient, which atomic adds sum in any order (8e-12 of
+        # the largest entry seen on an H100)
+        assert (gr - gn).abs().max() <= 1e-10 * gr.abs().max()
 
 
 def test_floor_planes_gradcheck():
