@@ -89,7 +89,8 @@ def _fused_defaults() -> dict:
     from diffrender.raster import fused
 
     return {name: getattr(fused, name) for name in ("COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE",
-                                                    "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK")}
+                                                    "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK",
+                                                    "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS")}
 
 
 _FUSED_DEFAULTS = _fused_defaults()

@@ -20,7 +20,8 @@ backend), organised for the GPU:
   the image and, when asked, each pixel's blend state (final maximum, denominator, the faces' weight and
   coverage sums): no pair lists, no bins, no capacity to overflow.
 * **Backward kernel**: one program per (tile of BWD_TILE x BWD_TILE pixels, environment; BWD_TILE_DENSE where
-  faces crowd, :func:`backward_tile`), walking the faces as the forward does. From each pixel's
+  faces crowd, :func:`backward_tile`) and per split of the super-blocks (:func:`backward_splits`: one split
+  up to 8k faces, up to 8 with more), walking its faces as the forward does. From each pixel's
   blend state and colour (kept by the forward, or from a second forward pass), it forms the gradient of
   every pixel-face pair in closed form. Faces are taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane:
   the face's 45 coefficients stay in registers while a loop over the tile's pixels accumulates its 45
@@ -63,8 +64,8 @@ try:  # Triton ships with CUDA builds of PyTorch; CPU-only installs usually lack
 except ImportError:  # pragma: no cover - exercised on machines without triton
     triton = None
 
-__all__ = ["NUM_COEFFS", "available", "backward_tile", "face_coefficients", "face_setup", "rasterize_fused",
-           "super_block_boxes"]
+__all__ = ["NUM_COEFFS", "available", "backward_splits", "backward_tile", "face_coefficients", "face_setup",
+           "rasterize_fused", "super_block_boxes"]
 
 # Rows of the (B, C, F) layout (k: the edge opposite vertex k, or corner k): LA_k 0-2, LX_k 3-5, LY_k 6-8,
 # PA_k 9-11, PX_k 12-14, PY_k 15-17, H_k 18-20, |e_k|^2 21-23, 1/z_k 24-26, normal_k 27-35, albedo_k 36-44.
@@ -80,6 +81,10 @@ BWD_WARPS: int | None = None
 #: (see :func:`backward_tile`).
 BWD_TILE_DENSE = 4
 DENSE_FACES_PER_PIXEL = 1.0
+#: The backward's walk over the super-blocks is split between up to BWD_MAX_SPLITS programs per tile (program s
+#: takes super-blocks s, s + S, ...), one per BWD_SPLIT_SUPER_BLOCKS super-blocks (see :func:`backward_splits`).
+BWD_MAX_SPLITS = 8
+BWD_SPLIT_SUPER_BLOCKS = 8
 #: face blocks per super-block: the coarse level of the kernels' walk over the faces (see
 #: :func:`super_block_boxes`)
 SUPER_BLOCK = 16
@@ -460,14 +465,17 @@ if triton is not None:
 
     @triton.jit
     def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr,
-                        gcoef_ptr, gfloor_ptr, Fp, NB, NSB, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr,
-                        SB: tl.constexpr, SUB: tl.constexpr, MODEL: tl.constexpr):
-        """One program per (tile, environment). Floor gradients per pixel; then, per sub-block of SUB faces
+                        gcoef_ptr, gfloor_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr,
+                        FB: tl.constexpr, SB: tl.constexpr, SUB: tl.constexpr, MODEL: tl.constexpr):
+        """One program per (tile, environment, split): split s walks super-blocks s, s + NSPLIT, ... (each
+        face's gradient is a sum over tiles, so it may come from any program). Floor gradients per pixel (split
+        0 stores them); then, per sub-block of SUB faces
         (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
         registers, and one atomic add per face and coefficient at the end (no cross-lane reductions).
         MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
         tile = tl.program_id(0)
         env = tl.program_id(1)
+        split = tl.program_id(2)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
         _, _, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
@@ -502,10 +510,11 @@ if triton is not None:
                 g_fzn += tl.where(fhit, kn_t * g_wf * w_f / gamma, 0.0)
                 k_fc += kn_t * w_f
         gfp = gfloor_ptr + env * 4 * HW + pix
-        tl.store(gfp, g_fzn, mask=inb)
-        tl.store(gfp + HW, gr_t * k_fc, mask=inb)
-        tl.store(gfp + 2 * HW, gg_t * k_fc, mask=inb)
-        tl.store(gfp + 3 * HW, gb_t * k_fc, mask=inb)
+        once = inb & ((pix * 0 + split) == 0)  # a block-shaped test: the interpreter rejects a scalar in a mask
+        tl.store(gfp, g_fzn, mask=once)
+        tl.store(gfp + HW, gr_t * k_fc, mask=once)
+        tl.store(gfp + 2 * HW, gg_t * k_fc, mask=once)
+        tl.store(gfp + 3 * HW, gb_t * k_fc, mask=once)
 
         # ---- faces
         ty0 = (tile // TX) * TILE_
@@ -514,7 +523,7 @@ if triton is not None:
         cbase = coef_ptr + env * 45 * Fp
         gbase = gcoef_ptr + env * 45 * Fp
         inv_zr = 1.0 / (zfar - znear)
-        for sb in range(0, NSB):  # coarse: a super-block's box, then its blocks' boxes
+        for sb in range(split, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
             if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
                 for j in range(0, SB):
                     blk = sb * SB + j
@@ -828,6 +837,14 @@ def backward_tile(num_faces: int, height: int, width: int) -> int:
     return BWD_TILE_DENSE if num_faces > DENSE_FACES_PER_PIXEL * height * width else BWD_TILE
 
 
+def backward_splits(num_super_blocks: int) -> int:
+    """Programs per backward tile: one per ``BWD_SPLIT_SUPER_BLOCKS`` super-blocks, 1 to ``BWD_MAX_SPLITS``.
+    A program's time grows with the faces near its tile; where detailed meshes crowd thousands of faces near a
+    few tiles, those tiles' programs would run long after the rest of the GPU has finished, so their walk is
+    shared out. Programs of a split whose faces are all far from the tile stop after the super-block tests."""
+    return max(1, min(BWD_MAX_SPLITS, num_super_blocks // max(1, BWD_SPLIT_SUPER_BLOCKS)))
+
+
 class _FusedRasterize(torch.autograd.Function):
     """Environments are processed ``chunk`` at a time: the per-face coefficients of a chunk (and the
     temporaries that form them) are the renderer's whole working set, so it is bounded by
@@ -890,12 +907,13 @@ class _FusedRasterize(torch.autograd.Function):
                 out = torch.empty(nb, 3, st.height, st.width, dtype=dt, device=dev)
                 state = torch.empty(nb, STATE_PER_PIXEL, st.height, st.width, dtype=dt, device=dev)
                 _launch_forward(coef.detach(), box, bbox, sbox, floor.detach(), st, tile, fb, out, state)
-            grid, tx = _launch_grid(st, sl.stop - sl.start, bwd_tile)
-            _fused_backward[grid](coef.detach(), box, bbox, sbox, floor.detach(), _params(st, dt, dev), out,
-                                  state, grad_img[sl], gcoef, gfloor, coef.shape[2], bbox.shape[2], sbox.shape[2],
-                                  st.height, st.width, tx, TILE_=bwd_tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2],
-                                  SUB=sub, MODEL=_MODEL_CODE[st.raster_model],
-                                  num_warps=BWD_WARPS or max(1, sub // 32))
+            (ntiles, nb), tx = _launch_grid(st, sl.stop - sl.start, bwd_tile)
+            splits = backward_splits(sbox.shape[2])
+            _fused_backward[(ntiles, nb, splits)](
+                coef.detach(), box, bbox, sbox, floor.detach(), _params(st, dt, dev), out, state, grad_img[sl], gcoef,
+                gfloor, coef.shape[2], bbox.shape[2], sbox.shape[2], splits, st.height, st.width, tx, TILE_=bwd_tile,
+                FB=fb, SB=bbox.shape[2] // sbox.shape[2], SUB=sub, MODEL=_MODEL_CODE[st.raster_model],
+                num_warps=BWD_WARPS or max(1, sub // 32))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
             for i, g in zip(wanted, parts):

@@ -65,16 +65,20 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
 @pytest.mark.parametrize("model", ["softmax", "hard", pytest.param("alpha", marks=pytest.mark.slow)])
 def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeypatch, model):
     """Super-blocks of two 16-face blocks (the 944 faces make 30 of them, most far from most tiles, so the
-    coarse test skips whole runs of blocks) and the backward tile chosen for crowded faces: the image and
-    gradients of the dense reference."""
+    coarse test skips whole runs of blocks), the backward tile chosen for crowded faces and the backward's
+    walk split between 4 programs per tile (7 or 8 super-blocks each): the image and gradients of the dense
+    reference."""
     monkeypatch.setattr(fused, "FACE_BLOCK", 16)
     monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
     monkeypatch.setattr(fused, "DENSE_FACES_PER_PIXEL", 0.0)
     monkeypatch.setattr(fused, "BWD_SUB_BLOCK", 16)
+    monkeypatch.setattr(fused, "BWD_MAX_SPLITS", 4)
+    monkeypatch.setattr(fused, "BWD_SPLIT_SUPER_BLOCKS", 4)
     q = ant_pose(2, seed=6).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=12)
     assert fused.backward_tile(ant64.num_faces, cam.height, cam.width) == fused.BWD_TILE_DENSE
+    assert fused.backward_splits(30) == 4
     _compare(verts, ant64.faces, ant64.colors, cam, dict(raster_model=model, save_blend_state=model != "hard"))
 
 
@@ -92,6 +96,9 @@ def test_super_block_boxes_are_unions_of_their_blocks():
             assert torch.equal(sup[:, row, k], reduce(block[:, row, a:b], -1))
     assert fused.backward_tile(100_000, 84, 84) == fused.BWD_TILE_DENSE
     assert fused.backward_tile(1856, 84, 84) == fused.BWD_TILE
+    # one program per tile for the ant (2 super-blocks), the most for 100k faces (99)
+    assert fused.backward_splits(2) == 1 and fused.backward_splits(99) == fused.BWD_MAX_SPLITS > 1
+    assert fused.backward_splits(0) == 1
 
 
 @pytest.mark.parametrize(("bwd_tile", "sub_block"), [(8, 64), pytest.param(4, 16, marks=pytest.mark.slow)])
