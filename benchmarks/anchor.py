@@ -105,19 +105,25 @@ def _stages(fn_fwd, fn_fwdbwd) -> dict:
         with profile(activities=[ProfilerActivity.CUDA]) as prof:
             fn()
             _sync()
-        out = {"fwd": 0.0, "bwd": 0.0, "other": 0.0, "kernels": 0}
+        out = {"fwd": 0.0, "bwd": 0.0, "other": 0.0, "kernels": 0, "by_name": {}}
         for e in prof.events():
             if e.device_type != torch.autograd.DeviceType.CUDA:
                 continue
+            ms = e.time_range.elapsed_us() / 1e3
             key = "fwd" if "_fused_forward" in e.name else "bwd" if "_fused_backward" in e.name else "other"
-            out[key] += e.time_range.elapsed_us() / 1e3
+            out[key] += ms
             out["kernels"] += 1
+            count, total = out["by_name"].get(e.name, (0, 0.0))
+            out["by_name"][e.name] = (count + 1, total + ms)
         return out
 
     f, fb = by_kernel(fn_fwd), by_kernel(fn_fwdbwd)
+    top = sorted(fb["by_name"].items(), key=lambda kv: -kv[1][1])[:12]
     return {"setup_fwd_ms": f["other"], "raster_fwd_ms": f["fwd"], "raster_bwd_ms": fb["bwd"],
             "setup_bwd_ms": max(0.0, fb["other"] - f["other"]), "kernels_fwd": f["kernels"],
-            "kernels_fwdbwd": fb["kernels"]}
+            "kernels_fwdbwd": fb["kernels"],
+            # the fwd+bwd's costliest kernels: [name (cut to 80 characters), launches, ms]
+            "top_kernels_fwdbwd": [[name[:80], n, round(ms, 4)] for name, (n, ms) in top]}
 
 
 def _peak(fn) -> dict:
