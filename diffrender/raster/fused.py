@@ -21,7 +21,7 @@ backend), organised for the GPU:
   coverage sums): no pair lists, no bins, no capacity to overflow.
 * **Backward kernel**: one program per (tile of BWD_TILE x BWD_TILE pixels, environment; BWD_TILE_DENSE where
   faces crowd, :func:`backward_tile`) and per split of the super-blocks (:func:`backward_splits`: one split
-  up to 8k faces, up to 8 with more), walking its faces as the forward does. From each pixel's
+  per 2k faces, up to 16), walking its faces as the forward does. From each pixel's
   blend state and colour (kept by the forward, or from a second forward pass), it forms the gradient of
   every pixel-face pair in closed form. Faces are taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane:
   the face's 45 coefficients stay in registers while a loop over the tile's pixels accumulates its 45
@@ -79,12 +79,12 @@ BWD_SUB_BLOCK = 64  # H100, 64 ants at 84 px, state kept: 4.35 ms forward + back
 BWD_WARPS: int | None = None
 #: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px]
 #: (see :func:`backward_tile`).
-BWD_TILE_DENSE = 4
+BWD_TILE_DENSE = 8
 DENSE_FACES_PER_PIXEL = 1.0
 #: The backward's walk over the super-blocks is split between up to BWD_MAX_SPLITS programs per tile (program s
 #: takes super-blocks s, s + S, ...), one per BWD_SPLIT_SUPER_BLOCKS super-blocks (see :func:`backward_splits`).
-BWD_MAX_SPLITS = 8
-BWD_SPLIT_SUPER_BLOCKS = 8
+BWD_MAX_SPLITS = 16
+BWD_SPLIT_SUPER_BLOCKS = 2
 #: face blocks per super-block: the coarse level of the kernels' walk over the faces (see
 #: :func:`super_block_boxes`)
 SUPER_BLOCK = 16

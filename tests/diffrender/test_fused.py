@@ -71,6 +71,7 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     monkeypatch.setattr(fused, "FACE_BLOCK", 16)
     monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
     monkeypatch.setattr(fused, "DENSE_FACES_PER_PIXEL", 0.0)
+    monkeypatch.setattr(fused, "BWD_TILE_DENSE", 4)
     monkeypatch.setattr(fused, "BWD_SUB_BLOCK", 16)
     monkeypatch.setattr(fused, "BWD_MAX_SPLITS", 4)
     monkeypatch.setattr(fused, "BWD_SPLIT_SUPER_BLOCKS", 4)

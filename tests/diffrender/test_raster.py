@@ -75,6 +75,26 @@ def test_gradcheck_camera_eye_target_and_normals(backend, model):
                              fast_mode=True)
 
 
+def test_vertex_normals_match_a_loop_and_gradcheck():
+    """Area-weighted vertex normals against a loop over the faces (float64), and gradcheck of their backward
+    (an index_add into the shared corners) on a closed mesh with unequal face areas."""
+    from diffrender.meshes import sphere_mesh
+    from diffrender.raster import vertex_normals
+
+    g = torch.Generator().manual_seed(0)
+    m = sphere_mesh(1.0, detail=0)
+    faces = torch.as_tensor(m.faces, dtype=torch.long)
+    verts = torch.as_tensor(m.vertices, dtype=F64)[None] * (1.0 + 0.3 * torch.rand(2, m.num_vertices, 1,
+                                                                                        generator=g, dtype=F64))
+    acc = torch.zeros_like(verts)
+    for a, b, c in faces.tolist():
+        n = torch.linalg.cross(verts[:, b] - verts[:, a], verts[:, c] - verts[:, a])
+        for k in (a, b, c):
+            acc[:, k] += n
+    assert torch.allclose(vertex_normals(verts, faces), acc / acc.norm(dim=-1, keepdim=True), atol=1e-14)
+    torch.autograd.gradcheck(lambda v: vertex_normals(v, faces), (verts.clone().requires_grad_(),))
+
+
 def test_camera_gradient_reaches_floor_only_scene():
     """With no faces at all the image is pure floor: it still depends smoothly on the eye."""
     eye, target, _ = tiny_camera()
