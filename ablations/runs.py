@@ -404,9 +404,12 @@ def run(cfg: RunConfig) -> Path:
     cache, cache_label = _open_compile_cache(cfg, device) if cfg.compile else (None, "")
     trainer_built = time.time()
     trainer = SHAC(shac_part(cfg), device=device)
-    # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py)
+    trainer_done = time.time()
+    # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py): parts
+    # that together make up first_iter_s; "run_folder" is the bookkeeping around the trainer (checking the
+    # config, the run folder, a checkpoint to resume, git and environment records, the progress bar)
     startup = {"imports": started - _process_started(), "compile_cache": trainer_built - cache_opened,
-               "trainer": time.time() - trainer_built}
+               "trainer": trainer_done - trainer_built}
     shac_fields = dataclasses.fields(SHACConfig)
     resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
     ckpt_dir = run_dir / "checkpoints"
@@ -448,6 +451,7 @@ def run(cfg: RunConfig) -> Path:
     first_iter_s = None
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
+    startup["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
     try:
         # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
         # the same training time as one that ran through, so that return-against-time curves stay comparable.
@@ -457,7 +461,8 @@ def run(cfg: RunConfig) -> Path:
             m = trainer.train_iteration()
             if first_iter_s is None:
                 first_iter_s = time.time() - _process_started()
-                startup.update(first_reset_render=trainer.start_s, first_iteration=m["iter_ms"] / 1e3)
+                # a resumed run starts from its checkpoint's state and frames: no reset and render
+                startup.update(first_reset_render=trainer.start_s or 0.0, first_iteration=m["iter_ms"] / 1e3)
             watch.announce(None)
             it = m["iter"]
             last = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)

@@ -299,8 +299,10 @@ class Task(abc.ABC):
         With ``requires_grad`` the cut state (``qpos``, ``qvel``) is a fresh leaf that requires grad, so that the
         first control step sees the same grad pattern as every later one: a compiled step then has one guard
         set (one compilation) instead of one per pattern (three for the substep: the start state, the first
-        step's later substeps, the later steps' mass matrices). Gradients into the parameters are unchanged;
-        the leaf's own gradient is computed and dropped.
+        step's later substeps, the later steps' mass matrices). Gradients into the parameters are unchanged
+        (eagerly to the bit; compiled, to float rounding, as the first step then runs the later steps' graphs);
+        the leaf's own gradient is computed and dropped, a few more backward kernels per window (an H100
+        iteration's time is unchanged: BENCHMARKS.md, section 7).
         """
         self.qpos = self.qpos.detach()
         self.qvel = self.qvel.detach()

@@ -175,7 +175,7 @@ class TaskRenderer:
     def _posed(self, qpos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, diffrender.Camera]:
         if not torch.is_grad_enabled():
             # compiled, the scene guards on requires_grad even where no gradient is taken: one no-grad graph
-            # for states with and without grad (a window's start state is a leaf that requires grad)
+            # for states with grad (a stepped state, through its action) and without (a reset state)
             qpos = qpos.detach()
         verts, normals, rotation, eye = self._scene(qpos)
         camera = diffrender.Camera(rotation=rotation, eye=eye, focal=self.focal, height=self.height,

@@ -220,11 +220,13 @@ def test_a_run_summary_has_its_time_to_the_first_iteration(tmp_path, monkeypatch
     summary = json.loads((runs.run(cfg) / "summary.json").read_text())
     assert 100.0 < summary["first_iter_s"] < 100.0 + (time.time() - before)
     # where those seconds went: the parts are each non-negative, the imports hold the 100 s, and together they
-    # make up the time to the first iteration (the rest is the run folder's own bookkeeping)
+    # make up the time to the first iteration, to within the few statements between the timers (a part
+    # counted twice, or one left out, would be off by its whole length)
     parts = summary["startup_s"]
-    assert set(parts) == {"imports", "compile_cache", "trainer", "first_reset_render", "first_iteration"}
+    assert set(parts) == {"imports", "run_folder", "compile_cache", "trainer", "first_reset_render",
+                          "first_iteration"}
     assert all(v >= 0.0 for v in parts.values()) and parts["imports"] >= 100.0
-    assert sum(parts.values()) == pytest.approx(summary["first_iter_s"], abs=0.5)
+    assert sum(parts.values()) == pytest.approx(summary["first_iter_s"], abs=0.02)
     assert summary["compile"] is None  # not a --compile run
     with pytest.raises(ValueError, match="compile_cache is empty"):
         runs.RunConfig(compile_cache=" ").validate()

@@ -147,9 +147,20 @@ def test_raster_model_option_reaches_the_renderer():
 def test_compile_matches_eager_on_cpu():
     # --compile's non-graph part (torch.compile'd physics substep and reward/reset; CUDA graphs need a GPU and
     # are tested in tests/test_cuda.py) gives the eager numbers within float tolerance, probes included.
+    # Compiled, each window starts from a leaf that requires grad (one guard set for every control step;
+    # tests/tasks/test_tasks.py counts the graphs), eagerly from a plain detached state.
     def run(compile_: bool):
         trainer = SHAC(tiny(mode="decoupled", cosine_every=2, compile=compile_), device="cpu")
-        return [trainer.train_iteration() for _ in range(3)]
+        cut, starts = trainer.task.detach, []
+
+        def detach(**kw):
+            cut(**kw)
+            starts.append(trainer.task.qpos.requires_grad and trainer.task.qvel.requires_grad)
+
+        trainer.task.detach = detach
+        out = [trainer.train_iteration() for _ in range(3)]
+        assert starts == [compile_] * len(starts) and len(starts) >= 3
+        return out
 
     eager, compiled = run(False), run(True)
     for a, b in zip(eager, compiled):
