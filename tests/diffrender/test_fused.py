@@ -83,7 +83,7 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     _compare(verts, ant64.faces, ant64.colors, cam, dict(raster_model=model, save_blend_state=model != "hard"))
 
 
-def test_super_block_boxes_are_unions_of_their_blocks():
+def test_super_block_boxes_are_unions_of_their_blocks(monkeypatch):
     """Each super-box is the union of its blocks' boxes; padding blocks are empty and touch no pixel."""
     g = torch.Generator().manual_seed(0)
     lo = torch.rand(2, 2, 7, generator=g) * 50
@@ -95,6 +95,7 @@ def test_super_block_boxes_are_unions_of_their_blocks():
     for k, (a, b) in enumerate(((0, 4), (4, 7))):
         for row, reduce in enumerate((torch.amin, torch.amax, torch.amin, torch.amax)):
             assert torch.equal(sup[:, row, k], reduce(block[:, row, a:b], -1))
+    monkeypatch.setattr(fused, "BWD_TILE_DENSE", fused.BWD_TILE // 2)  # the defaults are equal: tell them apart
     assert fused.backward_tile(100_000, 84, 84) == fused.BWD_TILE_DENSE
     assert fused.backward_tile(1856, 84, 84) == fused.BWD_TILE
     # one program per tile for the ant (2 super-blocks), the most for 100k faces (99)
