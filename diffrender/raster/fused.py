@@ -464,23 +464,11 @@ if triton is not None:
         tl.atomic_add(gq + (row + 8) * Fp, g8, mask=live)
 
     @triton.jit
-    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr,
-                        gcoef_ptr, gfloor_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr,
-                        FB: tl.constexpr, SB: tl.constexpr, SUB: tl.constexpr, MODEL: tl.constexpr):
-        """One program per (tile, environment, split): split s walks super-blocks s, s + NSPLIT, ... (each
-        face's gradient is a sum over tiles, so it may come from any program). Floor gradients per pixel (split
-        0 stores them); then, per sub-block of SUB faces
-        (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
-        registers, and one atomic add per face and coefficient at the end (no cross-lane reductions).
-        MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
-        tile = tl.program_id(0)
-        env = tl.program_id(1)
-        split = tl.program_id(2)
-        sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
-        _, _, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
-        HW = H * W
-        # ---- floor: its colour and depth reach the image through C_b (soft models), through the softmax's
-        # floor weight exp((z_f - m) / gamma) (softmax), or directly where it is shown (hard)
+    def _floor_backward(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
+                        MODEL: tl.constexpr):
+        """The floor's gradients (depth, colour) at a tile's pixels. Its colour and depth reach the image
+        through C_b (soft models), through the softmax's floor weight exp((z_f - m) / gamma) (softmax), or
+        directly where it is shown (hard)."""
         fzn, fr, fg, fb, fhit, r_f, _, _, _, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix, inb, HW,
                                                                              gamma)
         sp = state_ptr + env * 4 * HW + pix
@@ -510,11 +498,30 @@ if triton is not None:
                 g_fzn += tl.where(fhit, kn_t * g_wf * w_f / gamma, 0.0)
                 k_fc += kn_t * w_f
         gfp = gfloor_ptr + env * 4 * HW + pix
-        once = inb & ((pix * 0 + split) == 0)  # a block-shaped test: the interpreter rejects a scalar in a mask
-        tl.store(gfp, g_fzn, mask=once)
-        tl.store(gfp + HW, gr_t * k_fc, mask=once)
-        tl.store(gfp + 2 * HW, gg_t * k_fc, mask=once)
-        tl.store(gfp + 3 * HW, gb_t * k_fc, mask=once)
+        tl.store(gfp, g_fzn, mask=inb)
+        tl.store(gfp + HW, gr_t * k_fc, mask=inb)
+        tl.store(gfp + 2 * HW, gg_t * k_fc, mask=inb)
+        tl.store(gfp + 3 * HW, gb_t * k_fc, mask=inb)
+
+    @triton.jit
+    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr,
+                        gcoef_ptr, gfloor_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr,
+                        FB: tl.constexpr, SB: tl.constexpr, SUB: tl.constexpr, MODEL: tl.constexpr):
+        """One program per (tile, environment, split): split s walks super-blocks s, s + NSPLIT, ... (each
+        face's gradient is a sum over tiles, so it may come from any program). Split 0 forms the floor's
+        gradients (:func:`_floor_backward`); then, per sub-block of SUB faces
+        (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
+        registers, and one atomic add per face and coefficient at the end (no cross-lane reductions).
+        MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
+        tile = tl.program_id(0)
+        env = tl.program_id(1)
+        split = tl.program_id(2)
+        sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
+        _, _, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
+        HW = H * W
+        if split == 0:  # the floor's gradients, once per pixel
+            _floor_backward(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
+                            MODEL)
 
         # ---- faces
         ty0 = (tile // TX) * TILE_
