@@ -464,8 +464,8 @@ if triton is not None:
         tl.atomic_add(gq + (row + 8) * Fp, g8, mask=live)
 
     @triton.jit
-    def _floor_backward(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
-                        MODEL: tl.constexpr):
+    def _floor_plane_grads(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
+                           MODEL: tl.constexpr):
         """The floor's gradients (depth, colour) at a tile's pixels. Its colour and depth reach the image
         through C_b (soft models), through the softmax's floor weight exp((z_f - m) / gamma) (softmax), or
         directly where it is shown (hard)."""
@@ -509,7 +509,7 @@ if triton is not None:
                         FB: tl.constexpr, SB: tl.constexpr, SUB: tl.constexpr, MODEL: tl.constexpr):
         """One program per (tile, environment, split): split s walks super-blocks s, s + NSPLIT, ... (each
         face's gradient is a sum over tiles, so it may come from any program). Split 0 forms the floor's
-        gradients (:func:`_floor_backward`); then, per sub-block of SUB faces
+        gradients (:func:`_floor_plane_grads`); then, per sub-block of SUB faces
         (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
         registers, and one atomic add per face and coefficient at the end (no cross-lane reductions).
         MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
@@ -520,8 +520,8 @@ if triton is not None:
         _, _, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
         if split == 0:  # the floor's gradients, once per pixel
-            _floor_backward(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
-                            MODEL)
+            _floor_plane_grads(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
+                               MODEL)
 
         # ---- faces
         ty0 = (tile // TX) * TILE_
