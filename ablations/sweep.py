@@ -515,16 +515,29 @@ class RunStore:
 # ---------------------------------------------------------------------------------------------------------
 # The Ray task: one attempt of one run on a worker node
 
+_STOP_AT_CHECKPOINTS = "ABLATE_SWEEP_STOP_AT_CHECKPOINTS"  # set by the worker for --kill-once runs
 #: Run in the child: die with the Ray worker that started it (Linux: PR_SET_PDEATHSIG survives exec), then
 #: become ``python -m ablations ablate ...``. Without it a SIGKILLed worker would leave its run training.
-_CHILD = """
+_CHILD = f"""
 import ctypes, os, signal, sys
 parent = int(sys.argv[1])
 if sys.platform.startswith("linux"):
     ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))
     if os.getppid() != parent:
         sys.exit("ablate-sweep: the worker that started this run is gone")
-os.execv(sys.executable, [sys.executable, "-m", "ablations", "ablate", *sys.argv[2:]])
+if os.environ.pop("{_STOP_AT_CHECKPOINTS}", None):
+    # --kill-once: stop after each checkpoint until the worker has seen it (it resumes the run with SIGCONT),
+    # so that the injected death comes mid-run even when the whole run is quicker than the worker's poll
+    import gradlab.checkpoint, runpy
+    save = gradlab.checkpoint.save_checkpoint
+    def save_and_stop(*args, **kwargs):
+        save(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGSTOP)
+    gradlab.checkpoint.save_checkpoint = save_and_stop
+    sys.argv = [sys.argv[0], "ablate", *sys.argv[2:]]
+    runpy.run_module("ablations", run_name="__main__", alter_sys=True)
+else:
+    os.execv(sys.executable, [sys.executable, "-m", "ablations", "ablate", *sys.argv[2:]])
 """
 
 
@@ -596,6 +609,8 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(opts["cpus_per_run"]))))
     if not opts["gpus_per_run"]:
         env["CUDA_VISIBLE_DEVICES"] = ""
+    if run_id in opts["kill_once"]:
+        env[_STOP_AT_CHECKPOINTS] = "1"  # see _CHILD
     log = scratch / "ablate.log"
     node = ray.get_runtime_context().get_node_id()
     import platform
@@ -618,9 +633,6 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
                                                       "latest_return": last.get("return_mean")})
             ckpt = latest_checkpoint(run_dir / "checkpoints")
             if returncode is None and ckpt is not None and ckpt != shipped:
-                if run_id in opts["kill_once"]:
-                    # Freeze the run where it is, so the injected death happens mid-run however fast it trains.
-                    proc.send_signal(signal.SIGSTOP)
                 # metrics.jsonl gets an iteration's line before its checkpoint: read after seeing the checkpoint,
                 # it covers every iteration the checkpoint does.
                 videos = _new_videos(run_dir, sent_videos)
@@ -631,7 +643,7 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
                     sent_videos.update(videos)
                     if run_id in opts["kill_once"] and ray.get(store.claim_kill.remote(run_id, ckpt.name)):
                         _kill_self_mid_run(store, run_id, attempt, log)
-                if run_id in opts["kill_once"]:
+                if run_id in opts["kill_once"]:  # the run stopped itself after this checkpoint (see _CHILD)
                     proc.send_signal(signal.SIGCONT)
             if returncode is not None:
                 break
