@@ -10,11 +10,12 @@ Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up t
   (``source ../shared/tools/nvdiffrast-build.sh``). The backward is that of a fixed random weighting of the
   image, into the world vertices. nvdiffrast is timed first, so each fused row carries ``anchor_fwd_ms`` and
   ``anchor_fwdbwd_ms`` and the ratios; and the device time of one eager fwd+bwd by stage (torch.profiler,
-  kernels by name: ``raster_fwd_ms`` the forward kernel, ``raster_bwd_ms`` the backward kernel, ``setup_fwd_ms``
-  everything else of a no-grad render, i.e. the per-face setup with its box levels and the floor, and
-  ``setup_bwd_ms`` the rest of the fwd+bwd: the backward's recompute of the setup and its autograd).
-  ``--variants`` times the fused backend again with some of ``diffrender.raster.fused``'s module constants
-  changed (e.g. the former single-level walk and small chunks), each row tagged with its ``variant``.
+  kernels by name: ``raster_fwd_ms`` the forward kernels (walk and merge), ``raster_bwd_ms`` the backward
+  kernel, ``setup_fwd_ms`` everything else of a no-grad render, i.e. the per-face setup with its box levels
+  and the floor, and ``setup_bwd_ms`` the rest of the fwd+bwd: the backward's recompute of the setup and its
+  autograd). ``--variants`` times the fused backend again with some of ``diffrender.raster.fused``'s module
+  constants changed (e.g. the former single-level walk and small chunks), each row tagged with its
+  ``variant``; ``--compile on`` with the setup's PyTorch part compiled, as the trainer runs it.
 - ``iou``: the sharp-limit silhouette of each of our models and of the ray tracer against nvdiffrast's
   coverage (no floor, black background, white unlit robot), 64 ant poses: intersection over union and our
   mask's size relative to the anchor's.
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import itertools
 import json
 import os
 import platform
@@ -90,7 +92,8 @@ def _fused_defaults() -> dict:
 
     return {name: getattr(fused, name) for name in ("COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE",
                                                     "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK",
-                                                    "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS")}
+                                                    "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS", "FWD_MAX_SPLITS",
+                                                    "FWD_SPLIT_SUPER_BLOCKS")}
 
 
 _FUSED_DEFAULTS = _fused_defaults()
@@ -110,7 +113,8 @@ def _stages(fn_fwd, fn_fwdbwd) -> dict:
             if e.device_type != torch.autograd.DeviceType.CUDA:
                 continue
             ms = e.time_range.elapsed_us() / 1e3
-            key = "fwd" if "_fused_forward" in e.name else "bwd" if "_fused_backward" in e.name else "other"
+            raster_fwd = "_fused_forward" in e.name or "_merge_forward" in e.name
+            key = "fwd" if raster_fwd else "bwd" if "_fused_backward" in e.name else "other"
             out[key] += ms
             out["kernels"] += 1
             count, total = out["by_name"].get(e.name, (0, 0.0))
@@ -229,12 +233,13 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
             traceback.print_exc()
         print(json.dumps(anchor_row), flush=True)
 
-    for variant in args.variants:
+    for variant, compile_ in itertools.product(args.variants, args.compile):
         constants = _apply_variant(variant)
         for model in args.models:
             settings = dr.RasterSettings(raster_model=model, backend="fused", sync_checks=False,
-                                         save_blend_state=True)
-            row = dict(base, backend="fused", raster_model=model, variant=variant, fused_constants=constants)
+                                         save_blend_state=True, compile=compile_ == "on")
+            row = dict(base, backend="fused", raster_model=model, variant=variant, compile=compile_ == "on",
+                       fused_constants=constants)
             try:
                 def render(v, settings=settings):
                     return dr.render(v, robot.faces, robot.colors, cam, settings)
@@ -359,7 +364,8 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         if r.get("part") == "iou":
             continue
-        lines.append("| " + " | ".join([str(r["faces"]), r["backend"], r["raster_model"], r.get("variant", "-")]
+        variant = r.get("variant", "-") + (" +compile" if r.get("compile") else "")
+        lines.append("| " + " | ".join([str(r["faces"]), r["backend"], r["raster_model"], variant]
                                        + [f(r, k) for k in ("fwd_ms", "fwdbwd_ms", "fwd_eager_ms", "fwdbwd_eager_ms",
                                                             "anchor_fwd_ms", "anchor_fwdbwd_ms",
                                                             "fwdbwd_vs_anchor", "fwdbwd_eager_vs_anchor",
@@ -391,6 +397,10 @@ def main(argv=None) -> int:
     p.add_argument("--variants", nargs="*", default=["default"],
                    help="fused backend settings to time: 'default', or NAME=VALUE,NAME=VALUE of diffrender.raster."
                         f"fused's constants ({', '.join(_FUSED_DEFAULTS)})")
+    p.add_argument("--compile", nargs="*", choices=["off", "on"], default=["off"],
+                   help="time the fused backend with its setup's PyTorch part eager (off) and/or through "
+                        "torch.compile (on: RasterSettings.compile, as the trainer renders under --compile); "
+                        "each row says which")
     p.add_argument("--no-warp", dest="warp", action="store_false", help="leave the Warp ray tracer out")
     p.add_argument("--warp-graph", action="store_true",
                    help="also time the ray tracer replayed from a CUDA graph (a failed capture ends the process)")

@@ -18,14 +18,18 @@ backend), organised for the GPU:
   the block's faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online
   softmax (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). It writes
   the image and, when asked, each pixel's blend state (final maximum, denominator, the faces' weight and
-  coverage sums): no pair lists, no bins, no capacity to overflow.
+  coverage sums): no pair lists, no bins, no capacity to overflow. Where the faces make many super-blocks
+  (:func:`forward_splits`), each tile's walk is split between several programs, each blending its share of
+  the super-blocks from an empty start, and a merge kernel combines their parts with the floor and background
+  (online softmaxes merge exactly; the hard model keeps the nearest part, ties to the lowest face index).
 * **Backward kernel**: one program per (tile of BWD_TILE x BWD_TILE pixels, environment; BWD_TILE_DENSE where
   faces crowd, :func:`backward_tile`) and per split of the super-blocks (:func:`backward_splits`: one split
   per 2k faces, up to 16), walking its faces as the forward does. From each pixel's
   blend state and colour (kept by the forward, or from a second forward pass), it forms the gradient of
   every pixel-face pair in closed form. Faces are taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane:
-  the face's 45 coefficients stay in registers while a loop over the tile's pixels accumulates its 45
-  coefficient gradients (no cross-lane reductions), then one atomic add per face, coefficient and tile. A pixel
+  the face's 45 coefficients stay in registers while a loop over the tile's pixels inside the sub-block's
+  face boxes (all the pixels a pair can be kept at) accumulates its 45 coefficient gradients (no cross-lane
+  reductions), then one atomic add per face, coefficient and tile. A pixel
   where none of the sub-block's faces is kept is skipped, and a face whose blend weight is exactly 0 on all of
   the tile's pixels (hidden, or only inside its box's margin) and that touches no partly covered pixel
   (``sum D < 1``, where its coverage acts through ``A``) issues no atomics: every other term of its gradient
@@ -65,7 +69,7 @@ except ImportError:  # pragma: no cover - exercised on machines without triton
     triton = None
 
 __all__ = ["NUM_COEFFS", "available", "backward_splits", "backward_tile", "face_coefficients", "face_setup",
-           "rasterize_fused", "super_block_boxes"]
+           "forward_splits", "rasterize_fused", "super_block_boxes"]
 
 # Rows of the (B, C, F) layout (k: the edge opposite vertex k, or corner k): LA_k 0-2, LX_k 3-5, LY_k 6-8,
 # PA_k 9-11, PX_k 12-14, PY_k 15-17, H_k 18-20, |e_k|^2 21-23, 1/z_k 24-26, normal_k 27-35, albedo_k 36-44.
@@ -85,6 +89,11 @@ DENSE_FACES_PER_PIXEL = 1.0
 #: takes super-blocks s, s + S, ...), one per BWD_SPLIT_SUPER_BLOCKS super-blocks (see :func:`backward_splits`).
 BWD_MAX_SPLITS = 16
 BWD_SPLIT_SUPER_BLOCKS = 2
+#: The forward's walk is split likewise (see :func:`forward_splits`), its parts merged by a second kernel over
+#: MERGE_BLOCK pixels per program.
+FWD_MAX_SPLITS = 8
+FWD_SPLIT_SUPER_BLOCKS = 4
+MERGE_BLOCK = 256
 #: face blocks per super-block: the coarse level of the kernels' walk over the faces (see
 #: :func:`super_block_boxes`)
 SUPER_BLOCK = 16
@@ -96,6 +105,8 @@ _BIG = EMPTY_EXTENT  # empty bounding box of a dropped face
 COEF_ELEMS = 1 << 29
 #: numbers per pixel the forward keeps for the backward besides the image (see ``_fused_forward``)
 STATE_PER_PIXEL = 4
+#: numbers per pixel of one part of a split forward (see ``_fused_forward``)
+PART_PER_PIXEL = 6
 _MODEL_CODE = {"hard": 0, "softmax": 1, "alpha": 2}  # the kernels' MODEL constant
 
 
@@ -293,15 +304,16 @@ if triton is not None:
 
     @triton.jit
     def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp,
-                    NB, NSB,
+                    NB, NSB, sb0, NSPLIT,
                     xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
                     sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
                     FB: tl.constexpr, SB: tl.constexpr):
-        """Soft models: online depth softmax over all faces, starting from the given sums (floor and
-        background for "softmax", zero for "alpha"); also the faces' weight sum and coverage sum."""
+        """Soft models: online depth softmax over the faces of super-blocks sb0, sb0 + NSPLIT, ..., starting
+        from the given sums (floor and background for "softmax", zero for "alpha" and for a split's part);
+        also the faces' weight sum and coverage sum."""
         fo = tl.arange(0, FB)
         cbase = coef_ptr + env * 45 * Fp
-        for sb in range(0, NSB):  # coarse: a super-block's box, then its blocks' boxes
+        for sb in range(sb0, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
             if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
                 for j in range(0, SB):
                     blk = sb * SB + j
@@ -327,15 +339,16 @@ if triton is not None:
 
     @triton.jit
     def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
-                      NSB,
+                      NSB, sb0, NSPLIT,
                       xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz,
                       FB: tl.constexpr, SB: tl.constexpr):
-        """Hard model: the nearest face whose triangle contains the pixel centre, strictly nearer than ``m``
-        (the floor or background); the lowest face index among exact ties, as the faces come in order. Returns
-        its colour, its index (as a float; -1 for none) and its normalised depth."""
+        """Hard model: among the faces of super-blocks sb0, sb0 + NSPLIT, ..., the nearest face whose
+        triangle contains the pixel centre, strictly nearer than ``m`` (the floor or background); the lowest
+        face index among exact ties, as the faces come in order. Returns its colour, its index (as a float;
+        -1 for none) and its normalised depth."""
         fo = tl.arange(0, FB)
         cbase = coef_ptr + env * 45 * Fp
-        for sb in range(0, NSB):  # coarse: a super-block's box, then its blocks' boxes
+        for sb in range(sb0, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
             if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
                 for j in range(0, SB):
                     blk = sb * SB + j
@@ -389,51 +402,9 @@ if triton is not None:
         return a, inv_q, kn, kc, has
 
     @triton.jit
-    def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, Fp, NB, NSB, H,
-                       W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr, SAVE: tl.constexpr,
-                       MODEL: tl.constexpr):
-        """MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel (SAVE): soft models the blend's maximum, its
-        denominator, the faces' weight sum and coverage sum; hard the maximum and the chosen face (-1: none)."""
-        tile = tl.program_id(0)
-        env = tl.program_id(1)
-        sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
-        xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
-        HW = H * W
-        fzn, fr, fg, fb, fhit, _, cb_r, cb_g, cb_b, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix,
-                                                                                    inb, HW, gamma)
-        m = tl.where(fhit, fzn, 0.0)  # the floor, else the background (normalised depth 0)
-        if MODEL == 0:
-            nearest = tl.full(m.shape, -1.0, m.dtype)
-            out_r, out_g, out_b, nearest, m = _nearest_pass(
-                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g),
-                tl.where(fhit, fb, bg_b), nearest, m, env, Fp, NB, NSB, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear,
-                zfar, ambient, diffuse, lx, ly, lz, FB, SB)
-            s1 = nearest
-            s2 = tl.zeros_like(m)
-            s3 = tl.zeros_like(m)
-        else:
-            zero = tl.zeros_like(m)
-            if MODEL == 1:  # the floor and background are softmax candidates
-                w_bg = tl.exp(-m / gamma)
-                w_f = tl.where(fhit, 1.0, 0.0)
-                num_r = w_bg * bg_r + w_f * fr
-                num_g = w_bg * bg_g + w_f * fg
-                num_b = w_bg * bg_b + w_f * fb
-                den = w_bg + w_f
-            else:  # faces only; the start lies below every face's depth (its scale underflows to 0)
-                m = zero - 1e4
-                num_r, num_g, num_b, den = zero, zero, zero, zero
-            num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_pass(
-                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB, NSB,
-                xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx,
-                ly, lz, FB, SB)
-            _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
-            out_r = kn * num_r + kc * cb_r
-            out_g = kn * num_g + kc * cb_g
-            out_b = kn * num_b + kc * cb_b
-            s1 = den
-            s2 = w_sum
-            s3 = cov_sum
+    def _store_pixels(out_ptr, state_ptr, env, pix, inb, HW, out_r, out_g, out_b, m, s1, s2, s3,
+                      SAVE: tl.constexpr):
+        """Store the image at a set of pixels and, with SAVE, the blend state the backward reads."""
         op = out_ptr + env * 3 * HW + pix
         tl.store(op, out_r, mask=inb)
         tl.store(op + HW, out_g, mask=inb)
@@ -444,6 +415,159 @@ if triton is not None:
             tl.store(sp + HW, s1, mask=inb)
             tl.store(sp + 2 * HW, s2, mask=inb)
             tl.store(sp + 3 * HW, s3, mask=inb)
+
+    @triton.jit
+    def _soft_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b, gamma, MODEL: tl.constexpr):
+        """The soft models' blend before any face: "softmax" starts from the background (normalised depth 0)
+        and the floor as softmax candidates at the maximum ``m`` (the floor's depth where the ray hits it),
+        "alpha" from nothing, with ``m`` below every face's depth (its scale underflows to 0). Returns
+        ``num_r, num_g, num_b, den, m``."""
+        if MODEL == 1:
+            m = tl.where(fhit, fzn, 0.0)
+            w_bg = tl.exp(-m / gamma)
+            w_f = tl.where(fhit, 1.0, 0.0)
+            num_r = w_bg * bg_r + w_f * fr
+            num_g = w_bg * bg_g + w_f * fg
+            num_b = w_bg * bg_b + w_f * fb
+            den = w_bg + w_f
+        else:
+            num_r = tl.zeros_like(fzn)
+            num_g = num_r
+            num_b = num_r
+            den = num_r
+            m = num_r - 1e4
+        return num_r, num_g, num_b, den, m
+
+    @triton.jit
+    def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, Fp,
+                       NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
+                       SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr):
+        """One program per (tile, environment, split). MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel
+        (SAVE): soft models the blend's maximum, its denominator, the faces' weight sum and coverage sum; hard
+        the maximum and the chosen face (-1: none).
+
+        Unsplit (``SPLIT`` False, one program per tile): the walk over all faces, the image and the state.
+        Split: program s walks super-blocks s, s + NSPLIT, ... from an empty start and stores its part of the
+        blend in ``part_ptr`` (NSPLIT, B, PART_PER_PIXEL, H, W): soft models the part's maximum, its colour
+        sums (3), weight sum and coverage sum; hard the part's nearest depth, face and colour (3).
+        ``_merge_forward`` then combines the parts with the floor and background."""
+        tile = tl.program_id(0)
+        env = tl.program_id(1)
+        split = tl.program_id(2)
+        sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
+        xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
+        HW = H * W
+        if SPLIT:
+            zero = tl.zeros_like(xc)
+            if MODEL == 0:
+                c_r, c_g, c_b, nearest, m = _nearest_pass(
+                    coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero - 1.0, zero - 1e4, env, Fp, NB,
+                    NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly,
+                    lz, FB, SB)
+                p1, p2, p3, p4, p5 = nearest, c_r, c_g, c_b, zero
+            else:
+                p1, p2, p3, _den, p4, p5, m = _blend_pass(
+                    coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero, zero, zero, zero - 1e4, env, Fp,
+                    NB, NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff,
+                    cap, ambient, diffuse, lx, ly, lz, FB, SB)
+            pp = part_ptr + ((split * tl.num_programs(1) + env) * 6) * HW + pix
+            tl.store(pp, m, mask=inb)
+            tl.store(pp + HW, p1, mask=inb)
+            tl.store(pp + 2 * HW, p2, mask=inb)
+            tl.store(pp + 3 * HW, p3, mask=inb)
+            tl.store(pp + 4 * HW, p4, mask=inb)
+            tl.store(pp + 5 * HW, p5, mask=inb)
+        else:
+            fzn, fr, fg, fb, fhit, _, cb_r, cb_g, cb_b, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix,
+                                                                                        inb, HW, gamma)
+            if MODEL == 0:
+                m = tl.where(fhit, fzn, 0.0)  # the floor, else the background (normalised depth 0)
+                nearest = tl.full(m.shape, -1.0, m.dtype)
+                out_r, out_g, out_b, nearest, m = _nearest_pass(
+                    coef_ptr, box_ptr, bbox_ptr, sbox_ptr, tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g),
+                    tl.where(fhit, fb, bg_b), nearest, m, env, Fp, NB, NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo,
+                    y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB)
+                s1 = nearest
+                s2 = tl.zeros_like(m)
+                s3 = tl.zeros_like(m)
+            else:
+                zero = tl.zeros_like(fzn)
+                num_r, num_g, num_b, den, m = _soft_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b, gamma, MODEL)
+                num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_pass(
+                    coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB,
+                    NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap,
+                    ambient, diffuse, lx, ly, lz, FB, SB)
+                _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
+                out_r = kn * num_r + kc * cb_r
+                out_g = kn * num_g + kc * cb_g
+                out_b = kn * num_b + kc * cb_b
+                s1 = den
+                s2 = w_sum
+                s3 = cov_sum
+            _store_pixels(out_ptr, state_ptr, env, pix, inb, HW, out_r, out_g, out_b, m, s1, s2, s3, SAVE)
+
+    @triton.jit
+    def _merge_forward(part_ptr, floor_ptr, prm, out_ptr, state_ptr, NSPLIT, H, W, BLOCK: tl.constexpr,
+                       SAVE: tl.constexpr, MODEL: tl.constexpr):
+        """The split forward's second step, one program per BLOCK pixels of one environment: the parts of
+        ``_fused_forward`` combined in split order with the floor and background, then the image and state
+        exactly as the unsplit forward makes them. Soft models: the parts' online softmaxes merged (each
+        rescaled to the common maximum, as flash attention merges its partial blocks). Hard: the nearest
+        part's face, the lowest face index among exact depth ties (the parts hold disjoint faces), kept
+        only when strictly nearer than the floor or background."""
+        env = tl.program_id(1)
+        nenv = tl.num_programs(1)
+        HW = H * W
+        pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        inb = pix < HW
+        gamma = tl.load(prm + 1)
+        fzn, fr, fg, fb, fhit, _, cb_r, cb_g, cb_b, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix, inb,
+                                                                                    HW, gamma)
+        if MODEL == 0:
+            m = tl.where(fhit, fzn, 0.0)
+            nearest = tl.full(m.shape, -1.0, m.dtype)
+            out_r = tl.where(fhit, fr, bg_r)
+            out_g = tl.where(fhit, fg, bg_g)
+            out_b = tl.where(fhit, fb, bg_b)
+            for s in range(0, NSPLIT):
+                pp = part_ptr + ((s * nenv + env) * 6) * HW + pix
+                m_s = tl.load(pp, mask=inb, other=-1e4)
+                f_s = tl.load(pp + HW, mask=inb, other=-1.0)
+                take = (f_s >= 0) & ((m_s > m) | ((m_s == m) & (nearest >= 0) & (f_s < nearest)))
+                out_r = tl.where(take, tl.load(pp + 2 * HW, mask=inb, other=0.0), out_r)
+                out_g = tl.where(take, tl.load(pp + 3 * HW, mask=inb, other=0.0), out_g)
+                out_b = tl.where(take, tl.load(pp + 4 * HW, mask=inb, other=0.0), out_b)
+                nearest = tl.where(take, f_s, nearest)
+                m = tl.where(take, m_s, m)
+            s1 = nearest
+            s2 = tl.zeros_like(m)
+            s3 = tl.zeros_like(m)
+        else:
+            num_r, num_g, num_b, den, m = _soft_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b, gamma, MODEL)
+            w_sum = tl.zeros_like(m)
+            cov_sum = tl.zeros_like(m)
+            for s in range(0, NSPLIT):
+                pp = part_ptr + ((s * nenv + env) * 6) * HW + pix
+                m_s = tl.load(pp, mask=inb, other=-1e4)
+                m_new = tl.maximum(m, m_s)
+                scale = tl.exp((m - m_new) / gamma)
+                scale_s = tl.exp((m_s - m_new) / gamma)
+                w_s = tl.load(pp + 4 * HW, mask=inb, other=0.0) * scale_s
+                num_r = num_r * scale + tl.load(pp + HW, mask=inb, other=0.0) * scale_s
+                num_g = num_g * scale + tl.load(pp + 2 * HW, mask=inb, other=0.0) * scale_s
+                num_b = num_b * scale + tl.load(pp + 3 * HW, mask=inb, other=0.0) * scale_s
+                den = den * scale + w_s
+                w_sum = w_sum * scale + w_s
+                cov_sum = cov_sum + tl.load(pp + 5 * HW, mask=inb, other=0.0)
+                m = m_new
+            _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
+            out_r = kn * num_r + kc * cb_r
+            out_g = kn * num_g + kc * cb_g
+            out_b = kn * num_b + kc * cb_b
+            s1 = den
+            s2 = w_sum
+            s3 = cov_sum
+        _store_pixels(out_ptr, state_ptr, env, pix, inb, HW, out_r, out_g, out_b, m, s1, s2, s3, SAVE)
 
     @triton.jit
     def _affine_acc(ga, gx, gy, g, x, y):
@@ -524,8 +648,6 @@ if triton is not None:
                                MODEL)
 
         # ---- faces
-        ty0 = (tile // TX) * TILE_
-        tx0 = (tile % TX) * TILE_
         fo = tl.arange(0, SUB)
         cbase = coef_ptr + env * 45 * Fp
         gbase = gcoef_ptr + env * 45 * Fp
@@ -537,8 +659,26 @@ if triton is not None:
                     if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
                         for sub in range(0, FB // SUB):
                             f = blk * FB + sub * SUB + fo
-                            fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                            fbp = box_ptr + env * 4 * Fp + f
+                            bx0 = tl.load(fbp)
+                            bx1 = tl.load(fbp + Fp)
+                            by0 = tl.load(fbp + 2 * Fp)
+                            by1 = tl.load(fbp + 3 * Fp)
+                            fm = (bx1 >= x_lo) & (bx0 <= x_hi) & (by1 >= y_lo) & (by0 <= y_hi)
                             if tl.max(fm.to(tl.int32), axis=0) > 0:
+                                # only the tile's pixels inside some face's box can keep a pair (the box holds
+                                # every pixel within the cut-off): where faces are smaller than the tile, the
+                                # loop walks a few of its pixels, not all
+                                u_x0 = tl.min(tl.where(fm, bx0, x_hi), axis=0)
+                                u_x1 = tl.max(tl.where(fm, bx1, x_lo), axis=0)
+                                u_y0 = tl.min(tl.where(fm, by0, y_hi), axis=0)
+                                u_y1 = tl.max(tl.where(fm, by1, y_lo), axis=0)
+                                # pixel centres px + 0.5 in [u_x0, u_x1], within the tile
+                                px_lo = tl.ceil(tl.maximum(u_x0, x_lo) - 0.5).to(tl.int32)
+                                px_hi = tl.floor(tl.minimum(u_x1, x_hi) - 0.5).to(tl.int32)
+                                py_lo = tl.ceil(tl.maximum(u_y0, y_lo) - 0.5).to(tl.int32)
+                                py_hi = tl.floor(tl.minimum(u_y1, y_hi) - 0.5).to(tl.int32)
+                                span = px_hi - px_lo + 1
                                 cp = cbase + f
                                 la0, la1, la2 = tl.load(cp), tl.load(cp + Fp), tl.load(cp + 2 * Fp)
                                 lx0, lx1, lx2 = tl.load(cp + 3 * Fp), tl.load(cp + 4 * Fp), tl.load(cp + 5 * Fp)
@@ -568,9 +708,9 @@ if triton is not None:
                                 ga0r, ga0g, ga0b, ga1r, ga1g, ga1b, ga2r, ga2g, ga2b = (
                                     zero, zero, zero, zero, zero, zero, zero, zero, zero)
                                 wmax = zero
-                                for p in range(0, TILE_ * TILE_):
-                                    pxi = tx0 + p % TILE_
-                                    pyi = ty0 + p // TILE_
+                                for p in range(0, span * (py_hi - py_lo + 1)):
+                                    pxi = px_lo + p % span
+                                    pyi = py_lo + p // span
                                     pin = (pxi < W) & (pyi < H)
                                     x = pxi.to(sigma.dtype) + 0.5
                                     y = pyi.to(sigma.dtype) + 0.5
@@ -828,12 +968,25 @@ def _setup_fn(compile_: bool):
 def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int, out: torch.Tensor,
                     state: torch.Tensor | None) -> None:
     """Blend one chunk's image into ``out`` (b, 3, H, W) and, if ``state`` (b, 4, H, W) is given, what the
-    backward needs of each pixel's blend into it (see ``_fused_forward``)."""
-    grid, tx = _launch_grid(st, out.shape[0], tile)
-    _fused_forward[grid](coef, box, bbox, sbox, floor, _params(st, out.dtype, out.device), out,
-                         out if state is None else state, coef.shape[2], bbox.shape[2], sbox.shape[2], st.height,
-                         st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], SAVE=state is not None,
-                         MODEL=_MODEL_CODE[st.raster_model], num_warps=_warps(tile, fb))
+    backward needs of each pixel's blend into it (see ``_fused_forward``): one launch, or, where the faces
+    make enough super-blocks (:func:`forward_splits`), a split walk and a merge (two launches and a
+    transient (splits, b, PART_PER_PIXEL, H, W) of parts)."""
+    (ntiles, b), tx = _launch_grid(st, out.shape[0], tile)
+    splits = forward_splits(sbox.shape[2])
+    prm = _params(st, out.dtype, out.device)
+    model = _MODEL_CODE[st.raster_model]
+    save = state is not None
+    state = out if state is None else state
+    part = (torch.empty(splits, b, PART_PER_PIXEL, st.height, st.width, dtype=out.dtype, device=out.device)
+            if splits > 1 else out)
+    _fused_forward[(ntiles, b, splits)](
+        coef, box, bbox, sbox, floor, prm, out, state, part, coef.shape[2], bbox.shape[2], sbox.shape[2], splits,
+        st.height, st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], SAVE=save, SPLIT=splits > 1,
+        MODEL=model, num_warps=_warps(tile, fb))
+    if splits > 1:
+        _merge_forward[(triton.cdiv(st.height * st.width, MERGE_BLOCK), b)](
+            part, floor, prm, out, state, splits, st.height, st.width, BLOCK=MERGE_BLOCK, SAVE=save, MODEL=model,
+            num_warps=4)
 
 
 def backward_tile(num_faces: int, height: int, width: int) -> int:
@@ -842,6 +995,14 @@ def backward_tile(num_faces: int, height: int, width: int) -> int:
     per block of faces near it, so its time grows with (faces near the tile) x (tile area); where small faces
     crowd together (many per pixel) the smaller tile splits the busiest tiles' work over more programs."""
     return BWD_TILE_DENSE if num_faces > DENSE_FACES_PER_PIXEL * height * width else BWD_TILE
+
+
+def forward_splits(num_super_blocks: int) -> int:
+    """Forward programs per tile: one per ``FWD_SPLIT_SUPER_BLOCKS`` super-blocks, 1 to ``FWD_MAX_SPLITS``.
+    As in the backward (:func:`backward_splits`), the few tiles where detailed meshes crowd thousands of
+    faces would otherwise finish long after the rest; split, their walk is shared out and a merge kernel
+    combines the parts (worth its extra launch and memory traffic only for many super-blocks)."""
+    return max(1, min(FWD_MAX_SPLITS, num_super_blocks // max(1, FWD_SPLIT_SUPER_BLOCKS)))
 
 
 def backward_splits(num_super_blocks: int) -> int:

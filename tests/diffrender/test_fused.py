@@ -66,8 +66,10 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
 def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeypatch, model):
     """Super-blocks of two 16-face blocks (the 944 faces make 30 of them, most far from most tiles, so the
     coarse test skips whole runs of blocks), the backward tile chosen for crowded faces and the backward's
-    walk split between 4 programs per tile (7 or 8 super-blocks each): the image and gradients of the dense
-    reference."""
+    walk split between 4 programs per tile (7 or 8 super-blocks each), the forward's between 3 (10 each, then
+    merged): the image and gradients of the dense reference."""
+    monkeypatch.setattr(fused, "FWD_MAX_SPLITS", 3)
+    monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 4)
     monkeypatch.setattr(fused, "FACE_BLOCK", 16)
     monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
     monkeypatch.setattr(fused, "DENSE_FACES_PER_PIXEL", 0.0)
@@ -79,8 +81,38 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=12)
     assert fused.backward_tile(ant64.num_faces, cam.height, cam.width) == fused.BWD_TILE_DENSE
-    assert fused.backward_splits(30) == 4
+    assert fused.backward_splits(30) == 4 and fused.forward_splits(30) == 3
     _compare(verts, ant64.faces, ant64.colors, cam, dict(raster_model=model, save_blend_state=model != "hard"))
+
+
+@pytest.mark.parametrize("model", ["hard", "softmax"])
+def test_split_forward_merges_exact_depth_ties_by_face_index(monkeypatch, model):
+    """Three copies of one triangle (exactly equal depths, different colours) in the three parts of a split
+    forward (super-blocks of 16 faces; part s holds super-blocks s and s + 3): face 56 (red) in part 0, face 20
+    (green) in part 1 and face 40 (blue) in part 2. The hard model shows face 20, as the dense reference does
+    (the lowest index among exact ties; neither the first part nor the last), and the soft models blend all
+    three; images and gradients equal the reference."""
+    monkeypatch.setattr(fused, "FACE_BLOCK", 16)
+    monkeypatch.setattr(fused, "SUPER_BLOCK", 1)
+    monkeypatch.setattr(fused, "FWD_MAX_SPLITS", 3)
+    monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 1)
+    assert fused.forward_splits(6) == 3
+    base, _, _ = tiny_scene(1)
+    tri = base[0, :3]
+    verts = tri[0].repeat(1, 96 * 3, 1)  # every other face has three equal corners: dropped
+    colors = torch.full((96 * 3, 3), 0.5, dtype=F64)
+    for face, rgb in ((56, (0.9, 0.1, 0.1)), (20, (0.1, 0.9, 0.1)), (40, (0.1, 0.1, 0.9))):
+        verts[0, 3 * face:3 * face + 3] = tri
+        colors[3 * face:3 * face + 3] = torch.tensor(rgb, dtype=F64)
+    faces = torch.arange(96 * 3).view(96, 3)
+    eye, target, _ = tiny_camera(1)
+    cam = dr.Camera.look_at(eye.to(DEV), target.to(DEV), (0.0, 0.0, 1.0), 40.0, 16, 16)
+    kw = dict(sigma=0.5, gamma=0.05, znear=0.5, zfar=10.0, cull_backfaces=False, raster_model=model)
+    _compare(verts.to(DEV), faces.to(DEV), colors.to(DEV), cam, kw)
+    img = dr.render(verts.to(DEV), faces.to(DEV), colors.to(DEV), cam, dr.RasterSettings(backend="fused", **kw))
+    if model == "hard":  # some pixels show the triangle, all of them in face 20's green
+        r, g, b = img[0]
+        assert (g > r + 0.2).any() and not ((r > g + 0.2) | (b > g + 0.2)).any()
 
 
 def test_super_block_boxes_are_unions_of_their_blocks(monkeypatch):
@@ -101,6 +133,8 @@ def test_super_block_boxes_are_unions_of_their_blocks(monkeypatch):
     # one program per tile for the ant (2 super-blocks), the most for 100k faces (99)
     assert fused.backward_splits(2) == 1 and fused.backward_splits(99) == fused.BWD_MAX_SPLITS > 1
     assert fused.backward_splits(0) == 1
+    assert fused.forward_splits(2) == 1 and fused.forward_splits(99) == fused.FWD_MAX_SPLITS > 1
+    assert fused.forward_splits(0) == 1
 
 
 @pytest.mark.parametrize(("bwd_tile", "sub_block"), [(8, 64), pytest.param(4, 16, marks=pytest.mark.slow)])

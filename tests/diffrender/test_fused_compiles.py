@@ -25,7 +25,9 @@ def build(kernel, consts):
     return triton.compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": 2}).asm["cubin"]
 
 for model in (0, 1, 2):  # hard, softmax, alpha
-    assert build(fused._fused_forward, dict(TILE_=4, FB=64, SB=16, SAVE=True, MODEL=model))
+    for split in (False, True):
+        assert build(fused._fused_forward, dict(TILE_=4, FB=64, SB=16, SAVE=True, SPLIT=split, MODEL=model))
+    assert build(fused._merge_forward, dict(BLOCK=256, SAVE=True, MODEL=model))
     assert build(fused._fused_backward, dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=model))
 print("built")
 """
