@@ -33,7 +33,9 @@ backend), organised for the GPU:
   where none of the sub-block's faces is kept is skipped, and a face whose blend weight is exactly 0 on all of
   the tile's pixels (hidden, or only inside its box's margin) and that touches no partly covered pixel
   (``sum D < 1``, where its coverage acts through ``A``) issues no atomics: every other term of its gradient
-  carries that weight. Floor gradients are per pixel. The setup's backward kernel maps the coefficient
+  carries that weight. A per-pixel kernel runs first: it forms the floor's gradients and, once per pixel,
+  what the gradients of all the pixel's pairs share (8 numbers the backward reads per pixel instead of the
+  image, state, floor and incoming gradient). The setup's backward kernel maps the coefficient
   gradients to the projected vertices, normals and colours, and autograd the rest of the way to vertices and
   camera (recomputing projection, normals, the floor and the setup's forward kernel from the saved inputs).
 
@@ -90,7 +92,7 @@ DENSE_FACES_PER_PIXEL = 1.0
 BWD_MAX_SPLITS = 16
 BWD_SPLIT_SUPER_BLOCKS = 2
 #: The forward's walk is split likewise (see :func:`forward_splits`), its parts merged by a second kernel over
-#: MERGE_BLOCK pixels per program.
+#: MERGE_BLOCK pixels per program (as the backward's per-pixel kernel).
 FWD_MAX_SPLITS = 8
 FWD_SPLIT_SUPER_BLOCKS = 4
 MERGE_BLOCK = 256
@@ -105,8 +107,10 @@ _BIG = EMPTY_EXTENT  # empty bounding box of a dropped face
 COEF_ELEMS = 1 << 29
 #: numbers per pixel the forward keeps for the backward besides the image (see ``_fused_forward``)
 STATE_PER_PIXEL = 4
-#: numbers per pixel of one part of a split forward (see ``_fused_forward``)
+#: numbers per pixel of one part of a split forward (see ``_fused_forward``), and of the backward's per-pixel
+#: part (see ``_pixel_backward``)
 PART_PER_PIXEL = 6
+PIX_PER_PIXEL = 8
 _MODEL_CODE = {"hard": 0, "softmax": 1, "alpha": 2}  # the kernels' MODEL constant
 
 
@@ -588,13 +592,27 @@ if triton is not None:
         tl.atomic_add(gq + (row + 8) * Fp, g8, mask=live)
 
     @triton.jit
-    def _floor_plane_grads(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
-                           MODEL: tl.constexpr):
-        """The floor's gradients (depth, colour) at a tile's pixels. Its colour and depth reach the image
-        through C_b (soft models), through the softmax's floor weight exp((z_f - m) / gamma) (softmax), or
-        directly where it is shown (hard)."""
-        fzn, fr, fg, fb, fhit, r_f, _, _, _, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix, inb, HW,
-                                                                             gamma)
+    def _pixel_backward(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, pix_ptr, H, W,
+                        BLOCK: tl.constexpr, MODEL: tl.constexpr):
+        """The backward's per-pixel part, one program per BLOCK pixels of one environment: the floor's
+        gradients (depth, colour) and what every face's gradient at the pixel shares, stored for
+        ``_fused_backward`` as PIX_PER_PIXEL numbers per pixel (consecutive, so that one memory sector holds
+        them all). The floor's colour and depth reach the image through C_b (soft models), through the
+        softmax's floor weight exp((z_f - m) / gamma) (softmax), or directly where it is shown (hard).
+
+        Soft models, with ``A, 1 / Q, kn`` of :func:`_cover_coefficients`, ``g`` the pixel's incoming
+        gradient, ``g_out = g . colour`` and ``g_cb = g . C_b``: the blend maximum ``m``; ``g kn`` (3), the
+        gradient of a pair's colour per unit weight; ``k0 = (1 - A) (g_cb - g_out) / Q - kn g_out``, so that a
+        pair's weight gradient is ``(g kn) . colour + k0``; the coverage gradient ``g_A = W (g_out - g_cb) /
+        (A Q)`` where ``sum D < 1`` (else 0); and 1.0 where ``sum D < 1`` (a kept face is live there even
+        at weight 0). Hard: ``m``, ``g`` (3), then 0, 0, 0 and the chosen face (-1: none)."""
+        env = tl.program_id(1)
+        HW = H * W
+        pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        inb = pix < HW
+        gamma = tl.load(prm + 1)
+        fzn, fr, fg, fb, fhit, r_f, cb_r, cb_g, cb_b, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix, inb,
+                                                                                    HW, gamma)
         sp = state_ptr + env * 4 * HW + pix
         m_t = tl.load(sp, mask=inb, other=0.0)
         s1_t = tl.load(sp + HW, mask=inb, other=1.0)
@@ -604,48 +622,66 @@ if triton is not None:
         gr_t = tl.load(gp, mask=inb, other=0.0)
         gg_t = tl.load(gp + HW, mask=inb, other=0.0)
         gb_t = tl.load(gp + 2 * HW, mask=inb, other=0.0)
+        zero = tl.zeros_like(m_t)
         if MODEL == 0:
             shown = tl.where((s1_t < 0) & fhit, 1.0, 0.0)  # no face chosen and the ray hits the floor
-            g_fzn = tl.zeros_like(m_t)
+            g_fzn = zero
             k_fc = shown
+            c_r, c_g, c_b, k0, g_a, partial, chosen = gr_t, gg_t, gb_t, zero, zero, zero, s1_t
         else:
-            _a_t, _icq_t, kn_t, kc_t, _cov_t = _cover_coefficients(s1_t, s2_t, s3_t)
+            a_t, icq_t, kn_t, kc_t, has_t = _cover_coefficients(s1_t, s2_t, s3_t)
             g_fb = gr_t * (fr - bg_r) + gg_t * (fg - bg_g) + gb_t * (fb - bg_b)
             g_fzn = tl.where(fhit, kc_t * g_fb * r_f * (1.0 - r_f) / gamma, 0.0)
             k_fc = kc_t * r_f
+            ip = img_ptr + env * 3 * HW + pix
+            out_r = tl.load(ip, mask=inb, other=0.0)
+            out_g = tl.load(ip + HW, mask=inb, other=0.0)
+            out_b = tl.load(ip + 2 * HW, mask=inb, other=0.0)
             if MODEL == 1:
-                ip = img_ptr + env * 3 * HW + pix
                 w_f = tl.where(fhit, tl.exp(tl.minimum((fzn - m_t) / gamma, 0.0)), 0.0)  # m >= fzn; no inf
-                g_wf = (gr_t * (fr - tl.load(ip, mask=inb, other=0.0))
-                        + gg_t * (fg - tl.load(ip + HW, mask=inb, other=0.0))
-                        + gb_t * (fb - tl.load(ip + 2 * HW, mask=inb, other=0.0)))
+                g_wf = gr_t * (fr - out_r) + gg_t * (fg - out_g) + gb_t * (fb - out_b)
                 g_fzn += tl.where(fhit, kn_t * g_wf * w_f / gamma, 0.0)
                 k_fc += kn_t * w_f
+            g_out = gr_t * out_r + gg_t * out_g + gb_t * out_b
+            g_cb = gr_t * cb_r + gg_t * cb_g + gb_t * cb_b
+            # d colour / d A = W (colour - C_b) / (A Q) while sum D < 1
+            part_t = has_t & (s3_t < 1.0)
+            g_a = tl.where(part_t, s2_t * (g_out - g_cb) * icq_t / tl.where(part_t, a_t, 1.0), 0.0)
+            k0 = (1.0 - a_t) * icq_t * (g_cb - g_out) - kn_t * g_out
+            c_r, c_g, c_b = gr_t * kn_t, gg_t * kn_t, gb_t * kn_t
+            partial = tl.where(part_t, 1.0, 0.0)
+            chosen = zero - 1.0
         gfp = gfloor_ptr + env * 4 * HW + pix
         tl.store(gfp, g_fzn, mask=inb)
         tl.store(gfp + HW, gr_t * k_fc, mask=inb)
         tl.store(gfp + 2 * HW, gg_t * k_fc, mask=inb)
         tl.store(gfp + 3 * HW, gb_t * k_fc, mask=inb)
+        pp = pix_ptr + (env * HW + pix) * 8
+        tl.store(pp, m_t, mask=inb)
+        tl.store(pp + 1, c_r, mask=inb)
+        tl.store(pp + 2, c_g, mask=inb)
+        tl.store(pp + 3, c_b, mask=inb)
+        tl.store(pp + 4, k0, mask=inb)
+        tl.store(pp + 5, g_a, mask=inb)
+        tl.store(pp + 6, partial, mask=inb)
+        tl.store(pp + 7, chosen, mask=inb)
 
     @triton.jit
-    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, img_ptr, state_ptr, gout_ptr,
-                        gcoef_ptr, gfloor_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr,
-                        FB: tl.constexpr, SB: tl.constexpr, SUB: tl.constexpr, MODEL: tl.constexpr):
+    def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, prm, pix_ptr, gcoef_ptr, Fp, NB, NSB, NSPLIT, H, W,
+                        TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr, SUB: tl.constexpr,
+                        MODEL: tl.constexpr):
         """One program per (tile, environment, split): split s walks super-blocks s, s + NSPLIT, ... (each
-        face's gradient is a sum over tiles, so it may come from any program). Split 0 forms the floor's
-        gradients (:func:`_floor_plane_grads`); then, per sub-block of SUB faces
-        (one face per lane), a loop over the tile's pixels that accumulates every kept pair's gradient in
-        registers, and one atomic add per face and coefficient at the end (no cross-lane reductions).
+        face's gradient is a sum over tiles, so it may come from any program). Per sub-block of SUB faces (one
+        face per lane), a loop over the tile's pixels inside the faces' boxes accumulates every kept pair's
+        gradient in registers from the pair's recomputed forward and the pixel's part
+        (``_pixel_backward``), then one atomic add per face and coefficient (no cross-lane reductions).
         MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
         tile = tl.program_id(0)
         env = tl.program_id(1)
         split = tl.program_id(2)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
-        _, _, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
+        _, _, _, _, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
-        if split == 0:  # the floor's gradients, once per pixel
-            _floor_plane_grads(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, env, pix, inb, HW, gamma,
-                               MODEL)
 
         # ---- faces
         fo = tl.arange(0, SUB)
@@ -735,20 +771,16 @@ if triton is not None:
                                     inside = dmin >= 0
                                     root = tl.sqrt(dsmin + 1e-20)
                                     sd = tl.where(inside, dmin, -root)
-                                    pst = state_ptr + env * 4 * HW + pyi * W + pxi
+                                    pp = pix_ptr + (env * HW + pyi * W + pxi) * 8
                                     if MODEL == 0:  # the face the forward chose (-1: none)
-                                        keep = fm & pin & (f == tl.load(pst + HW, mask=pin, other=-1.0).to(tl.int32))
+                                        keep = fm & pin & (f == tl.load(pp + 7, mask=pin, other=-1.0).to(tl.int32))
                                     else:
                                         keep = fm & pin & (sd > -cutoff)
                                     if tl.max(keep.to(tl.int32), axis=0) > 0:
-                                        q_off = env * 3 * HW + pyi * W + pxi
-                                        gr = tl.load(gout_ptr + q_off)
-                                        gg = tl.load(gout_ptr + q_off + HW)
-                                        gb = tl.load(gout_ptr + q_off + 2 * HW)
-                                        out_r = tl.load(img_ptr + q_off)
-                                        out_g = tl.load(img_ptr + q_off + HW)
-                                        out_b = tl.load(img_ptr + q_off + 2 * HW)
-                                        m = tl.load(pst)
+                                        m = tl.load(pp)
+                                        c_r = tl.load(pp + 1)
+                                        c_g = tl.load(pp + 2)
+                                        c_b = tl.load(pp + 3)
                                         lc0 = tl.maximum(lam0, 0.0)
                                         lc1 = tl.maximum(lam1, 0.0)
                                         lc2 = tl.maximum(lam2, 0.0)
@@ -779,41 +811,25 @@ if triton is not None:
                                         il = 1.0 / tl.sqrt(nx * nx + ny * ny + nz * nz + 1e-20)
                                         cosl = nl * il
                                         shade = ambient + diffuse * tl.maximum(cosl, 0.0)
-                                        # ---- backward: blend
+                                        # ---- backward: blend (c = g kn: the pair's colour gradient per unit weight)
+                                        gcr = c_r * w
+                                        gcg = c_g * w
+                                        gcb = c_b * w
                                         if MODEL == 0:  # the chosen face's colour is the pixel's; nothing else
-                                            gcr = gr * w
-                                            gcg = gg * w
-                                            gcb = gb * w
                                             gzn = tl.zeros_like(w)
                                             gsd = tl.zeros_like(w)
                                             wmax = tl.maximum(wmax, w)
                                         else:
-                                            den_p = tl.load(pst + HW)
-                                            wsum_p = tl.load(pst + 2 * HW)
-                                            csum_p = tl.load(pst + 3 * HW)
-                                            # distinct names, not "_": Triton types a name once per scope, and "_"
-                                            # already holds a mask outside this branch
-                                            a, inv_cq, kn, _kc_p, _cov_p = _cover_coefficients(den_p, wsum_p, csum_p)
-                                            fpp = floor_ptr + env * 5 * HW + pyi * W + pxi
-                                            (_fz, _fr, _fg, _fb, _fh, _frf, pcb_r, pcb_g, pcb_b, _bg_r, _bg_g,
-                                             _bg_b) = _floor_start(fpp, prm, 0, 0, pin, HW, gamma)
-                                            g_out = gr * out_r + gg * out_g + gb * out_b
-                                            g_cb = gr * pcb_r + gg * pcb_g + gb * pcb_b
-                                            # d colour / d A = W (colour - C_b) / (A Q) while sum D < 1
-                                            g_a = tl.where(csum_p < 1.0, wsum_p * (g_out - g_cb) * inv_cq / a, 0.0)
+                                            k0 = tl.load(pp + 4)
+                                            g_a = tl.load(pp + 5)
+                                            partial = tl.load(pp + 6) > 0.5
                                             # a face weight enters num, den and W
-                                            gw = tl.where(keep, kn * (gr * ar * shade + gg * ag * shade
-                                                                      + gb * ab * shade - g_out)
-                                                          + (1.0 - a) * inv_cq * (g_cb - g_out), 0.0)
-                                            wd = w * kn
-                                            gcr = gr * wd  # d loss / d colour of the pair
-                                            gcg = gg * wd
-                                            gcb = gb * wd
+                                            gw = tl.where(keep, (c_r * ar + c_g * ag + c_b * ab) * shade + k0, 0.0)
                                             gzn = tl.where(e < cap, gw * w / gamma, 0.0)
                                             gsd = tl.where(keep, (gw * ew + g_a) * cov * (1.0 - cov) / sigma, 0.0)
                                             # where sum D < 1 a kept face reaches the image through A even when its
                                             # depth weight is 0 (hidden): it stays live
-                                            wmax = tl.maximum(wmax, tl.where(keep, tl.where(csum_p < 1.0, 1.0, w), 0.0))
+                                            wmax = tl.maximum(wmax, tl.where(keep, tl.where(partial, 1.0, w), 0.0))
                                         # ---- colour = albedo * shade(normal)
                                         gar = gcr * shade
                                         gag = gcg * shade
@@ -1077,11 +1093,15 @@ class _FusedRasterize(torch.autograd.Function):
                 _launch_forward(coef.detach(), box, bbox, sbox, floor.detach(), st, tile, fb, out, state)
             (ntiles, nb), tx = _launch_grid(st, sl.stop - sl.start, bwd_tile)
             splits = backward_splits(sbox.shape[2])
+            prm, model = _params(st, dt, dev), _MODEL_CODE[st.raster_model]
+            pixel_part = torch.empty(nb, st.height * st.width, PIX_PER_PIXEL, dtype=dt, device=dev)
+            _pixel_backward[(triton.cdiv(st.height * st.width, MERGE_BLOCK), nb)](
+                floor.detach(), prm, out, state, grad_img[sl], gfloor, pixel_part, st.height, st.width,
+                BLOCK=MERGE_BLOCK, MODEL=model, num_warps=4)
             _fused_backward[(ntiles, nb, splits)](
-                coef.detach(), box, bbox, sbox, floor.detach(), _params(st, dt, dev), out, state, grad_img[sl], gcoef,
-                gfloor, coef.shape[2], bbox.shape[2], sbox.shape[2], splits, st.height, st.width, tx, TILE_=bwd_tile,
-                FB=fb, SB=bbox.shape[2] // sbox.shape[2], SUB=sub, MODEL=_MODEL_CODE[st.raster_model],
-                num_warps=BWD_WARPS or max(1, sub // 32))
+                coef.detach(), box, bbox, sbox, prm, pixel_part, gcoef, coef.shape[2], bbox.shape[2], sbox.shape[2],
+                splits, st.height, st.width, tx, TILE_=bwd_tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], SUB=sub,
+                MODEL=model, num_warps=BWD_WARPS or max(1, sub // 32))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
             for i, g in zip(wanted, parts):

@@ -28,6 +28,7 @@ for model in (0, 1, 2):  # hard, softmax, alpha
     for split in (False, True):
         assert build(fused._fused_forward, dict(TILE_=4, FB=64, SB=16, SAVE=True, SPLIT=split, MODEL=model))
     assert build(fused._merge_forward, dict(BLOCK=256, SAVE=True, MODEL=model))
+    assert build(fused._pixel_backward, dict(BLOCK=256, MODEL=model))
     assert build(fused._fused_backward, dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=model))
 print("built")
 """
