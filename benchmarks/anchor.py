@@ -93,7 +93,9 @@ def _fused_defaults() -> dict:
     return {name: getattr(fused, name) for name in ("COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE",
                                                     "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK",
                                                     "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS", "FWD_MAX_SPLITS",
-                                                    "FWD_SPLIT_SUPER_BLOCKS")}
+                                                    "FWD_SPLIT_SUPER_BLOCKS", "FWD_SUB_BLOCK", "FWD_WARPS",
+                                                    "FWD_MAXNREG", "BWD_MAXNREG",
+                                                    "BWD_MAXNREG_HARD")}
 
 
 _FUSED_DEFAULTS = _fused_defaults()
@@ -203,6 +205,9 @@ def time_rows(args) -> list[dict]:
 
 def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
     rows = []
+    # each scene compiles the setup afresh, as a trainer (one mesh) would: the shapes of earlier scenes would
+    # otherwise count towards dynamo's recompile limit, past which it falls back to eager
+    torch._dynamo.reset()
     scene = Scene(faces, args.batch, args.res, torch.device("cuda"), torch.float32)
     robot, cam = scene.robot, scene.camera(scene.qpos)
     base = dict(faces=robot.num_faces, batch=args.batch, res=args.res)

@@ -95,6 +95,17 @@ BWD_SPLIT_SUPER_BLOCKS = 2
 #: MERGE_BLOCK pixels per program (as the backward's per-pixel kernel).
 FWD_MAX_SPLITS = 8
 FWD_SPLIT_SUPER_BLOCKS = 4
+#: faces the forward evaluates at once (a block in parts of this many; <= FACE_BLOCK) and its warps (None: 4,
+#: or 8 for more than 1024 face-pixel pairs at once)
+FWD_SUB_BLOCK = 64
+FWD_WARPS: int | None = None
+#: registers per thread the forward kernel and the soft and hard models' backward kernels may use (None: the
+#: compiler's choice, which for these kernels is all 255, so that only 8 warps fit on a multiprocessor). Capped,
+#: more programs share a multiprocessor at the cost of spills: the soft backward, whose every pixel keeps many
+#: pairs, gains (H100, 100k faces: 14.6 -> 10.6 ms; BENCHMARKS.md, section 2); the hard one and the forward lose.
+FWD_MAXNREG: int | None = None
+BWD_MAXNREG: int | None = 128
+BWD_MAXNREG_HARD: int | None = None
 MERGE_BLOCK = 256
 #: face blocks per super-block: the coarse level of the kernels' walk over the faces (see
 #: :func:`super_block_boxes`)
@@ -311,68 +322,70 @@ if triton is not None:
                     NB, NSB, sb0, NSPLIT,
                     xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
                     sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
-                    FB: tl.constexpr, SB: tl.constexpr):
+                    FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr):
         """Soft models: online depth softmax over the faces of super-blocks sb0, sb0 + NSPLIT, ..., starting
         from the given sums (floor and background for "softmax", zero for "alpha" and for a split's part);
         also the faces' weight sum and coverage sum."""
-        fo = tl.arange(0, FB)
+        fo = tl.arange(0, FS)
         cbase = coef_ptr + env * 45 * Fp
         for sb in range(sb0, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
             if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
                 for j in range(0, SB):
                     blk = sb * SB + j
                     if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                        f = blk * FB + fo
-                        fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
-                        cp = cbase + f[:, None]
-                        sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                                        ambient, diffuse)
-                        keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
-                        m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
-                        scale = tl.exp((m - m_new) / gamma)
-                        cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
-                        w = tl.where(keep, cov * tl.exp(tl.minimum((zn - m_new[None, :]) / gamma, cap)), 0.0)
-                        num_r = num_r * scale + tl.sum(w * cr, axis=0)
-                        num_g = num_g * scale + tl.sum(w * cg, axis=0)
-                        num_b = num_b * scale + tl.sum(w * cb, axis=0)
-                        den = den * scale + tl.sum(w, axis=0)
-                        w_sum = w_sum * scale + tl.sum(w, axis=0)
-                        cov_sum = cov_sum + tl.sum(tl.where(keep, cov, 0.0), axis=0)
-                        m = m_new
+                        for h in range(0, FB // FS):  # FS faces at a time: fewer registers per thread
+                            f = blk * FB + h * FS + fo
+                            fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                            cp = cbase + f[:, None]
+                            sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                                            ambient, diffuse)
+                            keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
+                            m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
+                            scale = tl.exp((m - m_new) / gamma)
+                            cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+                            w = tl.where(keep, cov * tl.exp(tl.minimum((zn - m_new[None, :]) / gamma, cap)), 0.0)
+                            num_r = num_r * scale + tl.sum(w * cr, axis=0)
+                            num_g = num_g * scale + tl.sum(w * cg, axis=0)
+                            num_b = num_b * scale + tl.sum(w * cb, axis=0)
+                            den = den * scale + tl.sum(w, axis=0)
+                            w_sum = w_sum * scale + tl.sum(w, axis=0)
+                            cov_sum = cov_sum + tl.sum(tl.where(keep, cov, 0.0), axis=0)
+                            m = m_new
         return num_r, num_g, num_b, den, w_sum, cov_sum, m
 
     @triton.jit
     def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
                       NSB, sb0, NSPLIT,
                       xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz,
-                      FB: tl.constexpr, SB: tl.constexpr):
+                      FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr):
         """Hard model: among the faces of super-blocks sb0, sb0 + NSPLIT, ..., the nearest face whose
         triangle contains the pixel centre, strictly nearer than ``m`` (the floor or background); the lowest
         face index among exact ties, as the faces come in order. Returns its colour, its index (as a float;
         -1 for none) and its normalised depth."""
-        fo = tl.arange(0, FB)
+        fo = tl.arange(0, FS)
         cbase = coef_ptr + env * 45 * Fp
         for sb in range(sb0, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
             if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
                 for j in range(0, SB):
                     blk = sb * SB + j
                     if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                        f = blk * FB + fo
-                        fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
-                        cp = cbase + f[:, None]
-                        sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                                        ambient, diffuse)
-                        keep = fm[:, None] & inb[None, :] & (sd >= 0)
-                        zk = tl.where(keep, zn, -float("inf"))
-                        best = tl.max(zk, axis=0)
-                        first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
-                        one = f[:, None] == first[None, :]
-                        upd = best > m
-                        col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
-                        col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
-                        col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
-                        nearest = tl.where(upd, first.to(nearest.dtype), nearest)
-                        m = tl.where(upd, best, m)
+                        for h in range(0, FB // FS):  # FS faces at a time: fewer registers per thread
+                            f = blk * FB + h * FS + fo
+                            fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                            cp = cbase + f[:, None]
+                            sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                                            ambient, diffuse)
+                            keep = fm[:, None] & inb[None, :] & (sd >= 0)
+                            zk = tl.where(keep, zn, -float("inf"))
+                            best = tl.max(zk, axis=0)
+                            first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
+                            one = f[:, None] == first[None, :]
+                            upd = best > m
+                            col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
+                            col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
+                            col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
+                            nearest = tl.where(upd, first.to(nearest.dtype), nearest)
+                            m = tl.where(upd, best, m)
         return col_r, col_g, col_b, nearest, m
 
     @triton.jit
@@ -445,7 +458,7 @@ if triton is not None:
     @triton.jit
     def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, Fp,
                        NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
-                       SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr):
+                       FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr):
         """One program per (tile, environment, split). MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel
         (SAVE): soft models the blend's maximum, its denominator, the faces' weight sum and coverage sum; hard
         the maximum and the chosen face (-1: none).
@@ -467,13 +480,13 @@ if triton is not None:
                 c_r, c_g, c_b, nearest, m = _nearest_pass(
                     coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero - 1.0, zero - 1e4, env, Fp, NB,
                     NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly,
-                    lz, FB, SB)
+                    lz, FB, SB, FS)
                 p1, p2, p3, p4, p5 = nearest, c_r, c_g, c_b, zero
             else:
                 p1, p2, p3, _den, p4, p5, m = _blend_pass(
                     coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero, zero, zero, zero - 1e4, env, Fp,
                     NB, NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff,
-                    cap, ambient, diffuse, lx, ly, lz, FB, SB)
+                    cap, ambient, diffuse, lx, ly, lz, FB, SB, FS)
             pp = part_ptr + ((split * tl.num_programs(1) + env) * 6) * HW + pix
             tl.store(pp, m, mask=inb)
             tl.store(pp + HW, p1, mask=inb)
@@ -490,7 +503,7 @@ if triton is not None:
                 out_r, out_g, out_b, nearest, m = _nearest_pass(
                     coef_ptr, box_ptr, bbox_ptr, sbox_ptr, tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g),
                     tl.where(fhit, fb, bg_b), nearest, m, env, Fp, NB, NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo,
-                    y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB)
+                    y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS)
                 s1 = nearest
                 s2 = tl.zeros_like(m)
                 s3 = tl.zeros_like(m)
@@ -500,7 +513,7 @@ if triton is not None:
                 num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_pass(
                     coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB,
                     NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap,
-                    ambient, diffuse, lx, ly, lz, FB, SB)
+                    ambient, diffuse, lx, ly, lz, FB, SB, FS)
                 _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
                 out_r = kn * num_r + kc * cb_r
                 out_g = kn * num_g + kc * cb_g
@@ -981,6 +994,11 @@ def _setup_fn(compile_: bool):
     return functools.partial(_setup, camera_space=torch.compile(_camera_space, dynamic=False))
 
 
+def _max_registers(n: int | None) -> dict:
+    """Launch options capping a kernel's registers per thread (None: the compiler's choice)."""
+    return {} if n is None else {"maxnreg": n}
+
+
 def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int, out: torch.Tensor,
                     state: torch.Tensor | None) -> None:
     """Blend one chunk's image into ``out`` (b, 3, H, W) and, if ``state`` (b, 4, H, W) is given, what the
@@ -997,8 +1015,9 @@ def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int
             if splits > 1 else out)
     _fused_forward[(ntiles, b, splits)](
         coef, box, bbox, sbox, floor, prm, out, state, part, coef.shape[2], bbox.shape[2], sbox.shape[2], splits,
-        st.height, st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], SAVE=save, SPLIT=splits > 1,
-        MODEL=model, num_warps=_warps(tile, fb))
+        st.height, st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], FS=min(fb, FWD_SUB_BLOCK),
+        SAVE=save, SPLIT=splits > 1, MODEL=model, num_warps=FWD_WARPS or _warps(tile, min(fb, FWD_SUB_BLOCK)),
+        **_max_registers(FWD_MAXNREG))
     if splits > 1:
         _merge_forward[(triton.cdiv(st.height * st.width, MERGE_BLOCK), b)](
             part, floor, prm, out, state, splits, st.height, st.width, BLOCK=MERGE_BLOCK, SAVE=save, MODEL=model,
@@ -1101,7 +1120,8 @@ class _FusedRasterize(torch.autograd.Function):
             _fused_backward[(ntiles, nb, splits)](
                 coef.detach(), box, bbox, sbox, prm, pixel_part, gcoef, coef.shape[2], bbox.shape[2], sbox.shape[2],
                 splits, st.height, st.width, tx, TILE_=bwd_tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], SUB=sub,
-                MODEL=model, num_warps=BWD_WARPS or max(1, sub // 32))
+                MODEL=model, num_warps=BWD_WARPS or max(1, sub // 32),
+                **_max_registers(BWD_MAXNREG_HARD if model == 0 else BWD_MAXNREG))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
             for i, g in zip(wanted, parts):

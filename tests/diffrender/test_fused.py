@@ -67,9 +67,10 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     """Super-blocks of two 16-face blocks (the 944 faces make 30 of them, most far from most tiles, so the
     coarse test skips whole runs of blocks), the backward tile chosen for crowded faces and the backward's
     walk split between 4 programs per tile (7 or 8 super-blocks each), the forward's between 3 (10 each, then
-    merged): the image and gradients of the dense reference."""
+    merged) and evaluating its blocks in halves: the image and gradients of the dense reference."""
     monkeypatch.setattr(fused, "FWD_MAX_SPLITS", 3)
     monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 4)
+    monkeypatch.setattr(fused, "FWD_SUB_BLOCK", 8)
     monkeypatch.setattr(fused, "FACE_BLOCK", 16)
     monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
     monkeypatch.setattr(fused, "DENSE_FACES_PER_PIXEL", 0.0)

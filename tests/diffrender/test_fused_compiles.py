@@ -18,18 +18,21 @@ from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
 from diffrender.raster import fused
 
-def build(kernel, consts):
+def build(kernel, consts, **options):
     names = kernel.arg_names
     sig = {n: "constexpr" if n in consts else "*fp32" if n.endswith("_ptr") or n == "prm" else "i32" for n in names}
     src = ASTSource(fn=kernel, signature=sig, constexprs={(names.index(k),): v for k, v in consts.items()})
-    return triton.compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": 2}).asm["cubin"]
+    options = {"num_warps": 2} | options
+    return triton.compile(src, target=GPUTarget("cuda", 90, 32), options=options).asm["cubin"]
 
 for model in (0, 1, 2):  # hard, softmax, alpha
     for split in (False, True):
-        assert build(fused._fused_forward, dict(TILE_=4, FB=64, SB=16, SAVE=True, SPLIT=split, MODEL=model))
+        assert build(fused._fused_forward, dict(TILE_=4, FB=64, SB=16, FS=32, SAVE=True, SPLIT=split,
+                                                      MODEL=model))
     assert build(fused._merge_forward, dict(BLOCK=256, SAVE=True, MODEL=model))
     assert build(fused._pixel_backward, dict(BLOCK=256, MODEL=model))
-    assert build(fused._fused_backward, dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=model))
+    cap = fused.BWD_MAXNREG_HARD if model == 0 else fused.BWD_MAXNREG  # as the renderer launches it
+    assert build(fused._fused_backward, dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=model), **fused._max_registers(cap))
 print("built")
 """
 
