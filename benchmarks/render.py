@@ -16,6 +16,7 @@ measured with saved-tensor hooks; the faces tensor, which the caller owns anyway
     python benchmarks/render.py --device cuda --quick --out bench_render.json
     python benchmarks/render.py --device cpu --tiny                  # smoke test on a laptop
     python benchmarks/render.py --silhouette-share --out silhouette_share.json   # gradient share per model
+    python benchmarks/render.py --anchor --compile --repeats 5 --out anchor.json  # against nvdiffrast
 """
 
 from __future__ import annotations
@@ -396,6 +397,18 @@ def silhouette_share(args) -> list[dict]:
     return out
 
 
+def anchor_comparison(args) -> int:
+    """``--anchor``: :mod:`anchor`'s time part (it shares this module's scene and graph capture) with this
+    command's models, repeats, warm-up, compile choice and output."""
+    import anchor  # here, not at the top: anchor imports this module
+
+    argv = ["--parts", "time", "--no-warp", "--out", str(args.out), "--models", *args.models]
+    argv += ["--repeats", str(args.repeats)] if args.repeats is not None else []
+    argv += ["--warmup", str(args.warmup)] if args.warmup is not None else []
+    argv += ["--compile", "off", "on"] if args.compile else []
+    return anchor.main(argv)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", choices=["cpu", "cuda"], default="cuda" if torch.cuda.is_available() else "cpu")
@@ -425,15 +438,23 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=None)
     p.add_argument("--repeats", type=int, default=None)
     p.add_argument("--out", type=Path, default=Path("bench_render.json"))
+    p.add_argument("--anchor", action="store_true",
+                   help="instead of the sweeps: the fused backend against nvdiffrast by face count in this process "
+                        "(benchmarks/anchor.py's time part: rows with faces, backend, raster_model, fwd_ms, "
+                        "fwdbwd_ms, anchor_fwd_ms, anchor_fwdbwd_ms, saved_mb, peak memory), for --models, "
+                        "compiled and eager setup with --compile, into --out; needs CUDA and nvdiffrast "
+                        "(source ../shared/tools/nvdiffrast-build.sh)")
     p.add_argument("--silhouette-share", action="store_true",
                    help="instead of timing: per raster model, the part of the image's change at silhouette pixels "
                         "(and over the image) when a joint moves that the analytic gradient predicts")
     p.add_argument("--models", nargs="*", choices=RASTER_MODELS, default=list(RASTER_MODELS),
-                   help="--silhouette-share: the raster models compared")
+                   help="--silhouette-share and --anchor: the raster models compared")
     p.add_argument("--res", type=int, default=84, help="--silhouette-share: image side [px]")
     p.add_argument("--poses", type=int, default=4, help="--silhouette-share: random ant poses")
     p.add_argument("--fd-step", type=float, default=1e-3, help="--silhouette-share: joint step h [rad]")
     args = p.parse_args(argv)
+    if args.anchor:
+        return anchor_comparison(args)
     if args.silhouette_share:
         recs = silhouette_share(args)
         args.out.write_text(json.dumps(recs, indent=2))

@@ -101,3 +101,28 @@ def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
     assert head == "unknown" or re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", head), head
     monkeypatch.setenv("PIXELGRAD_COMMIT", "abc1234")
     assert provenance.commit() == "abc1234"
+
+
+def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monkeypatch, tmp_path):
+    """``render.py --anchor`` is anchor.py's comparison with nvdiffrast (one process): its models, repeats,
+    warm-up, compiled-and-eager choice and output pass through."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        render = _load("render")
+        import anchor
+
+        seen = []
+        monkeypatch.setattr(anchor, "main", lambda argv: seen.append(argv) or 0)
+        out = tmp_path / "a.json"
+        assert render.main(["--anchor", "--models", "softmax", "--repeats", "5", "--compile", "--out", str(out)]) == 0
+        argv = seen[0]
+        assert argv[:3] == ["--parts", "time", "--no-warp"]
+        assert argv[argv.index("--out") + 1] == str(out)
+        assert argv[argv.index("--models") + 1:argv.index("--repeats")] == ["softmax"]
+        assert argv[argv.index("--repeats") + 1] == "5" and "--warmup" not in argv
+        assert argv[argv.index("--compile") + 1:] == ["off", "on"]
+        seen.clear()
+        render.main(["--anchor", "--out", str(out)])
+        assert "--compile" not in seen[0] and "--repeats" not in seen[0]
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
