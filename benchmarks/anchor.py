@@ -11,11 +11,12 @@ Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up t
   image, into the world vertices. nvdiffrast is timed first, so each fused row carries ``anchor_fwd_ms`` and
   ``anchor_fwdbwd_ms`` and the ratios; and the device time of one eager fwd+bwd by stage (torch.profiler,
   kernels by name: ``raster_fwd_ms`` the forward kernels (walk and merge), ``raster_bwd_ms`` the backward
-  kernel, ``setup_fwd_ms`` everything else of a no-grad render, i.e. the per-face setup with its box levels
-  and the floor, and ``setup_bwd_ms`` the rest of the fwd+bwd: the backward's recompute of the setup and its
-  autograd). ``--variants`` times the fused backend again with some of ``diffrender.raster.fused``'s module
-  constants changed (e.g. the former single-level walk and small chunks), each row tagged with its
-  ``variant``; ``--compile on`` with the setup's PyTorch part compiled, as the trainer runs it.
+  kernels (per pixel and per face), ``setup_fwd_ms`` everything else of a no-grad render, i.e. the per-face
+  setup with its box levels and the floor, and ``setup_bwd_ms`` the rest of the fwd+bwd: the backward's
+  recompute of the setup and its autograd). ``--variants`` times the fused backend again with some of
+  ``diffrender.raster.fused``'s module constants changed (e.g. the former single-level walk and small
+  chunks), each row tagged with its ``variant``; ``--compile on`` with the setup's PyTorch part compiled, as
+  the trainer runs it.
 - ``iou``: the sharp-limit silhouette of each of our models and of the ray tracer against nvdiffrast's
   coverage (no floor, black background, white unlit robot), 64 ant poses: intersection over union and our
   mask's size relative to the anchor's.
@@ -116,7 +117,8 @@ def _stages(fn_fwd, fn_fwdbwd) -> dict:
                 continue
             ms = e.time_range.elapsed_us() / 1e3
             raster_fwd = "_fused_forward" in e.name or "_merge_forward" in e.name
-            key = "fwd" if raster_fwd else "bwd" if "_fused_backward" in e.name else "other"
+            raster_bwd = "_fused_backward" in e.name or "_pixel_backward" in e.name
+            key = "fwd" if raster_fwd else "bwd" if raster_bwd else "other"
             out[key] += ms
             out["kernels"] += 1
             count, total = out["by_name"].get(e.name, (0, 0.0))
@@ -402,7 +404,7 @@ def main(argv=None) -> int:
     p.add_argument("--variants", nargs="*", default=["default"],
                    help="fused backend settings to time: 'default', or NAME=VALUE,NAME=VALUE of diffrender.raster."
                         f"fused's constants ({', '.join(_FUSED_DEFAULTS)})")
-    p.add_argument("--compile", nargs="*", choices=["off", "on"], default=["off"],
+    p.add_argument("--compile", nargs="+", choices=["off", "on"], default=["off"],
                    help="time the fused backend with its setup's PyTorch part eager (off) and/or through "
                         "torch.compile (on: RasterSettings.compile, as the trainer renders under --compile); "
                         "each row says which")

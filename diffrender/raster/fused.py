@@ -95,6 +95,8 @@ BWD_SPLIT_SUPER_BLOCKS = 2
 #: MERGE_BLOCK pixels per program (as the backward's per-pixel kernel).
 FWD_MAX_SPLITS = 8
 FWD_SPLIT_SUPER_BLOCKS = 4
+#: numbers the split forward's parts may hold at once (fewer splits for large batches or images)
+PART_ELEMS = 1 << 27
 #: faces the forward evaluates at once (a block in parts of this many; <= FACE_BLOCK) and its warps (None: 4,
 #: or 8 for more than 1024 face-pixel pairs at once)
 FWD_SUB_BLOCK = 64
@@ -266,13 +268,17 @@ if triton is not None:
                 & (tl.load(bb + 3 * NB) >= y_lo) & (tl.load(bb + 2 * NB) <= y_hi))
 
     @triton.jit
-    def _face_mask(box_ptr, f, Fp, x_lo, x_hi, y_lo, y_hi):
-        """(FB,) faces of the block whose box touches the tile."""
-        bx0 = tl.load(box_ptr + f)
-        bx1 = tl.load(box_ptr + Fp + f)
-        by0 = tl.load(box_ptr + 2 * Fp + f)
-        by1 = tl.load(box_ptr + 3 * Fp + f)
-        return (bx1 >= x_lo) & (bx0 <= x_hi) & (by1 >= y_lo) & (by0 <= y_hi)
+    def _in_face_box(box_ptr, f, Fp, xc, yc):
+        """(F, P): whether each pixel centre lies in each face's box. A pair outside is never kept, in the
+        forward as in the backward (which walks only pixels inside its faces' boxes), so that both keep the
+        same pairs even where float32 rounding puts a pixel just past a sliver's tip inside the triangle."""
+        bx0 = tl.load(box_ptr + f)[:, None]
+        bx1 = tl.load(box_ptr + Fp + f)[:, None]
+        by0 = tl.load(box_ptr + 2 * Fp + f)[:, None]
+        by1 = tl.load(box_ptr + 3 * Fp + f)[:, None]
+        x = xc[None, :]
+        y = yc[None, :]
+        return (bx0 <= x) & (x <= bx1) & (by0 <= y) & (y <= by1)
 
     @triton.jit
     def _edge(cp, Fp, k: tl.constexpr, xc, yc):
@@ -335,11 +341,11 @@ if triton is not None:
                     if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
                         for h in range(0, FB // FS):  # FS faces at a time: fewer registers per thread
                             f = blk * FB + h * FS + fo
-                            fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                            inbox = _in_face_box(box_ptr + env * 4 * Fp, f, Fp, xc, yc)
                             cp = cbase + f[:, None]
                             sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
                                                             ambient, diffuse)
-                            keep = fm[:, None] & inb[None, :] & (sd > -cutoff)
+                            keep = inbox & inb[None, :] & (sd > -cutoff)
                             m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
                             scale = tl.exp((m - m_new) / gamma)
                             cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
@@ -371,11 +377,11 @@ if triton is not None:
                     if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
                         for h in range(0, FB // FS):  # FS faces at a time: fewer registers per thread
                             f = blk * FB + h * FS + fo
-                            fm = _face_mask(box_ptr + env * 4 * Fp, f, Fp, x_lo, x_hi, y_lo, y_hi)
+                            inbox = _in_face_box(box_ptr + env * 4 * Fp, f, Fp, xc, yc)
                             cp = cbase + f[:, None]
                             sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
                                                             ambient, diffuse)
-                            keep = fm[:, None] & inb[None, :] & (sd >= 0)
+                            keep = inbox & inb[None, :] & (sd >= 0)
                             zk = tl.where(keep, zn, -float("inf"))
                             best = tl.max(zk, axis=0)
                             first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
@@ -469,8 +475,8 @@ if triton is not None:
         sums (3), weight sum and coverage sum; hard the part's nearest depth, face and colour (3).
         ``_merge_forward`` then combines the parts with the floor and background."""
         tile = tl.program_id(0)
-        env = tl.program_id(1)
-        split = tl.program_id(2)
+        env = tl.program_id(1).to(tl.int64)  # offsets below pass 2^31 elements for large batches and images
+        split = tl.program_id(2).to(tl.int64)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
         xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
@@ -532,7 +538,7 @@ if triton is not None:
         rescaled to the common maximum, as flash attention merges its partial blocks). Hard: the nearest
         part's face, the lowest face index among exact depth ties (the parts hold disjoint faces), kept
         only when strictly nearer than the floor or background."""
-        env = tl.program_id(1)
+        env = tl.program_id(1).to(tl.int64)
         nenv = tl.num_programs(1)
         HW = H * W
         pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -619,7 +625,7 @@ if triton is not None:
         pair's weight gradient is ``(g kn) . colour + k0``; the coverage gradient ``g_A = W (g_out - g_cb) /
         (A Q)`` where ``sum D < 1`` (else 0); and 1.0 where ``sum D < 1`` (a kept face is live there even
         at weight 0). Hard: ``m``, ``g`` (3), then 0, 0, 0 and the chosen face (-1: none)."""
-        env = tl.program_id(1)
+        env = tl.program_id(1).to(tl.int64)
         HW = H * W
         pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         inb = pix < HW
@@ -690,8 +696,8 @@ if triton is not None:
         (``_pixel_backward``), then one atomic add per face and coefficient (no cross-lane reductions).
         MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
         tile = tl.program_id(0)
-        env = tl.program_id(1)
-        split = tl.program_id(2)
+        env = tl.program_id(1).to(tl.int64)  # offsets below pass 2^31 elements for large batches and images
+        split = tl.program_id(2).to(tl.int64)
         sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
         _, _, _, _, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
         HW = H * W
@@ -788,7 +794,8 @@ if triton is not None:
                                     if MODEL == 0:  # the face the forward chose (-1: none)
                                         keep = fm & pin & (f == tl.load(pp + 7, mask=pin, other=-1.0).to(tl.int32))
                                     else:
-                                        keep = fm & pin & (sd > -cutoff)
+                                        keep = (fm & pin & (sd > -cutoff) & (bx0 <= x) & (x <= bx1) & (by0 <= y)
+                                                & (y <= by1))
                                     if tl.max(keep.to(tl.int32), axis=0) > 0:
                                         m = tl.load(pp)
                                         c_r = tl.load(pp + 1)
@@ -1006,7 +1013,8 @@ def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int
     make enough super-blocks (:func:`forward_splits`), a split walk and a merge (two launches and a
     transient (splits, b, PART_PER_PIXEL, H, W) of parts)."""
     (ntiles, b), tx = _launch_grid(st, out.shape[0], tile)
-    splits = forward_splits(sbox.shape[2])
+    # the parts are a transient of splits x the chunk's pixels: bounded like the coefficients (PART_ELEMS)
+    splits = max(1, min(forward_splits(sbox.shape[2]), PART_ELEMS // (b * PART_PER_PIXEL * st.height * st.width)))
     prm = _params(st, out.dtype, out.device)
     model = _MODEL_CODE[st.raster_model]
     save = state is not None

@@ -86,23 +86,27 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     _compare(verts, ant64.faces, ant64.colors, cam, dict(raster_model=model, save_blend_state=model != "hard"))
 
 
-@pytest.mark.parametrize("model", ["hard", "softmax"])
-def test_split_forward_merges_exact_depth_ties_by_face_index(monkeypatch, model):
-    """Three copies of one triangle (exactly equal depths, different colours) in the three parts of a split
-    forward (super-blocks of 16 faces; part s holds super-blocks s and s + 3): face 56 (red) in part 0, face 20
-    (green) in part 1 and face 40 (blue) in part 2. The hard model shows face 20, as the dense reference does
-    (the lowest index among exact ties; neither the first part nor the last), and the soft models blend all
-    three; images and gradients equal the reference."""
+@pytest.mark.parametrize(("model", "splits", "sub_block"), [("hard", 3, 16), ("hard", 1, 16), ("hard", 3, 8),
+                                                          ("softmax", 3, 8)])
+def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits, sub_block):
+    """Five copies of one triangle (exactly equal depths, different colours) in super-blocks of 16 faces:
+    face 20 (green) and face 28 (same block; the other half when blocks are evaluated 8 faces at a time) and
+    face 68 in part 1 of a 3-part split forward, face 56 in part 0, face 40 in part 2. The hard model shows face
+    20, as the dense reference does (the lowest index among exact ties: neither the first part nor the last,
+    nor the last tie within a part, a walk or a block); unsplit (splits 1) the one walk meets all five. The
+    soft models blend them all; images and gradients equal the reference."""
     monkeypatch.setattr(fused, "FACE_BLOCK", 16)
     monkeypatch.setattr(fused, "SUPER_BLOCK", 1)
-    monkeypatch.setattr(fused, "FWD_MAX_SPLITS", 3)
+    monkeypatch.setattr(fused, "FWD_MAX_SPLITS", splits)
     monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 1)
-    assert fused.forward_splits(6) == 3
+    monkeypatch.setattr(fused, "FWD_SUB_BLOCK", sub_block)
+    assert fused.forward_splits(6) == splits
     base, _, _ = tiny_scene(1)
     tri = base[0, :3]
     verts = tri[0].repeat(1, 96 * 3, 1)  # every other face has three equal corners: dropped
     colors = torch.full((96 * 3, 3), 0.5, dtype=F64)
-    for face, rgb in ((56, (0.9, 0.1, 0.1)), (20, (0.1, 0.9, 0.1)), (40, (0.1, 0.1, 0.9))):
+    copies = {56: (0.9, 0.1, 0.1), 20: (0.1, 0.9, 0.1), 28: (0.9, 0.1, 0.9), 68: (0.5, 0.1, 0.9), 40: (0.1, 0.1, 0.9)}
+    for face, rgb in copies.items():
         verts[0, 3 * face:3 * face + 3] = tri
         colors[3 * face:3 * face + 3] = torch.tensor(rgb, dtype=F64)
     faces = torch.arange(96 * 3).view(96, 3)
@@ -114,6 +118,58 @@ def test_split_forward_merges_exact_depth_ties_by_face_index(monkeypatch, model)
     if model == "hard":  # some pixels show the triangle, all of them in face 20's green
         r, g, b = img[0]
         assert (g > r + 0.2).any() and not ((r > g + 0.2) | (b > g + 0.2)).any()
+
+
+@pytest.mark.parametrize("model", ["hard", "softmax", "alpha"])
+def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
+    """The state the backward reads (maximum, denominator, weight and coverage sums; the hard model's chosen
+    face) and the image, from one walk and from three merged parts: equal (the hard model's exactly)."""
+    monkeypatch.setattr(fused, "FACE_BLOCK", 16)
+    monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
+    monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 4)
+    q = ant_pose(2, seed=3).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=12)
+    settings = dr.RasterSettings(backend="fused", raster_model=model)
+    st = fused.Static.make(settings, focal=cam.focal, height=cam.height, width=cam.width, tile_h=fused.TILE,
+                           tile_w=fused.TILE)
+    coef, box, bbox, sbox, floor = fused._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces, st,
+                                                16, 2)
+    results = []
+    for splits in (1, 3):
+        monkeypatch.setattr(fused, "FWD_MAX_SPLITS", splits)
+        assert fused.forward_splits(sbox.shape[2]) == splits
+        out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
+        state = torch.full((2, fused.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
+        fused._launch_forward(coef, box, bbox, sbox, floor, st, fused.TILE, 16, out, state)
+        results.append((out, state))
+    (out1, state1), (out3, state3) = results
+    assert torch.isfinite(out1).all() and torch.isfinite(state1).all()
+    if model == "hard":
+        assert torch.equal(out1, out3) and torch.equal(state1, state3) and (state1[:, 1] >= 0).any()
+    else:
+        assert (state1[:, 3] > 0).any()
+        torch.testing.assert_close(state3, state1, rtol=1e-12, atol=1e-300)
+        torch.testing.assert_close(out3, out1, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("model", ["softmax", "hard"])
+def test_small_faces_whose_boxes_end_inside_tiles_match_dense(model):
+    """Six triangles of ~2 px, apart, at different sub-pixel offsets in a 32 x 32 image: the backward walks
+    only the pixels inside each sub-block's face boxes, which here end inside the 8 x 8 tiles on every side;
+    images and gradients equal the dense reference."""
+    g = torch.Generator().manual_seed(4)
+    centres = torch.tensor([[-0.55, 0.0, 0.45], [-0.2, 0.1, 0.7], [0.15, -0.1, 0.95], [0.5, 0.05, 0.6],
+                            [0.0, 0.2, 1.25], [0.33, -0.05, 0.3]], dtype=F64)
+    corners = torch.tensor([[-0.05, 0.0, -0.04], [0.05, 0.0, -0.03], [0.0, 0.0, 0.05]], dtype=F64)
+    verts = (centres[:, None] + corners[None] * (0.7 + 0.6 * torch.rand(6, 1, 1, generator=g, dtype=F64)))
+    verts = verts.reshape(1, 18, 3)
+    faces = torch.arange(18).view(6, 3)
+    colors = 0.1 + 0.8 * torch.rand(18, 3, generator=g, dtype=F64)
+    eye, target, _ = tiny_camera(1)
+    cam = dr.Camera.look_at(eye.to(DEV), target.to(DEV), (0.0, 0.0, 1.0), 40.0, 32, 32)
+    _compare(verts.to(DEV), faces.to(DEV), colors.to(DEV), cam,
+             dict(sigma=0.3, gamma=0.05, znear=0.5, zfar=10.0, cull_backfaces=False, raster_model=model))
 
 
 def test_super_block_boxes_are_unions_of_their_blocks(monkeypatch):
