@@ -102,8 +102,8 @@ PART_ELEMS = 1 << 27
 FWD_SUB_BLOCK = 64
 FWD_WARPS: int | None = None
 #: registers per thread the forward kernel and the soft and hard models' backward kernels may use (None: the
-#: compiler's choice, which for these kernels is all 255, so that only 8 warps fit on a multiprocessor). Capped,
-#: more programs share a multiprocessor at the cost of spills: the soft backward, whose every pixel keeps many
+#: compiler's choice, 255 for the backward kernels, so that only 8 warps fit on a multiprocessor). Capped, more
+#: programs share a multiprocessor at the cost of spills: the soft backward, whose every pixel keeps many
 #: pairs, gains (H100, 100k faces: 14.6 -> 10.6 ms; BENCHMARKS.md, section 2); the hard one and the forward lose.
 FWD_MAXNREG: int | None = None
 BWD_MAXNREG: int | None = 128
