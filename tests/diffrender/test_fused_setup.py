@@ -258,3 +258,27 @@ def test_floor_planes_gradcheck():
     torch.autograd.gradcheck(lambda r, e: fused.floor_planes(r, e, st)[:, :4],
                              (cam.rotation.clone().requires_grad_(), cam.eye.clone().requires_grad_()), eps=1e-7,
                              atol=1e-6, rtol=1e-5, fast_mode=True)
+
+
+def test_floor_planes_at_rays_parallel_to_the_floor():
+    """A level camera 13 px high: the middle row's rays run exactly parallel to the floor (dz = 0, where the
+    ray's hit parameter would divide by zero). It never hits, its planes and their gradients are finite and
+    equal the PyTorch floor's; the rows below hit, the rows above miss."""
+    eye = torch.tensor([[0.0, -3.0, 1.0]], dtype=F64)
+    cam = dr.Camera.look_at(eye, torch.tensor([[0.0, 0.0, 1.0]], dtype=F64), (0.0, 0.0, 1.0), 70.0, 13, 17)
+    cam = dr.Camera(rotation=cam.rotation.to(DEV), eye=cam.eye.to(DEV), focal=cam.focal, height=13, width=17)
+    st = _static(cam)
+    assert st.cy == 6.5 and float(cam.rotation[0, 2, 2]) == 0.0 and float(cam.rotation[0, 0, 2]) == 0.0
+    r_ref, e_ref, r_new, e_new = (x.clone().requires_grad_() for x in (cam.rotation, cam.eye) * 2)
+    ref = fused._floor_planes(r_ref, e_ref, st, F64, DEV)
+    new = fused.floor_planes(r_new, e_new, st)
+    hit = new[0, 4] > 0.5
+    assert not hit[6].any() and hit[7:].all() and not hit[:6].any()
+    assert torch.isfinite(new).all() and (new.detach() - ref.detach()).abs().max() <= 1e-12
+    w = torch.randn(ref.shape, dtype=F64, device=DEV, generator=torch.Generator(device=DEV).manual_seed(2))
+    w[:, 4] = 0.0
+    g_ref = torch.autograd.grad((ref * w).sum(), (r_ref, e_ref))
+    g_new = torch.autograd.grad((new * w).sum(), (r_new, e_new))
+    for gr, gn in zip(g_ref, g_new):
+        assert torch.isfinite(gn).all() and gr.abs().max() > 0
+        assert (gr - gn).abs().max() <= 1e-10 * gr.abs().max()
