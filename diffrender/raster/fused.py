@@ -462,6 +462,20 @@ if triton is not None:
         return num_r, num_g, num_b, den, m
 
     @triton.jit
+    def _hard_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b):
+        """The hard model before any face: the floor where the ray hits it, else the background (normalised
+        depth 0), and no face chosen (-1). Returns the colour (3), the chosen face and ``m``."""
+        m = tl.where(fhit, fzn, 0.0)
+        return (tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g), tl.where(fhit, fb, bg_b),
+                tl.full(m.shape, -1.0, m.dtype), m)
+
+    @triton.jit
+    def _soft_colour(num_r, num_g, num_b, den, w_sum, cov_sum, cb_r, cb_g, cb_b):
+        """The soft models' pixel colour from the blend's sums and the colour behind the faces ``C_b``."""
+        _a, _icq, kn, kc, _has = _cover_coefficients(den, w_sum, cov_sum)
+        return kn * num_r + kc * cb_r, kn * num_g + kc * cb_g, kn * num_b + kc * cb_b
+
+    @triton.jit
     def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, Fp,
                        NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
                        FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr):
@@ -504,15 +518,11 @@ if triton is not None:
             fzn, fr, fg, fb, fhit, _, cb_r, cb_g, cb_b, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix,
                                                                                         inb, HW, gamma)
             if MODEL == 0:
-                m = tl.where(fhit, fzn, 0.0)  # the floor, else the background (normalised depth 0)
-                nearest = tl.full(m.shape, -1.0, m.dtype)
+                c_r, c_g, c_b, nearest, m = _hard_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b)
                 out_r, out_g, out_b, nearest, m = _nearest_pass(
-                    coef_ptr, box_ptr, bbox_ptr, sbox_ptr, tl.where(fhit, fr, bg_r), tl.where(fhit, fg, bg_g),
-                    tl.where(fhit, fb, bg_b), nearest, m, env, Fp, NB, NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo,
-                    y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS)
-                s1 = nearest
-                s2 = tl.zeros_like(m)
-                s3 = tl.zeros_like(m)
+                    coef_ptr, box_ptr, bbox_ptr, sbox_ptr, c_r, c_g, c_b, nearest, m, env, Fp, NB, NSB, 0, 1, xc,
+                    yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS)
+                s1, s2, s3 = nearest, tl.zeros_like(m), tl.zeros_like(m)
             else:
                 zero = tl.zeros_like(fzn)
                 num_r, num_g, num_b, den, m = _soft_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b, gamma, MODEL)
@@ -520,13 +530,8 @@ if triton is not None:
                     coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB,
                     NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap,
                     ambient, diffuse, lx, ly, lz, FB, SB, FS)
-                _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
-                out_r = kn * num_r + kc * cb_r
-                out_g = kn * num_g + kc * cb_g
-                out_b = kn * num_b + kc * cb_b
-                s1 = den
-                s2 = w_sum
-                s3 = cov_sum
+                out_r, out_g, out_b = _soft_colour(num_r, num_g, num_b, den, w_sum, cov_sum, cb_r, cb_g, cb_b)
+                s1, s2, s3 = den, w_sum, cov_sum
             _store_pixels(out_ptr, state_ptr, env, pix, inb, HW, out_r, out_g, out_b, m, s1, s2, s3, SAVE)
 
     @triton.jit
@@ -547,11 +552,7 @@ if triton is not None:
         fzn, fr, fg, fb, fhit, _, cb_r, cb_g, cb_b, bg_r, bg_g, bg_b = _floor_start(floor_ptr, prm, env, pix, inb,
                                                                                     HW, gamma)
         if MODEL == 0:
-            m = tl.where(fhit, fzn, 0.0)
-            nearest = tl.full(m.shape, -1.0, m.dtype)
-            out_r = tl.where(fhit, fr, bg_r)
-            out_g = tl.where(fhit, fg, bg_g)
-            out_b = tl.where(fhit, fb, bg_b)
+            out_r, out_g, out_b, nearest, m = _hard_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b)
             for s in range(0, NSPLIT):
                 pp = part_ptr + ((s * nenv + env) * 6) * HW + pix
                 m_s = tl.load(pp, mask=inb, other=-1e4)
@@ -562,9 +563,7 @@ if triton is not None:
                 out_b = tl.where(take, tl.load(pp + 4 * HW, mask=inb, other=0.0), out_b)
                 nearest = tl.where(take, f_s, nearest)
                 m = tl.where(take, m_s, m)
-            s1 = nearest
-            s2 = tl.zeros_like(m)
-            s3 = tl.zeros_like(m)
+            s1, s2, s3 = nearest, tl.zeros_like(m), tl.zeros_like(m)
         else:
             num_r, num_g, num_b, den, m = _soft_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b, gamma, MODEL)
             w_sum = tl.zeros_like(m)
@@ -583,13 +582,8 @@ if triton is not None:
                 w_sum = w_sum * scale + w_s
                 cov_sum = cov_sum + tl.load(pp + 5 * HW, mask=inb, other=0.0)
                 m = m_new
-            _a_f, _icq_f, kn, kc, _cov_f = _cover_coefficients(den, w_sum, cov_sum)
-            out_r = kn * num_r + kc * cb_r
-            out_g = kn * num_g + kc * cb_g
-            out_b = kn * num_b + kc * cb_b
-            s1 = den
-            s2 = w_sum
-            s3 = cov_sum
+            out_r, out_g, out_b = _soft_colour(num_r, num_g, num_b, den, w_sum, cov_sum, cb_r, cb_g, cb_b)
+            s1, s2, s3 = den, w_sum, cov_sum
         _store_pixels(out_ptr, state_ptr, env, pix, inb, HW, out_r, out_g, out_b, m, s1, s2, s3, SAVE)
 
     @triton.jit
