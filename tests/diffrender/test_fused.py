@@ -28,6 +28,12 @@ def ant64():
     return dr.RobotModel.from_mjcf(asset("ant"), dtype=F64, detail=0, device=DEV)
 
 
+def _set(monkeypatch, **constants):
+    """Set ``diffrender.raster.fused``'s module constants for one test (restored after it)."""
+    for name, value in constants.items():
+        monkeypatch.setattr(fused, name, value)
+
+
 def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
     """Render with dense and fused, backpropagate one random-weighted loss; compare image and the gradients
     w.r.t. vertices, colours, camera eye (and normals when given)."""
@@ -68,16 +74,8 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     coarse test skips whole runs of blocks), the backward tile chosen for crowded faces and the backward's
     walk split between 4 programs per tile (7 or 8 super-blocks each), the forward's between 3 (10 each, then
     merged) and evaluating its blocks in halves: the image and gradients of the dense reference."""
-    monkeypatch.setattr(fused, "FWD_MAX_SPLITS", 3)
-    monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 4)
-    monkeypatch.setattr(fused, "FWD_SUB_BLOCK", 8)
-    monkeypatch.setattr(fused, "FACE_BLOCK", 16)
-    monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
-    monkeypatch.setattr(fused, "DENSE_FACES_PER_PIXEL", 0.0)
-    monkeypatch.setattr(fused, "BWD_TILE_DENSE", 4)
-    monkeypatch.setattr(fused, "BWD_SUB_BLOCK", 16)
-    monkeypatch.setattr(fused, "BWD_MAX_SPLITS", 4)
-    monkeypatch.setattr(fused, "BWD_SPLIT_SUPER_BLOCKS", 4)
+    _set(monkeypatch, FWD_MAX_SPLITS=3, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=8, FACE_BLOCK=16, SUPER_BLOCK=2,
+         DENSE_FACES_PER_PIXEL=0.0, BWD_TILE_DENSE=4, BWD_SUB_BLOCK=16, BWD_MAX_SPLITS=4, BWD_SPLIT_SUPER_BLOCKS=4)
     q = ant_pose(2, seed=6).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=12)
@@ -95,11 +93,8 @@ def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits
     20, as the dense reference does (the lowest index among exact ties: neither the first part nor the last,
     nor the last tie within a part, a walk or a block); unsplit (splits 1) the one walk meets all five. The
     soft models blend them all; images and gradients equal the reference."""
-    monkeypatch.setattr(fused, "FACE_BLOCK", 16)
-    monkeypatch.setattr(fused, "SUPER_BLOCK", 1)
-    monkeypatch.setattr(fused, "FWD_MAX_SPLITS", splits)
-    monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 1)
-    monkeypatch.setattr(fused, "FWD_SUB_BLOCK", sub_block)
+    _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=1, FWD_MAX_SPLITS=splits, FWD_SPLIT_SUPER_BLOCKS=1,
+         FWD_SUB_BLOCK=sub_block)
     assert fused.forward_splits(6) == splits
     base, _, _ = tiny_scene(1)
     tri = base[0, :3]
@@ -124,9 +119,7 @@ def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits
 def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     """The state the backward reads (maximum, denominator, weight and coverage sums; the hard model's chosen
     face) and the image, from one walk and from three merged parts: equal (the hard model's exactly)."""
-    monkeypatch.setattr(fused, "FACE_BLOCK", 16)
-    monkeypatch.setattr(fused, "SUPER_BLOCK", 2)
-    monkeypatch.setattr(fused, "FWD_SPLIT_SUPER_BLOCKS", 4)
+    _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4)
     q = ant_pose(2, seed=3).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=12)
