@@ -53,19 +53,20 @@ def window_start(kind: str):
         yield
 
 
-def measure(task: str, mode: str, args, *, renderer: str = "soft", start: str = "leaf") -> dict:
+def measure(task: str, mode: str, args, *, renderer: str = "soft", start: str = "leaf",
+            overlap_critic: bool = True) -> dict:
     with window_start(start):
-        row = _measure(task, mode, args, renderer=renderer)
+        row = _measure(task, mode, args, renderer=renderer, overlap_critic=overlap_critic)
     return {**row, "window_start": start}
 
 
-def _measure(task: str, mode: str, args, *, renderer: str = "soft") -> dict:
+def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_critic: bool = True) -> dict:
     cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
                      iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
                      raster_model=args.raster_model, extra_meshes=args.extra_meshes,
-                     extra_mesh_verts=args.extra_mesh_verts)
+                     extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic)
     row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": args.num_envs, "horizon": args.horizon,
-           "image_size": args.image_size, "compile": args.compile, "status": "ok"}
+           "image_size": args.image_size, "compile": args.compile, "overlap_critic": overlap_critic, "status": "ok"}
     try:
         t0 = time.perf_counter()
         trainer = SHAC(cfg, device=args.device)
@@ -79,6 +80,7 @@ def _measure(task: str, mode: str, args, *, renderer: str = "soft") -> dict:
             trainer.train_iteration()
         row["warmup_s"] = time.perf_counter() - t0
         rows = [trainer.train_iteration() for _ in range(args.iters)]
+        row["critic_overlapped"] = all(r["critic_overlapped"] for r in rows)
         for k in KEYS:
             vals = [r[k] for r in rows if r.get(k) is not None]
             row[k] = median(vals) if vals else None
@@ -133,6 +135,9 @@ def main() -> None:
     p.add_argument("--window-starts", nargs="+", choices=["leaf", "detached"], default=["leaf"],
                    help="how a window's start state is cut: leaf (the trainer's) or detached (the plain cut), "
                         "each timed in this process (an A/B of the choice; see window_start)")
+    p.add_argument("--overlap-critic", nargs="+", choices=["on", "off"], default=["on"],
+                   help="the critic fit alongside the replayed backward (on, the trainer's default) or after it "
+                        "(off); several: each timed in this process (SHACConfig.overlap_critic)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("iteration.json"))
     args = p.parse_args()
@@ -146,10 +151,10 @@ def main() -> None:
     if args.device.startswith("cuda"):
         env["gpu"] = torch.cuda.get_device_name()
     results = []
-    runs = [(t, m, r, w) for t in args.tasks for m in args.modes for r in args.renderers for w in args.window_starts
-            if r == "soft" or not ModePlan.of(m).grad_through_images]
-    for task, mode, renderer, start in runs:
-        row = measure(task, mode, args, renderer=renderer, start=start)
+    runs = [(t, m, r, w, o) for t in args.tasks for m in args.modes for r in args.renderers for w in args.window_starts
+            for o in args.overlap_critic if r == "soft" or not ModePlan.of(m).grad_through_images]
+    for task, mode, renderer, start, overlap in runs:
+        row = measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on")
         results.append(row)
         print(json.dumps(row), flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -162,7 +167,8 @@ def main() -> None:
     print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
-    print(f"{'task':9} {'mode':9} {'render':6} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'iter ms':>9} "
+    print(f"{'task':9} {'mode':9} {'render':6} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'overlap':>7} "
+          f"{'iter ms':>9} "
           f"{'alloc MB':>9} {'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
     for r in results:
         if r["status"] != "ok":
@@ -172,7 +178,8 @@ def main() -> None:
         ov = r.get("probe_overhead_at_k")
         print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r['window_start']:8} {fmt(r['fwd_ms']):>9} "
               f"{fmt(r['bwd_ms']):>9} "
-              f"{fmt(r['critic_ms']):>8} {fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} "
+              f"{fmt(r['critic_ms']):>8} {('yes' if r['critic_overlapped'] else 'no'):>7} "
+              f"{fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} "
               f"{fmt(r['peak_reserved_mb'], 0):>9} "
               f"{fmt(r['saved_mb'], 1):>9} {('-' if ov is None else f'{100 * ov:.1f}'):>8} "
               f"{fmt(r.get('cos_full_decoupled'), 3):>6}")

@@ -177,8 +177,13 @@ class SHACConfig:
     compile: bool = False
     """torch.compile the physics substep, the per-step reward/reset and the renderer's PyTorch work (forward
     kinematics, camera, the fused rasterizer's per-face setup) and, on a CUDA device, capture the window
-    (forward and backward; plain and probe iterations separately) and the critic phase as CUDA graphs
+    (forward and backward; plain and probe iterations separately) and the critic fit as CUDA graphs
     replayed every iteration. The first iterations pay the compilation; worth it on a GPU."""
+    overlap_critic: bool = True
+    """With CUDA graphs (--compile on a GPU), fit the critic on a second stream while the actor's backward
+    replays: the fit reads only the window's buffers and the backward never reads the critic, so the numbers
+    are the same and the fit's time hides behind the backward's. critic_ms is then the fit's own time, not
+    added to the iteration's. False: fit after the backward (the phases' times add up)."""
     abort_grad_norm: float = 1e8
     """Stop (as D.Va does) when the actor's pre-clip gradient norm exceeds this."""
 

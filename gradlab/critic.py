@@ -71,6 +71,8 @@ def fit_critic(critic: nn.Module, optimizer: torch.optim.Optimizer, obs: torch.T
 
 @torch.no_grad()
 def polyak_update(target: nn.Module, source: nn.Module, alpha: float) -> None:
-    """target = alpha * target + (1 - alpha) * source, parameter by parameter."""
-    for pt, ps in zip(target.parameters(), source.parameters()):
-        pt.mul_(alpha).add_(ps, alpha=1.0 - alpha)
+    """target = alpha * target + (1 - alpha) * source, parameter by parameter (two multi-tensor launches: on a
+    GPU it runs between graph replays, where every launch is waited for)."""
+    targets, sources = list(target.parameters()), list(source.parameters())
+    torch._foreach_mul_(targets, alpha)
+    torch._foreach_add_(targets, sources, alpha=1.0 - alpha)

@@ -1,9 +1,14 @@
 """CUDA-graph capture and replay of a SHAC iteration, behind two small objects the trainer calls every iteration.
 
-``WindowGraphs.run(iteration=, probe=)`` runs one window's forward (rollout + loss) and backward, eagerly or by
-replaying the CUDA graphs captured from it; ``GraphedCriticPhase(buf)`` runs the critic phase the same way.
-With capture off (the CPU, or no ``--compile``) both are the eager calls they wrap, so the trainer reads the
-same either way (docs/design.md, "CUDA graphs").
+``WindowGraphs.run(iteration=, probe=)`` runs one window's forward (rollout + loss), backward and critic fit,
+eagerly or by replaying the CUDA graphs captured from them; ``GraphedCriticPhase(buf)`` is the critic fit's
+graph. With capture off (the CPU, or no ``--compile``) they are the eager calls they wrap, so the trainer reads
+the same either way (docs/design.md, "CUDA graphs").
+
+The critic fit reads only the forward's buffers and writes only the critic and its optimiser, and the actor's
+backward never reads either, so a replayed window runs the fit on a second stream while the backward runs: the
+same numbers, and its time hidden behind the backward's (both are chains of small kernels that leave most of
+the GPU idle).
 
 A captured graph replays fixed device addresses: every tensor it reads or writes must be the same tensor
 object at every replay. ``LiveState`` is why that holds for the state one window hands to the next (task
@@ -73,7 +78,8 @@ class Window:
 
     loss: the actor loss (0-d); buffers: the rollout's (T, B, ...) buffers; probe_metrics: 0-d tensors of a
     probe iteration (empty otherwise); saved_bytes: bytes autograd kept for backward; memory: the peak memory
-    of forward and backward (a capture is outside it); replayed: the window ran as a CUDA-graph replay.
+    of forward and backward (a capture is outside it); replayed: the window ran as a CUDA-graph replay;
+    critic_loss: what the critic fit returned (None without one); overlapped: the fit ran alongside the backward.
     """
 
     loss: torch.Tensor
@@ -82,6 +88,8 @@ class Window:
     saved_bytes: int
     memory: MemoryProbe
     replayed: bool
+    critic_loss: torch.Tensor | None = None
+    overlapped: bool = False
 
 
 class _CapturedWindow:
@@ -120,16 +128,22 @@ class WindowGraphs:
         backward: ``backward(loss, probe) -> probe_metrics``, the actor's gradients into ``.grad``.
         commit: writes the window's end state into the live-state tensors (``LiveState.commit``).
         params: the actor's parameters (their ``.grad`` are written in place by a replay).
-        timer: times the regions "fwd" and "bwd" (a capture is outside them).
+        timer: times the regions "fwd", "bwd" and "critic" (a capture is outside them).
         device: the device the window runs on.
         capture: capture and replay (a CUDA device and ``--compile``); False runs every window eagerly.
+        critic: ``critic(buffers) -> loss``, the critic fit on the window's buffers, run after the backward;
+            None: no critic fit here.
+        overlap_critic: a replayed window runs a captured critic fit (``GraphedCriticPhase``) on the fit's
+            own stream while the backward replays, instead of after it.
     """
 
     def __init__(self, *, forward: Callable[[bool], tuple[torch.Tensor, dict]],
                  backward: Callable[[torch.Tensor, bool], dict], commit: Callable[[], None],
-                 params: list[torch.nn.Parameter], timer: RegionTimer, device: torch.device, capture: bool):
+                 params: list[torch.nn.Parameter], timer: RegionTimer, device: torch.device, capture: bool,
+                 critic: Callable[[dict], torch.Tensor] | None = None, overlap_critic: bool = False):
         self.forward, self.backward, self.commit = forward, backward, commit
         self.params, self.timer, self.device, self.capture = params, timer, device, capture
+        self.critic, self.overlap_critic = critic, overlap_critic
         self.captured: dict[bool, _CapturedWindow] = {}  # plain (False) and probe (True) windows
         self._eager_runs = {False: 0, True: 0}
         if capture:
@@ -145,13 +159,21 @@ class WindowGraphs:
             self._eager_runs[probe] += 1
         elif probe not in self.captured:
             self.captured[probe] = _CapturedWindow(self, probe=probe)
+        overlap = (replay and self.overlap_critic and isinstance(self.critic, GraphedCriticPhase)
+                   and self.critic.graph is not None)
+        critic_loss = None
         with MemoryProbe(self.device) as memory:
             if replay:
                 graph = self.captured[probe]
                 with self.timer("fwd"):
                     graph.fwd.replay()
                 with self.timer("bwd"):
-                    graph.bwd.replay()
+                    if overlap:
+                        critic_loss = self._critic_beside(graph.bwd, graph.buffers)
+                    else:
+                        graph.bwd.replay()
+                if overlap:  # after the region, so that "bwd" times the backward alone
+                    torch.cuda.current_stream(self.device).wait_stream(self.critic.stream)
                 loss, buffers, probe_metrics, saved_bytes = (graph.loss, graph.buffers, graph.probe_metrics,
                                                              graph.saved_bytes)
             else:
@@ -161,16 +183,34 @@ class WindowGraphs:
                     probe_metrics = self.backward(loss, probe)
                     self.commit()
                 saved_bytes = saved.bytes
-        return Window(loss, buffers, probe_metrics, saved_bytes, memory, replay)
+        if self.critic is not None and not overlap:
+            with self.timer("critic"):
+                critic_loss = self.critic(buffers)
+        return Window(loss, buffers, probe_metrics, saved_bytes, memory, replay, critic_loss, overlap)
+
+    def _critic_beside(self, backward: torch.cuda.CUDAGraph, buffers: dict) -> torch.Tensor:
+        """Replay ``backward`` on the current stream and the critic fit on its own stream, starting once the
+        forward's buffers are written (not after the backward). The caller makes the current stream wait for
+        the fit's (the next forward overwrites the buffers; the target update reads the critic)."""
+        main, side = torch.cuda.current_stream(self.device), self.critic.stream
+        forward_done = main.record_event()
+        backward.replay()
+        side.wait_event(forward_done)
+        with torch.cuda.stream(side), self.timer.concurrent("critic", side):
+            return self.critic(buffers)
 
 
 class GraphedCriticPhase:
-    """The critic phase (targets, minibatch steps, Polyak) captured as one CUDA graph and replayed.
+    """The critic fit (TD(lambda) targets, minibatch steps) captured as one CUDA graph and replayed.
 
-    The first call runs the phase eagerly (it is that iteration's real update and warms up the capturable
-    Adam's state), then captures it reading ``inputs``, which later calls fill from their window's buffers
-    before replaying. The critic's Adam must be ``capturable`` with its learning rate in a tensor that the
-    decay updates in place.
+    The first call runs the fit eagerly (it is that iteration's real update and warms up the capturable Adam's
+    state), then captures it reading ``inputs``, which later calls fill from their window's buffers before
+    replaying, on the current stream. The critic's Adam must be ``capturable`` with its learning rate in a
+    tensor that the decay updates in place.
+
+    The fit runs and is captured on its own ``stream``: cuBLAS keeps a workspace per stream and a graph keeps
+    the one it was captured with, so this graph can replay beside the window's graphs (captured on PyTorch's
+    default capture stream) without sharing one.
 
     Args:
         phase: ``phase(buffers) -> critic loss`` (0-d); reads ``KEYS`` of the buffers.
@@ -182,6 +222,7 @@ class GraphedCriticPhase:
 
     def __init__(self, phase: Callable[[dict], torch.Tensor], critic: torch.nn.Module, device: torch.device):
         self.phase, self.critic, self.device = phase, critic, device
+        self.stream = torch.cuda.Stream(device)
         self.inputs: dict[str, torch.Tensor] | None = None
         self.graph: torch.cuda.CUDAGraph | None = None
         self.loss: torch.Tensor | None = None
@@ -197,15 +238,15 @@ class GraphedCriticPhase:
 
     def _run_then_capture(self, buffers: dict) -> torch.Tensor:
         self.inputs = {k: buffers[k].detach().clone() for k in self.KEYS}
-        side = torch.cuda.Stream(self.device)
-        side.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.cuda.stream(side):
+        main = torch.cuda.current_stream(self.device)
+        self.stream.wait_stream(main)
+        with torch.cuda.stream(self.stream):
             first_loss = self.phase(self.inputs).clone()
-        torch.cuda.current_stream(self.device).wait_stream(side)
+        main.wait_stream(self.stream)
         for p in self.critic.parameters():  # capture needs existing gradient tensors, zeroed in place
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
         self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
+        with torch.cuda.graph(self.graph, stream=self.stream):
             self.loss = self.phase(self.inputs)
         return first_loss

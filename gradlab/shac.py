@@ -13,10 +13,11 @@ One iteration, top to bottom (docs/design.md, "A SHAC window"):
    differentiated twice over the same graph, gate open and closed: the full and the decoupled gradient of the
    SAME rollout; the training mode's gradient is the one applied. The probe also splits their difference by
    the actor's parameter groups and measures the policy's sensitivity to each frame of its stack.
-4. Clip, Adam step with a linear LR decay.
-5. Critic phase: fit the critic on TD(lambda) targets of the window; Polyak-update the target critic.
+4. Critic fit on TD(lambda) targets of the window (independent of the actor's gradient: a replayed window runs it
+   alongside the backward).
+5. Clip, Adam step with a linear LR decay; Polyak-update the target critic.
 
-With ``--compile`` on a CUDA device the window (steps 1-3) and the critic phase are CUDA graphs replayed every
+With ``--compile`` on a CUDA device the window (steps 1-3) and the critic fit are CUDA graphs replayed every
 iteration; ``gradlab.graphs`` holds that machinery, and this module calls it the same way either way.
 
 Every iteration reports CUDA-synchronised forward / backward / critic times, peak allocated and reserved memory
@@ -110,7 +111,7 @@ class SHAC:
             self._step = watch.labelled("physics step", self._step)
             if self.renderer is not None:
                 self._render = watch.labelled("renderer", self._render)
-        # CUDA graphs (compile on a CUDA device) capture the critic phase too, so its Adam must be capturable
+        # CUDA graphs (compile on a CUDA device) capture the critic fit too, so its Adam must be capturable
         # and read its learning rate from a tensor that the decay updates in place.
         self.graphs = cfg.compile and self.device.type == "cuda"
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=cfg.betas)
@@ -136,11 +137,11 @@ class SHAC:
         self.start_s: float | None = None  # seconds of the first reset and render (the first render compiles)
         self.live = LiveState()
         backward = self.compile_watch.labelled("backward pass", self._backward) if cfg.compile else self._backward
+        self.critic_fit = (GraphedCriticPhase(self._fit_critic, self.critic, self.device) if self.graphs
+                           else self._fit_critic)
         self.window = WindowGraphs(forward=self._window_forward, backward=backward, commit=self._commit_state,
                                    params=list(self.actor.parameters()), timer=self.timer, device=self.device,
-                                   capture=self.graphs)
-        self.critic_phase = (GraphedCriticPhase(self._critic_phase, self.critic, self.device) if self.graphs
-                             else self._critic_phase)
+                                   capture=self.graphs, critic=self.critic_fit, overlap_critic=cfg.overlap_critic)
 
     def _render_options(self) -> dict:
         cfg = self.cfg
@@ -316,15 +317,15 @@ class SHAC:
             **{f"image_sensitivity_f{i}": s for i, s in enumerate(sensitivity.unbind(0))},
         }
 
-    # ------------------------------------------------------------------ critic phase and target update
-    def _critic_phase(self, buf: dict) -> torch.Tensor:
-        """TD(lambda) targets of the window, the critic fit, the target update. Returns the critic loss."""
+    # ------------------------------------------------------------------ critic fit
+    def _fit_critic(self, buf: dict) -> torch.Tensor:
+        """TD(lambda) targets of the window and the critic fit on them; returns the critic loss. It reads only
+        the window's buffers and writes only the critic and its optimiser, so it may run alongside the actor's
+        backward (``SHACConfig.overlap_critic``); the target critic's update waits for both."""
         cfg = self.cfg
         targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma, lam=cfg.lam)
-        loss = fit_critic(self.critic, self.critic_opt, buf["critic_obs"].flatten(0, 1), targets.flatten(),
+        return fit_critic(self.critic, self.critic_opt, buf["critic_obs"].flatten(0, 1), targets.flatten(),
                           iterations=cfg.critic_iterations, batches=cfg.critic_batches, grad_clip=cfg.grad_clip)
-        polyak_update(self.target_critic, self.critic, cfg.target_alpha)
-        return loss
 
     # ------------------------------------------------------------------ one training iteration
     def _lr(self, base: float) -> float:
@@ -365,10 +366,13 @@ class SHAC:
         self.timer.reset()
         self._set_learning_rates()
 
-        # Actor: rollout window, loss and backward, timed ("fwd", "bwd") and memory-probed as one region.
+        # Actor: rollout window, loss and backward, timed ("fwd", "bwd") and memory-probed as one region; the
+        # critic fit on the window's buffers ("critic"), alongside a replayed backward or after it.
         self._announce_capture(probe)
+        if self.graphs and self.critic_fit.graph is None:
+            self.compile_watch.announce("capturing CUDA graph (critic fit)")
         window = self.window.run(iteration=self.iteration, probe=probe)
-        loss, buf = window.loss, window.buffers
+        loss, buf, critic_loss = window.loss, window.buffers, window.critic_loss
         params = list(self.actor.parameters())
         gn = nn.utils.clip_grad_norm_(params, cfg.grad_clip)
         gn_clipped = flat_grad(params).norm()
@@ -379,12 +383,8 @@ class SHAC:
                 f"iteration {self.iteration}: actor gradient norm {gn_value:.3g} exceeds abort_grad_norm "
                 f"{cfg.abort_grad_norm:.3g} (the reference stops here too)")
         self.actor_opt.step()
-
-        # Critic on TD(lambda) targets of the window, then the target network.
-        if self.graphs and self.critic_phase.graph is None:
-            self.compile_watch.announce("capturing CUDA graph (critic phase)")
-        with self.timer("critic"):
-            critic_loss = self.critic_phase(buf)
+        # The target critic follows the fitted critic (after the backward, which differentiated through it).
+        polyak_update(self.target_critic, self.critic, cfg.target_alpha)
         self.obs_rms.update(buf["raw_obs"])
 
         # Episode statistics: one host transfer per iteration.
@@ -411,6 +411,7 @@ class SHAC:
             "fwd_ms": ms["fwd"],
             "bwd_ms": ms["bwd"],
             "critic_ms": ms["critic"],
+            "critic_overlapped": window.overlapped,
             "iter_ms": iter_wall * 1e3,
             "peak_alloc_mb": window.memory.peak_alloc_mb,
             "peak_reserved_mb": window.memory.peak_reserved_mb,

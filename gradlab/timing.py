@@ -1,8 +1,9 @@
 """Honest timers and memory probes.
 
 CUDA work is asynchronous: a region is timed with CUDA events recorded on the current stream and read after
-a synchronisation, so the number is the device time of everything launched inside the region. On the CPU a
-perf_counter pair is the same thing. Peak memory is read after ``reset_peak_memory_stats`` so each region
+a synchronisation, so the number is the device time of everything launched inside the region. Work launched on
+a second stream to run alongside a region is timed by events on that stream (``RegionTimer.concurrent``). On
+the CPU a perf_counter pair is the same thing. Peak memory is read after ``reset_peak_memory_stats`` so each region
 reports its own peak, allocated (tensors) and reserved (the caching allocator's footprint). What a region
 keeps for backward is measured by :class:`diffrender.profiling.SavedTensorMeter` (re-exported here), the one
 meter the renderer's tests, its benchmark and the trainer share.
@@ -43,6 +44,7 @@ class RegionTimer:
 
     device: torch.device
     ms: dict[str, float] = field(default_factory=dict)
+    _pending: list = field(default_factory=list)  # (name, start, end) events of concurrent regions
 
     @contextmanager
     def __call__(self, name: str):
@@ -55,7 +57,8 @@ class RegionTimer:
             finally:
                 end.record()
                 torch.cuda.synchronize(self.device)
-                self.ms[name] = self.ms.get(name, 0.0) + start.elapsed_time(end)
+                self._add(name, start.elapsed_time(end))
+                self._settle()
         else:
             t0 = time.perf_counter()
             try:
@@ -63,8 +66,33 @@ class RegionTimer:
             finally:
                 self.ms[name] = self.ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 
+    @contextmanager
+    def concurrent(self, name: str, stream: torch.cuda.Stream):
+        """Time CUDA work launched on ``stream`` while another region runs on the current stream.
+
+        Events on ``stream`` bracket the work, without a synchronisation (which would serialise the two); its
+        milliseconds are added when the enclosing region ends (its device-wide synchronisation has completed
+        them). Use it inside a region: ``with timer("bwd"): ... with timer.concurrent("critic", side): ...``.
+        """
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record(stream)
+        try:
+            yield
+        finally:
+            end.record(stream)
+            self._pending.append((name, start, end))
+
+    def _add(self, name: str, ms: float) -> None:
+        self.ms[name] = self.ms.get(name, 0.0) + ms
+
+    def _settle(self) -> None:
+        for name, start, end in self._pending:
+            self._add(name, start.elapsed_time(end))
+        self._pending.clear()
+
     def reset(self) -> None:
         self.ms.clear()
+        self._pending.clear()
 
 
 class MemoryProbe:

@@ -126,3 +126,19 @@ def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monk
         assert "--compile" not in seen[0] and "--repeats" not in seen[0]
     finally:
         sys.path.remove(str(ROOT / "benchmarks"))
+
+
+def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypatch):
+    """``iteration.py --overlap-critic on off``: one row per placement, each with the phases' medians and whether
+    the fit ran alongside the backward (never on the CPU, where nothing is replayed)."""
+    iteration = _load("iteration")
+    out = tmp_path / "iter.json"
+    monkeypatch.setattr(sys, "argv", ["iteration.py", "--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled",
+                                      "--num-envs", "2", "--horizon", "2", "--image-size", "32", "--warmup", "1",
+                                      "--iters", "1", "--probe-every", "0", "--overlap-critic", "on", "off",
+                                      "--out", str(out)])
+    iteration.main()
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["overlap_critic"], r["status"]) for r in rows] == [(True, "ok"), (False, "ok")], rows
+    for r in rows:
+        assert r["critic_overlapped"] is False and r["critic_ms"] > 0 and r["iter_ms"] > r["fwd_ms"] > 0

@@ -160,6 +160,27 @@ def test_captured_iterations_match_eager(task, mode, renderer):
             assert b[k] == pytest.approx(a[k], rel=tol, abs=1e-5), (i, k, a[k], b[k])
 
 
+def test_critic_fit_beside_the_backward_gives_the_numbers_of_the_fit_after_it():
+    """overlap_critic: a replayed window fits the critic on its own stream while the backward replays. It must
+    start after the forward wrote this window's buffers and finish before the target update: the critic, the
+    target critic and the actor after six iterations equal those of fitting after the backward."""
+    def run(overlap: bool):
+        cfg = SHACConfig(task="cartpole", mode="decoupled", num_envs=8, horizon=4, iters=100, cosine_every=0,
+                         critic_iterations=2, image_size=48, seed=3, compile=True, overlap_critic=overlap)
+        trainer = SHAC(cfg, device="cuda")
+        return trainer, [trainer.train_iteration() for _ in range(6)]
+
+    (after, m_after), (beside, m_beside) = run(False), run(True)
+    assert [m["critic_overlapped"] for m in m_beside] == [False, False, True, True, True, True]
+    assert not any(m["critic_overlapped"] for m in m_after)
+    assert all(m["critic_ms"] > 0 for m in m_beside)
+    for name in ("critic", "target_critic", "actor"):
+        a, b = getattr(after, name).state_dict(), getattr(beside, name).state_dict()
+        for k in a:
+            torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=lambda m, k=k, n=name: f"{n}.{k}: {m}")
+    assert [m["critic_loss"] for m in m_beside] == pytest.approx([m["critic_loss"] for m in m_after], rel=1e-5)
+
+
 def test_probe_window_runs_eagerly_once_before_its_capture():
     """Probes switched on after the plain window is captured (as benchmarks/iteration.py does): the first
     probe iteration runs eagerly (compiling the grad-mode render), the next is captured and replayed."""
