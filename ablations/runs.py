@@ -263,6 +263,8 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
         "median_fwd_ms": med("fwd_ms", plain),
         "median_bwd_ms": med("bwd_ms", plain),
         "median_critic_ms": med("critic_ms", plain),
+        # the critic fit ran alongside the backward (CUDA graphs, overlap_critic): its ms are not in iter_ms
+        "critic_overlapped": any(r.get("critic_overlapped", False) for r in plain),
         "median_iter_ms": med("iter_ms", plain),
         "median_iter_ms_probed": med("iter_ms", probed),
         "median_grad_norm": med("grad_norm", rows),

@@ -80,7 +80,7 @@ def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_crit
             trainer.train_iteration()
         row["warmup_s"] = time.perf_counter() - t0
         rows = [trainer.train_iteration() for _ in range(args.iters)]
-        row["critic_overlapped"] = all(r["critic_overlapped"] for r in rows)
+        row["critic_overlapped"] = bool(rows) and all(r["critic_overlapped"] for r in rows)
         for k in KEYS:
             vals = [r[k] for r in rows if r.get(k) is not None]
             row[k] = median(vals) if vals else None

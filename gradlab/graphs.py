@@ -1,14 +1,14 @@
 """CUDA-graph capture and replay of a SHAC iteration, behind two small objects the trainer calls every iteration.
 
-``WindowGraphs.run(iteration=, probe=)`` runs one window's forward (rollout + loss), backward and critic fit,
-eagerly or by replaying the CUDA graphs captured from them; ``GraphedCriticPhase(buf)`` is the critic fit's
-graph. With capture off (the CPU, or no ``--compile``) they are the eager calls they wrap, so the trainer reads
-the same either way (docs/design.md, "CUDA graphs").
+``WindowGraphs.run(iteration=, probe=)`` runs one window's forward (rollout + loss) and backward, eagerly or by
+replaying the CUDA graphs captured from it; ``GraphedCriticPhase(buf)`` runs the critic fit the same way. With
+capture off (the CPU, or no ``--compile``) both are the eager calls they wrap, so the trainer reads the same
+either way (docs/design.md, "CUDA graphs").
 
 The critic fit reads only the forward's buffers and writes only the critic and its optimiser, and the actor's
-backward never reads either, so a replayed window runs the fit on a second stream while the backward runs: the
-same numbers, and its time hidden behind the backward's (both are chains of small kernels that leave most of
-the GPU idle).
+backward never reads either, so a replayed window may run the fit's graph on a second stream while the backward
+replays: the same numbers, and its time hidden behind the backward's (both are chains of small kernels that
+leave most of the GPU idle).
 
 A captured graph replays fixed device addresses: every tensor it reads or writes must be the same tensor
 object at every replay. ``LiveState`` is why that holds for the state one window hands to the next (task
@@ -79,7 +79,8 @@ class Window:
     loss: the actor loss (0-d); buffers: the rollout's (T, B, ...) buffers; probe_metrics: 0-d tensors of a
     probe iteration (empty otherwise); saved_bytes: bytes autograd kept for backward; memory: the peak memory
     of forward and backward (a capture is outside it); replayed: the window ran as a CUDA-graph replay;
-    critic_loss: what the critic fit returned (None without one); overlapped: the fit ran alongside the backward.
+    critic_loss: the critic fit's loss where the fit ran alongside the backward (``overlapped``), else None
+    (the trainer fits the critic after the actor's step).
     """
 
     loss: torch.Tensor
@@ -106,10 +107,10 @@ class _CapturedWindow:
         pool = torch.cuda.graph_pool_handle()
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         torch.cuda.synchronize(owner.device)
-        with torch.cuda.graph(self.fwd, pool=pool):
+        with torch.cuda.graph(self.fwd, pool=pool, stream=owner.capture_stream):
             with SavedTensorMeter() as saved:
                 self.loss, self.buffers = owner.forward(probe)
-        with torch.cuda.graph(self.bwd, pool=pool):
+        with torch.cuda.graph(self.bwd, pool=pool, stream=owner.capture_stream):
             self.probe_metrics = owner.backward(self.loss, probe)
             owner.commit()
         self.saved_bytes = saved.bytes
@@ -131,19 +132,25 @@ class WindowGraphs:
         timer: times the regions "fwd", "bwd" and "critic" (a capture is outside them).
         device: the device the window runs on.
         capture: capture and replay (a CUDA device and ``--compile``); False runs every window eagerly.
-        critic: ``critic(buffers) -> loss``, the critic fit on the window's buffers, run after the backward;
-            None: no critic fit here.
-        overlap_critic: a replayed window runs a captured critic fit (``GraphedCriticPhase``) on the fit's
-            own stream while the backward replays, instead of after it.
+        critic: the critic fit's graph, run on its own stream while a replayed backward replays (once it is
+            captured); None: the window never runs the fit (the trainer runs it after the actor's step).
     """
 
     def __init__(self, *, forward: Callable[[bool], tuple[torch.Tensor, dict]],
                  backward: Callable[[torch.Tensor, bool], dict], commit: Callable[[], None],
                  params: list[torch.nn.Parameter], timer: RegionTimer, device: torch.device, capture: bool,
-                 critic: Callable[[dict], torch.Tensor] | None = None, overlap_critic: bool = False):
+                 critic: GraphedCriticPhase | None = None):
         self.forward, self.backward, self.commit = forward, backward, commit
         self.params, self.timer, self.device, self.capture = params, timer, device, capture
-        self.critic, self.overlap_critic = critic, overlap_critic
+        self.critic = critic
+        # The window's graphs are captured on a stream of their own, never the critic's: cuBLAS keeps a
+        # workspace per stream, a graph keeps the one it was captured with, and two graphs that replay at once
+        # must not share one. (Streams come from a pool that repeats every 32 draws.)
+        self.capture_stream = None
+        if capture:
+            self.capture_stream = torch.cuda.Stream(device)
+            if critic is not None and self.capture_stream == critic.stream:
+                self.capture_stream = torch.cuda.Stream(device)
         self.captured: dict[bool, _CapturedWindow] = {}  # plain (False) and probe (True) windows
         self._eager_runs = {False: 0, True: 0}
         if capture:
@@ -159,8 +166,7 @@ class WindowGraphs:
             self._eager_runs[probe] += 1
         elif probe not in self.captured:
             self.captured[probe] = _CapturedWindow(self, probe=probe)
-        overlap = (replay and self.overlap_critic and isinstance(self.critic, GraphedCriticPhase)
-                   and self.critic.graph is not None)
+        overlap = replay and self.critic is not None and self.critic.graph is not None
         critic_loss = None
         with MemoryProbe(self.device) as memory:
             if replay:
@@ -183,9 +189,6 @@ class WindowGraphs:
                     probe_metrics = self.backward(loss, probe)
                     self.commit()
                 saved_bytes = saved.bytes
-        if self.critic is not None and not overlap:
-            with self.timer("critic"):
-                critic_loss = self.critic(buffers)
         return Window(loss, buffers, probe_metrics, saved_bytes, memory, replay, critic_loss, overlap)
 
     def _critic_beside(self, backward: torch.cuda.CUDAGraph, buffers: dict) -> torch.Tensor:
@@ -208,9 +211,8 @@ class GraphedCriticPhase:
     replaying, on the current stream. The critic's Adam must be ``capturable`` with its learning rate in a
     tensor that the decay updates in place.
 
-    The fit runs and is captured on its own ``stream``: cuBLAS keeps a workspace per stream and a graph keeps
-    the one it was captured with, so this graph can replay beside the window's graphs (captured on PyTorch's
-    default capture stream) without sharing one.
+    The fit runs and is captured on its own ``stream`` (cuBLAS keeps a workspace per stream and a graph keeps
+    the one it was captured with), so that it can replay beside the window's graphs, captured on another.
 
     Args:
         phase: ``phase(buffers) -> critic loss`` (0-d); reads ``KEYS`` of the buffers.

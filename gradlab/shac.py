@@ -13,9 +13,9 @@ One iteration, top to bottom (docs/design.md, "A SHAC window"):
    differentiated twice over the same graph, gate open and closed: the full and the decoupled gradient of the
    SAME rollout; the training mode's gradient is the one applied. The probe also splits their difference by
    the actor's parameter groups and measures the policy's sensitivity to each frame of its stack.
-4. Critic fit on TD(lambda) targets of the window (independent of the actor's gradient: a replayed window runs it
-   alongside the backward).
-5. Clip, Adam step with a linear LR decay; Polyak-update the target critic.
+4. Clip, Adam step with a linear LR decay.
+5. Critic fit on TD(lambda) targets of the window; Polyak-update the target critic. The fit is independent of
+   the actor's gradient, so with CUDA graphs it runs alongside the backward of step 3 (``overlap_critic``).
 
 With ``--compile`` on a CUDA device the window (steps 1-3) and the critic fit are CUDA graphs replayed every
 iteration; ``gradlab.graphs`` holds that machinery, and this module calls it the same way either way.
@@ -141,7 +141,8 @@ class SHAC:
                            else self._fit_critic)
         self.window = WindowGraphs(forward=self._window_forward, backward=backward, commit=self._commit_state,
                                    params=list(self.actor.parameters()), timer=self.timer, device=self.device,
-                                   capture=self.graphs, critic=self.critic_fit, overlap_critic=cfg.overlap_critic)
+                                   capture=self.graphs,
+                                   critic=self.critic_fit if self.graphs and cfg.overlap_critic else None)
 
     def _render_options(self) -> dict:
         cfg = self.cfg
@@ -321,7 +322,9 @@ class SHAC:
     def _fit_critic(self, buf: dict) -> torch.Tensor:
         """TD(lambda) targets of the window and the critic fit on them; returns the critic loss. It reads only
         the window's buffers and writes only the critic and its optimiser, so it may run alongside the actor's
-        backward (``SHACConfig.overlap_critic``); the target critic's update waits for both."""
+        backward (``SHACConfig.overlap_critic``); the target critic's update waits for both. Overlapped, a window
+        whose actor step then aborts (non-finite or runaway gradient) has fitted the critic already; the run
+        stops there either way and keeps no checkpoint of it."""
         cfg = self.cfg
         targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma, lam=cfg.lam)
         return fit_critic(self.critic, self.critic_opt, buf["critic_obs"].flatten(0, 1), targets.flatten(),
@@ -366,13 +369,13 @@ class SHAC:
         self.timer.reset()
         self._set_learning_rates()
 
-        # Actor: rollout window, loss and backward, timed ("fwd", "bwd") and memory-probed as one region; the
-        # critic fit on the window's buffers ("critic"), alongside a replayed backward or after it.
+        # Actor: rollout window, loss and backward, timed ("fwd", "bwd") and memory-probed as one region; with
+        # overlap_critic a replayed window also fits the critic ("critic") alongside its backward.
         self._announce_capture(probe)
         if self.graphs and self.critic_fit.graph is None:
             self.compile_watch.announce("capturing CUDA graph (critic fit)")
         window = self.window.run(iteration=self.iteration, probe=probe)
-        loss, buf, critic_loss = window.loss, window.buffers, window.critic_loss
+        loss, buf = window.loss, window.buffers
         params = list(self.actor.parameters())
         gn = nn.utils.clip_grad_norm_(params, cfg.grad_clip)
         gn_clipped = flat_grad(params).norm()
@@ -383,7 +386,14 @@ class SHAC:
                 f"iteration {self.iteration}: actor gradient norm {gn_value:.3g} exceeds abort_grad_norm "
                 f"{cfg.abort_grad_norm:.3g} (the reference stops here too)")
         self.actor_opt.step()
-        # The target critic follows the fitted critic (after the backward, which differentiated through it).
+
+        # Critic on TD(lambda) targets of the window (unless it ran alongside the backward), then the target
+        # network (after the backward, which differentiated through it).
+        if window.overlapped:
+            critic_loss = window.critic_loss
+        else:
+            with self.timer("critic"):
+                critic_loss = self.critic_fit(buf)
         polyak_update(self.target_critic, self.critic, cfg.target_alpha)
         self.obs_rms.update(buf["raw_obs"])
 

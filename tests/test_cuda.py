@@ -7,13 +7,18 @@ CPU, and one SHAC iteration per mode with the GPU's peak-memory probes filled in
 
 from __future__ import annotations
 
+import contextlib
+import types
+
 import mujoco
 import numpy as np
 import pytest
 import torch
 
 import tasks
-from gradlab import SHAC, SHACConfig
+from gradlab import SHAC, SHACConfig, graphs
+from gradlab.graphs import GraphedCriticPhase
+from gradlab.timing import RegionTimer
 from tasks.vision import TaskRenderer
 
 pytestmark = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
@@ -160,25 +165,83 @@ def test_captured_iterations_match_eager(task, mode, renderer):
             assert b[k] == pytest.approx(a[k], rel=tol, abs=1e-5), (i, k, a[k], b[k])
 
 
-def test_critic_fit_beside_the_backward_gives_the_numbers_of_the_fit_after_it():
-    """overlap_critic: a replayed window fits the critic on its own stream while the backward replays. It must
-    start after the forward wrote this window's buffers and finish before the target update: the critic, the
-    target critic and the actor after six iterations equal those of fitting after the backward."""
+class _UnsyncedTimer(RegionTimer):
+    """The trainer's timer without its synchronisations (which would order the streams themselves): every
+    region reads 0 ms, so only the code's own stream waits order the work."""
+
+    @contextlib.contextmanager
+    def __call__(self, name):
+        self.ms[name] = 0.0
+        yield
+
+    @contextlib.contextmanager
+    def concurrent(self, name, stream):
+        self.ms[name] = 0.0
+        yield
+
+
+class _NoMemoryProbe:
+    def __init__(self, device):
+        self.peak_alloc_mb = self.peak_reserved_mb = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+
+def test_critic_fit_beside_the_backward_gives_the_numbers_of_the_fit_after_it(monkeypatch):
+    """overlap_critic: a replayed window fits the critic on its own stream while the backward replays. The fit
+    must start after the forward wrote this window's buffers, and the main stream must wait for it before the
+    target update and the next forward. Timers that synchronise would order the streams by themselves, so they
+    are replaced; the forward's replay and the fit each start late (GPU sleeps, the forward's longer), so that a
+    missing wait reads stale buffers or an unfitted critic. The critic, the target critic and the actor after
+    seven iterations equal those of fitting after the backward, and the two kinds of graph are captured on
+    different streams (cuBLAS workspaces)."""
+    sleep = int(2e7)  # GPU clock cycles: ~10 ms
+    fit = GraphedCriticPhase.__call__
+
+    def late_fit(self, buffers):
+        torch.cuda._sleep(sleep)
+        return fit(self, buffers)
+
     def run(overlap: bool):
         cfg = SHACConfig(task="cartpole", mode="decoupled", num_envs=8, horizon=4, iters=100, cosine_every=0,
                          critic_iterations=2, image_size=48, seed=3, compile=True, overlap_critic=overlap)
         trainer = SHAC(cfg, device="cuda")
-        return trainer, [trainer.train_iteration() for _ in range(6)]
+        metrics = [trainer.train_iteration() for _ in range(3)]  # the third captures and replays the window
+        if overlap:
+            assert trainer.window.capture_stream != trainer.critic_fit.stream
+        window = trainer.window.captured[False]
+        forward = window.fwd
+        window.fwd = types.SimpleNamespace(replay=lambda: (torch.cuda._sleep(3 * sleep), forward.replay()))
+        with monkeypatch.context() as m:
+            m.setattr(GraphedCriticPhase, "__call__", late_fit)
+            m.setattr(graphs, "MemoryProbe", _NoMemoryProbe)
+            trainer.timer.__class__ = _UnsyncedTimer
+            metrics += [trainer.train_iteration() for _ in range(4)]
+        torch.cuda.synchronize()
+        return trainer, metrics
 
     (after, m_after), (beside, m_beside) = run(False), run(True)
-    assert [m["critic_overlapped"] for m in m_beside] == [False, False, True, True, True, True]
+    assert [m["critic_overlapped"] for m in m_beside] == [False, False, True, True, True, True, True]
     assert not any(m["critic_overlapped"] for m in m_after)
-    assert all(m["critic_ms"] > 0 for m in m_beside)
     for name in ("critic", "target_critic", "actor"):
         a, b = getattr(after, name).state_dict(), getattr(beside, name).state_dict()
         for k in a:
             torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=lambda m, k=k, n=name: f"{n}.{k}: {m}")
     assert [m["critic_loss"] for m in m_beside] == pytest.approx([m["critic_loss"] for m in m_after], rel=1e-5)
+
+
+def test_critic_fit_beside_the_backward_is_timed_on_its_stream():
+    """With the trainer's own timers the overlapped fit reports its own (non-zero) milliseconds."""
+    cfg = SHACConfig(task="cartpole", mode="decoupled", num_envs=8, horizon=4, iters=100, cosine_every=0,
+                     critic_iterations=2, image_size=48, seed=3, compile=True)
+    trainer = SHAC(cfg, device="cuda")
+    metrics = [trainer.train_iteration() for _ in range(4)]
+    assert [m["critic_overlapped"] for m in metrics] == [False, False, True, True]
+    assert all(m["critic_ms"] > 0 and m["bwd_ms"] > 0 for m in metrics)
 
 
 def test_probe_window_runs_eagerly_once_before_its_capture():
