@@ -68,7 +68,7 @@ class RegionTimer:
 
     @contextmanager
     def concurrent(self, name: str, stream: torch.cuda.Stream):
-        """Time CUDA work launched on ``stream`` while another region runs on the current stream.
+        """Time CUDA work launched on ``stream`` while another region runs on the current stream (CUDA only).
 
         Events on ``stream`` bracket the work, without a synchronisation (which would serialise the two); its
         milliseconds are added when the enclosing region ends (its device-wide synchronisation has completed
@@ -86,9 +86,9 @@ class RegionTimer:
         self.ms[name] = self.ms.get(name, 0.0) + ms
 
     def _settle(self) -> None:
-        for name, start, end in self._pending:
+        pending, self._pending = self._pending, []
+        for name, start, end in pending:
             self._add(name, start.elapsed_time(end))
-        self._pending.clear()
 
     def reset(self) -> None:
         self.ms.clear()
