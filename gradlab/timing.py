@@ -3,8 +3,8 @@
 CUDA work is asynchronous: a region is timed with CUDA events recorded on the current stream and read after
 a synchronisation, so the number is the device time of everything launched inside the region. Work launched on
 a second stream to run alongside a region is timed by events on that stream (``RegionTimer.concurrent``). On
-the CPU a perf_counter pair is the same thing. Peak memory is read after ``reset_peak_memory_stats`` so each region
-reports its own peak, allocated (tensors) and reserved (the caching allocator's footprint). What a region
+the CPU a perf_counter pair is the same thing. Peak memory is read after ``reset_peak_memory_stats`` so each
+region reports its own peak, allocated (tensors) and reserved (the caching allocator's footprint). What a region
 keeps for backward is measured by :class:`diffrender.profiling.SavedTensorMeter` (re-exported here), the one
 meter the renderer's tests, its benchmark and the trainer share.
 """
