@@ -41,7 +41,13 @@ from gradlab.checkpoint import (
     prune_checkpoints,
     save_checkpoint,
 )
-from gradlab.compiling import CompileCache, CompileCacheWarning, compile_counters, resolve_cache_root
+from gradlab.compiling import (
+    CompileCache,
+    CompileCacheWarning,
+    compile_counters,
+    compile_phase_seconds,
+    resolve_cache_root,
+)
 from gradlab.config import SHACConfig, resolve_config
 from gradlab.presets import preset_record
 from gradlab.probes import NonFiniteError
@@ -517,7 +523,7 @@ def run(cfg: RunConfig) -> Path:
                 _save_compile_cache(cache, cache_label)
             compiled = {"cache": None if cache is None else str(cache.folder),
                         "artifacts_loaded": {} if cache is None else cache.loaded,
-                        **watch.summary(), **compile_counters()}
+                        **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,
                                                              first_iter_s=first_iter_s, compiled=compiled,
                                                              startup=startup))

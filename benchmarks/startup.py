@@ -33,7 +33,12 @@ ROOT = Path(__file__).resolve().parents[1]
 #: summary.json["compile"] keys copied into each row
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
-                "artifacts_loaded")
+                "artifacts_loaded", "phase_s")
+#: compile phases printed per run (summary.json["compile"]["phase_s"] has them all; gradlab.compiling.KEY_PHASES)
+PRINTED_PHASES = {"bytecode_tracing": "dynamo trace", "aot_trace_joint_graph": "AOT joint trace",
+                  "GraphLowering.run": "lowering", "Scheduler.__init__": "fusion", "Scheduler.codegen": "kernel code",
+                  "async_compile.wait": "Triton compile wait", "CachingAutotuner.benchmark_all_configs": "autotune",
+                  "PyCodeCache.load_by_key_path": "module load"}
 
 
 def ablate_command(task: str, mode: str, args, *, cache: Path, runs: Path, name: str) -> list[str]:
@@ -150,6 +155,12 @@ def main(argv: list[str] | None = None) -> dict:
         by_part = " ".join(f"{k} {fmt(v)}" for k, v in sorted((r.get("compile_s_by_part") or {}).items(),
                                                                key=lambda kv: -kv[1]))
         print(f"{r['task']} {r['mode']} {r['phase']}: {parts} | compiling: {by_part}")
+    print("\ninside the compiler (torch's phase times, nested: they do not add up)")
+    for r in doc["rows"]:
+        phases = r.get("phase_s") or {}
+        if r["status"] != "error" and phases:
+            print(f"{r['task']} {r['mode']} {r['phase']}: "
+                  + " ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases))
     return doc
 
 

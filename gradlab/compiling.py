@@ -42,7 +42,7 @@ import torch
 from gradlab.checkpoint import atomic_write_bytes, atomic_write_json
 
 __all__ = ["CACHE_ENV_VAR", "DEFAULT_CACHE_ROOT", "CompileCache", "CompileCacheWarning", "CompileWatch",
-           "cache_versions", "compile_counters", "resolve_cache_root"]
+           "cache_versions", "compile_counters", "compile_phase_seconds", "resolve_cache_root"]
 
 #: Environment variable naming the cache root (a path, or ``off`` for torch's own cache locations).
 CACHE_ENV_VAR = "PIXELGRAD_COMPILE_CACHE"
@@ -288,6 +288,34 @@ def compile_counters() -> dict:
         "autograd_cache_bypass": aot["autograd_cache_bypass"],
         "unique_graphs": stats["unique_graphs"],
     }
+
+
+#: The phases of torch's compile-time table that say where a start goes, as ``compile_phase_seconds`` reports
+#: them first: dynamo's tracing and guards, AOTAutograd's joint trace, inductor's lowering, fusion decisions and
+#: kernel writing, the wait for Triton's compiler workers and for autotuning, and loading compiled modules.
+KEY_PHASES = ("_compile.compile_inner", "bytecode_tracing", "build_guards", "aot_trace_joint_graph",
+              "compile_fx_inner", "GraphLowering.run", "Scheduler.__init__", "Scheduler.codegen",
+              "async_compile.wait", "CachingAutotuner.benchmark_all_configs", "PyCodeCache.load_by_key_path")
+
+
+def compile_phase_seconds() -> dict[str, float]:
+    """Seconds this process's compilations spent in each phase torch times (dynamo's ``compile_times`` table,
+    summed over every compiled function), ``KEY_PHASES`` first. Phases nest (``compile_fx_inner`` contains
+    ``Scheduler.codegen``), so they do not add up. Empty where this torch keeps no such table: it is a private
+    one, and its absence costs the breakdown, never the run."""
+    try:
+        from torch._dynamo.utils import compile_times
+
+        names, values = compile_times(repr="csv", aggregate=True)
+    except Exception:
+        return {}
+    seconds = {}
+    for name, value in zip(names, values):
+        try:
+            seconds[str(name)] = round(float(value), 3)
+        except (TypeError, ValueError):
+            continue
+    return {**{k: seconds[k] for k in KEY_PHASES if k in seconds}, **seconds}
 
 
 # ---------------------------------------------------------------------------------------------- CompileWatch
