@@ -34,7 +34,9 @@ ROOT = Path(__file__).resolve().parents[1]
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
                 "artifacts_loaded", "phase_s")
-#: compile phases printed per run (summary.json["compile"]["phase_s"] has them all; gradlab.compiling.KEY_PHASES)
+#: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
+#: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
+#: compiler workers, autotuning, and loading compiled modules (also from the cache)
 PRINTED_PHASES = {"bytecode_tracing": "dynamo trace", "aot_trace_joint_graph": "AOT joint trace",
                   "GraphLowering.run": "lowering", "Scheduler.__init__": "fusion", "Scheduler.codegen": "kernel code",
                   "async_compile.wait": "Triton compile wait", "CachingAutotuner.benchmark_all_configs": "autotune",

@@ -290,17 +290,11 @@ def compile_counters() -> dict:
     }
 
 
-#: The phases of torch's compile-time table that say where a start goes, as ``compile_phase_seconds`` reports
-#: them first: dynamo's tracing and guards, AOTAutograd's joint trace, inductor's lowering, fusion decisions and
-#: kernel writing, the wait for Triton's compiler workers and for autotuning, and loading compiled modules.
-KEY_PHASES = ("_compile.compile_inner", "bytecode_tracing", "build_guards", "aot_trace_joint_graph",
-              "compile_fx_inner", "GraphLowering.run", "Scheduler.__init__", "Scheduler.codegen",
-              "async_compile.wait", "CachingAutotuner.benchmark_all_configs", "PyCodeCache.load_by_key_path")
-
-
 def compile_phase_seconds() -> dict[str, float]:
     """Seconds this process's compilations spent in each phase torch times (dynamo's ``compile_times`` table,
-    summed over every compiled function), ``KEY_PHASES`` first. Phases nest (``compile_fx_inner`` contains
+    summed over every compiled function): e.g. ``bytecode_tracing`` (dynamo), ``aot_trace_joint_graph``,
+    ``Scheduler.codegen`` (inductor writing kernels), ``async_compile.wait`` (Triton's compiler workers),
+    ``PyCodeCache.load_by_key_path`` (loading compiled modules). Phases nest (``compile_fx_inner`` contains
     ``Scheduler.codegen``), so they do not add up. Empty where this torch keeps no such table: it is a private
     one, and its absence costs the breakdown, never the run."""
     try:
@@ -315,7 +309,7 @@ def compile_phase_seconds() -> dict[str, float]:
             seconds[str(name)] = round(float(value), 3)
         except (TypeError, ValueError):
             continue
-    return {**{k: seconds[k] for k in KEY_PHASES if k in seconds}, **seconds}
+    return seconds
 
 
 # ---------------------------------------------------------------------------------------------- CompileWatch

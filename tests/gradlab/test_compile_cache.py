@@ -208,16 +208,15 @@ def test_the_watch_names_the_part_that_compiles_and_counts_recompiles():
 
 
 def test_the_compile_phases_say_where_compiling_went(monkeypatch):
-    """compile_phase_seconds: torch's own phase times of this process, the key phases first; nested phases are
-    within the ones that contain them; a torch without the table gives an empty breakdown, not an error."""
-    from gradlab.compiling import KEY_PHASES, compile_phase_seconds
+    """compile_phase_seconds: torch's own phase times of this process, in seconds; nested phases are within the
+    ones that contain them; a torch without the table gives an empty breakdown, not an error."""
+    from gradlab.compiling import compile_phase_seconds
 
     torch.compile(lambda x: x.sin() * 3.0, backend="eager", dynamic=False)(torch.ones(4))
     phases = compile_phase_seconds()
     assert phases["_compile.compile_inner"] > 0
     assert 0 < phases["bytecode_tracing"] <= phases["_compile.compile_inner"]
-    present = [k for k in KEY_PHASES if k in phases]
-    assert list(phases)[:len(present)] == present and all(isinstance(v, float) for v in phases.values())
+    assert all(isinstance(v, float) for v in phases.values())
 
     import torch._dynamo.utils as dynamo_utils
 
