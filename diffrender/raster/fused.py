@@ -324,6 +324,19 @@ if triton is not None:
         return sd, zn, ar * shade, ag * shade, ab * shade
 
     @triton.jit
+    def _face_chunk(cbase, fbox, fo, Fp, blk, h, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse,
+                    FB: tl.constexpr, FS: tl.constexpr):
+        """The ``FS`` faces ``h`` of block ``blk`` at the tile's pixels, as both forward passes walk them
+        (``cbase``, ``fbox``: the environment's coefficients and face boxes; ``fo``: ``arange(FS)``): their
+        indices (FS,), whether each pixel centre lies in each face's box, and each pair's signed distance,
+        normalised depth and colour (``_candidate``), each (FS, P)."""
+        f = blk * FB + h * FS + fo
+        inbox = _in_face_box(fbox, f, Fp, xc, yc)
+        sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                        ambient, diffuse)
+        return f, inbox, sd, zn, cr, cg, cb
+
+    @triton.jit
     def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp,
                     NB, NSB, sb0, NSPLIT,
                     xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
@@ -334,17 +347,15 @@ if triton is not None:
         also the faces' weight sum and coverage sum."""
         fo = tl.arange(0, FS)
         cbase = coef_ptr + env * 45 * Fp
+        fbox = box_ptr + env * 4 * Fp
         for sb in range(sb0, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
             if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
                 for j in range(0, SB):
                     blk = sb * SB + j
                     if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
                         for h in range(0, FB // FS):  # FS faces at a time: fewer registers per thread
-                            f = blk * FB + h * FS + fo
-                            inbox = _in_face_box(box_ptr + env * 4 * Fp, f, Fp, xc, yc)
-                            cp = cbase + f[:, None]
-                            sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                                            ambient, diffuse)
+                            _, inbox, sd, zn, cr, cg, cb = _face_chunk(cbase, fbox, fo, Fp, blk, h, xc, yc, zfar, znear,
+                                                                       lx, ly, lz, ambient, diffuse, FB, FS)
                             keep = inbox & inb[None, :] & (sd > -cutoff)
                             m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
                             scale = tl.exp((m - m_new) / gamma)
@@ -370,17 +381,15 @@ if triton is not None:
         -1 for none) and its normalised depth."""
         fo = tl.arange(0, FS)
         cbase = coef_ptr + env * 45 * Fp
+        fbox = box_ptr + env * 4 * Fp
         for sb in range(sb0, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
             if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
                 for j in range(0, SB):
                     blk = sb * SB + j
                     if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                        for h in range(0, FB // FS):  # FS faces at a time: fewer registers per thread
-                            f = blk * FB + h * FS + fo
-                            inbox = _in_face_box(box_ptr + env * 4 * Fp, f, Fp, xc, yc)
-                            cp = cbase + f[:, None]
-                            sd, zn, cr, cg, cb = _candidate(cp, Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                                            ambient, diffuse)
+                        for h in range(0, FB // FS):
+                            f, inbox, sd, zn, cr, cg, cb = _face_chunk(cbase, fbox, fo, Fp, blk, h, xc, yc, zfar, znear,
+                                                                       lx, ly, lz, ambient, diffuse, FB, FS)
                             keep = inbox & inb[None, :] & (sd >= 0)
                             zk = tl.where(keep, zn, -float("inf"))
                             best = tl.max(zk, axis=0)
