@@ -46,6 +46,7 @@ from gradlab.compiling import (
     CompileCacheWarning,
     compile_counters,
     compile_phase_seconds,
+    compiled_graphs,
     resolve_cache_root,
 )
 from gradlab.config import SHACConfig, resolve_config
@@ -523,7 +524,8 @@ def run(cfg: RunConfig) -> Path:
                 _save_compile_cache(cache, cache_label)
             compiled = {"cache": None if cache is None else str(cache.folder),
                         "artifacts_loaded": {} if cache is None else cache.loaded,
-                        **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds()}
+                        **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds(),
+                        "graphs": compiled_graphs()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,
                                                              first_iter_s=first_iter_s, compiled=compiled,
                                                              startup=startup))

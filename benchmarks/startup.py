@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: summary.json["compile"] keys copied into each row
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
-                "artifacts_loaded", "phase_s")
+                "artifacts_loaded", "phase_s", "graphs", "triton_compiles", "triton_compile_s", "triton_cache_hits")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)
@@ -41,6 +41,9 @@ PRINTED_PHASES = {"bytecode_tracing": "dynamo trace", "aot_trace_joint_graph": "
                   "GraphLowering.run": "lowering", "Scheduler.__init__": "fusion", "Scheduler.codegen": "kernel code",
                   "async_compile.wait": "Triton compile wait", "CachingAutotuner.benchmark_all_configs": "autotune",
                   "PyCodeCache.load_by_key_path": "module load"}
+
+#: graphs printed per run, slowest first (summary.json["compile"]["graphs"] has them all)
+PRINTED_GRAPHS = 8
 
 
 def ablate_command(task: str, mode: str, args, *, cache: Path, runs: Path, name: str) -> list[str]:
@@ -162,7 +165,16 @@ def main(argv: list[str] | None = None) -> dict:
         phases = r.get("phase_s") or {}
         if r["status"] != "error" and phases:
             print(f"{r['task']} {r['mode']} {r['phase']}: "
-                  + " ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases))
+                  + " ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases)
+                  + f" | Triton in-process: {r.get('triton_compiles')} compiled in {fmt(r.get('triton_compile_s'))}"
+                  + f", {r.get('triton_cache_hits')} from its cache")
+    print(f"\nthe {PRINTED_GRAPHS} slowest graphs (seconds: whole compilation, inductor's part; FX nodes of a forward)")
+    for r in doc["rows"]:
+        graphs = (r.get("graphs") or [])[:PRINTED_GRAPHS]
+        if r["status"] != "error" and graphs:
+            print(f"{r['task']} {r['mode']} {r['phase']}: " + "; ".join(
+                f"{g['name']} [{g['compile_id']}] {g['kind']} {fmt(g['s'])}/{fmt(g['inductor_s'])}"
+                + (f" ({g['nodes']} nodes)" if g.get("nodes") else "") for g in graphs))
     return doc
 
 

@@ -42,7 +42,7 @@ import torch
 from gradlab.checkpoint import atomic_write_bytes, atomic_write_json
 
 __all__ = ["CACHE_ENV_VAR", "DEFAULT_CACHE_ROOT", "CompileCache", "CompileCacheWarning", "CompileWatch",
-           "cache_versions", "compile_counters", "compile_phase_seconds", "resolve_cache_root"]
+           "cache_versions", "compile_counters", "compile_phase_seconds", "compiled_graphs", "resolve_cache_root"]
 
 #: Environment variable naming the cache root (a path, or ``off`` for torch's own cache locations).
 CACHE_ENV_VAR = "PIXELGRAD_COMPILE_CACHE"
@@ -312,9 +312,48 @@ def compile_phase_seconds() -> dict[str, float]:
     return seconds
 
 
+def compiled_graphs() -> list[dict]:
+    """One record per graph this process compiled (or loaded from the caches), slowest first: which function
+    (``name``, with dynamo's ``compile_id`` "frame/attempt"; a backward graph has its forward's), ``kind``
+    (``forward`` or ``backward``), seconds of the whole compilation (``s``, dynamo's tracing included for a
+    forward; None where torch did not time it) and of inductor's part (``inductor_s``), the FX graph's node
+    count (``nodes``, forwards only) and whether inductor's FX graph cache missed (``cache_miss``). From torch's
+    own per-compilation records (``torch._dynamo.utils.get_compilation_metrics``); empty where this torch keeps
+    none. This is where a cold start's minutes go, graph by graph."""
+    try:
+        from torch._dynamo.utils import get_compilation_metrics
+
+        metrics = list(get_compilation_metrics())
+    except Exception:
+        return []
+
+    def seconds(value: Any, scale: float = 1.0) -> float | None:
+        return None if value is None else round(float(value) * scale, 3)
+
+    names, graphs = {}, []
+    for m in metrics:
+        get = functools.partial(getattr, m)
+        compile_id = str(get("compile_id", "") or "")
+        forward = get("is_forward", None) is not False
+        if forward and get("co_name", None):
+            names[compile_id] = get("co_name")
+        total = get("entire_frame_compile_time_s", None) if forward else None
+        if total is None and not forward:
+            total = seconds(get("backward_cumulative_compile_time_us", None), 1e-6)
+        misses = get("inductor_fx_local_cache_miss_count", None)
+        inductor_s = seconds(get("inductor_compile_time_s", None))
+        graphs.append({"name": names.get(compile_id), "compile_id": compile_id,
+                       "kind": "forward" if forward else "backward", "s": seconds(total), "inductor_s": inductor_s,
+                       "nodes": get("graph_node_count", None) if forward else None,
+                       "cache_miss": None if misses is None or inductor_s is None else bool(misses)})
+    for g in graphs:  # a backward's record may come before its name is known only if torch reorders them
+        g["name"] = g["name"] or names.get(g["compile_id"])
+    return sorted(graphs, key=lambda g: -(g["s"] or g["inductor_s"] or 0.0))
+
+
 # ---------------------------------------------------------------------------------------------- CompileWatch
 _watches: weakref.WeakSet = weakref.WeakSet()
-_hooked = False
+_hooked = _triton_hooked = False
 
 
 def _hook_dynamo() -> bool:
@@ -344,25 +383,58 @@ def _hook_dynamo() -> bool:
     return True
 
 
-def _compile_id(args: Any) -> tuple[str, bool]:
-    """(trigger name, is a recompile) of dynamo's callback arguments (``compile_id`` "frame/attempt")."""
+def _hook_triton() -> bool:
+    """Register one Triton compilation listener for the process (a public knob since Triton 3.4), chaining a
+    listener already set; False where this Triton has none."""
+    global _triton_hooked
+    if _triton_hooked:
+        return True
+    try:
+        from triton import knobs
+    except ImportError:
+        return False
+    compilation = getattr(knobs, "compilation", None)
+    if compilation is None or not hasattr(compilation, "listener"):
+        return False
+    previous = compilation.listener
+
+    def listener(*, src: Any, metadata: Any, metadata_group: Any, times: Any, cache_hit: bool) -> None:
+        for w in list(_watches):
+            with contextlib.suppress(Exception):  # a timing record must never fail a compilation
+                w._triton_compiled(times, cache_hit)
+        if previous is not None:
+            previous(src=src, metadata=metadata, metadata_group=metadata_group, times=times, cache_hit=cache_hit)
+
+    compilation.listener = listener
+    _triton_hooked = True
+    return True
+
+
+def _compile_id(args: Any) -> tuple[str, str, bool]:
+    """(trigger name, compile id, is a recompile) of dynamo's callback arguments (``compile_id`` "frame/attempt";
+    a lazily compiled backward graph carries its forward's)."""
     trigger = getattr(getattr(args, "callback_trigger", None), "name", "DYNAMO")
-    match = re.search(r"(\d+)/(\d+)", str(getattr(args, "compile_id", "")))
-    return trigger, bool(match and int(match.group(2)) > 0)
+    compile_id = str(getattr(args, "compile_id", ""))
+    match = re.search(r"(\d+)/(\d+)", compile_id)
+    return trigger, compile_id, bool(match and int(match.group(2)) > 0)
 
 
 class CompileWatch:
     """This process's compilations, seen from one trainer: how many, how long, and which part is compiling.
 
     ``labelled(part, fn)`` wraps a callable so that a compilation it triggers is reported as compiling that
-    ``part``; ``on_change(text)`` is called with a short status ("compiling physics step (3 done)", a text given
-    to :meth:`announce`, or None when there is nothing to say). Counts every compilation of the process while
-    the watch lives, whichever trainer triggered it.
+    ``part``, and the backward graph of what it compiled, compiled on first use, as ``"<part> backward"``
+    (wherever the backward pass runs). ``on_change(text)`` is called with a short status ("compiling physics
+    step (3 done)", a text given to :meth:`announce`, or None when there is nothing to say). Counts every
+    compilation of the process while the watch lives, whichever trainer triggered it.
 
     Attributes:
         compiles: dynamo frame compilations (recompiles included); recompiles: those of a frame compiled before;
         backward_compiles: backward graphs compiled on first use; compile_s: seconds spent compiling;
-        compile_s_by_part: those seconds by the ``part`` that was compiling ("model" where none was named).
+        compile_s_by_part: those seconds by the ``part`` that was compiling ("model" where none was named);
+        triton_compiles, triton_compile_s, triton_cache_hits: Triton kernels this process compiled itself (the
+        renderer's own; inductor's worker processes compile most of its kernels, and those are in
+        :func:`compile_phase_seconds`), seconds they took, and those loaded from Triton's on-disk cache.
     """
 
     def __init__(self, on_change: Callable[[str | None], None] | None = None):
@@ -370,7 +442,11 @@ class CompileWatch:
         self.compiles = self.recompiles = self.backward_compiles = 0
         self.compile_s = 0.0
         self.compile_s_by_part: dict[str, float] = {}
+        self.triton_compiles = self.triton_cache_hits = 0
+        self.triton_compile_s = 0.0
         self.available = _hook_dynamo()
+        _hook_triton()
+        self._forward_part: dict[str, str] = {}  # compile id -> the part that compiled the forward
         self.text: str | None = None
         self._parts: list[str] = []
         self._started: float | None = None
@@ -408,11 +484,24 @@ class CompileWatch:
 
     def _compile_started(self, args: Any) -> None:
         self._started = time.perf_counter()
-        self._compiling = self._parts[-1] if self._parts else "model"
+        trigger, compile_id, _ = _compile_id(args)
+        label = self._parts[-1] if self._parts else "model"
+        if trigger == "LAZY_BACKWARD" and compile_id in self._forward_part:
+            label = f"{self._forward_part[compile_id]} backward"
+        elif trigger == "DYNAMO":
+            self._forward_part[compile_id] = label
+        self._compiling = label
         self.announce(f"compiling {self._compiling} ({self.done} done)")
 
+    def _triton_compiled(self, times: Any, cache_hit: bool) -> None:
+        if cache_hit:
+            self.triton_cache_hits += 1
+        else:
+            self.triton_compiles += 1
+            self.triton_compile_s += times.total / 1e6  # Triton's CompileTimes are in microseconds
+
     def _compile_ended(self, args: Any) -> None:
-        trigger, recompile = _compile_id(args)
+        trigger, _, recompile = _compile_id(args)
         if trigger == "LAZY_BACKWARD":
             self.backward_compiles += 1
         elif trigger == "DYNAMO":
@@ -426,7 +515,10 @@ class CompileWatch:
             self._started = None
 
     def summary(self) -> dict:
-        """Counts for a run's summary: compiles, recompiles, backward_compiles, compile_s, compile_s_by_part."""
+        """Counts for a run's summary: compiles, recompiles, backward_compiles, compile_s, compile_s_by_part,
+        triton_compiles, triton_compile_s, triton_cache_hits."""
         return {"compiles": self.compiles, "recompiles": self.recompiles,
                 "backward_compiles": self.backward_compiles, "compile_s": self.compile_s,
-                "compile_s_by_part": {k: round(v, 3) for k, v in self.compile_s_by_part.items()}}
+                "compile_s_by_part": {k: round(v, 3) for k, v in self.compile_s_by_part.items()},
+                "triton_compiles": self.triton_compiles, "triton_compile_s": round(self.triton_compile_s, 3),
+                "triton_cache_hits": self.triton_cache_hits}

@@ -207,6 +207,63 @@ def test_the_watch_names_the_part_that_compiles_and_counts_recompiles():
     assert set(watch.summary()["compile_s_by_part"]) == {"physics step", "model"}
 
 
+def test_a_backward_graph_is_named_after_the_part_that_compiled_its_forward():
+    """The lazily compiled backward of a labelled part is that part's ("physics step backward"), whichever label
+    the backward pass itself runs under; compiled_graphs lists forward and backward by function, slowest first."""
+    from gradlab.compiling import compiled_graphs
+
+    shown = []
+    watch = CompileWatch(on_change=shown.append)
+
+    def wobble(x):
+        return (x.sin() * 2.0).cos()
+
+    compiled = watch.labelled("physics step", torch.compile(wobble, backend="aot_eager", dynamic=False))
+    y = compiled(torch.randn(5, requires_grad=True))
+    with watch.part("backward pass"):
+        y.sum().backward()
+    assert shown == ["compiling physics step (0 done)", "compiling physics step backward (1 done)"]
+    assert (watch.compiles, watch.backward_compiles) == (1, 1)
+    assert set(watch.summary()["compile_s_by_part"]) == {"physics step", "physics step backward"}
+    mine = [g for g in compiled_graphs() if g["name"] == "wobble"]
+    assert sorted(g["kind"] for g in mine) == ["backward", "forward"]
+    assert len({g["compile_id"] for g in mine}) == 1  # the backward carries its forward's id
+    forward = next(g for g in mine if g["kind"] == "forward")
+    assert forward["nodes"] >= 3 and forward["s"] > 0
+    assert forward["inductor_s"] is None and forward["cache_miss"] is None  # not inductor: nothing to say
+    every = [g["s"] or g["inductor_s"] or 0.0 for g in compiled_graphs()]
+    assert every == sorted(every, reverse=True)
+
+
+def test_the_watch_counts_triton_kernels_compiled_in_this_process(tmp_path, monkeypatch):
+    """Triton's compilation listener: a kernel built here is a compile with its seconds, the same kernel again
+    is a hit in Triton's on-disk cache. Built for an sm_90 target offline, so no GPU is needed."""
+    triton = pytest.importorskip("triton")
+    import triton.language as tl
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    monkeypatch.setenv("TRITON_CACHE_DIR", str(tmp_path / "triton"))
+
+    @triton.jit
+    def double(x_ptr, n, BLOCK: tl.constexpr):
+        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        tl.store(x_ptr + i, tl.load(x_ptr + i, mask=i < n) * 2.0, mask=i < n)
+
+    watch = CompileWatch()
+    source = ASTSource(fn=double, signature={"x_ptr": "*fp32", "n": "i32", "BLOCK": "constexpr"},
+                       constexprs={(2,): 64})
+    try:
+        triton.compile(source, target=GPUTarget("cuda", 90, 32))
+    except Exception as e:  # a Triton without its NVIDIA backend or ptxas cannot build offline
+        pytest.skip(f"Triton cannot build for sm_90 here: {e}")
+    summary = watch.summary()
+    assert (summary["triton_compiles"], summary["triton_cache_hits"]) == (1, 0)
+    assert summary["triton_compile_s"] > 0
+    triton.compile(source, target=GPUTarget("cuda", 90, 32))
+    assert (watch.triton_compiles, watch.triton_cache_hits) == (1, 1)
+
+
 def test_the_compile_phases_say_where_compiling_went(monkeypatch):
     """compile_phase_seconds: torch's own phase times of this process, in seconds; nested phases are within the
     ones that contain them; a torch without the table gives an empty breakdown, not an error."""
