@@ -131,6 +131,10 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
             fn()
             _sync(device)
         row["warmup_s"] = round(time.perf_counter() - t0, 2)
+        if mode != "eager":  # what compiling cost, graph by graph (cumulative over the process's rows)
+            from gradlab.compiling import compiled_graphs
+
+            row["compiled_graphs"] = compiled_graphs()
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         times = []
