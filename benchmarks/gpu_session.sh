@@ -114,8 +114,11 @@ for spec in "$@"; do
     startup) # time to the first compiled iteration, cold (empty compile cache) then warm, fresh processes; each
        # run's summary and stderr come back (STARTUP_LOGS=recompiles sets TORCH_LOGS for the runs)
        rm -rf /tmp/startup_work
-       TORCH_LOGS=${STARTUP_LOGS:-} run "$secs" python3 benchmarks/startup.py --device cuda --tasks ${TASKS:-ant} \
+       # (an empty TORCH_LOGS makes torch 2.11 fail at import, so it is set only when asked for)
+       [ -n "${STARTUP_LOGS:-}" ] && export TORCH_LOGS=$STARTUP_LOGS
+       run "$secs" python3 benchmarks/startup.py --device cuda --tasks ${TASKS:-ant} \
          --modes ${MODES:-decoupled} --num-envs 64 --work /tmp/startup_work --out "$OUT/startup.json" ${STARTUP_ARGS:-}
+       [ -n "${STARTUP_LOGS:-}" ] && unset TORCH_LOGS
        tar -C /tmp/startup_work -czf "$OUT/startup_runs.tgz" --exclude=checkpoints runs;;
     sweep) # the paper-size memory sweep (eager: peak allocated memory is exact outside CUDA graphs);
        # SWEEP_RENDERER=warp sweeps decoupled rollouts rendered by the ray tracer (SWEEP_MODES=decoupled);
