@@ -33,7 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: summary.json["compile"] keys copied into each row
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
-                "artifacts_loaded", "phase_s", "graphs", "triton_compiles", "triton_compile_s", "triton_cache_hits")
+                "artifacts_loaded", "phase_s", "graphs", "triton_compiles", "triton_compile_s", "triton_cache_hits",
+                "triton_compile_s_by_kernel")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)
@@ -168,6 +169,11 @@ def main(argv: list[str] | None = None) -> dict:
                   + " ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases)
                   + f" | Triton in-process: {r.get('triton_compiles')} compiled in {fmt(r.get('triton_compile_s'))}"
                   + f", {r.get('triton_cache_hits')} from its cache")
+    print("\nTriton kernels compiled in-process, slowest first (seconds)")
+    for r in doc["rows"]:
+        if r["status"] != "error" and r.get("triton_compile_s_by_kernel"):
+            print(f"{r['task']} {r['mode']} {r['phase']}: "
+                  + " ".join(f"{k} {fmt(v, 2)}" for k, v in r["triton_compile_s_by_kernel"].items()))
     print(f"\nthe {PRINTED_GRAPHS} slowest graphs (seconds: whole compilation, inductor's part; FX nodes of a forward)")
     for r in doc["rows"]:
         graphs = (r.get("graphs") or [])[:PRINTED_GRAPHS]

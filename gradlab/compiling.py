@@ -348,10 +348,14 @@ def compiled_graphs() -> list[dict]:
                        "cache_miss": None if misses is None or inductor_s is None else bool(misses)})
     for g in graphs:  # a backward's record may come before its name is known only if torch reorders them
         g["name"] = g["name"] or names.get(g["compile_id"])
+    # torch also keeps a record without any time per frame (the frame's own, beside its graphs'): not a graph
+    graphs = [g for g in graphs if g["s"] is not None or g["inductor_s"] is not None]
     return sorted(graphs, key=lambda g: -(g["s"] or g["inductor_s"] or 0.0))
 
 
 # ---------------------------------------------------------------------------------------------- CompileWatch
+#: kernels named in a watch's summary (``triton_compile_s_by_kernel``), slowest first
+TRITON_KERNELS_KEPT = 20
 _watches: weakref.WeakSet = weakref.WeakSet()
 _hooked = _triton_hooked = False
 
@@ -401,7 +405,7 @@ def _hook_triton() -> bool:
     def listener(*, src: Any, metadata: Any, metadata_group: Any, times: Any, cache_hit: bool) -> None:
         for w in list(_watches):
             with contextlib.suppress(Exception):  # a timing record must never fail a compilation
-                w._triton_compiled(times, cache_hit)
+                w._triton_compiled(str(getattr(src, "name", "?")), times, cache_hit)
         if previous is not None:
             previous(src=src, metadata=metadata, metadata_group=metadata_group, times=times, cache_hit=cache_hit)
 
@@ -444,6 +448,7 @@ class CompileWatch:
         self.compile_s_by_part: dict[str, float] = {}
         self.triton_compiles = self.triton_cache_hits = 0
         self.triton_compile_s = 0.0
+        self._triton_by_kernel: dict[str, float] = {}
         self.available = _hook_dynamo()
         _hook_triton()
         self._forward_part: dict[str, str] = {}  # compile id -> the part that compiled the forward
@@ -493,12 +498,14 @@ class CompileWatch:
         self._compiling = label
         self.announce(f"compiling {self._compiling} ({self.done} done)")
 
-    def _triton_compiled(self, times: Any, cache_hit: bool) -> None:
+    def _triton_compiled(self, name: str, times: Any, cache_hit: bool) -> None:
         if cache_hit:
             self.triton_cache_hits += 1
         else:
+            seconds = times.total / 1e6  # Triton's CompileTimes are in microseconds
             self.triton_compiles += 1
-            self.triton_compile_s += times.total / 1e6  # Triton's CompileTimes are in microseconds
+            self.triton_compile_s += seconds
+            self._triton_by_kernel[name] = self._triton_by_kernel.get(name, 0.0) + seconds
 
     def _compile_ended(self, args: Any) -> None:
         trigger, _, recompile = _compile_id(args)
@@ -516,9 +523,12 @@ class CompileWatch:
 
     def summary(self) -> dict:
         """Counts for a run's summary: compiles, recompiles, backward_compiles, compile_s, compile_s_by_part,
-        triton_compiles, triton_compile_s, triton_cache_hits."""
+        triton_compiles, triton_compile_s, triton_cache_hits, triton_compile_s_by_kernel (the slowest
+        :data:`TRITON_KERNELS_KEPT` kernels by name)."""
         return {"compiles": self.compiles, "recompiles": self.recompiles,
                 "backward_compiles": self.backward_compiles, "compile_s": self.compile_s,
                 "compile_s_by_part": {k: round(v, 3) for k, v in self.compile_s_by_part.items()},
                 "triton_compiles": self.triton_compiles, "triton_compile_s": round(self.triton_compile_s, 3),
-                "triton_cache_hits": self.triton_cache_hits}
+                "triton_cache_hits": self.triton_cache_hits,
+                "triton_compile_s_by_kernel": {k: round(v, 3) for k, v in sorted(
+                    self._triton_by_kernel.items(), key=lambda kv: -kv[1])[:TRITON_KERNELS_KEPT]}}
