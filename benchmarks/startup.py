@@ -34,7 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
                 "artifacts_loaded", "phase_s", "graphs", "triton_compiles", "triton_compile_s", "triton_cache_hits",
-                "triton_compile_s_by_kernel")
+                "triton_compile_s_by_kernel", "kernel_compile_miss", "kernel_compile_hit", "kernels_saved_ready",
+                "kernels_loaded_ready")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)
@@ -168,7 +169,9 @@ def main(argv: list[str] | None = None) -> dict:
             print(f"{r['task']} {r['mode']} {r['phase']}: "
                   + " ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases)
                   + f" | Triton in-process: {r.get('triton_compiles')} compiled in {fmt(r.get('triton_compile_s'))}"
-                  + f", {r.get('triton_cache_hits')} from its cache")
+                  + f", {r.get('triton_cache_hits')} from its cache | inductor kernels: {r.get('kernel_compile_miss')} "
+                  + f"compiled, {r.get('kernels_loaded_ready')} loaded ready to launch "
+                  + f"({r.get('kernels_saved_ready')} saved so)")
     print("\nTriton kernels compiled in-process, slowest first (seconds)")
     for r in doc["rows"]:
         if r["status"] != "error" and r.get("triton_compile_s_by_kernel"):
