@@ -48,6 +48,7 @@ from gradlab.compiling import (
     compile_phase_seconds,
     compiled_graphs,
     resolve_cache_root,
+    start_compile_workers,
 )
 from gradlab.config import SHACConfig, resolve_config
 from gradlab.presets import preset_record
@@ -391,6 +392,7 @@ def _open_compile_cache(cfg: RunConfig, device: torch.device) -> tuple[CompileCa
         warnings.warn(f"compile cache under {root} is not usable ({e}); compiling with torch's own caches",
                       CompileCacheWarning, stacklevel=2)
         return None, label
+    start_compile_workers(device)  # after activating: the workers inherit the cache folder
     loaded = ", ".join(f"{n} {kind}" for kind, n in cache.loaded.items())
     print(f"compile cache: {cache.folder}" + (f" (loaded {loaded} artifacts)" if loaded else ""), file=sys.stderr)
     return cache, label

@@ -42,7 +42,8 @@ import torch
 from gradlab.checkpoint import atomic_write_bytes, atomic_write_json
 
 __all__ = ["CACHE_ENV_VAR", "DEFAULT_CACHE_ROOT", "CompileCache", "CompileCacheWarning", "CompileWatch",
-           "cache_versions", "compile_counters", "compile_phase_seconds", "compiled_graphs", "resolve_cache_root"]
+           "cache_versions", "compile_counters", "compile_phase_seconds", "compiled_graphs", "resolve_cache_root",
+           "start_compile_workers"]
 
 #: Environment variable naming the cache root (a path, or ``off`` for torch's own cache locations).
 CACHE_ENV_VAR = "PIXELGRAD_COMPILE_CACHE"
@@ -261,6 +262,28 @@ class CompileCache:
         path = self.artifact_path(label)
         atomic_write_bytes(path, _pack(saved[0], self.versions))
         return path
+
+
+def start_compile_workers(device: torch.device | str) -> bool:
+    """Start inductor's pool of Triton compile workers now, not at the process's first compilation.
+
+    Inductor starts its worker processes (one per core, each importing torch) when the first graph compiles, and
+    compiles in the calling process, one kernel after another, until they are up. A warm start reaches the
+    simulator's graphs seconds after the first one loads, before the pool is up: the kernels those graphs
+    cannot take ready-made from the FX graph cache (e.g. those launched with programmatic dependent launch)
+    were rebuilt there one at a time (4.6 s of the H100 warm start, BENCHMARKS.md section 6). Started here,
+    the pool is up by then. Returns whether a pool was started: not for a CPU device (inductor compiles C++
+    there), and not where this torch lacks inductor's ``maybe_warm_pool`` (a private function; its absence
+    costs only the head start). Idempotent."""
+    if torch.device(device).type != "cuda":
+        return False
+    try:
+        from torch._inductor.async_compile import maybe_warm_pool
+
+        maybe_warm_pool()
+    except Exception:  # a head start, never a reason to fail a run
+        return False
+    return True
 
 
 def _artifact_counts(info: Any) -> dict:

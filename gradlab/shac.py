@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 import tasks
-from gradlab.compiling import CompileWatch
+from gradlab.compiling import CompileWatch, start_compile_workers
 from gradlab.config import ModePlan, SHACConfig, resolve_config
 from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
 from gradlab.graphs import WARMUP_ITERS, GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
@@ -105,6 +105,7 @@ class SHAC:
         # What this process compiles, and which part of the iteration is compiling (a progress display's text).
         self.compile_watch = CompileWatch()
         if cfg.compile:
+            start_compile_workers(self.device)  # up before the first graphs: see its docstring
             watch = self.compile_watch
             self._actor_mean = watch.labelled("actor", torch.compile(self.actor.mean, dynamic=False))
             self._target_value = watch.labelled("critic", torch.compile(self.target_critic, dynamic=False))

@@ -264,6 +264,27 @@ def test_the_watch_counts_triton_kernels_compiled_in_this_process(tmp_path, monk
     assert (watch.triton_compiles, watch.triton_cache_hits) == (1, 1)
 
 
+def test_compile_workers_start_early_for_a_gpu_only_and_never_fail_a_run(monkeypatch):
+    """start_compile_workers: inductor's worker pool is started for a CUDA device (its Triton kernels), not for
+    the CPU (C++ there); a torch whose private pool function fails or is missing costs the head start only."""
+    import torch._inductor.async_compile as async_compile
+
+    from gradlab.compiling import start_compile_workers
+
+    started = []
+    monkeypatch.setattr(async_compile, "maybe_warm_pool", lambda: started.append(True))
+    assert start_compile_workers("cpu") is False and started == []
+    assert start_compile_workers(torch.device("cuda", 0)) is True and started == [True]
+
+    def broken():
+        raise RuntimeError("no pool in this torch")
+
+    monkeypatch.setattr(async_compile, "maybe_warm_pool", broken)
+    assert start_compile_workers("cuda") is False
+    monkeypatch.delattr(async_compile, "maybe_warm_pool")
+    assert start_compile_workers("cuda") is False
+
+
 def test_the_compile_phases_say_where_compiling_went(monkeypatch):
     """compile_phase_seconds: torch's own phase times of this process, in seconds; nested phases are within the
     ones that contain them; a torch without the table gives an empty breakdown, not an error."""
