@@ -526,6 +526,7 @@ def run(cfg: RunConfig) -> Path:
                 _save_compile_cache(cache, cache_label)
             compiled = {"cache": None if cache is None else str(cache.folder),
                         "artifacts_loaded": {} if cache is None else cache.loaded,
+                        "artifacts_load_s": None if cache is None else round(cache.load_s, 3),
                         **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds(),
                         "graphs": compiled_graphs()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,

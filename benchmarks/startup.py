@@ -33,9 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: summary.json["compile"] keys copied into each row
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
-                "artifacts_loaded", "phase_s", "graphs", "triton_compiles", "triton_compile_s", "triton_cache_hits",
-                "triton_compile_s_by_kernel", "kernel_compile_miss", "kernel_compile_hit", "kernels_saved_ready",
-                "kernels_loaded_ready")
+                "artifacts_loaded", "artifacts_load_s", "phase_s", "graphs", "triton_compiles", "triton_compile_s",
+                "triton_cache_hits", "triton_compile_s_by_kernel", "kernel_compile_miss", "kernel_compile_hit",
+                "kernels_saved_ready", "kernels_loaded_ready")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)
@@ -159,6 +159,8 @@ def main(argv: list[str] | None = None) -> dict:
         if r["status"] == "error":
             continue
         parts = " ".join(f"{k} {fmt(v)}" for k, v in (r.get("startup_s") or {}).items())
+        if r.get("artifacts_load_s"):
+            parts += f" (of the compile cache's: loading its artifact file {fmt(r['artifacts_load_s'])})"
         by_part = " ".join(f"{k} {fmt(v)}" for k, v in sorted((r.get("compile_s_by_part") or {}).items(),
                                                                key=lambda kv: -kv[1]))
         print(f"{r['task']} {r['mode']} {r['phase']}: {parts} | compiling: {by_part}")

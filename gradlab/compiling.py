@@ -159,6 +159,7 @@ class CompileCache:
         self.portable = hasattr(torch.compiler, "save_cache_artifacts") and hasattr(torch.compiler,
                                                                                      "load_cache_artifacts")
         self.loaded: dict = {}  # artifact counts by kind, from the file :meth:`activate` loaded
+        self.load_s = 0.0  # seconds that load took
         self._check_manifest()
 
     @property
@@ -228,6 +229,7 @@ class CompileCache:
         ``<name>.corrupt`` with a warning. Returns whether it loaded."""
         if not path.exists():
             return False
+        started = time.perf_counter()
         try:
             payload = _unpack(path.read_bytes(), self.versions)
             # torch logs its own traceback for a payload it cannot parse; the warning below says it once
@@ -249,6 +251,7 @@ class CompileCache:
                 _warn(f"compile cache artifact {path} is unusable ({e}); the run goes on without it")
             return False
         self.loaded = _artifact_counts(info)
+        self.load_s = time.perf_counter() - started
         return True
 
     def save(self, label: str) -> Path | None:
