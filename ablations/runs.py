@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ablations.compile_helper import CompileHelper
 from gradlab.checkpoint import (
     LoadedCheckpoint,
     NoReadableCheckpointError,
@@ -104,6 +105,10 @@ class RunConfig(SHACConfig):
     """With --compile: the root folder of torch.compile's caches (a subfolder per torch/Triton/device version;
     delete it to start cold); None: $PIXELGRAD_COMPILE_CACHE, else ~/.cache/pixelgrad/compile; 'off': torch's
     own cache locations and no artifact file."""
+    compile_helper: bool = True
+    """With --compile on a GPU and nothing compiled for these settings yet: a second process compiles the renderer
+    and the networks while this one compiles the physics, into the same cache (ablations/compile_helper.py);
+    --no-compile-helper compiles everything in this process."""
 
     def validate(self) -> None:
         """SHACConfig's checks plus the run options'."""
@@ -413,8 +418,18 @@ def run(cfg: RunConfig) -> Path:
     cfg, run_dir, device, resume_from = prepare(cfg)
     cache_opened = time.time()
     cache, cache_label = _open_compile_cache(cfg, device) if cfg.compile else (None, "")
+    helper = None
+    if (cache is not None and cfg.compile_helper and device.type == "cuda" and resume_from is None
+            and not cache.artifact_path(cache_label).exists()):
+        helper = CompileHelper.start(resolve_config(shac_part(cfg)), device, cache.folder.parent,
+                                     run_dir / "compile_helper.log")
     trainer_built = time.time()
-    trainer = SHAC(shac_part(cfg), device=device)
+    try:
+        trainer = SHAC(shac_part(cfg), device=device)
+    except BaseException:
+        if helper is not None:
+            helper.stop()
+        raise
     trainer_done = time.time()
     # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py): parts
     # that together make up first_iter_s; "run_folder" is the bookkeeping around the trainer (checking the
@@ -462,7 +477,19 @@ def run(cfg: RunConfig) -> Path:
     first_iter_s = None
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
-    startup["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
+    if helper is not None:
+        # the physics now, while the helper compiles the rest; then the helper's graphs come from the cache
+        ahead = time.time()
+        try:
+            trainer.compile_physics_now()
+            helper.wait(on_wait=lambda: watch.announce("waiting for the compile helper (renderer, networks)"))
+        except BaseException:
+            helper.stop()
+            bar.close()
+            raise
+        watch.announce(None)
+        startup["compile_ahead"] = time.time() - ahead
+    startup["run_folder"] = (cache_opened - started) + (time.time() - trainer_done) - startup.get("compile_ahead", 0)
     try:
         # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
         # the same training time as one that ran through, so that return-against-time curves stay comparable.
@@ -516,6 +543,8 @@ def run(cfg: RunConfig) -> Path:
         status, error = "oom", str(e).splitlines()[0]
         raise
     finally:
+        if helper is not None:
+            helper.stop()
         watch.on_change = None
         bar.close()
         if writer is not None:
@@ -527,6 +556,8 @@ def run(cfg: RunConfig) -> Path:
             compiled = {"cache": None if cache is None else str(cache.folder),
                         "artifacts_loaded": {} if cache is None else cache.loaded,
                         "artifacts_load_s": None if cache is None else round(cache.load_s, 3),
+                        "helper": None if helper is None else {"returncode": helper.process.returncode,
+                                                               "log": str(helper.log)},
                         **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds(),
                         "graphs": compiled_graphs()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,

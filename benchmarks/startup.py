@@ -35,7 +35,7 @@ COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "com
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
                 "artifacts_loaded", "artifacts_load_s", "phase_s", "graphs", "triton_compiles", "triton_compile_s",
                 "triton_cache_hits", "triton_compile_s_by_kernel", "kernel_compile_miss", "kernel_compile_hit",
-                "kernels_saved_ready", "kernels_loaded_ready")
+                "kernels_saved_ready", "kernels_loaded_ready", "helper")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)

@@ -59,9 +59,11 @@ class SHAC:
     Args:
         cfg: the configuration; None fields are resolved to the task's reference values.
         device: "auto" | "cpu" | "cuda[:N]".
+        compile_physics: with ``cfg.compile``, compile the physics step too (False: everything else is compiled
+            and the physics runs eagerly; what a compile helper process does, ``ablations.compile_helper``).
     """
 
-    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto"):
+    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto", compile_physics: bool = True):
         self.cfg = resolve_config(cfg)
         cfg = self.cfg
         self.plan = ModePlan.of(cfg.mode)
@@ -77,7 +79,8 @@ class SHAC:
             import torch._functorch.config as functorch_config
 
             functorch_config.donated_buffer = False
-            self.task.compile()
+            if compile_physics:
+                self.task.compile()
         self.renderer = None
         if self.plan.renders:
             self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
@@ -160,6 +163,26 @@ class SHAC:
         """A blind actor's input for ``n`` environments: an all-black stack, zeros (n, 3 * frames, H, W)."""
         cfg = self.cfg
         return torch.zeros(n, 3 * cfg.frames, cfg.image_size, cfg.image_size, device=self.device)
+
+    def compile_physics_now(self) -> None:
+        """Compile the physics step and its backward before the first reset, with the training windows' guards
+        (the cut state and the action require grad, grad mode on), by stepping once and differentiating. The
+        task's state and reset RNG are restored, so the run goes on as without this call. With a compile helper
+        process compiling the renderer and the networks meanwhile (``ablations.compile_helper``), the two
+        longest parts of a cold start overlap. Does nothing unless the physics is compiled."""
+        if not self.cfg.compile or self._started:
+            return
+        task = self.task
+        state = task.get_state()
+        with torch.enable_grad():
+            task.detach(requires_grad=True)
+            action = torch.zeros(task.num_envs, task.num_act, device=self.device, dtype=task.dtype,
+                                 requires_grad=True)
+            obs, reward, _, _ = self._step(action)
+            _, reward2, _, info2 = self._step(torch.tanh(obs.sum(-1, keepdim=True)) * action)  # a later step's
+            loss = reward.sum() + reward2.sum() + info2["obs_before_reset"].sum() + task.qpos.sum()
+            loss.backward()
+        task.set_state(state)
 
     # ------------------------------------------------------------------ state the windows hand on
     def _render(self, *, grad: bool) -> torch.Tensor:

@@ -1,0 +1,105 @@
+"""The compile helper: a second process that fills the compile cache while the run compiles its physics.
+
+The fast tests check that a helper that fails or hangs costs the run nothing but a warning; the slow one checks the
+point of it on the CPU: the run finds the helper's graphs in the shared cache (FX graph cache hits for everything
+but the physics) and trains to the same numbers as a run without a helper.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+from ablations.compile_helper import CompileHelper
+from gradlab.config import SHACConfig, resolve_config
+
+CPU = torch.device("cpu")
+
+
+def _cfg(**kw):
+    return resolve_config(SHACConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4,
+                                     compile=True, **kw))
+
+
+def test_a_helper_that_fails_warns_once_and_the_run_goes_on(tmp_path):
+    helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
+                                 command=[sys.executable, "-c", "import sys; print('broken'); sys.exit(3)"])
+    with pytest.warns(RuntimeWarning, match=r"exited with code 3.*compile_helper.log") as record:
+        assert helper.wait(timeout=30) is False
+    assert len(record) == 1
+    assert "broken" in (tmp_path / "run" / "compile_helper.log").read_text()  # its output is kept
+    assert not helper._spec.exists()  # the settings file it was given is gone
+    helper.stop()  # already ended: nothing to do, no error
+
+
+def test_a_helper_that_hangs_is_waited_for_only_until_the_timeout_then_stopped(tmp_path):
+    helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "compile_helper.log",
+                                 command=[sys.executable, "-c", "import time; time.sleep(60)"])
+    told = []
+    with pytest.warns(RuntimeWarning, match="still compiling after 0 s"):
+        assert helper.wait(timeout=0.3, on_wait=lambda: told.append(True)) is False
+    assert told == [True]  # the run says what it waits for
+    assert helper.process.poll() is None
+    helper.stop()
+    assert helper.process.poll() is not None
+
+
+def test_a_helper_that_finished_is_not_announced(tmp_path):
+    helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "compile_helper.log",
+                                 command=[sys.executable, "-c", "pass"])
+    helper.process.wait(timeout=30)
+    told = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert helper.wait(on_wait=lambda: told.append(True)) is True
+    assert told == []
+
+
+_RUN = textwrap.dedent("""
+    import json, sys
+    import torch
+    from pathlib import Path
+    from ablations.compile_helper import CompileHelper
+    from gradlab.compiling import CompileCache, compile_counters
+    from gradlab.config import SHACConfig, resolve_config
+    from gradlab.shac import SHAC
+
+    root, with_helper = Path(sys.argv[1]), sys.argv[2] == "1"
+    cfg = resolve_config(SHACConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4,
+                                    compile=True, seed=3))
+    CompileCache(root, torch.device("cpu")).activate()
+    helper = CompileHelper.start(cfg, torch.device("cpu"), root, root / "helper.log") if with_helper else None
+    trainer = SHAC(cfg, device="cpu")
+    if helper is not None:
+        trainer.compile_physics_now()
+        assert helper.wait(timeout=600), (root / "helper.log").read_text()[-3000:]
+    metrics = [trainer.train_iteration() for _ in range(2)]
+    print(json.dumps({"losses": [m["actor_loss"] for m in metrics], "critic": [m["critic_loss"] for m in metrics],
+                      **compile_counters()}))
+""")
+
+
+def _run(root: Path, with_helper: bool) -> dict:
+    out = subprocess.run([sys.executable, "-c", _RUN, str(root), "1" if with_helper else "0"], capture_output=True,
+                         text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_the_run_finds_the_helpers_graphs_in_the_cache_and_trains_to_the_same_numbers(tmp_path):
+    alone = _run(tmp_path / "alone", with_helper=False)
+    helped = _run(tmp_path / "helped", with_helper=True)
+    # everything but the physics came from the helper: the run compiled (missed) only the physics' graphs
+    assert helped["fxgraph_cache_hit"] >= 4
+    assert helped["fxgraph_cache_miss"] < alone["fxgraph_cache_miss"]
+    assert helped["fxgraph_cache_hit"] + helped["fxgraph_cache_miss"] >= alone["fxgraph_cache_miss"]
+    # compiling ahead restored the task's state and reset noise: the same training, to the bit on the CPU
+    assert helped["losses"] == alone["losses"] and helped["critic"] == alone["critic"]
