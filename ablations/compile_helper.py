@@ -9,7 +9,9 @@ compiled at the same time:
 * the run compiles its physics first (:meth:`gradlab.shac.SHAC.compile_physics_now`), before its first reset;
 * the helper, started as the run opens its compile cache, builds a trainer of the same resolved settings with the
   physics eager (``SHAC(..., compile_physics=False)``) and runs one training iteration, which compiles everything
-  else into the cache folder;
+  else into the cache folder. Its window is :data:`HORIZON` steps: no compiled graph's shapes depend on the
+  horizon (the renderer, actor and critic see one step's batch), and the eager physics of a full window took
+  longer than the compiling (a 32-step ant window: ~20 s of the helper's 71 s on an H100);
 * the run waits for the helper (at most :data:`WAIT_S`), then finds those graphs and kernels in the cache.
 
 The helper only fills the cache; the run never reads anything from it but torch's and Triton's own cache entries,
@@ -22,6 +24,7 @@ artifact file (a warm start loads everything in seconds), not on resume, and not
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pickle
 import subprocess
@@ -32,8 +35,10 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["WAIT_S", "CompileHelper", "main"]
+__all__ = ["HORIZON", "WAIT_S", "CompileHelper", "main"]
 
+#: Steps of the helper's one training window (at least enough for the critic's minibatches).
+HORIZON = 2
 #: Longest the run waits for its helper after compiling its physics (s); after that it goes on and compiles
 #: whatever the helper has not finished itself.
 WAIT_S = 120.0
@@ -108,7 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     CompileCache(spec["cache_root"], device).activate()
     start_compile_workers(device)
-    trainer = SHAC(spec["config"], device=device, compile_physics=False)
+    cfg = spec["config"]
+    horizon = min(cfg.horizon, max(HORIZON, -(-cfg.critic_batches // cfg.num_envs)))
+    trainer = SHAC(dataclasses.replace(cfg, horizon=horizon), device=device, compile_physics=False)
     trainer.train_iteration()
     watch = trainer.compile_watch.summary()
     print(f"compile helper: {watch['compiles']} graphs compiled in {watch['compile_s']:.1f} s, done after "
