@@ -61,8 +61,12 @@ __all__ = ["SweepConfig", "RunSpec", "RunStore", "RunProcessDied", "parse_args",
 
 MANIFEST = "sweep.json"
 #: ``ablate`` flags the sweep sets itself (the grid's own axes, and where each run's folder goes).
+#: Each run compiles in its own process (--no-compile-helper): a sweep's concurrent runs already use the cores that
+#: a helper process would (ablations/compile_helper.py).
 RESERVED = {"task": "--tasks", "mode": "--modes", "seed": "--seeds", "out": "--out", "name": None,
-            "resume": None, "progress": None}
+            "resume": None, "progress": None, "compile_helper": None}
+#: ``ablate`` arguments every run of a sweep gets
+RUN_ARGS = ("--no-progress", "--no-compile-helper")
 #: Summary statuses of a run that needs no more work (time_limit: it stopped on the budget it was given).
 FINISHED = ("finished", "time_limit")
 STATUSES = ("queued", "running", "done", "failed")
@@ -367,7 +371,7 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
                     *(a for name, value in arm_flags.items() for a in _flag_args(name, value)),
                     *(a for name, value in flags.items() for a in _flag_args(name, value))]
             try:
-                run_cfg = tyro.cli(RunConfig, args=[*args, "--no-progress"])
+                run_cfg = tyro.cli(RunConfig, args=[*args, *RUN_ARGS])
             except SystemExit:
                 # tyro has printed what it rejected; name the run and its flags.
                 raise ValueError(f"run {run_id}: ablate rejects its flags: {' '.join(args)}") from None
@@ -618,7 +622,7 @@ def _run_attempt(spec: dict, store, opts: dict) -> dict:
 
     try:
         with open(log, "wb") as log_f:
-            proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(os.getpid()), *args, "--no-progress"],
+            proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(os.getpid()), *args, *RUN_ARGS],
                                     stdout=log_f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         store.report.remote(run_id, attempt, {"status": "running", "node": node, "host": platform.node(),
                                               "resumed": pack is not None})
