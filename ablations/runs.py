@@ -403,6 +403,15 @@ def _open_compile_cache(cfg: RunConfig, device: torch.device) -> tuple[CompileCa
     return cache, label
 
 
+def _wants_compile_helper(cfg: RunConfig, device: torch.device, cache: CompileCache | None, label: str, *,
+                          resuming: bool) -> bool:
+    """Whether a --compile run starts a compile helper (ablations/compile_helper.py): on a CUDA device (on the
+    CPU inductor's C++ compiles leave no cores to spare), with a cache folder to share, on a fresh run whose
+    settings have no artifact file yet (a warm start loads everything in seconds), unless --no-compile-helper."""
+    return (cfg.compile and cfg.compile_helper and cache is not None and device.type == "cuda" and not resuming
+            and not cache.artifact_path(label).exists())
+
+
 def _save_compile_cache(cache: CompileCache, label: str) -> None:
     try:
         cache.save(label)
@@ -419,8 +428,7 @@ def run(cfg: RunConfig) -> Path:
     cache_opened = time.time()
     cache, cache_label = _open_compile_cache(cfg, device) if cfg.compile else (None, "")
     helper = None
-    if (cache is not None and cfg.compile_helper and device.type == "cuda" and resume_from is None
-            and not cache.artifact_path(cache_label).exists()):
+    if _wants_compile_helper(cfg, device, cache, cache_label, resuming=resume_from is not None):
         helper = CompileHelper.start(resolve_config(shac_part(cfg)), device, cache.folder.parent,
                                      run_dir / "compile_helper.log")
     trainer_built = time.time()
@@ -477,20 +485,15 @@ def run(cfg: RunConfig) -> Path:
     first_iter_s = None
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
-    if helper is not None:
-        # the physics now, while the helper compiles the rest; then the helper's graphs come from the cache
-        ahead = time.time()
-        try:
+    startup["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
+    try:
+        if helper is not None:
+            # the physics now, while the helper compiles the rest; then the helper's graphs come from the cache
+            ahead = time.time()
             trainer.compile_physics_now()
             helper.wait(on_wait=lambda: watch.announce("waiting for the compile helper (renderer, networks)"))
-        except BaseException:
-            helper.stop()
-            bar.close()
-            raise
-        watch.announce(None)
-        startup["compile_ahead"] = time.time() - ahead
-    startup["run_folder"] = (cache_opened - started) + (time.time() - trainer_done) - startup.get("compile_ahead", 0)
-    try:
+            watch.announce(None)
+            startup["compile_ahead"] = time.time() - ahead
         # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
         # the same training time as one that ran through, so that return-against-time curves stay comparable.
         budget_s = None if cfg.time_limit_min is None else 60.0 * cfg.time_limit_min

@@ -62,6 +62,26 @@ def test_a_helper_that_finished_is_not_announced(tmp_path):
     assert told == []
 
 
+def test_a_run_starts_a_helper_only_where_it_pays(tmp_path):
+    """On a GPU, fresh, with a cache and no artifact file for the settings: yes; otherwise no."""
+    from ablations.runs import RunConfig, _wants_compile_helper
+    from gradlab.compiling import CompileCache
+
+    cache = CompileCache(tmp_path, CPU)  # the folder's device kind does not matter to the decision
+    cfg = RunConfig(task="cartpole", compile=True)
+    gpu = torch.device("cuda", 0)
+    assert _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=False)
+    assert not _wants_compile_helper(cfg, CPU, cache, "cartpole_x", resuming=False)
+    assert not _wants_compile_helper(cfg, gpu, None, "cartpole_x", resuming=False)  # --compile-cache off
+    assert not _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=True)
+    assert not _wants_compile_helper(RunConfig(task="cartpole", compile=True, compile_helper=False), gpu, cache,
+                                     "cartpole_x", resuming=False)
+    assert not _wants_compile_helper(RunConfig(task="cartpole"), gpu, cache, "cartpole_x", resuming=False)
+    cache.artifact_path("cartpole_x").parent.mkdir(parents=True, exist_ok=True)
+    cache.artifact_path("cartpole_x").write_bytes(b"compiled before")  # a warm start: nothing to gain
+    assert not _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=False)
+
+
 _RUN = textwrap.dedent("""
     import json, sys
     import torch
