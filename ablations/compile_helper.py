@@ -15,8 +15,9 @@ compiled at the same time:
 * the run waits for the helper (at most :data:`WAIT_S`), then finds those graphs and kernels in the cache.
 
 The helper only fills the cache; the run never reads anything from it but torch's and Triton's own cache entries,
-under their own keys. A helper that fails, hangs or is killed costs the head start, never the run: the run then
-compiles what is missing itself. Its output goes to ``compile_helper.log`` in the run folder.
+under their own keys. A helper that cannot start or fails costs the head start; one that hangs costs the wait,
+at most :data:`WAIT_S`, after which it is stopped. Either way the run compiles what is missing itself. The helper
+dies with the run (Linux: a parent-death signal). Its output goes to ``compile_helper.log`` in the run folder.
 
 Started only where it pays: a CUDA device (the CPU has no cores to spare), a cache folder without this setting's
 artifact file (a warm start loads everything in seconds), not on resume, and not with ``--no-compile-helper``.
@@ -39,8 +40,8 @@ __all__ = ["HORIZON", "WAIT_S", "CompileHelper", "main"]
 
 #: Steps of the helper's one training window (at least enough for the critic's minibatches).
 HORIZON = 2
-#: Longest the run waits for its helper after compiling its physics (s); after that it goes on and compiles
-#: whatever the helper has not finished itself.
+#: Longest the run waits for its helper after compiling its physics (s); after that it stops the helper and
+#: compiles whatever the helper has not finished itself.
 WAIT_S = 120.0
 
 
@@ -54,16 +55,27 @@ class CompileHelper:
         self._warned = False
 
     @classmethod
-    def start(cls, cfg, device, cache_root: Path, log: Path, *, command: list[str] | None = None) -> CompileHelper:
+    def start(cls, cfg, device, cache_root: Path, log: Path, *,
+              command: list[str] | None = None) -> CompileHelper | None:
         """Launch a helper for the resolved ``cfg`` (a SHACConfig) on ``device``, compiling into the cache under
-        ``cache_root``; its output goes to ``log``. ``command`` replaces the helper's command line (tests)."""
-        fd, spec = tempfile.mkstemp(prefix="pixelgrad-compile-helper-", suffix=".pkl")
-        with os.fdopen(fd, "wb") as f:
-            pickle.dump({"config": cfg, "device": str(device), "cache_root": str(cache_root)}, f)
-        log.parent.mkdir(parents=True, exist_ok=True)
-        with open(log, "wb") as out:
-            process = subprocess.Popen(command or [sys.executable, "-m", "ablations.compile_helper", spec],
-                                       stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        ``cache_root``; its output goes to ``log``. ``command`` replaces the helper's command line (tests). None,
+        with one warning, where it cannot be started (the run then compiles everything itself)."""
+        spec = None
+        try:
+            fd, spec = tempfile.mkstemp(prefix="pixelgrad-compile-helper-", suffix=".pkl")
+            with os.fdopen(fd, "wb") as f:
+                pickle.dump({"config": cfg, "device": str(device), "cache_root": str(cache_root),
+                             "parent": os.getpid()}, f)
+            log.parent.mkdir(parents=True, exist_ok=True)
+            with open(log, "wb") as out:
+                process = subprocess.Popen(command or [sys.executable, "-m", "ablations.compile_helper", spec],
+                                           stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        except (OSError, pickle.PicklingError, ValueError) as e:
+            if spec is not None:
+                Path(spec).unlink(missing_ok=True)
+            warnings.warn(f"compile helper could not start ({type(e).__name__}: {e}); the run compiles everything "
+                          f"itself", RuntimeWarning, stacklevel=2)
+            return None
         return cls(process, log, Path(spec))
 
     def wait(self, timeout: float = WAIT_S, *, on_wait: Callable[[], None] | None = None) -> bool:
@@ -74,7 +86,9 @@ class CompileHelper:
         try:
             code = self.process.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
-            self._warn(f"is still compiling after {timeout:.0f} s of waiting; the run goes on without waiting")
+            # a helper that long is stuck or hopeless; left running it would compete with the run's own iterations
+            self._warn(f"is still compiling after {timeout:.0f} s of waiting; stopped, the run compiles the rest")
+            self.stop()
             return False
         finally:
             self._spec.unlink(missing_ok=True)
@@ -104,6 +118,14 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     with open(argv[0], "rb") as f:
         spec = pickle.load(f)
+    Path(argv[0]).unlink(missing_ok=True)  # read once: nothing left behind whatever happens next
+    if sys.platform.startswith("linux"):  # die with the run, even a SIGKILLed one (survives nothing else)
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+        if os.getppid() != spec.get("parent", os.getppid()):
+            return 1  # the run ended before this process got here
     import torch
 
     from gradlab.compiling import CompileCache, start_compile_workers

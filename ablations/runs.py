@@ -421,23 +421,34 @@ def _save_compile_cache(cache: CompileCache, label: str) -> None:
 
 def run(cfg: RunConfig) -> Path:
     """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work."""
-    from gradlab.shac import SHAC
-
     started = time.time()
     cfg, run_dir, device, resume_from = prepare(cfg)
     cache_opened = time.time()
     cache, cache_label = _open_compile_cache(cfg, device) if cfg.compile else (None, "")
     helper = None
     if _wants_compile_helper(cfg, device, cache, cache_label, resuming=resume_from is not None):
+        # this process takes its CUDA context first: on a GPU in exclusive-process mode the helper is then the
+        # one that cannot start its own, and the run compiles everything itself
+        torch.empty(1, device=device)
         helper = CompileHelper.start(resolve_config(shac_part(cfg)), device, cache.folder.parent,
                                      run_dir / "compile_helper.log")
-    trainer_built = time.time()
     try:
-        trainer = SHAC(shac_part(cfg), device=device)
-    except BaseException:
-        if helper is not None:
+        return _train(cfg, run_dir, device, resume_from, cache, cache_label, helper, started=started,
+                      cache_opened=cache_opened)
+    finally:
+        if helper is not None:  # on every way out, an error before the training loop included
             helper.stop()
-        raise
+
+
+def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: LoadedCheckpoint | None,
+           cache: CompileCache | None, cache_label: str, helper: CompileHelper | None, *, started: float,
+           cache_opened: float) -> Path:
+    """The rest of :func:`run` once its folder, compile cache and helper are settled: build the trainer, train,
+    write the summary."""
+    from gradlab.shac import SHAC
+
+    trainer_built = time.time()
+    trainer = SHAC(shac_part(cfg), device=device)
     trainer_done = time.time()
     # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py): parts
     # that together make up first_iter_s; "run_folder" is the bookkeeping around the trainer (checking the
@@ -494,6 +505,9 @@ def run(cfg: RunConfig) -> Path:
             helper.wait(on_wait=lambda: watch.announce("waiting for the compile helper (renderer, networks)"))
             watch.announce(None)
             startup["compile_ahead"] = time.time() - ahead
+            # compiling counts in the training wall-clock (--time-limit-min, the wall_s curves) wherever it happens:
+            # runs with and without a helper spend their budgets alike
+            trainer.wall_s += startup["compile_ahead"]
         # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
         # the same training time as one that ran through, so that return-against-time curves stay comparable.
         budget_s = None if cfg.time_limit_min is None else 60.0 * cfg.time_limit_min

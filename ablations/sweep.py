@@ -195,7 +195,8 @@ def _norm_key(key: str, *, where: str) -> str:
         raise ValueError(f"{where}: ablate has no flag --{name.replace('_', '-')} (see ablate --help)")
     if name in RESERVED:
         hint = RESERVED[name]
-        raise ValueError(f"{where}: the sweep sets --{name} itself" + (f"; use {hint}" if hint else ""))
+        flag = name.replace("_", "-")
+        raise ValueError(f"{where}: the sweep sets --{flag} itself" + (f"; use {hint}" if hint else ""))
     return name
 
 

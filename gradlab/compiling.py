@@ -268,16 +268,17 @@ class CompileCache:
 
 
 def start_compile_workers(device: torch.device | str) -> bool:
-    """Start inductor's pool of Triton compile workers now, not at the process's first compilation.
+    """Ask inductor to start its pool of Triton compile workers now, not at the process's first compilation.
 
     Inductor starts its worker processes (one per core, each importing torch) when the first graph compiles, and
     compiles in the calling process, one kernel after another, until they are up. A warm start reaches the
     simulator's graphs seconds after the first one loads, before the pool is up: the kernels those graphs
     cannot take ready-made from the FX graph cache (e.g. those launched with programmatic dependent launch)
     were rebuilt there one at a time (4.6 s of the H100 warm start, BENCHMARKS.md section 6). Started here,
-    the pool is up by then. Returns whether a pool was started: not for a CPU device (inductor compiles C++
+    the pool is up by then. Returns whether inductor was asked: not for a CPU device (inductor compiles C++
     there), and not where this torch lacks inductor's ``maybe_warm_pool`` (a private function; its absence
-    costs only the head start). Idempotent."""
+    costs only the head start). Inductor's own settings still apply (``TORCH_WARM_POOL=0``, one compile
+    thread: no pool). Idempotent."""
     if torch.device(device).type != "cuda":
         return False
     try:
@@ -428,23 +429,35 @@ def _hook_triton() -> bool:
         return True
     try:
         from triton import knobs
-    except ImportError:
-        return False
-    compilation = getattr(knobs, "compilation", None)
-    if compilation is None or not hasattr(compilation, "listener"):
-        return False
-    previous = compilation.listener
 
-    def listener(*, src: Any, metadata: Any, metadata_group: Any, times: Any, cache_hit: bool) -> None:
+        compilation = knobs.compilation
+        previous = compilation.listener
+    except Exception:  # no Triton, or one without the knob
+        return False
+
+    def listener(*, src: Any = None, times: Any = None, cache_hit: bool = False, **more: Any) -> None:
         for w in list(_watches):
             with contextlib.suppress(Exception):  # a timing record must never fail a compilation
                 w._triton_compiled(str(getattr(src, "name", "?")), times, cache_hit)
-        if previous is not None:
-            previous(src=src, metadata=metadata, metadata_group=metadata_group, times=times, cache_hit=cache_hit)
+        if previous is not None:  # whatever Triton passes, the listener set before gets it unchanged
+            previous(src=src, times=times, cache_hit=cache_hit, **more)
 
     compilation.listener = listener
     _triton_hooked = True
     return True
+
+
+#: compilation records torch keeps for :func:`compiled_graphs` (its default, 64, lets a long run's later
+#: compilations, e.g. the evaluation's, push the first iteration's out)
+COMPILATION_RECORDS = 1024
+
+
+def _keep_compilation_records() -> None:
+    with contextlib.suppress(Exception):  # a private setter: without it the record is shorter, nothing else
+        import torch._dynamo.utils as dynamo_utils
+
+        if (dynamo_utils._compilation_metrics.maxlen or 0) < COMPILATION_RECORDS:
+            dynamo_utils.set_compilation_metrics_limit(COMPILATION_RECORDS)
 
 
 def _compile_id(args: Any) -> tuple[str, str, bool]:
@@ -484,6 +497,7 @@ class CompileWatch:
         self._triton_by_kernel: dict[str, float] = {}
         self.available = _hook_dynamo()
         _hook_triton()
+        _keep_compilation_records()
         self._forward_part: dict[str, str] = {}  # compile id -> the part that compiled the forward
         self.text: str | None = None
         self._parts: list[str] = []

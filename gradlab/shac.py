@@ -81,6 +81,7 @@ class SHAC:
             functorch_config.donated_buffer = False
             if compile_physics:
                 self.task.compile()
+        self._physics_compiled = cfg.compile and compile_physics
         self.renderer = None
         if self.plan.renders:
             self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
@@ -169,8 +170,9 @@ class SHAC:
         (the cut state and the action require grad, grad mode on), by stepping once and differentiating. The
         task's state and reset RNG are restored, so the run goes on as without this call. With a compile helper
         process compiling the renderer and the networks meanwhile (``ablations.compile_helper``), the two
-        longest parts of a cold start overlap. Does nothing unless the physics is compiled."""
-        if not self.cfg.compile or self._started:
+        longest parts of a cold start overlap. Does nothing unless the physics is compiled, or once the run has
+        started."""
+        if not self._physics_compiled or self._started:
             return
         task = self.task
         state = task.get_state()

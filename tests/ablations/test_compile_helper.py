@@ -43,12 +43,74 @@ def test_a_helper_that_hangs_is_waited_for_only_until_the_timeout_then_stopped(t
     helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "compile_helper.log",
                                  command=[sys.executable, "-c", "import time; time.sleep(60)"])
     told = []
-    with pytest.warns(RuntimeWarning, match="still compiling after 0 s"):
+    with pytest.warns(RuntimeWarning, match="still compiling after 0 s of waiting; stopped"):
         assert helper.wait(timeout=0.3, on_wait=lambda: told.append(True)) is False
     assert told == [True]  # the run says what it waits for
-    assert helper.process.poll() is None
-    helper.stop()
-    assert helper.process.poll() is not None
+    assert helper.process.poll() is not None  # stopped: it would compete with the run's own iterations
+    helper.stop()  # again: nothing to do
+
+
+def test_a_helper_that_cannot_start_is_a_warning_not_an_error(tmp_path):
+    (tmp_path / "run").write_text("a file where the run folder should be")
+    with pytest.warns(RuntimeWarning, match="could not start"):
+        helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log")
+    assert helper is None
+
+
+def test_the_helper_reads_its_settings_once_and_leaves_if_its_run_is_gone(tmp_path):
+    """The settings file is deleted on reading; a helper whose run ended before it got going does nothing."""
+    import pickle
+
+    spec = tmp_path / "spec.pkl"
+    spec.write_bytes(pickle.dumps({"config": _cfg(), "device": "cpu", "cache_root": str(tmp_path / "cache"),
+                                   "parent": -1}))
+    out = subprocess.run([sys.executable, "-m", "ablations.compile_helper", str(spec)], capture_output=True,
+                         text=True, timeout=120)
+    assert not spec.exists()
+    if sys.platform.startswith("linux"):
+        assert out.returncode == 1 and not (tmp_path / "cache").exists()  # it never opened the cache
+
+
+def _failing_run(tmp_path, monkeypatch, where: str):
+    """A --compile run on the CPU made to start a helper (a sleeping stand-in), failing ``where``."""
+    from ablations import runs
+
+    helpers = []
+    start = CompileHelper.start
+
+    def start_sleeper(*args, **kwargs):
+        helpers.append(start(*args, **kwargs, command=[sys.executable, "-c", "import time; time.sleep(120)"]))
+        return helpers[-1]
+
+    def boom(*args, **kwargs):
+        raise KeyboardInterrupt if where == "compiling ahead" else RuntimeError("the trainer cannot be built")
+
+    monkeypatch.setattr(runs, "_wants_compile_helper", lambda *a, **k: True)
+    monkeypatch.setattr(runs.CompileHelper, "start", start_sleeper)
+    import gradlab.shac
+
+    if where == "compiling ahead":
+        monkeypatch.setattr(gradlab.shac.SHAC, "compile_physics_now", boom)
+    else:
+        monkeypatch.setattr(gradlab.shac.SHAC, "__init__", boom)
+    cfg = runs.RunConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4, iters=1,
+                         compile=True, device="cpu", out=tmp_path / "runs", name="r", progress=False,
+                         compile_cache=str(tmp_path / "cache"), video_every=0)
+    with pytest.raises((KeyboardInterrupt, RuntimeError)):
+        runs.run(cfg)
+    (helper,) = helpers
+    return helper, tmp_path / "runs" / "r"
+
+
+@pytest.mark.parametrize("where", ["building the trainer", "compiling ahead"])
+def test_a_run_that_fails_stops_its_helper(tmp_path, monkeypatch, where):
+    helper, run_dir = _failing_run(tmp_path, monkeypatch, where)
+    assert helper.process.poll() is not None  # not left compiling (or sleeping) after the run
+    assert not helper._spec.exists()
+    if where == "compiling ahead":  # inside the run's bookkeeping: the summary says what happened
+        summary = json.loads((run_dir / "summary.json").read_text())
+        assert summary["status"] == "interrupted"
+        assert summary["compile"]["helper"]["returncode"] is not None
 
 
 def test_a_helper_that_finished_is_not_announced(tmp_path):
@@ -101,8 +163,9 @@ _RUN = textwrap.dedent("""
         trainer.compile_physics_now()
         assert helper.wait(timeout=600), (root / "helper.log").read_text()[-3000:]
     metrics = [trainer.train_iteration() for _ in range(2)]
+    watch = trainer.compile_watch
     print(json.dumps({"losses": [m["actor_loss"] for m in metrics], "critic": [m["critic_loss"] for m in metrics],
-                      **compile_counters()}))
+                      "compiles": watch.compiles, "recompiles": watch.recompiles, **compile_counters()}))
 """)
 
 
@@ -121,5 +184,7 @@ def test_the_run_finds_the_helpers_graphs_in_the_cache_and_trains_to_the_same_nu
     assert helped["fxgraph_cache_hit"] >= 4
     assert helped["fxgraph_cache_miss"] < alone["fxgraph_cache_miss"]
     assert helped["fxgraph_cache_hit"] + helped["fxgraph_cache_miss"] >= alone["fxgraph_cache_miss"]
+    # compiling ahead used the training windows' guards: no graph more, no recompile more
+    assert (helped["compiles"], helped["recompiles"]) == (alone["compiles"], alone["recompiles"])
     # compiling ahead restored the task's state and reset noise: the same training, to the bit on the CPU
     assert helped["losses"] == alone["losses"] and helped["critic"] == alone["critic"]

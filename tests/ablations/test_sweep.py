@@ -97,7 +97,7 @@ def test_bad_arms_are_refused(arms, message):
     (dict(set=("tsk=3",)), "--set tsk=3: ablate has no flag --tsk"),
     (dict(set=("seed=3",)), "the sweep sets --seed itself; use --seeds"),
     (dict(vary=("name=a,b",)), "the sweep sets --name itself"),
-    (dict(set=("compile-helper=true",)), "the sweep sets --compile_helper itself"),  # its runs fill the cores
+    (dict(set=("compile-helper=true",)), "the sweep sets --compile-helper itself"),  # its runs fill the cores
     (dict(set=("iters",)), "expected FLAG=VALUE"),
     (dict(set=("compile=maybe",)), "--compile: expected true or false, got 'maybe'"),
     (dict(set=("no-compile=true",)), "write compile=false instead"),
