@@ -114,12 +114,15 @@ class CompileHelper:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The helper process: open the cache, build the trainer with the physics eager, run one iteration."""
+    """The helper process: open the cache, build the trainer with the physics eager, run one iteration. Prints
+    where its seconds went (to ``compile_helper.log``): with the run's own ``startup_s`` it shows which of the
+    two was the slower half."""
+    began = time.perf_counter()
     argv = sys.argv[1:] if argv is None else argv
     with open(argv[0], "rb") as f:
-        spec = pickle.load(f)
+        spec = pickle.load(f)  # imports torch and the trainer's modules, to rebuild the settings
     Path(argv[0]).unlink(missing_ok=True)  # read once: nothing left behind whatever happens next
-    if sys.platform.startswith("linux"):  # die with the run, even a SIGKILLed one (survives nothing else)
+    if sys.platform.startswith("linux"):  # die with the run even if it is SIGKILLed (elsewhere: its stop())
         import ctypes
         import signal
 
@@ -132,16 +135,22 @@ def main(argv: list[str] | None = None) -> int:
     from gradlab.shac import SHAC
 
     device = torch.device(spec["device"])
-    started = time.perf_counter()
+    seconds = {"imports": time.perf_counter() - began}
+    mark = time.perf_counter()
     CompileCache(spec["cache_root"], device).activate()
     start_compile_workers(device)
+    seconds["cache"], mark = time.perf_counter() - mark, time.perf_counter()
     cfg = spec["config"]
     horizon = min(cfg.horizon, max(HORIZON, -(-cfg.critic_batches // cfg.num_envs)))
     trainer = SHAC(dataclasses.replace(cfg, horizon=horizon), device=device, compile_physics=False)
+    seconds["trainer"], mark = time.perf_counter() - mark, time.perf_counter()
     trainer.train_iteration()
+    seconds["iteration"] = time.perf_counter() - mark
     watch = trainer.compile_watch.summary()
-    print(f"compile helper: {watch['compiles']} graphs compiled in {watch['compile_s']:.1f} s, done after "
-          f"{time.perf_counter() - started:.1f} s", flush=True)
+    parts = ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items())
+    print(f"compile helper: {parts}; in the iteration {watch['compiles']} graphs compiled in "
+          f"{watch['compile_s']:.1f} s and {watch['triton_compiles']} Triton kernels in "
+          f"{watch['triton_compile_s']:.1f} s; done after {time.perf_counter() - began:.1f} s", flush=True)
     return 0
 
 

@@ -184,6 +184,7 @@ def test_the_run_finds_the_helpers_graphs_in_the_cache_and_trains_to_the_same_nu
     assert helped["fxgraph_cache_hit"] >= 4
     assert helped["fxgraph_cache_miss"] < alone["fxgraph_cache_miss"]
     assert helped["fxgraph_cache_hit"] + helped["fxgraph_cache_miss"] >= alone["fxgraph_cache_miss"]
+    assert "compile helper: imports" in (tmp_path / "helped" / "helper.log").read_text()  # where its time went
     # compiling ahead used the training windows' guards: no graph more, no recompile more
     assert (helped["compiles"], helped["recompiles"]) == (alone["compiles"], alone["recompiles"])
     # compiling ahead restored the task's state and reset noise: the same training, to the bit on the CPU
