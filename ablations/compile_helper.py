@@ -1,8 +1,8 @@
 """A second process that compiles the renderer and the networks while a cold ``--compile`` run compiles its physics.
 
 Inductor compiles one graph at a time in a process, and a cold run on a GPU compiles about twenty: the physics
-step, its mass-matrix factorisation and its reward/reset step, each with its backward (~40 s on an H100), and the
-renderer's scene, the actor and the critic with theirs, plus the renderer's own Triton kernels (~40 s more;
+step, its mass-matrix factorisation and its reward/reset step, each with its backward (~45 s on an H100), and the
+renderer's scene, the actor and the critic with theirs, plus the renderer's own Triton kernels (~30 s more;
 BENCHMARKS.md section 6). Both halves go into the same cache folder and neither needs the other, so they can be
 compiled at the same time:
 
@@ -11,7 +11,7 @@ compiled at the same time:
   physics eager (``SHAC(..., compile_physics=False)``) and runs one training iteration, which compiles everything
   else into the cache folder. Its window is :data:`HORIZON` steps: no compiled graph's shapes depend on the
   horizon (the renderer, actor and critic see one step's batch), and the eager physics of a full window took
-  longer than the compiling (a 32-step ant window: ~20 s of the helper's 71 s on an H100);
+  longer than the compiling (a 32-step ant window cost ~15 s of the helper's 71 s on an H100);
 * the run waits for the helper (at most :data:`WAIT_S`), then finds those graphs and kernels in the cache.
 
 The helper only fills the cache; the run never reads anything from it but torch's and Triton's own cache entries,
@@ -20,7 +20,8 @@ at most :data:`WAIT_S`, after which it is stopped. Either way the run compiles w
 dies with the run (Linux: a parent-death signal). Its output goes to ``compile_helper.log`` in the run folder.
 
 Started only where it pays: a CUDA device (the CPU has no cores to spare), a cache folder without this setting's
-artifact file (a warm start loads everything in seconds), not on resume, and not with ``--no-compile-helper``.
+artifact file (a warm start loads everything in seconds), not on resume, and not with ``--no-compile-helper``
+(which sweeps pass: their concurrent runs already use the cores).
 """
 
 from __future__ import annotations
