@@ -273,12 +273,13 @@ def start_compile_workers(device: torch.device | str) -> bool:
     Inductor starts its worker processes (one per core, each importing torch) when the first graph compiles, and
     compiles in the calling process, one kernel after another, until they are up. A warm start reaches the
     simulator's graphs seconds after the first one loads, before the pool is up: the kernels those graphs
-    cannot take ready-made from the FX graph cache (e.g. those launched with programmatic dependent launch)
-    were rebuilt there one at a time (4.6 s of the H100 warm start, BENCHMARKS.md section 6). Started here,
-    the pool is up by then. Returns whether inductor was asked: not for a CPU device (inductor compiles C++
-    there), and not where this torch lacks inductor's ``maybe_warm_pool`` (a private function; its absence
-    costs only the head start). Inductor's own settings still apply (``TORCH_WARM_POOL=0``, one compile
-    thread: no pool). Idempotent."""
+    cannot take ready-made from the FX graph cache (on the H100 it kept none of the simulator's, which are
+    launched with programmatic dependent launch) were rebuilt there one at a time (4.6 s of the warm start,
+    BENCHMARKS.md section 6). Started here, the pool is up by then.
+
+    Returns whether inductor was asked: not for a CPU device (inductor compiles C++ there), and not where this
+    torch lacks inductor's ``maybe_warm_pool`` (a private function; its absence costs only the head start).
+    Inductor's own settings still apply (``TORCH_WARM_POOL=0``, one compile thread: no pool). Idempotent."""
     if torch.device(device).type != "cuda":
         return False
     try:
