@@ -5,11 +5,14 @@ with an empty compile cache folder (cold: every graph compiled), then again with
 second run of the same settings on the same machine pays). Each run's ``summary.json`` gives the seconds from
 process start to the end of its first iteration (``first_iter_s``), the compilations and recompilations
 dynamo made, and inductor's FX graph and AOTAutograd cache hits; the process's own wall time is measured
-around it. Arguments this script does not know are passed on to ``ablate`` (e.g. ``--horizon 4``).
+around it. With ``--compile-helper on off`` each pair runs with ablate's compile helper and then without it
+(``--no-compile-helper``), each pair with a cache folder of its own. Arguments this script does not know are
+passed on to ``ablate`` (e.g. ``--horizon 4``).
 
 Not a test. Examples::
 
     python benchmarks/startup.py --device cuda --tasks ant --modes decoupled --num-envs 64 --out startup.json
+    python benchmarks/startup.py --device cuda --tasks ant --num-envs 64 --iters 8 --compile-helper on off
     python benchmarks/startup.py --device cpu --tasks cartpole --modes state --num-envs 2 --image-size 16 \
         --out /tmp/startup.json --horizon 4
 """
@@ -35,7 +38,7 @@ COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "com
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
                 "artifacts_loaded", "artifacts_load_s", "phase_s", "graphs", "triton_compiles", "triton_compile_s",
                 "triton_cache_hits", "triton_compile_s_by_kernel", "kernel_compile_miss", "kernel_compile_hit",
-                "kernels_saved_ready", "kernels_loaded_ready", "helper")
+                "graphs_saved_ready", "kernels_loaded_ready", "helper")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)
@@ -83,15 +86,20 @@ def run_once(cmd: list[str], run_dir: Path, *, timeout: float) -> dict:
     return row
 
 
-def measure(task: str, mode: str, args, *, work: Path) -> list[dict]:
-    """The cold and the warm run of one (task, mode), sharing one compile cache folder."""
-    cache, runs = work / f"cache_{task}_{mode}", work / "runs"
+def measure(task: str, mode: str, args, *, work: Path, helper: str = "on") -> list[dict]:
+    """The cold and the warm run of one (task, mode), sharing one compile cache folder; ``helper`` "off" passes
+    --no-compile-helper (and gets a cache folder of its own)."""
+    suffix = "" if helper == "on" else "_nohelper"
+    cache, runs = work / f"cache_{task}_{mode}{suffix}", work / "runs"
     rows = []
     for phase in ("cold", "warm"):
-        name = f"{task}_{mode}_{phase}"
+        name = f"{task}_{mode}_{phase}{suffix}"
         cmd = ablate_command(task, mode, args, cache=cache, runs=runs, name=name)
-        row = {"task": task, "mode": mode, "phase": phase, "num_envs": args.num_envs, "image_size": args.image_size,
-               "iters": args.iters, "command": " ".join(cmd[1:])}
+        if helper == "off":
+            cmd.append("--no-compile-helper")
+        row = {"task": task, "mode": mode, "phase": phase, "compile_helper": helper == "on",
+               "num_envs": args.num_envs, "image_size": args.image_size, "iters": args.iters,
+               "command": " ".join(cmd[1:])}
         row.update(run_once(cmd, runs / name, timeout=args.timeout))
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -113,6 +121,11 @@ def meta(args, argv: list[str]) -> dict:
     return info
 
 
+def run_label(r: dict) -> str:
+    """cold / warm, and whether the run had ablate's compile helper."""
+    return r["phase"] + ("" if r.get("compile_helper", True) else " no-helper")
+
+
 def fmt(v, nd=1) -> str:
     return "-" if v is None else f"{v:.{nd}f}"
 
@@ -127,6 +140,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--image-size", type=int, default=None, help="default: ablate's")
     p.add_argument("--iters", type=int, default=2, help="iterations per run (the first one is what is timed)")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds one ablate process may take")
+    p.add_argument("--compile-helper", nargs="+", choices=("on", "off"), default=["on"],
+                   help="with and/or without ablate's compile helper (a cold GPU start in two processes), each with "
+                        "a cache folder of its own, in this order: 'on off' is a same-machine A/B")
     p.add_argument("--work", type=Path, default=None,
                    help="folder for the cache folders and run folders (kept); default: a temporary one, removed")
     p.add_argument("--out", type=Path, default=Path("startup.json"))
@@ -138,19 +154,20 @@ def main(argv: list[str] | None = None) -> dict:
         work = args.work or Path(tmp)
         for task in args.tasks:
             for mode in args.modes:
-                doc["rows"].extend(measure(task, mode, args, work=work))
+                for helper in args.compile_helper:
+                    doc["rows"].extend(measure(task, mode, args, work=work, helper=helper))
                 args.out.parent.mkdir(parents=True, exist_ok=True)
                 args.out.write_text(json.dumps(doc, indent=2))
 
     print(f"\nstart of ablate --compile, {doc['meta'].get('gpu', args.device)}: seconds from process start to the "
           f"end of the first iteration, to its start, the whole {args.iters}-iteration process, and compiling")
-    print(f"{'task':9} {'mode':9} {'phase':5} {'first it s':>10} {'before it s':>11} {'process s':>9} {'compile s':>9} "
+    print(f"{'task':9} {'mode':9} {'run':15} {'first it s':>10} {'before it s':>11} {'process s':>9} {'compile s':>9} "
           f"{'compiles':>8} {'recompiles':>10} {'fx hit':>6} {'fx miss':>7}")
     for r in doc["rows"]:
         if r["status"] == "error":
-            print(f"{r['task']:9} {r['mode']:9} {r['phase']:5} error: {r['error'][:80]}")
+            print(f"{r['task']:9} {r['mode']:9} {run_label(r):15} error: {r['error'][:80]}")
             continue
-        print(f"{r['task']:9} {r['mode']:9} {r['phase']:5} {fmt(r['first_iter_s']):>10} "
+        print(f"{r['task']:9} {r['mode']:9} {run_label(r):15} {fmt(r['first_iter_s']):>10} "
               f"{fmt(r.get('before_first_iter_s')):>11} {fmt(r['process_s']):>9} {fmt(r['compile_s']):>9} "
               f"{r['compiles']!s:>8} {r['recompiles']!s:>10} {r['fxgraph_cache_hit']!s:>6} "
               f"{r['fxgraph_cache_miss']!s:>7}")
@@ -163,27 +180,27 @@ def main(argv: list[str] | None = None) -> dict:
             parts += f" (of the compile cache's: loading its artifact file {fmt(r['artifacts_load_s'])})"
         by_part = " ".join(f"{k} {fmt(v)}" for k, v in sorted((r.get("compile_s_by_part") or {}).items(),
                                                                key=lambda kv: -kv[1]))
-        print(f"{r['task']} {r['mode']} {r['phase']}: {parts} | compiling: {by_part}")
+        print(f"{r['task']} {r['mode']} {run_label(r)}: {parts} | compiling: {by_part}")
     print("\ninside the compiler (torch's phase times, nested: they do not add up)")
     for r in doc["rows"]:
         phases = r.get("phase_s") or {}
         if r["status"] != "error" and phases:
-            print(f"{r['task']} {r['mode']} {r['phase']}: "
+            print(f"{r['task']} {r['mode']} {run_label(r)}: "
                   + " ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases)
                   + f" | Triton in-process: {r.get('triton_compiles')} compiled in {fmt(r.get('triton_compile_s'))}"
                   + f", {r.get('triton_cache_hits')} from its cache | inductor kernels: {r.get('kernel_compile_miss')} "
                   + f"compiled, {r.get('kernels_loaded_ready')} loaded ready to launch "
-                  + f"({r.get('kernels_saved_ready')} saved so)")
+                  + f"({r.get('graphs_saved_ready')} graphs saved with such)")
     print("\nTriton kernels compiled in-process, slowest first (seconds)")
     for r in doc["rows"]:
         if r["status"] != "error" and r.get("triton_compile_s_by_kernel"):
-            print(f"{r['task']} {r['mode']} {r['phase']}: "
+            print(f"{r['task']} {r['mode']} {run_label(r)}: "
                   + " ".join(f"{k} {fmt(v, 2)}" for k, v in r["triton_compile_s_by_kernel"].items()))
     print(f"\nthe {PRINTED_GRAPHS} slowest graphs (seconds: whole compilation, inductor's part; FX nodes of a forward)")
     for r in doc["rows"]:
         graphs = (r.get("graphs") or [])[:PRINTED_GRAPHS]
         if r["status"] != "error" and graphs:
-            print(f"{r['task']} {r['mode']} {r['phase']}: " + "; ".join(
+            print(f"{r['task']} {r['mode']} {run_label(r)}: " + "; ".join(
                 f"{g['name']} [{g['compile_id']}] {g['kind']} {fmt(g['s'])}/{fmt(g['inductor_s'])}"
                 + (f" ({g['nodes']} nodes)" if g.get("nodes") else "") for g in graphs))
     return doc

@@ -304,7 +304,7 @@ def _artifact_counts(info: Any) -> dict:
 def compile_counters() -> dict:
     """Torch's cache counters of this process: FX graph and AOTAutograd cache hits, misses and bypasses, the
     number of distinct graphs dynamo compiled, and inductor's kernel counts (``kernel_compile_*``,
-    ``kernels_*_ready``; torch's names are in the code)."""
+    ``graphs_saved_ready``, ``kernels_loaded_ready``; torch's names are in the code)."""
     from torch._dynamo.utils import counters
 
     inductor, aot, stats = counters["inductor"], counters["aot_autograd"], counters["stats"]
@@ -316,11 +316,11 @@ def compile_counters() -> dict:
         "autograd_cache_miss": aot["autograd_cache_miss"],
         "autograd_cache_bypass": aot["autograd_cache_bypass"],
         "unique_graphs": stats["unique_graphs"],
-        # kernels: compiled afresh or found compiled in this process, and, from FX graph cache entries, saved
-        # and loaded as ready-to-launch binaries (a warm start recompiles a kernel that was not)
+        # kernels sent to be compiled and those found compiled in this process; graphs whose FX graph cache entry
+        # was saved with ready-to-launch kernels, and kernels loaded so (a warm start recompiles the others)
         "kernel_compile_miss": inductor["async_compile_cache_miss"],
         "kernel_compile_hit": inductor["async_compile_cache_hit"],
-        "kernels_saved_ready": inductor["triton_bundler_save_static_autotuner"],
+        "graphs_saved_ready": inductor["triton_bundler_save_static_autotuner"],
         "kernels_loaded_ready": inductor["triton_bundler_load_static_autotuner"],
     }
 

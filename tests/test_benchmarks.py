@@ -95,6 +95,28 @@ def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp
     assert "--compile-cache" in cold["command"] and "--horizon 2" in cold["command"]
 
 
+def test_startup_runs_each_pair_with_and_without_the_compile_helper_in_its_own_cache(tmp_path, monkeypatch):
+    """--compile-helper on off: the same cold/warm pair twice, the second with ablate --no-compile-helper and a
+    cache folder of its own (a shared one would make the second pair warm)."""
+    startup = _load("startup")
+    seen = []
+
+    def fake_run(cmd, run_dir, *, timeout):
+        seen.append(cmd)
+        return {"status": "error", "error": "not run", "process_s": 0.0, "returncode": 1}
+
+    monkeypatch.setattr(startup, "run_once", fake_run)
+    monkeypatch.setattr(startup, "meta", lambda args, argv: {})
+    doc = startup.main(["--device", "cpu", "--tasks", "cartpole", "--compile-helper", "on", "off",
+                        "--work", str(tmp_path), "--out", str(tmp_path / "s.json")])
+    assert [r["compile_helper"] for r in doc["rows"]] == [True, False]  # an error ends a pair after its cold run
+    with_helper, without = seen
+    assert "--no-compile-helper" not in with_helper and without[-1] == "--no-compile-helper"
+    cache = [c[c.index("--compile-cache") + 1] for c in seen]
+    assert cache[0] != cache[1]
+    assert startup.run_label(doc["rows"][1]) == "cold no-helper"
+
+
 def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
     provenance = _load("provenance")
     monkeypatch.delenv("PIXELGRAD_COMMIT", raising=False)
