@@ -27,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # run as a script or loaded by path
@@ -126,6 +127,15 @@ def run_label(r: dict) -> str:
     return r["phase"] + ("" if r.get("compile_helper", True) else " no-helper")
 
 
+def per_run(doc: dict, title: str, line: Callable[[dict], str | None]) -> None:
+    """Print ``title``, then ``line(row)`` for each run that did not fail, where it has something to say."""
+    print(f"\n{title}")
+    for r in doc["rows"]:
+        text = None if r["status"] == "error" else line(r)
+        if text:
+            print(f"{r['task']} {r['mode']} {run_label(r)}: {text}")
+
+
 def fmt(v, nd=1) -> str:
     return "-" if v is None else f"{v:.{nd}f}"
 
@@ -171,38 +181,39 @@ def main(argv: list[str] | None = None) -> dict:
               f"{fmt(r.get('before_first_iter_s')):>11} {fmt(r['process_s']):>9} {fmt(r['compile_s']):>9} "
               f"{r['compiles']!s:>8} {r['recompiles']!s:>10} {r['fxgraph_cache_hit']!s:>6} "
               f"{r['fxgraph_cache_miss']!s:>7}")
-    print("\nwhere the seconds went (startup_s: the parts before and of the first iteration; compiling, by part)")
-    for r in doc["rows"]:
-        if r["status"] == "error":
-            continue
+
+    def where_the_seconds_went(r: dict) -> str:
         parts = " ".join(f"{k} {fmt(v)}" for k, v in (r.get("startup_s") or {}).items())
         if r.get("artifacts_load_s"):
             parts += f" (of the compile cache's: loading its artifact file {fmt(r['artifacts_load_s'])})"
-        by_part = " ".join(f"{k} {fmt(v)}" for k, v in sorted((r.get("compile_s_by_part") or {}).items(),
-                                                               key=lambda kv: -kv[1]))
-        print(f"{r['task']} {r['mode']} {run_label(r)}: {parts} | compiling: {by_part}")
-    print("\ninside the compiler (torch's phase times, nested: they do not add up)")
-    for r in doc["rows"]:
+        by_part = sorted((r.get("compile_s_by_part") or {}).items(), key=lambda kv: -kv[1])
+        return f"{parts} | compiling: " + " ".join(f"{k} {fmt(v)}" for k, v in by_part)
+
+    def inside_the_compiler(r: dict) -> str | None:
         phases = r.get("phase_s") or {}
-        if r["status"] != "error" and phases:
-            print(f"{r['task']} {r['mode']} {run_label(r)}: "
-                  + " ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases)
-                  + f" | Triton in-process: {r.get('triton_compiles')} compiled in {fmt(r.get('triton_compile_s'))}"
-                  + f", {r.get('triton_cache_hits')} from its cache | inductor kernels: {r.get('kernel_compile_miss')} "
-                  + f"compiled, {r.get('kernels_loaded_ready')} loaded ready to launch "
-                  + f"({r.get('graphs_saved_ready')} graphs saved with such)")
-    print("\nTriton kernels compiled in-process, slowest first (seconds)")
-    for r in doc["rows"]:
-        if r["status"] != "error" and r.get("triton_compile_s_by_kernel"):
-            print(f"{r['task']} {r['mode']} {run_label(r)}: "
-                  + " ".join(f"{k} {fmt(v, 2)}" for k, v in r["triton_compile_s_by_kernel"].items()))
-    print(f"\nthe {PRINTED_GRAPHS} slowest graphs (seconds: whole compilation, inductor's part; FX nodes of a forward)")
-    for r in doc["rows"]:
+        if not phases:
+            return None
+        return (" ".join(f"{label} {fmt(phases[k])}" for k, label in PRINTED_PHASES.items() if k in phases)
+                + f" | Triton in-process: {r.get('triton_compiles')} compiled in {fmt(r.get('triton_compile_s'))}"
+                + f", {r.get('triton_cache_hits')} from its cache | inductor kernels: {r.get('kernel_compile_miss')} "
+                + f"compiled, {r.get('kernels_loaded_ready')} loaded ready to launch "
+                + f"({r.get('graphs_saved_ready')} graphs saved with such)")
+
+    def triton_kernels(r: dict) -> str | None:
+        kernels = r.get("triton_compile_s_by_kernel")
+        return " ".join(f"{k} {fmt(v, 2)}" for k, v in kernels.items()) if kernels else None
+
+    def slowest_graphs(r: dict) -> str | None:
         graphs = (r.get("graphs") or [])[:PRINTED_GRAPHS]
-        if r["status"] != "error" and graphs:
-            print(f"{r['task']} {r['mode']} {run_label(r)}: " + "; ".join(
-                f"{g['name']} [{g['compile_id']}] {g['kind']} {fmt(g['s'])}/{fmt(g['inductor_s'])}"
-                + (f" ({g['nodes']} nodes)" if g.get("nodes") else "") for g in graphs))
+        return "; ".join(f"{g['name']} [{g['compile_id']}] {g['kind']} {fmt(g['s'])}/{fmt(g['inductor_s'])}"
+                         + (f" ({g['nodes']} nodes)" if g.get("nodes") else "") for g in graphs) or None
+
+    per_run(doc, "where the seconds went (startup_s: the parts before and of the first iteration; compiling, by "
+                 "part)", where_the_seconds_went)
+    per_run(doc, "inside the compiler (torch's phase times, nested: they do not add up)", inside_the_compiler)
+    per_run(doc, "Triton kernels compiled in-process, slowest first (seconds)", triton_kernels)
+    per_run(doc, f"the {PRINTED_GRAPHS} slowest graphs (seconds: whole compilation, inductor's part; FX nodes of a "
+                 "forward)", slowest_graphs)
     return doc
 
 

@@ -365,26 +365,25 @@ def compiled_graphs() -> list[dict]:
     def seconds(value: Any, scale: float = 1.0) -> float | None:
         return None if value is None else round(float(value) * scale, 3)
 
-    names, graphs = {}, []
+    def compile_id(m: Any) -> str:
+        return str(getattr(m, "compile_id", "") or "")
+
+    # a backward graph's record has no function name: it carries its forward's compile id
+    names = {compile_id(m): m.co_name for m in metrics if getattr(m, "co_name", None)}
+    graphs = []
     for m in metrics:
         get = functools.partial(getattr, m)
-        compile_id = str(get("compile_id", "") or "")
         forward = get("is_forward", None) is not False
-        if forward and get("co_name", None):
-            names[compile_id] = get("co_name")
-        total = get("entire_frame_compile_time_s", None) if forward else None
-        if total is None and not forward:
-            total = seconds(get("backward_cumulative_compile_time_us", None), 1e-6)
+        total = (get("entire_frame_compile_time_s", None) if forward
+                 else seconds(get("backward_cumulative_compile_time_us", None), 1e-6))
         misses = get("inductor_fx_local_cache_miss_count", None)
         inductor_s = seconds(get("inductor_compile_time_s", None))
-        graphs.append({"name": names.get(compile_id), "compile_id": compile_id,
+        if total is None and inductor_s is None:  # torch's record of the frame itself, beside its graphs'
+            continue
+        graphs.append({"name": names.get(compile_id(m)), "compile_id": compile_id(m),
                        "kind": "forward" if forward else "backward", "s": seconds(total), "inductor_s": inductor_s,
                        "nodes": get("graph_node_count", None) if forward else None,
                        "cache_miss": None if misses is None or inductor_s is None else bool(misses)})
-    for g in graphs:  # a backward's record may come before its name is known only if torch reorders them
-        g["name"] = g["name"] or names.get(g["compile_id"])
-    # torch also keeps a record without any time per frame (the frame's own, beside its graphs'): not a graph
-    graphs = [g for g in graphs if g["s"] is not None or g["inductor_s"] is not None]
     return sorted(graphs, key=lambda g: -(g["s"] or g["inductor_s"] or 0.0))
 
 
@@ -393,6 +392,14 @@ def compiled_graphs() -> list[dict]:
 TRITON_KERNELS_KEPT = 20
 _watches: weakref.WeakSet = weakref.WeakSet()
 _hooked = _triton_hooked = False
+
+
+def _tell_watches(method: str, *args: Any) -> None:
+    """Call ``method`` of every live watch. A display must never fail a compilation: an error in a watch (or in
+    its on_change) is dropped here."""
+    for w in list(_watches):
+        with contextlib.suppress(Exception):
+            getattr(w, method)(*args)
 
 
 def _hook_dynamo() -> bool:
@@ -405,16 +412,11 @@ def _hook_dynamo() -> bool:
     except ImportError:
         return False
 
-    # A display must never fail a compilation: an error in a watch (or in its on_change) is dropped here.
     def start(args: Any = None) -> None:
-        for w in list(_watches):
-            with contextlib.suppress(Exception):
-                w._compile_started(args)
+        _tell_watches("_compile_started", args)
 
     def end(args: Any = None) -> None:
-        for w in list(_watches):
-            with contextlib.suppress(Exception):
-                w._compile_ended(args)
+        _tell_watches("_compile_ended", args)
 
     callback_handler.register_start_callback(start)
     callback_handler.register_end_callback(end)
@@ -437,9 +439,7 @@ def _hook_triton() -> bool:
         return False
 
     def listener(*, src: Any = None, times: Any = None, cache_hit: bool = False, **more: Any) -> None:
-        for w in list(_watches):
-            with contextlib.suppress(Exception):  # a timing record must never fail a compilation
-                w._triton_compiled(str(getattr(src, "name", "?")), times, cache_hit)
+        _tell_watches("_triton_compiled", str(getattr(src, "name", "?")), times, cache_hit)
         if previous is not None:  # whatever Triton passes, the listener set before gets it unchanged
             previous(src=src, times=times, cache_hit=cache_hit, **more)
 

@@ -64,7 +64,7 @@ class RegionTimer:
             try:
                 yield
             finally:
-                self.ms[name] = self.ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+                self._add(name, (time.perf_counter() - t0) * 1e3)
 
     @contextmanager
     def concurrent(self, name: str, stream: torch.cuda.Stream):
