@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ablations.compile_helper import CompileHelper
+from ablations.compile_helper import RUN_SHARE, CompileHelpers
 from gradlab.checkpoint import (
     LoadedCheckpoint,
     NoReadableCheckpointError,
@@ -106,9 +106,9 @@ class RunConfig(SHACConfig):
     delete it to start cold); None: $PIXELGRAD_COMPILE_CACHE, else ~/.cache/pixelgrad/compile; 'off': torch's
     own cache locations and no artifact file."""
     compile_helper: bool = True
-    """With --compile on a GPU and nothing compiled for these settings yet: a second process compiles the renderer
-    and the networks while this one compiles the physics, into the same cache (ablations/compile_helper.py);
-    --no-compile-helper compiles everything in this process."""
+    """With --compile on a GPU and nothing compiled for these settings yet: helper processes compile the rest of
+    the physics, the renderer and the networks while this one compiles the physics substep, into the same cache
+    (ablations/compile_helper.py); --no-compile-helper compiles everything in this process."""
 
     def validate(self) -> None:
         """SHACConfig's checks plus the run options'."""
@@ -382,8 +382,9 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device, LoadedCheckp
     return cfg, run_dir, device, None
 
 
-def _open_compile_cache(cfg: RunConfig, device: torch.device) -> tuple[CompileCache | None, str]:
-    """The compile cache of a --compile run, activated, and the label of its artifact file; says where it is."""
+def _compile_cache(cfg: RunConfig, device: torch.device) -> tuple[CompileCache | None, str]:
+    """The compile cache folder of a --compile run (checked, not yet activated) and the label of its artifact
+    file; None where --compile-cache is off or the folder is not usable (a warning)."""
     resolved = resolve_config(shac_part(cfg))
     label = f"{resolved.task}_{resolved.mode}_{resolved.num_envs}envs_{resolved.image_size}px"
     root = resolve_cache_root(cfg.compile_cache)
@@ -391,21 +392,34 @@ def _open_compile_cache(cfg: RunConfig, device: torch.device) -> tuple[CompileCa
         print("compile cache: torch's own locations (--compile-cache off)", file=sys.stderr)
         return None, label
     try:
-        cache = CompileCache(root, device)
+        return CompileCache(root, device), label
+    except OSError as e:
+        _unusable(root, e)
+        return None, label
+
+
+def _activate_compile_cache(cache: CompileCache, label: str, device: torch.device) -> CompileCache | None:
+    """Point torch at the cache folder, load the artifact file of ``label``, start the compile workers; says
+    where the cache is. None where the folder turns out not usable (a warning)."""
+    try:
         cache.activate(label)
     except OSError as e:
-        warnings.warn(f"compile cache under {root} is not usable ({e}); compiling with torch's own caches",
-                      CompileCacheWarning, stacklevel=2)
-        return None, label
+        _unusable(cache.folder, e)
+        return None
     start_compile_workers(device)  # after activating: the workers inherit the cache folder
     loaded = ", ".join(f"{n} {kind}" for kind, n in cache.loaded.items())
     print(f"compile cache: {cache.folder}" + (f" (loaded {loaded} artifacts)" if loaded else ""), file=sys.stderr)
-    return cache, label
+    return cache
+
+
+def _unusable(where: Path, error: OSError) -> None:
+    warnings.warn(f"compile cache under {where} is not usable ({error}); compiling with torch's own caches",
+                  CompileCacheWarning, stacklevel=3)
 
 
 def _wants_compile_helper(cfg: RunConfig, device: torch.device, cache: CompileCache | None, label: str, *,
                           resuming: bool) -> bool:
-    """Whether a --compile run starts a compile helper (ablations/compile_helper.py): on a CUDA device (on the
+    """Whether a --compile run starts compile helpers (ablations/compile_helper.py): on a CUDA device (on the
     CPU inductor's C++ compiles leave no cores to spare), with a cache folder to share, on a fresh run whose
     settings have no artifact file yet (a warm start loads everything in seconds), unless --no-compile-helper."""
     return (cfg.compile and cfg.compile_helper and cache is not None and device.type == "cuda" and not resuming
@@ -424,26 +438,28 @@ def run(cfg: RunConfig) -> Path:
     started = time.time()
     cfg, run_dir, device, resume_from = prepare(cfg)
     cache_opened = time.time()
-    cache, cache_label = _open_compile_cache(cfg, device) if cfg.compile else (None, "")
-    helper = None
+    cache, cache_label = _compile_cache(cfg, device) if cfg.compile else (None, "")
+    helpers = None
     if _wants_compile_helper(cfg, device, cache, cache_label, resuming=resume_from is not None):
-        # this process takes its CUDA context first: on a GPU in exclusive-process mode the helper is then the
-        # one that cannot start its own, and the run compiles everything itself
+        # this process takes its CUDA context first: on a GPU in exclusive-process mode the helpers are then the
+        # ones that cannot start their own, and the run compiles everything itself. They start before the cache
+        # is activated here (the seconds that takes are theirs too): they activate it themselves.
         torch.empty(1, device=device)
-        helper = CompileHelper.start(resolve_config(shac_part(cfg)), device, cache.folder.parent,
-                                     run_dir / "compile_helper.log")
+        helpers = CompileHelpers.start(resolve_config(shac_part(cfg)), device, cache.folder.parent, run_dir)
     try:
-        return _train(cfg, run_dir, device, resume_from, cache, cache_label, helper, started=started,
+        if cache is not None:
+            cache = _activate_compile_cache(cache, cache_label, device)
+        return _train(cfg, run_dir, device, resume_from, cache, cache_label, helpers, started=started,
                       cache_opened=cache_opened)
     finally:
-        if helper is not None:  # on every way out, an error before the training loop included
-            helper.stop()
+        if helpers is not None:  # on every way out, an error before the training loop included
+            helpers.stop()
 
 
 def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: LoadedCheckpoint | None,
-           cache: CompileCache | None, cache_label: str, helper: CompileHelper | None, *, started: float,
+           cache: CompileCache | None, cache_label: str, helpers: CompileHelpers | None, *, started: float,
            cache_opened: float) -> Path:
-    """The rest of :func:`run` once its folder, compile cache and helper are settled: build the trainer, train,
+    """The rest of :func:`run` once its folder, compile cache and helpers are settled: build the trainer, train,
     write the summary."""
     from gradlab.shac import SHAC
 
@@ -493,20 +509,22 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
     # The first iterations wait for the compiler: the bar says which part it compiles or captures, then its name.
     watch.on_change = lambda text: bar.set_description(base if text is None else f"{base}: {text}")
     saved_at = watch.done  # compilations the artifact file holds
-    first_iter_s = None
+    first_iter_s = helpers_wait_s = None
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
     startup["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
     try:
-        if helper is not None:
-            # the physics now, while the helper compiles the rest; then the helper's graphs come from the cache
+        if helpers is not None:
+            # the run's share now, while the helpers compile theirs; then their graphs come from the cache
             ahead = time.time()
-            trainer.compile_physics_now()
-            helper.wait(on_wait=lambda: watch.announce("waiting for the compile helper (renderer, networks)"))
+            trainer.compile_physics_now(parts=RUN_SHARE)
+            waited = time.time()
+            helpers.wait(on_wait=lambda parts: watch.announce(f"waiting for the compile helpers ({parts})"))
+            helpers_wait_s = time.time() - waited
             watch.announce(None)
             startup["compile_ahead"] = time.time() - ahead
             # compiling counts in the training wall-clock (--time-limit-min, the wall_s curves) wherever it happens:
-            # runs with and without a helper spend their budgets alike
+            # runs with and without helpers spend their budgets alike
             trainer.wall_s += startup["compile_ahead"]
         # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
         # the same training time as one that ran through, so that return-against-time curves stay comparable.
@@ -560,8 +578,8 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
         status, error = "oom", str(e).splitlines()[0]
         raise
     finally:
-        if helper is not None:
-            helper.stop()
+        if helpers is not None:
+            helpers.stop()
         watch.on_change = None
         bar.close()
         if writer is not None:
@@ -573,8 +591,8 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
             compiled = {"cache": None if cache is None else str(cache.folder),
                         "artifacts_loaded": {} if cache is None else cache.loaded,
                         "artifacts_load_s": None if cache is None else round(cache.load_s, 3),
-                        "helper": None if helper is None else {"returncode": helper.process.returncode,
-                                                               "log": str(helper.log)},
+                        "helpers": None if helpers is None else helpers.record(),
+                        "helpers_wait_s": None if helpers_wait_s is None else round(helpers_wait_s, 3),
                         **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds(),
                         "graphs": compiled_graphs()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,

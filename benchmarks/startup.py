@@ -5,7 +5,7 @@ with an empty compile cache folder (cold: every graph compiled), then again with
 second run of the same settings on the same machine pays). Each run's ``summary.json`` gives the seconds from
 process start to the end of its first iteration (``first_iter_s``), the compilations and recompilations
 dynamo made, and inductor's FX graph and AOTAutograd cache hits; the process's own wall time is measured
-around it. With ``--compile-helper on off`` each pair runs with ablate's compile helper and then without it
+around it. With ``--compile-helper on off`` each pair runs with ablate's compile helpers and then without them
 (``--no-compile-helper``), each pair with a cache folder of its own. Arguments this script does not know are
 passed on to ``ablate`` (e.g. ``--horizon 4``).
 
@@ -39,7 +39,7 @@ COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "com
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
                 "artifacts_loaded", "artifacts_load_s", "phase_s", "graphs", "triton_compiles", "triton_compile_s",
                 "triton_cache_hits", "triton_compile_s_by_kernel", "kernel_compile_miss", "kernel_compile_hit",
-                "graphs_saved_ready", "kernels_loaded_ready", "helper")
+                "graphs_saved_ready", "kernels_loaded_ready", "helpers", "helpers_wait_s")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)
@@ -84,6 +84,10 @@ def run_once(cmd: list[str], run_dir: Path, *, timeout: float) -> dict:
                startup_s=summary.get("startup_s"), **{k: compiled.get(k) for k in COMPILE_KEYS})
     if row["first_iter_s"] is not None and metrics:  # imports, trainer construction, whatever ran before it
         row["before_first_iter_s"] = row["first_iter_s"] - metrics[0]["iter_ms"] / 1e3
+    for helper in row.get("helpers") or []:  # each helper's own account of its seconds, the last line it printed
+        log = Path(helper["log"])
+        lines = log.read_text(errors="replace").strip().splitlines() if log.exists() else []
+        helper["report"] = lines[-1][:500] if lines else None
     return row
 
 
@@ -123,7 +127,7 @@ def meta(args, argv: list[str]) -> dict:
 
 
 def run_label(r: dict) -> str:
-    """cold / warm, and whether the run had ablate's compile helper."""
+    """cold / warm, and whether the run had ablate's compile helpers."""
     return r["phase"] + ("" if r.get("compile_helper", True) else " no-helper")
 
 
@@ -151,8 +155,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--iters", type=int, default=2, help="iterations per run (the first one is what is timed)")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds one ablate process may take")
     p.add_argument("--compile-helper", nargs="+", choices=("on", "off"), default=["on"],
-                   help="with and/or without ablate's compile helper (a cold GPU start in two processes), each with "
-                        "a cache folder of its own, in this order: 'on off' is a same-machine A/B")
+                   help="with and/or without ablate's compile helpers (a cold GPU start in several processes), "
+                        "each with a cache folder of its own, in this order: 'on off' is a same-machine A/B")
     p.add_argument("--work", type=Path, default=None,
                    help="folder for the cache folders and run folders (kept); default: a temporary one, removed")
     p.add_argument("--out", type=Path, default=Path("startup.json"))
@@ -210,6 +214,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     per_run(doc, "where the seconds went (startup_s: the parts before and of the first iteration; compiling, by "
                  "part)", where_the_seconds_went)
+    def helpers(r: dict) -> str | None:
+        if not r.get("helpers"):
+            return None
+        reports = "; ".join(h.get("report") or f"({', '.join(h['parts'])}: exit {h['returncode']}, no report)"
+                            for h in r["helpers"])
+        return f"the run waited {fmt(r.get('helpers_wait_s'))} s for them | {reports}"
+
+    per_run(doc, "the compile helpers (each one's seconds, from its log)", helpers)
     per_run(doc, "inside the compiler (torch's phase times, nested: they do not add up)", inside_the_compiler)
     per_run(doc, "Triton kernels compiled in-process, slowest first (seconds)", triton_kernels)
     per_run(doc, f"the {PRINTED_GRAPHS} slowest graphs (seconds: whole compilation, inductor's part; FX nodes of a "

@@ -15,9 +15,10 @@ from gradlab.config import MODES, ModePlan, SHACConfig, resolve_config
 from gradlab.presets import PRESETS, preset_record, preset_values
 from gradlab.probes import ImageGate, NonFiniteError, cosine, flat_grad
 from gradlab.seeding import resolve_device, seed_everything
-from gradlab.shac import SHAC
+from gradlab.shac import COMPILE_PARTS, SHAC
 
 __all__ = [
+    "COMPILE_PARTS",
     "CompileCache",
     "CompileCacheWarning",
     "CompileWatch",

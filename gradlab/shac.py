@@ -31,6 +31,7 @@ import copy
 import dataclasses
 import time
 from collections import deque
+from collections.abc import Collection
 
 import numpy as np
 import torch
@@ -48,7 +49,12 @@ from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_
 from gradlab.timing import RegionTimer
 from tasks.vision import FrameStack, TaskRenderer
 
-__all__ = ["SHAC", "NonFiniteError"]
+__all__ = ["COMPILE_PARTS", "SHAC", "NonFiniteError"]
+
+#: What ``--compile`` compiles, in parts that separate processes can compile at the same time into one cache
+#: (ablations/compile_helper.py): the physics' own parts (tasks.PHYSICS_PARTS), the renderer's PyTorch work, and
+#: the actor with the critic.
+COMPILE_PARTS = (*tasks.PHYSICS_PARTS, "renderer", "networks")
 
 _FLAG_NAMES = ["state_obs", "reward", "terminal_value", "image", "action", "qpos", "qvel"]
 
@@ -59,13 +65,19 @@ class SHAC:
     Args:
         cfg: the configuration; None fields are resolved to the task's reference values.
         device: "auto" | "cpu" | "cuda[:N]".
-        compile_physics: with ``cfg.compile``, compile the physics step too (False: everything else is compiled
-            and the physics runs eagerly; what a compile helper process does, ``ablations.compile_helper``).
+        compile_parts: with ``cfg.compile``, which of :data:`COMPILE_PARTS` to compile (None: all); the others
+            run eagerly. A compile helper process compiles its share this way (``ablations.compile_helper``).
     """
 
-    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto", compile_physics: bool = True):
+    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto",
+                 compile_parts: Collection[str] | None = None):
         self.cfg = resolve_config(cfg)
         cfg = self.cfg
+        if compile_parts is None:
+            compile_parts = COMPILE_PARTS
+        if isinstance(compile_parts, str) or not set(compile_parts) <= set(COMPILE_PARTS):
+            raise ValueError(f"compile_parts are some of {COMPILE_PARTS}, got {compile_parts!r}")
+        compiled = set(compile_parts) if cfg.compile else set()
         self.plan = ModePlan.of(cfg.mode)
         self.device = device if isinstance(device, torch.device) else resolve_device(device)
         seed_everything(cfg.seed)
@@ -79,14 +91,15 @@ class SHAC:
             import torch._functorch.config as functorch_config
 
             functorch_config.donated_buffer = False
-            if compile_physics:
-                self.task.compile()
-        self._physics_compiled = cfg.compile and compile_physics
+        # the physics parts this trainer compiled (compile_physics_now compiles them ahead)
+        self._physics_compiled = tuple(p for p in tasks.PHYSICS_PARTS if p in compiled)
+        if self._physics_compiled:
+            self.task.compile(parts=self._physics_compiled)
         self.renderer = None
         if self.plan.renders:
             self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
                                          **self._render_options())
-            if cfg.compile:
+            if "renderer" in compiled:
                 # Forward kinematics, vertices, camera and the fused rasterizer's per-face setup are ~500 small
                 # kernels per frame eagerly, in forward and again in backward. (The tiled backend's compiled
                 # kernel stays off: on an H200 its backward produced NaN image gradients in full mode.)
@@ -111,8 +124,11 @@ class SHAC:
         if cfg.compile:
             start_compile_workers(self.device)  # up before the first graphs: see its docstring
             watch = self.compile_watch
-            self._actor_mean = watch.labelled("actor", torch.compile(self.actor.mean, dynamic=False))
-            self._target_value = watch.labelled("critic", torch.compile(self.target_critic, dynamic=False))
+            if "networks" in compiled:
+                self._actor_mean = torch.compile(self.actor.mean, dynamic=False)
+                self._target_value = torch.compile(self.target_critic, dynamic=False)
+            self._actor_mean = watch.labelled("actor", self._actor_mean)
+            self._target_value = watch.labelled("critic", self._target_value)
             self._step = watch.labelled("physics step", self._step)
             if self.renderer is not None:
                 self._render = watch.labelled("renderer", self._render)
@@ -165,18 +181,19 @@ class SHAC:
         cfg = self.cfg
         return torch.zeros(n, 3 * cfg.frames, cfg.image_size, cfg.image_size, device=self.device)
 
-    def compile_physics_now(self) -> None:
-        """Compile the physics step and its backward before the first reset, with the training windows' guards
-        (the cut state and the action require grad, grad mode on), by stepping once and differentiating. The
-        task's state and reset RNG are restored, so the run goes on as without this call. With a compile helper
-        process compiling the renderer and the networks meanwhile (``ablations.compile_helper``), the two
-        longest parts of a cold start overlap. Does nothing unless the physics is compiled, or once the run has
-        started."""
-        if not self._physics_compiled or self._started:
+    def compile_physics_now(self, *, parts: Collection[str] | None = None) -> None:
+        """Compile the physics step's ``parts`` (of tasks.PHYSICS_PARTS; None: all this trainer compiles) and
+        their backward before the first reset, with the training windows' guards (the cut state and the action
+        require grad, grad mode on), by stepping twice and differentiating; the other parts run eagerly meanwhile.
+        The task's state and reset RNG are restored, so the run goes on as without this call. With compile
+        helper processes compiling the other parts meanwhile (``ablations.compile_helper``), the longest parts of
+        a cold start overlap. Does nothing for parts not compiled, or once the run has started."""
+        parts = [p for p in (self._physics_compiled if parts is None else parts) if p in self._physics_compiled]
+        if not parts or self._started:
             return
         task = self.task
         state = task.get_state()
-        with torch.enable_grad():
+        with torch.enable_grad(), task.running_eagerly([p for p in tasks.PHYSICS_PARTS if p not in parts]):
             task.detach(requires_grad=True)
             action = torch.zeros(task.num_envs, task.num_act, device=self.device, dtype=task.dtype,
                                  requires_grad=True)

@@ -16,9 +16,10 @@ dynamics that equals MuJoCo's ``qacc``.
 from .dynamics import ContactParams, LimitParams, Simulator
 from .model import ArticulatedModel, UnsupportedModelError, load_model
 from .registry import TASKS, make
-from .task import CameraSpec, Task, TaskConfig
+from .task import PHYSICS_PARTS, CameraSpec, Task, TaskConfig
 
 __all__ = [
+    "PHYSICS_PARTS",
     "TASKS",
     "ArticulatedModel",
     "CameraSpec",

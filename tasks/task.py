@@ -18,7 +18,8 @@ import dataclasses
 import functools
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -30,7 +31,12 @@ from .dynamics import ContactParams, LimitParams, Simulator
 from .model import ArticulatedModel, load_model
 from .rng import CounterRNG
 
-__all__ = ["ASSETS", "DEFAULT_INDUCTOR_OPTIONS", "CameraSpec", "Task", "TaskConfig"]
+__all__ = ["ASSETS", "DEFAULT_INDUCTOR_OPTIONS", "PHYSICS_PARTS", "CameraSpec", "Task", "TaskConfig"]
+
+#: The separately compiled pieces of a control step (:meth:`Task.compile`): the physics substep, the mass-matrix
+#: factorisation and the per-step reward/observation/reset. Each is its own graph, and with its backward its own
+#: compile work, so separate processes can compile them at the same time (ablations/compile_helper.py).
+PHYSICS_PARTS = ("substep", "factorize", "finish")
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 #: inductor options of :meth:`Task.compile` (see the comments there for what each one measured)
@@ -342,9 +348,10 @@ class Task(abc.ABC):
         self.prev_actions = state["prev_actions"].to(self.device, self.dtype).clone()
         self.rng.set_state(state["rng"])
 
-    def compile(self, **compile_kwargs: Any) -> Task:
+    def compile(self, *, parts: Collection[str] = PHYSICS_PARTS, **compile_kwargs: Any) -> Task:
         """Compile the physics substep, the mass-matrix factorisation and the per-step reward/reset with
-        ``torch.compile`` (static shapes).
+        ``torch.compile`` (static shapes); ``parts`` names which of them (:data:`PHYSICS_PARTS`), the others
+        stay as they are.
 
         Keyword arguments go to ``torch.compile`` (default ``dynamic=False``; inductor ``options`` are merged over
         :data:`DEFAULT_INDUCTOR_OPTIONS` unless a ``mode`` is given). The substep is compiled on
@@ -352,6 +359,7 @@ class Task(abc.ABC):
         """
         import torch._dynamo.config as dynamo_config
 
+        parts = _check_parts(parts)
         # Every Task shares the compiled code objects (``substep`` etc.), and each batch size, dtype, device and
         # grad/no-grad variant of the state is one more guard set. Past dynamo's default limit of 8 it quietly
         # falls back to eager, and a process that simulates several batch sizes runs several times slower.
@@ -367,10 +375,30 @@ class Task(abc.ABC):
         if "mode" not in kw and kw.get("backend", "inductor") == "inductor":  # a mode or options, not both
             # PDL with every kernel waiting before its first access (see tasks._pdl for the race it avoids)
             kw["options"] = _pdl.options({**DEFAULT_INDUCTOR_OPTIONS, **(kw.get("options") or {})})
-        self._substep = torch.compile(functools.partial(self._chained_substep, copy=True), **kw)
-        self._factorize = torch.compile(self.sim.factorize, **kw)
-        self._finish = torch.compile(self._finish_impl, **kw)
+        compiled = {"substep": lambda: torch.compile(functools.partial(self._chained_substep, copy=True), **kw),
+                    "factorize": lambda: torch.compile(self.sim.factorize, **kw),
+                    "finish": lambda: torch.compile(self._finish_impl, **kw)}
+        for part in parts:
+            setattr(self, f"_{part}", compiled[part]())
         return self
+
+    def _eager_part(self, part: str) -> Callable:
+        return {"substep": self._chained_substep, "factorize": self.sim.factorize, "finish": self._finish_impl}[part]
+
+    @contextmanager
+    def running_eagerly(self, parts: Collection[str]) -> Iterator[None]:
+        """Within the block the named physics parts (:data:`PHYSICS_PARTS`) run eagerly, compiled or not; after
+        it, as before. A process that compiles only some parts ahead steps with the others eager, so that it
+        does not compile them too (same values: the compiled parts are the same functions)."""
+        parts = _check_parts(parts)
+        kept = {part: getattr(self, f"_{part}") for part in parts}
+        for part in parts:
+            setattr(self, f"_{part}", self._eager_part(part))
+        try:
+            yield
+        finally:
+            for part, fn in kept.items():
+                setattr(self, f"_{part}", fn)
 
     def _check_action(self, action: torch.Tensor) -> None:
         if not isinstance(action, torch.Tensor):
@@ -393,6 +421,12 @@ class Task(abc.ABC):
             f"{type(self).__name__}(name={self.name!r}, num_envs={self.num_envs}, device={self.device}, "
             f"dtype={self.dtype}, num_obs={self.num_obs}, num_act={self.num_act})"
         )
+
+
+def _check_parts(parts: Collection[str]) -> tuple[str, ...]:
+    if isinstance(parts, str) or not set(parts) <= set(PHYSICS_PARTS):
+        raise ValueError(f"physics parts are some of {PHYSICS_PARTS}, got {parts!r}")
+    return tuple(parts)
 
 
 def config_fields(cls: type[TaskConfig]) -> tuple[str, ...]:

@@ -1,8 +1,8 @@
-"""The compile helper: a second process that fills the compile cache while the run compiles its physics.
+"""The compile helpers: processes that fill the compile cache while the run compiles its own share.
 
-The fast tests check that a helper that fails or hangs costs the run nothing but a warning; the slow one checks the
-point of it on the CPU: the run finds the helper's graphs in the shared cache (FX graph cache hits for everything
-but the physics) and trains to the same numbers as a run without a helper.
+The fast tests check that a helper that fails or hangs costs the run nothing but a warning, and how the work is
+shared; the slow one checks the point of it on the CPU: the run finds the helpers' graphs in the shared cache (FX
+graph cache hits for everything but its own share) and trains to the same numbers as a run without helpers.
 """
 
 from __future__ import annotations
@@ -11,13 +11,14 @@ import json
 import subprocess
 import sys
 import textwrap
+import time
 import warnings
 from pathlib import Path
 
 import pytest
 import torch
 
-from ablations.compile_helper import CompileHelper
+from ablations.compile_helper import HELPER_SHARES, RUN_SHARE, CompileHelper, CompileHelpers, helper_shares
 from gradlab.config import SHACConfig, resolve_config
 
 CPU = torch.device("cpu")
@@ -30,6 +31,7 @@ def _cfg(**kw):
 
 def test_a_helper_that_fails_warns_once_and_the_run_goes_on(tmp_path):
     helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
+                                 parts=("networks",),
                                  command=[sys.executable, "-c", "import sys; print('broken'); sys.exit(3)"])
     with pytest.warns(RuntimeWarning, match=r"exited with code 3.*compile_helper.log") as record:
         assert helper.wait(timeout=30) is False
@@ -41,7 +43,7 @@ def test_a_helper_that_fails_warns_once_and_the_run_goes_on(tmp_path):
 
 def test_a_helper_that_hangs_is_waited_for_only_until_the_timeout_then_stopped(tmp_path):
     helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "compile_helper.log",
-                                 command=[sys.executable, "-c", "import time; time.sleep(60)"])
+                                 parts=("networks",), command=[sys.executable, "-c", "import time; time.sleep(60)"])
     told = []
     with pytest.warns(RuntimeWarning, match="still compiling after 0 s of waiting; stopped"):
         assert helper.wait(timeout=0.3, on_wait=lambda: told.append(True)) is False
@@ -53,7 +55,8 @@ def test_a_helper_that_hangs_is_waited_for_only_until_the_timeout_then_stopped(t
 def test_a_helper_that_cannot_start_is_a_warning_not_an_error(tmp_path):
     (tmp_path / "run").write_text("a file where the run folder should be")
     with pytest.warns(RuntimeWarning, match="could not start"):
-        helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log")
+        helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
+                                     parts=("networks",))
     assert helper is None
 
 
@@ -63,7 +66,7 @@ def test_the_helper_reads_its_settings_once_and_leaves_if_its_run_is_gone(tmp_pa
 
     spec = tmp_path / "spec.pkl"
     spec.write_bytes(pickle.dumps({"config": _cfg(), "device": "cpu", "cache_root": str(tmp_path / "cache"),
-                                   "parent": -1}))
+                                   "parts": ("networks",), "parent": -1}))
     out = subprocess.run([sys.executable, "-m", "ablations.compile_helper", str(spec)], capture_output=True,
                          text=True, timeout=120)
     assert not spec.exists()
@@ -72,8 +75,8 @@ def test_the_helper_reads_its_settings_once_and_leaves_if_its_run_is_gone(tmp_pa
 
 
 def _failing_run(tmp_path, monkeypatch, where: str):
-    """A --compile run on the CPU made to start a helper (a sleeping stand-in), failing ``where``."""
-    from ablations import runs
+    """A --compile run on the CPU made to start its helpers (sleeping stand-ins), failing ``where``."""
+    from ablations import compile_helper, runs
 
     helpers = []
     start = CompileHelper.start
@@ -86,7 +89,7 @@ def _failing_run(tmp_path, monkeypatch, where: str):
         raise KeyboardInterrupt if where == "compiling ahead" else RuntimeError("the trainer cannot be built")
 
     monkeypatch.setattr(runs, "_wants_compile_helper", lambda *a, **k: True)
-    monkeypatch.setattr(runs.CompileHelper, "start", start_sleeper)
+    monkeypatch.setattr(compile_helper.CompileHelper, "start", start_sleeper)
     import gradlab.shac
 
     if where == "compiling ahead":
@@ -98,24 +101,60 @@ def _failing_run(tmp_path, monkeypatch, where: str):
                          compile_cache=str(tmp_path / "cache"), video_every=0)
     with pytest.raises((KeyboardInterrupt, RuntimeError)):
         runs.run(cfg)
-    (helper,) = helpers
-    return helper, tmp_path / "runs" / "r"
+    return helpers, tmp_path / "runs" / "r"
 
 
 @pytest.mark.parametrize("where", ["building the trainer", "compiling ahead"])
-def test_a_run_that_fails_stops_its_helper(tmp_path, monkeypatch, where):
-    helper, run_dir = _failing_run(tmp_path, monkeypatch, where)
-    assert helper.process.poll() is not None  # not left compiling (or sleeping) after the run
-    assert not helper._spec.exists()
+def test_a_run_that_fails_stops_its_helpers(tmp_path, monkeypatch, where):
+    helpers, run_dir = _failing_run(tmp_path, monkeypatch, where)
+    assert [h.parts for h in helpers] == list(HELPER_SHARES)  # a rendering mode: one helper per share
+    for helper in helpers:
+        assert helper.process.poll() is not None  # not left compiling (or sleeping) after the run
+        assert not helper._spec.exists()
+        assert (run_dir / f"compile_helper_{'_'.join(helper.parts)}.log").exists()
     if where == "compiling ahead":  # inside the run's bookkeeping: the summary says what happened
         summary = json.loads((run_dir / "summary.json").read_text())
         assert summary["status"] == "interrupted"
-        assert summary["compile"]["helper"]["returncode"] is not None
+        records = summary["compile"]["helpers"]
+        assert [r["parts"] for r in records] == [list(share) for share in HELPER_SHARES]
+        assert all(r["returncode"] is not None for r in records)
+
+
+def test_helpers_are_waited_for_within_one_deadline_and_told_what_still_compiles(tmp_path):
+    """The wait is one deadline for all of them; the run is told which parts are still being compiled."""
+    quick = CompileHelper.start(_cfg(), CPU, tmp_path, tmp_path / "quick.log", parts=("networks",),
+                                command=[sys.executable, "-c", "pass"])
+    slow = [CompileHelper.start(_cfg(), CPU, tmp_path, tmp_path / f"slow{i}.log", parts=share,
+                                command=[sys.executable, "-c", "import time; time.sleep(60)"])
+            for i, share in enumerate([("factorize", "finish"), ("renderer",)])]
+    quick.process.wait(timeout=30)
+    helpers = CompileHelpers([quick, *slow])
+    told = []
+    began = time.monotonic()
+    with pytest.warns(RuntimeWarning, match="still compiling") as record:
+        assert helpers.wait(timeout=1.0, on_wait=told.append) is False
+    assert time.monotonic() - began < 5  # not 1 s per helper: at most one deadline (and the stops)
+    assert len(record) == 2  # one warning per helper that did not finish
+    # before each wait, what is still compiling: never the finished one
+    assert told == ["factorize, finish, renderer", "renderer"]
+    assert [r["returncode"] for r in helpers.record()] == [0, -15, -15]  # the slow ones stopped (SIGTERM)
+
+
+def test_the_work_is_shared_by_what_the_mode_compiles():
+    """The run keeps the physics substep; a helper per other share, none for a renderer that never runs; between
+    them every part of a --compile trainer, each once."""
+    from gradlab.shac import COMPILE_PARTS
+
+    assert helper_shares(_cfg()) == list(HELPER_SHARES)
+    assert helper_shares(resolve_config(SHACConfig(task="cartpole", mode="state", compile=True))) == [
+        share for share in HELPER_SHARES if share != ("renderer",)]
+    parts = [*RUN_SHARE, *(p for share in HELPER_SHARES for p in share)]
+    assert sorted(parts) == sorted(COMPILE_PARTS)
 
 
 def test_a_helper_that_finished_is_not_announced(tmp_path):
     helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "compile_helper.log",
-                                 command=[sys.executable, "-c", "pass"])
+                                 parts=("networks",), command=[sys.executable, "-c", "pass"])
     helper.process.wait(timeout=30)
     told = []
     with warnings.catch_warnings():
@@ -148,7 +187,7 @@ _RUN = textwrap.dedent("""
     import json, sys
     import torch
     from pathlib import Path
-    from ablations.compile_helper import CompileHelper
+    from ablations.compile_helper import RUN_SHARE, CompileHelpers
     from gradlab.compiling import CompileCache, compile_counters
     from gradlab.config import SHACConfig, resolve_config
     from gradlab.shac import SHAC
@@ -157,11 +196,11 @@ _RUN = textwrap.dedent("""
     cfg = resolve_config(SHACConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4,
                                     compile=True, seed=3))
     CompileCache(root, torch.device("cpu")).activate()
-    helper = CompileHelper.start(cfg, torch.device("cpu"), root, root / "helper.log") if with_helper else None
+    helpers = CompileHelpers.start(cfg, torch.device("cpu"), root, root) if with_helper else None
     trainer = SHAC(cfg, device="cpu")
-    if helper is not None:
-        trainer.compile_physics_now()
-        assert helper.wait(timeout=600), (root / "helper.log").read_text()[-3000:]
+    if helpers is not None:
+        trainer.compile_physics_now(parts=RUN_SHARE)
+        assert helpers.wait(timeout=900), [Path(h.log).read_text()[-3000:] for h in helpers.helpers]
     metrics = [trainer.train_iteration() for _ in range(2)]
     watch = trainer.compile_watch
     print(json.dumps({"losses": [m["actor_loss"] for m in metrics], "critic": [m["critic_loss"] for m in metrics],
@@ -180,11 +219,13 @@ def _run(root: Path, with_helper: bool) -> dict:
 def test_the_run_finds_the_helpers_graphs_in_the_cache_and_trains_to_the_same_numbers(tmp_path):
     alone = _run(tmp_path / "alone", with_helper=False)
     helped = _run(tmp_path / "helped", with_helper=True)
-    # everything but the physics came from the helper: the run compiled (missed) only the physics' graphs
-    assert helped["fxgraph_cache_hit"] >= 4
-    assert helped["fxgraph_cache_miss"] < alone["fxgraph_cache_miss"]
+    # everything but the substep came from the helpers: the run compiled (missed) only the substep's two graphs
+    # (forward, backward); the other physics parts' graphs and the networks' were hits
+    assert helped["fxgraph_cache_miss"] == 2, helped
     assert helped["fxgraph_cache_hit"] + helped["fxgraph_cache_miss"] >= alone["fxgraph_cache_miss"]
-    assert "compile helper: imports" in (tmp_path / "helped" / "helper.log").read_text()  # where its time went
+    for share in helper_shares(resolve_config(SHACConfig(task="cartpole", mode="decoupled", compile=True))):
+        log = (tmp_path / "helped" / f"compile_helper_{'_'.join(share)}.log").read_text()
+        assert f"compile helper ({', '.join(share)}): imports" in log  # where its time went
     # compiling ahead used the training windows' guards: no graph more, no recompile more
     assert (helped["compiles"], helped["recompiles"]) == (alone["compiles"], alone["recompiles"])
     # compiling ahead restored the task's state and reset noise: the same training, to the bit on the CPU

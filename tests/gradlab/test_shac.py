@@ -131,6 +131,11 @@ def test_config_errors_are_clear():
         SHAC(tiny(num_envs=0), device="cpu")
     with pytest.raises(ValueError, match="horizon must be a positive integer"):
         SHAC(tiny(horizon=-1), device="cpu")
+    with pytest.raises(ValueError, match=r"compile_parts are some of \('substep', 'factorize', 'finish', "
+                                         r"'renderer', 'networks'\), got \('renderer', 'critic'\)"):
+        SHAC(tiny(compile=True), device="cpu", compile_parts=("renderer", "critic"))
+    with pytest.raises(ValueError, match="compile_parts are some of"):
+        SHAC(tiny(compile=True), device="cpu", compile_parts="networks")  # a string, not a collection of parts
     assert "ant" in tasks.TASKS
 
 

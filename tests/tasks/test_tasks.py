@@ -315,6 +315,42 @@ def test_a_window_started_from_a_leaf_compiles_each_step_once():
         torch._dynamo.reset()
 
 
+def test_compile_parts_compiles_only_those_and_running_eagerly_steps_without_them():
+    """Task.compile(parts=...) compiles only the named physics parts (what one compile helper process compiles);
+    running_eagerly runs compiled parts eagerly for a while (a process compiling ahead only its own share), with
+    the same numbers, and restores them. Graphs are counted per compiled function (eager backend)."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    start = tasks.make("cartpole", 2, seed=0)
+    start.reset()
+    start = start.get_state()
+
+    def step_twice(env) -> torch.Tensor:
+        env.set_state(start)
+        return torch.stack([env.step(torch.full((2, 1), 0.5, dtype=env.dtype))[1] for _ in range(2)])
+
+    try:
+        torch._dynamo.reset()
+        counters.clear()
+        env = tasks.make("cartpole", 2, seed=0).compile(backend="eager", parts=("factorize", "finish"))
+        expected = step_twice(tasks.make("cartpole", 2, seed=0))
+        assert torch.equal(step_twice(env), expected)
+        assert counters["stats"]["unique_graphs"] == 2  # the factorisation and the reward/reset; no substep
+        with env.running_eagerly(["finish"]):
+            counters.clear()
+            assert torch.equal(step_twice(env), expected)
+            assert counters["stats"]["unique_graphs"] == 0  # the factorisation's graph again, no new one
+            assert env._finish == env._finish_impl
+        assert env._finish != env._finish_impl  # compiled again after the block
+        with pytest.raises(ValueError, match="physics parts are some of"):
+            env.compile(parts=("substep", "renderer"))
+        with pytest.raises(ValueError, match="physics parts are some of"):
+            env.compile(parts="substep")  # a string is not a collection of parts
+    finally:
+        torch._dynamo.reset()
+
+
 def test_bad_actions_raise_clear_errors():
     env = tasks.make("cartpole", 2)
     env.reset()
