@@ -38,13 +38,26 @@ def _plain_compile_cache_warnings() -> None:
 
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
+    from ablations.compile_helper import CompileHelpers
+
+    # before torch is imported: a cold --compile start on a GPU shares its compiling with helper processes, and
+    # their imports then overlap this one's (ablations/compile_helper.py)
+    standby = CompileHelpers.standby_for(sys.argv[1:] if argv is None else argv)
+    try:
+        _ablate(argv, standby)
+    finally:
+        if standby is not None:
+            standby.stop()  # nothing left to do once the run gave them their shares or let them go
+
+
+def _ablate(argv: list[str] | None, standby) -> None:
     from ablations.runs import RunConfig, run
     from gradlab.probes import NonFiniteError
 
     cfg = tyro.cli(RunConfig, args=argv, description=RunConfig.__doc__)
     _plain_compile_cache_warnings()
     try:
-        run_dir = run(cfg)
+        run_dir = run(cfg, standby=standby)
     except ValueError as e:
         _fail(str(e))
     except NonFiniteError as e:

@@ -72,43 +72,88 @@ def _compile_threads(helpers: int) -> int:
     return max(2, cores // (helpers + 1))
 
 
-class CompileHelper:
-    """One helper process (see the module docstring). :meth:`start` launches it; :meth:`wait` waits for it to
-    finish (True when it finished cleanly); :meth:`stop` ends it if it still runs."""
+#: Helpers let go while still importing: they end by themselves (or with the run).
+_LET_GO: list[subprocess.Popen] = []
 
-    def __init__(self, process: subprocess.Popen, log: Path, spec: Path, parts: tuple[str, ...]):
-        self.process, self.log, self._spec, self.parts = process, log, spec, parts
+
+class CompileHelper:
+    """One helper process (see the module docstring). :meth:`spawn` starts it on standby: it imports what it needs
+    and waits for its share; :meth:`assign` sends it (:meth:`start` does both); :meth:`dismiss` lets a helper on
+    standby go; :meth:`wait` waits for it to finish (True when it finished cleanly); :meth:`stop` ends it."""
+
+    def __init__(self, process: subprocess.Popen, early_log: Path):
+        self.process, self._early_log = process, early_log
+        self.log: Path | None = None
+        self.parts: tuple[str, ...] = ()
         self.started = time.time()
         self._warned = False
 
     @classmethod
-    def start(cls, cfg, device, cache_root: Path, log: Path, *, parts: Sequence[str], threads: int | None = None,
-              command: list[str] | None = None) -> CompileHelper | None:
-        """Launch a helper that compiles ``parts`` (of gradlab.shac.COMPILE_PARTS) of the resolved ``cfg`` (a
-        SHACConfig) on ``device`` into the cache under ``cache_root``; its output goes to ``log``. ``threads``:
-        its inductor compile workers (None: inductor's default, unless the environment sets them). ``command``
-        replaces the helper's command line (tests). None, with one warning, where it cannot be started (the run
-        then compiles those parts itself)."""
-        spec = None
+    def spawn(cls, *, threads: int | None = None, command: list[str] | None = None) -> CompileHelper | None:
+        """Start a helper on standby. ``threads``: its inductor compile workers (None: inductor's default, unless
+        the environment sets them). ``command`` replaces the helper's command line (tests). None, with one
+        warning, where it cannot be started (the run then compiles everything itself)."""
         env = None
         if threads is not None and "TORCHINDUCTOR_COMPILE_THREADS" not in os.environ:
             env = {**os.environ, "TORCHINDUCTOR_COMPILE_THREADS": str(threads)}
+        early = None
         try:
-            fd, spec = tempfile.mkstemp(prefix="pixelgrad-compile-helper-", suffix=".pkl")
-            with os.fdopen(fd, "wb") as f:
-                pickle.dump({"config": cfg, "device": str(device), "cache_root": str(cache_root),
-                             "parts": tuple(parts), "parent": os.getpid()}, f)
-            log.parent.mkdir(parents=True, exist_ok=True)
-            with open(log, "wb") as out:
-                process = subprocess.Popen(command or [sys.executable, "-m", "ablations.compile_helper", spec],
-                                           stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
-        except (OSError, pickle.PicklingError, ValueError) as e:
-            if spec is not None:
-                Path(spec).unlink(missing_ok=True)
-            warnings.warn(f"compile helper ({', '.join(parts)}) could not start ({type(e).__name__}: {e}); the run "
-                          f"compiles that itself", RuntimeWarning, stacklevel=2)
+            # what it prints before it has a run folder to write to; moved there once it has one
+            fd, early = tempfile.mkstemp(prefix="pixelgrad-compile-helper-", suffix=".log")
+            with os.fdopen(fd, "wb") as out:
+                process = subprocess.Popen(
+                    command or [sys.executable, "-m", "ablations.compile_helper", early, str(os.getpid())],
+                    stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.PIPE, env=env)
+        except (OSError, ValueError) as e:
+            if early is not None:
+                Path(early).unlink(missing_ok=True)
+            warnings.warn(f"compile helper could not start ({type(e).__name__}: {e}); the run compiles that itself",
+                          RuntimeWarning, stacklevel=2)
             return None
-        return cls(process, log, Path(spec), tuple(parts))
+        return cls(process, Path(early))
+
+    def assign(self, cfg, device, cache_root: Path, log: Path, *, parts: Sequence[str]) -> bool:
+        """Give the helper its share: compile ``parts`` (of gradlab.shac.COMPILE_PARTS) of the resolved ``cfg``
+        (a SHACConfig) on ``device`` into the cache under ``cache_root``, writing its output to ``log``. False,
+        with one warning and the helper dismissed, where the log's folder cannot be made or the settings cannot
+        be sent; a helper that has ended already is told by :meth:`wait` (its exit code)."""
+        self.parts = tuple(parts)
+        try:
+            log.parent.mkdir(parents=True, exist_ok=True)
+            log.touch()
+            payload = pickle.dumps({"config": cfg, "device": str(device), "cache_root": str(cache_root),
+                                    "parts": self.parts, "log": str(log)})
+        except (OSError, pickle.PicklingError) as e:
+            self._warn(f"could not be given its share ({type(e).__name__}: {e}); the run compiles that itself")
+            self.dismiss()
+            return False
+        self.log = log
+        try:
+            self.process.stdin.write(payload)
+            self.process.stdin.close()
+        except OSError:  # it has ended already (a broken pipe): its exit code says how
+            pass
+        return True
+
+    @classmethod
+    def start(cls, cfg, device, cache_root: Path, log: Path, *, parts: Sequence[str], threads: int | None = None,
+              command: list[str] | None = None) -> CompileHelper | None:
+        """:meth:`spawn` and :meth:`assign` at once."""
+        helper = cls.spawn(threads=threads, command=command)
+        if helper is None or not helper.assign(cfg, device, cache_root, log, parts=parts):
+            return None
+        return helper
+
+    def dismiss(self) -> None:
+        """Let a helper on standby go (the run needs none): it exits by itself once its imports are done,
+        without doing anything; the run does not wait for that. (It dies with the run in any case.)"""
+        if not self.process.stdin.closed:
+            try:
+                self.process.stdin.close()
+            except OSError:
+                pass
+        self._early_log.unlink(missing_ok=True)  # nothing it says matters now
+        _LET_GO.append(self.process)  # kept until it ends by itself, not garbage-collected while it runs
 
     def wait(self, timeout: float = WAIT_S, *, on_wait: Callable[[], None] | None = None) -> bool:
         """Wait until the helper exits or ``timeout`` seconds have passed; ``on_wait`` is called first if it is
@@ -122,8 +167,7 @@ class CompileHelper:
             self._warn(f"is still compiling after {timeout:.0f} s of waiting; stopped, the run compiles the rest")
             self.stop()
             return False
-        finally:
-            self._spec.unlink(missing_ok=True)
+        self._keep_early_log()
         if code != 0:
             self._warn(f"exited with code {code}; the run compiles what it needed itself")
         return code == 0
@@ -137,17 +181,30 @@ class CompileHelper:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
-        self._spec.unlink(missing_ok=True)
+        self._keep_early_log()
 
     def record(self) -> dict:
         """What the run's summary keeps of this helper: its share, exit code (None: still running) and log."""
-        return {"parts": list(self.parts), "returncode": self.process.poll(), "log": str(self.log)}
+        return {"parts": list(self.parts), "returncode": self.process.poll(),
+                "log": None if self.log is None else str(self.log)}
+
+    def _keep_early_log(self) -> None:
+        """What an ended helper printed before it had its log (its own code moves it there itself once it has
+        its share; a helper that never got that far leaves it), appended to its log, or dropped if it has none."""
+        try:
+            early = self._early_log.read_bytes()
+        except OSError:
+            return
+        if early and self.log is not None:
+            with open(self.log, "ab") as f:
+                f.write(early)
+        self._early_log.unlink(missing_ok=True)
 
     def _warn(self, what: str) -> None:
         if not self._warned:
             self._warned = True
-            warnings.warn(f"compile helper ({', '.join(self.parts)}) {what} (its output: {self.log})",
-                          RuntimeWarning, stacklevel=3)
+            where = "" if self.log is None else f" (its output: {self.log})"
+            warnings.warn(f"compile helper ({', '.join(self.parts)}) {what}{where}", RuntimeWarning, stacklevel=3)
 
 
 class CompileHelpers:
@@ -157,15 +214,58 @@ class CompileHelpers:
         self.helpers = helpers
 
     @classmethod
+    def spawn(cls, n: int = len(HELPER_SHARES), *, command: list[str] | None = None) -> CompileHelpers:
+        """``n`` helpers on standby (those that cannot start are left out, a warning each)."""
+        helpers = [CompileHelper.spawn(threads=_compile_threads(n), command=command) for _ in range(n)]
+        return cls([h for h in helpers if h is not None])
+
+    @classmethod
+    def standby_for(cls, argv: Sequence[str]) -> CompileHelpers | None:
+        """Helpers on standby for an ``ablate`` command line that may want them (--compile, a device that may
+        be a GPU, not a resume, not --no-compile-helper, not --help), started before the run imports torch:
+        their own imports then overlap the run's. None for any other command line. The run gives them their
+        shares (:meth:`assign`) or lets them go (:meth:`dismiss`)."""
+        args = list(argv)
+        flags = {a.split("=", 1)[0] for a in args}
+        device = next((a.split("=", 1)[1] for a in args if a.startswith("--device=")), None)
+        if "--device" in args and args.index("--device") + 1 < len(args):
+            device = args[args.index("--device") + 1]
+        if ("--compile" not in flags or flags & {"--no-compile-helper", "--resume", "--help", "-h"}
+                or (device or "auto") == "cpu"):
+            return None
+        return cls.spawn()
+
+    def assign(self, cfg, device, cache_root: Path, folder: Path, *,
+               shares: Sequence[Sequence[str]] | None = None) -> CompileHelpers:
+        """Give each share (None: :func:`helper_shares` of ``cfg``) to a helper, each logging to
+        ``folder/compile_helper_<share>.log``; helpers left over are dismissed, and shares without one are
+        spawned a helper. Returns self."""
+        shares = helper_shares(cfg) if shares is None else [tuple(share) for share in shares]
+        for helper in self.helpers[len(shares):]:
+            helper.dismiss()
+        self.helpers = self.helpers[:len(shares)]
+        while len(self.helpers) < len(shares):
+            helper = CompileHelper.spawn(threads=_compile_threads(len(shares)))
+            if helper is None:
+                break
+            self.helpers.append(helper)
+        self.helpers = [helper for helper, share in zip(self.helpers, shares, strict=False)
+                        if helper.assign(cfg, device, cache_root, folder / f"compile_helper_{'_'.join(share)}.log",
+                                         parts=share)]
+        return self
+
+    @classmethod
     def start(cls, cfg, device, cache_root: Path, folder: Path, *,
               shares: Sequence[Sequence[str]] | None = None) -> CompileHelpers:
-        """One helper per share (None: :func:`helper_shares` of ``cfg``), each logging to
-        ``folder/compile_helper_<share>.log``. Those that cannot start are left out (a warning each)."""
+        """Spawn and :meth:`assign` at once."""
         shares = helper_shares(cfg) if shares is None else [tuple(share) for share in shares]
-        threads = _compile_threads(len(shares))
-        helpers = [CompileHelper.start(cfg, device, cache_root, folder / f"compile_helper_{'_'.join(share)}.log",
-                                       parts=share, threads=threads) for share in shares]
-        return cls([h for h in helpers if h is not None])
+        return cls.spawn(len(shares)).assign(cfg, device, cache_root, folder, shares=shares)
+
+    def dismiss(self) -> None:
+        """Let every helper go unused."""
+        for helper in self.helpers:
+            helper.dismiss()
+        self.helpers = []
 
     def wait(self, timeout: float = WAIT_S, *, on_wait: Callable[[str], None] | None = None) -> bool:
         """Wait for every helper, ``timeout`` seconds in all; ``on_wait`` gets the parts still being compiled
@@ -188,22 +288,47 @@ class CompileHelpers:
         return [helper.record() for helper in self.helpers]
 
 
-def main(argv: list[str] | None = None) -> int:
-    """The helper process: open the cache, build a trainer that compiles only this helper's share, and run what
-    compiles it. Prints where its seconds went (to its log): with the run's own ``startup_s`` it shows which
-    process was the slowest."""
-    began = time.perf_counter()
-    argv = sys.argv[1:] if argv is None else argv
-    with open(argv[0], "rb") as f:
-        spec = pickle.load(f)  # imports torch and the trainer's modules, to rebuild the settings
-    Path(argv[0]).unlink(missing_ok=True)  # read once: nothing left behind whatever happens next
+def _standby(early_log: Path, parent: int) -> tuple[dict | None, float]:
+    """A helper's first half: import what compiling needs while the run starts, then read its share from stdin
+    and send its output to its log. Returns the share (None where the run let it go or is gone) and when the
+    imports were done (``time.perf_counter``)."""
     if sys.platform.startswith("linux"):  # die with the run even if it is SIGKILLed (elsewhere: its stop())
         import ctypes
         import signal
 
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
-        if os.getppid() != spec.get("parent", os.getppid()):
-            return 1  # the run ended before this process got here
+        if os.getppid() != parent:
+            return None, time.perf_counter()  # the run ended before this process got here
+    # what the run imports, and dynamo and inductor's compiler, which it imports at its first compilation; none
+    # of it reads the cache folders' environment variables before the first compilation
+    import torch._dynamo
+    import torch._inductor.compile_fx  # noqa: F401
+
+    import gradlab.shac  # noqa: F401
+
+    imported = time.perf_counter()
+    try:
+        spec = pickle.load(sys.stdin.buffer)
+    except EOFError:  # dismissed: the run needs no helper
+        return None, imported
+    with open(spec["log"], "ab") as log:
+        log.write(early_log.read_bytes())
+        for fd in (1, 2):
+            os.dup2(log.fileno(), fd)
+    early_log.unlink(missing_ok=True)
+    return spec, imported
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The helper process (arguments: the file for its early output, the run's process id): import, wait for its
+    share, open the cache, build a trainer that compiles only that share, and run what compiles it. Prints where
+    its seconds went (to its log): with the run's own ``startup_s`` it shows which process was the slowest."""
+    argv = sys.argv[1:] if argv is None else argv
+    began = time.perf_counter()
+    spec, imported = _standby(Path(argv[0]), int(argv[1]))
+    if spec is None:
+        Path(argv[0]).unlink(missing_ok=True)
+        return 0
     import torch
 
     from gradlab.compiling import CompileCache, start_compile_workers
@@ -211,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
     from tasks import PHYSICS_PARTS
 
     device, parts = torch.device(spec["device"]), spec["parts"]
-    seconds = {"imports": time.perf_counter() - began}
+    seconds = {"imports": imported - began, "standby": time.perf_counter() - imported}
     mark = time.perf_counter()
     CompileCache(spec["cache_root"], device).activate()
     start_compile_workers(device)

@@ -433,27 +433,34 @@ def _save_compile_cache(cache: CompileCache, label: str) -> None:
         warnings.warn(f"compile cache artifacts not saved to {cache.folder}: {e}", CompileCacheWarning, stacklevel=2)
 
 
-def run(cfg: RunConfig) -> Path:
-    """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work."""
+def run(cfg: RunConfig, *, standby: CompileHelpers | None = None) -> Path:
+    """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work. ``standby``:
+    compile helpers started before this process imported torch (``CompileHelpers.standby_for``), given their
+    shares if the run wants helpers and dismissed otherwise."""
     started = time.time()
-    cfg, run_dir, device, resume_from = prepare(cfg)
-    cache_opened = time.time()
-    cache, cache_label = _compile_cache(cfg, device) if cfg.compile else (None, "")
     helpers = None
-    if _wants_compile_helper(cfg, device, cache, cache_label, resuming=resume_from is not None):
-        # this process takes its CUDA context first: on a GPU in exclusive-process mode the helpers are then the
-        # ones that cannot start their own, and the run compiles everything itself. They start before the cache
-        # is activated here (the seconds that takes are theirs too): they activate it themselves.
-        torch.empty(1, device=device)
-        helpers = CompileHelpers.start(resolve_config(shac_part(cfg)), device, cache.folder.parent, run_dir)
     try:
+        cfg, run_dir, device, resume_from = prepare(cfg)
+        cache_opened = time.time()
+        cache, cache_label = _compile_cache(cfg, device) if cfg.compile else (None, "")
+        if _wants_compile_helper(cfg, device, cache, cache_label, resuming=resume_from is not None):
+            # this process takes its CUDA context first: on a GPU in exclusive-process mode the helpers are then
+            # the ones that cannot start their own, and the run compiles everything itself. They get their shares
+            # before the cache is activated here (the seconds that takes are theirs too): they activate it
+            # themselves.
+            torch.empty(1, device=device)
+            helpers, standby = (standby or CompileHelpers.spawn()), None
+            helpers.assign(resolve_config(shac_part(cfg)), device, cache.folder.parent, run_dir)
+        if standby is not None:
+            standby.dismiss()
         if cache is not None:
             cache = _activate_compile_cache(cache, cache_label, device)
         return _train(cfg, run_dir, device, resume_from, cache, cache_label, helpers, started=started,
                       cache_opened=cache_opened)
     finally:
-        if helpers is not None:  # on every way out, an error before the training loop included
-            helpers.stop()
+        for group in (standby, helpers):  # on every way out, an error before the training loop included
+            if group is not None:
+                group.stop()
 
 
 def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: LoadedCheckpoint | None,

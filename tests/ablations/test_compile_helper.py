@@ -8,6 +8,7 @@ graph cache hits for everything but its own share) and trains to the same number
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -37,7 +38,7 @@ def test_a_helper_that_fails_warns_once_and_the_run_goes_on(tmp_path):
         assert helper.wait(timeout=30) is False
     assert len(record) == 1
     assert "broken" in (tmp_path / "run" / "compile_helper.log").read_text()  # its output is kept
-    assert not helper._spec.exists()  # the settings file it was given is gone
+    assert not helper._early_log.exists()  # what it printed before it had a log went into its log
     helper.stop()  # already ended: nothing to do, no error
 
 
@@ -52,26 +53,63 @@ def test_a_helper_that_hangs_is_waited_for_only_until_the_timeout_then_stopped(t
     helper.stop()  # again: nothing to do
 
 
-def test_a_helper_that_cannot_start_is_a_warning_not_an_error(tmp_path):
-    (tmp_path / "run").write_text("a file where the run folder should be")
+def test_a_helper_that_cannot_start_or_be_given_its_share_is_a_warning_not_an_error(tmp_path):
     with pytest.warns(RuntimeWarning, match="could not start"):
+        assert CompileHelper.spawn(command=[str(tmp_path / "no-such-program")]) is None
+    (tmp_path / "run").write_text("a file where the run folder should be")
+    with pytest.warns(RuntimeWarning, match="could not be given its share") as record:
         helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
-                                     parts=("networks",))
-    assert helper is None
+                                     parts=("networks",), command=[sys.executable, "-c", _READS_STDIN])
+    assert helper is None and len(record) == 1
 
 
-def test_the_helper_reads_its_settings_once_and_leaves_if_its_run_is_gone(tmp_path):
-    """The settings file is deleted on reading; a helper whose run ended before it got going does nothing."""
-    import pickle
+#: a stand-in helper that, like the real one on standby, ends when its stdin closes
+_READS_STDIN = "import sys; sys.stdin.buffer.read()"
 
-    spec = tmp_path / "spec.pkl"
-    spec.write_bytes(pickle.dumps({"config": _cfg(), "device": "cpu", "cache_root": str(tmp_path / "cache"),
-                                   "parts": ("networks",), "parent": -1}))
-    out = subprocess.run([sys.executable, "-m", "ablations.compile_helper", str(spec)], capture_output=True,
-                         text=True, timeout=120)
-    assert not spec.exists()
+
+def _helper(tmp_path, *args: str) -> subprocess.CompletedProcess:
+    early = tmp_path / "early.log"
+    early.write_text("")
+    return subprocess.run([sys.executable, "-m", "ablations.compile_helper", str(early), *args],
+                          input=b"", capture_output=True, timeout=300)
+
+
+def test_a_helper_on_standby_that_is_let_go_or_whose_run_is_gone_does_nothing(tmp_path):
+    """The real helper: dismissed (its stdin closed without a share) it exits cleanly, removing its early log and
+    never touching a cache; one whose run is gone before it started does the same."""
+    out = _helper(tmp_path, str(os.getpid()))  # this test's process stands in for the run
+    assert out.returncode == 0, out.stderr.decode()[-2000:]
+    assert not (tmp_path / "early.log").exists()
     if sys.platform.startswith("linux"):
-        assert out.returncode == 1 and not (tmp_path / "cache").exists()  # it never opened the cache
+        out = _helper(tmp_path, "1")  # its parent is not process 1
+        assert out.returncode == 0 and not (tmp_path / "early.log").exists()
+
+
+def test_helpers_on_standby_are_started_only_for_command_lines_that_may_want_them(monkeypatch):
+    spawned = []
+    monkeypatch.setattr(CompileHelpers, "spawn", classmethod(lambda cls, n=3: spawned.append(n) or cls([])))
+    wants = [["--task", "ant", "--compile"], ["--compile", "--device", "cuda"], ["--compile", "--device=cuda:1"]]
+    never = [["--task", "ant"], ["--compile", "--device", "cpu"], ["--compile", "--device=cpu"],
+             ["--compile", "--no-compile-helper"], ["--compile", "--resume", "runs/a"], ["--compile", "--help"]]
+    for argv in wants:
+        assert CompileHelpers.standby_for(argv) is not None, argv
+    for argv in never:
+        assert CompileHelpers.standby_for(argv) is None, argv
+    assert spawned == [len(HELPER_SHARES)] * len(wants)
+
+
+def test_a_run_that_wants_no_helpers_lets_those_on_standby_go(tmp_path):
+    """A run that turns out not to want helpers (here: on the CPU) dismisses them before it trains."""
+    from ablations import runs
+
+    standby = CompileHelpers.spawn(command=[sys.executable, "-c", _READS_STDIN])
+    processes = [h.process for h in standby.helpers]
+    cfg = runs.RunConfig(task="cartpole", mode="state", num_envs=2, horizon=4, iters=1, device="cpu",
+                         out=tmp_path / "runs", name="r", progress=False, video_every=0)
+    runs.run(cfg, standby=standby)
+    assert len(processes) == len(HELPER_SHARES)
+    assert [p.wait(timeout=30) for p in processes] == [0] * len(processes)  # ended by themselves: let go
+    assert not list((tmp_path / "runs" / "r").glob("compile_helper*"))
 
 
 def _failing_run(tmp_path, monkeypatch, where: str):
@@ -79,17 +117,17 @@ def _failing_run(tmp_path, monkeypatch, where: str):
     from ablations import compile_helper, runs
 
     helpers = []
-    start = CompileHelper.start
+    spawn = CompileHelper.spawn
 
-    def start_sleeper(*args, **kwargs):
-        helpers.append(start(*args, **kwargs, command=[sys.executable, "-c", "import time; time.sleep(120)"]))
+    def spawn_sleeper(*args, **kwargs):
+        helpers.append(spawn(*args, **{**kwargs, "command": [sys.executable, "-c", "import time; time.sleep(120)"]}))
         return helpers[-1]
 
     def boom(*args, **kwargs):
         raise KeyboardInterrupt if where == "compiling ahead" else RuntimeError("the trainer cannot be built")
 
     monkeypatch.setattr(runs, "_wants_compile_helper", lambda *a, **k: True)
-    monkeypatch.setattr(compile_helper.CompileHelper, "start", start_sleeper)
+    monkeypatch.setattr(compile_helper.CompileHelper, "spawn", spawn_sleeper)
     import gradlab.shac
 
     if where == "compiling ahead":
@@ -110,7 +148,7 @@ def test_a_run_that_fails_stops_its_helpers(tmp_path, monkeypatch, where):
     assert [h.parts for h in helpers] == list(HELPER_SHARES)  # a rendering mode: one helper per share
     for helper in helpers:
         assert helper.process.poll() is not None  # not left compiling (or sleeping) after the run
-        assert not helper._spec.exists()
+        assert not helper._early_log.exists()
         assert (run_dir / f"compile_helper_{'_'.join(helper.parts)}.log").exists()
     if where == "compiling ahead":  # inside the run's bookkeeping: the summary says what happened
         summary = json.loads((run_dir / "summary.json").read_text())
