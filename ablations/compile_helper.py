@@ -9,12 +9,18 @@ separate processes compile at the same time:
 
 * the run compiles :data:`RUN_SHARE` (the physics substep, the largest graph pair) before its first reset
   (:meth:`gradlab.shac.SHAC.compile_physics_now`), the other physics parts running eagerly meanwhile;
-* one helper per share of :data:`HELPER_SHARES`, started as the run opens its compile cache, builds a trainer of
-  the same resolved settings that compiles only its share (``SHAC(..., compile_parts=share)``, the rest eager).
+* one helper per share of :data:`HELPER_SHARES` builds a trainer of the same resolved settings that compiles
+  only its share (``SHAC(..., compile_parts=share)``, the rest eager).
   A physics share steps the physics twice and differentiates, as the run does; any other share runs one training
   iteration of :data:`HORIZON` steps (no compiled graph's shapes depend on the horizon: the renderer, actor and
   critic see one step's batch, and a longer eager window only costs time);
 * the run waits for its helpers (at most :data:`WAIT_S` in all), then finds their graphs and kernels in the cache.
+
+``ablate`` starts the helpers on standby from its first line, before it imports torch
+(:meth:`CompileHelpers.standby_for`): each imports torch, the trainer's modules, dynamo and inductor's compiler
+(~5 s each; none of it reads the cache folders' environment variables), then waits on stdin. The run sends
+each its share once it holds its CUDA context (on a GPU in exclusive-process mode the helpers are then the ones
+that cannot start theirs), or closes stdin to let them go when it wants none (a warm start, a CPU device).
 
 The helpers only fill the cache; the run never reads anything from it but torch's and Triton's own cache entries,
 under their own keys. A helper that cannot start or fails costs its head start; one that hangs costs the wait, at
