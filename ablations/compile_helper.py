@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib
 import os
 import pickle
 import subprocess
@@ -294,6 +295,20 @@ class CompileHelpers:
         return [helper.record() for helper in self.helpers]
 
 
+#: What a helper imports on standby, in this order (each a few seconds on a GPU host's CPU).
+_STANDBY_IMPORTS = ("torch", "gradlab.shac", "torch._dynamo", "torch._inductor.compile_fx")
+
+
+def _has_word(stream) -> bool:
+    """Whether ``stream`` has something to read or has been closed (select: readable either way)."""
+    import select
+
+    try:
+        return bool(select.select([stream], [], [], 0)[0])
+    except (OSError, ValueError):  # not selectable (not a pipe): read it when the imports are done
+        return False
+
+
 def _standby(early_log: Path, parent: int) -> tuple[dict | None, float]:
     """A helper's first half: import what compiling needs while the run starts, then read its share from stdin
     and send its output to its log. Returns the share (None where the run let it go or is gone) and when the
@@ -305,13 +320,14 @@ def _standby(early_log: Path, parent: int) -> tuple[dict | None, float]:
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
         if os.getppid() != parent:
             return None, time.perf_counter()  # the run ended before this process got here
-    # what the run imports, and dynamo and inductor's compiler, which it imports at its first compilation; none
-    # of it reads the cache folders' environment variables before the first compilation
-    import torch._dynamo
-    import torch._inductor.compile_fx  # noqa: F401
-
-    import gradlab.shac  # noqa: F401
-
+    # What the run imports, and dynamo and inductor's compiler, which it imports at its first compilation; none
+    # of it reads the cache folders' environment variables before the first compilation. Between modules, a
+    # word from the run (its share, or stdin closed to let it go: a warm start) ends the head start, so that a
+    # helper let go stops taking CPU from the run within one module's import.
+    for module in _STANDBY_IMPORTS:
+        if _has_word(sys.stdin):
+            break
+        importlib.import_module(module)
     imported = time.perf_counter()
     try:
         spec = pickle.load(sys.stdin.buffer)

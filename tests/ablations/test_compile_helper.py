@@ -70,16 +70,19 @@ _READS_STDIN = "import sys; sys.stdin.buffer.read()"
 def _helper(tmp_path, *args: str) -> subprocess.CompletedProcess:
     early = tmp_path / "early.log"
     early.write_text("")
-    return subprocess.run([sys.executable, "-m", "ablations.compile_helper", str(early), *args],
+    return subprocess.run([sys.executable, "-X", "importtime", "-m", "ablations.compile_helper", str(early), *args],
                           input=b"", capture_output=True, timeout=300)
 
 
 def test_a_helper_on_standby_that_is_let_go_or_whose_run_is_gone_does_nothing(tmp_path):
     """The real helper: dismissed (its stdin closed without a share) it exits cleanly, removing its early log and
-    never touching a cache; one whose run is gone before it started does the same."""
+    never touching a cache; let go before its head start began, it imports none of torch (on a warm start it
+    takes no CPU from the run); one whose run is gone before it started does the same."""
     out = _helper(tmp_path, str(os.getpid()))  # this test's process stands in for the run
     assert out.returncode == 0, out.stderr.decode()[-2000:]
     assert not (tmp_path / "early.log").exists()
+    imported = out.stderr.decode()  # -X importtime lists every module imported
+    assert "torch._dynamo" not in imported and "gradlab.shac" not in imported
     if sys.platform.startswith("linux"):
         out = _helper(tmp_path, "1")  # its parent is not process 1
         assert out.returncode == 0 and not (tmp_path / "early.log").exists()
