@@ -3,6 +3,7 @@
 import importlib.util
 import json
 import re
+import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -115,6 +116,35 @@ def test_startup_runs_each_pair_with_and_without_the_compile_helper_in_its_own_c
     cache = [c[c.index("--compile-cache") + 1] for c in seen]
     assert cache[0] != cache[1]
     assert startup.run_label(doc["rows"][1]) == "cold no-helper"
+
+
+def test_startup_keeps_each_compile_helpers_own_account_of_its_seconds(tmp_path, monkeypatch, capsys):
+    """A run's summary names its helpers' logs; each row keeps the last line each helper printed (where its
+    seconds went), and the printout lists them with the run's wait, so a reader sees which process was slowest."""
+    startup = _load("startup")
+    run_dir = tmp_path / "runs" / "ant_decoupled_cold"
+    run_dir.mkdir(parents=True)
+    log = run_dir / "compile_helper_renderer.log"
+    log.write_text("a warning first\ncompile helper (renderer): imports 10.4 s, ...; done after 47.9 s\n")
+    helpers = [{"parts": ["renderer"], "returncode": 0, "log": str(log)},
+               {"parts": ["networks"], "returncode": -9, "log": str(run_dir / "never_written.log")}]
+    (run_dir / "summary.json").write_text(json.dumps({
+        "status": "finished", "first_iter_s": 60.0, "startup_s": {"imports": 6.0},
+        "compile": {"helpers": helpers, "helpers_wait_s": 4.9}}))
+    (run_dir / "metrics.jsonl").write_text(json.dumps({"iter_ms": 7500.0, "actor_loss": -1.5}) + "\n")
+    monkeypatch.setattr(startup.subprocess, "run",
+                        lambda *a, **k: subprocess.CompletedProcess(a, 0, stdout="", stderr=""))
+    row = startup.run_once(["python", "-m", "ablations"], run_dir, timeout=10)
+    assert row["helpers_wait_s"] == 4.9
+    assert [h["report"] for h in row["helpers"]] == [
+        "compile helper (renderer): imports 10.4 s, ...; done after 47.9 s", None]
+    monkeypatch.setattr(startup, "run_once", lambda cmd, run_dir, *, timeout: dict(row))
+    monkeypatch.setattr(startup, "meta", lambda args, argv: {})
+    startup.main(["--device", "cpu", "--tasks", "ant", "--iters", "1", "--work", str(tmp_path / "w"),
+                  "--out", str(tmp_path / "s.json")])
+    out = capsys.readouterr().out
+    assert ("ant decoupled cold: the run waited 4.9 s for them | compile helper (renderer): imports 10.4 s, ...; "
+            "done after 47.9 s; (networks: exit -9, no report)") in out
 
 
 def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
