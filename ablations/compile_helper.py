@@ -29,9 +29,9 @@ dies with the run (Linux: a parent-death signal), uses a slice of the cores for 
 run keeps its full pool: its share is on the critical path), and writes its output to
 ``compile_helper_<share>.log`` in the run folder.
 
-Started only where it pays: a CUDA device (the CPU has no cores to spare), a cache folder without this setting's
-artifact file (a warm start loads everything in seconds), not on resume, and not with ``--no-compile-helper``
-(which sweeps pass: their concurrent runs already use the cores).
+Started only where it pays: a CUDA device (the CPU has no cores to spare), :data:`MIN_CORES` cores or more, a
+cache folder without this setting's artifact file (a warm start loads everything in seconds), not on resume, and
+not with ``--no-compile-helper`` (which sweeps pass: their concurrent runs already use the cores).
 """
 
 from __future__ import annotations
@@ -49,8 +49,8 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-__all__ = ["HELPER_SHARES", "HORIZON", "RUN_SHARE", "WAIT_S", "CompileHelper", "CompileHelpers", "helper_shares",
-           "main"]
+__all__ = ["HELPER_SHARES", "HORIZON", "MIN_CORES", "RUN_SHARE", "WAIT_S", "CompileHelper", "CompileHelpers", "cores",
+           "helper_shares", "main"]
 
 #: Steps of a helper's one training window (at least enough for the critic's minibatches).
 HORIZON = 2
@@ -59,6 +59,9 @@ HORIZON = 2
 WAIT_S = 120.0
 #: What the run compiles itself, ahead of its first reset.
 RUN_SHARE = ("substep",)
+#: Fewest CPU cores on which helpers are started: the run and three helpers each keep a core busy with their own
+#: compiling (inductor's lowering and code generation run in the calling process) besides their compile workers.
+MIN_CORES = 8
 #: What each helper compiles (parts of gradlab.shac.COMPILE_PARTS), one helper per share. The physics' other two
 #: parts, the renderer and the networks each cost about as much as the substep alone on the ant (BENCHMARKS.md
 #: section 6); a share with nothing to compile for the mode (a renderer that never runs) is dropped.
@@ -73,10 +76,14 @@ def helper_shares(cfg) -> list[tuple[str, ...]]:
     return [share for share in HELPER_SHARES if renders or share != ("renderer",)]
 
 
+def cores() -> int:
+    """The CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def _compile_threads(helpers: int) -> int:
     """Inductor compile workers of each helper: an even slice of the cores for the run and its helpers."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(2, cores // (helpers + 1))
+    return max(2, cores() // (helpers + 1))
 
 
 #: Helpers let go while still importing: they end by themselves (or with the run).
@@ -229,7 +236,8 @@ class CompileHelpers:
     @classmethod
     def standby_for(cls, argv: Sequence[str]) -> CompileHelpers | None:
         """Helpers on standby for an ``ablate`` command line that may want them (--compile, a device that may
-        be a GPU, not a resume, not --no-compile-helper, not --help), started before the run imports torch:
+        be a GPU, not a resume, not --no-compile-helper, not --help; :data:`MIN_CORES` cores or more), started
+        before the run imports torch:
         their own imports then overlap the run's. None for any other command line. The run gives them their
         shares (:meth:`assign`) or lets them go (:meth:`dismiss`)."""
         args = list(argv)
@@ -238,7 +246,7 @@ class CompileHelpers:
         if "--device" in args and args.index("--device") + 1 < len(args):
             device = args[args.index("--device") + 1]
         if ("--compile" not in flags or flags & {"--no-compile-helper", "--resume", "--help", "-h"}
-                or (device or "auto") == "cpu"):
+                or (device or "auto") == "cpu" or cores() < MIN_CORES):
             return None
         return cls.spawn()
 

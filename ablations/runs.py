@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ablations import compile_helper
 from ablations.compile_helper import RUN_SHARE, CompileHelpers
 from gradlab.checkpoint import (
     LoadedCheckpoint,
@@ -420,10 +421,11 @@ def _unusable(where: Path, error: OSError) -> None:
 def _wants_compile_helper(cfg: RunConfig, device: torch.device, cache: CompileCache | None, label: str, *,
                           resuming: bool) -> bool:
     """Whether a --compile run starts compile helpers (ablations/compile_helper.py): on a CUDA device (on the
-    CPU inductor's C++ compiles leave no cores to spare), with a cache folder to share, on a fresh run whose
-    settings have no artifact file yet (a warm start loads everything in seconds), unless --no-compile-helper."""
+    CPU inductor's C++ compiles leave no cores to spare) of a machine with MIN_CORES cores or more, with a cache
+    folder to share, on a fresh run whose settings have no artifact file yet (a warm start loads everything in
+    seconds), unless --no-compile-helper."""
     return (cfg.compile and cfg.compile_helper and cache is not None and device.type == "cuda" and not resuming
-            and not cache.artifact_path(label).exists())
+            and compile_helper.cores() >= compile_helper.MIN_CORES and not cache.artifact_path(label).exists())
 
 
 def _save_compile_cache(cache: CompileCache, label: str) -> None:

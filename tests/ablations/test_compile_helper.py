@@ -89,8 +89,11 @@ def test_a_helper_on_standby_that_is_let_go_or_whose_run_is_gone_does_nothing(tm
 
 
 def test_helpers_on_standby_are_started_only_for_command_lines_that_may_want_them(monkeypatch):
+    from ablations import compile_helper
+
     spawned = []
     monkeypatch.setattr(CompileHelpers, "spawn", classmethod(lambda cls, n=3: spawned.append(n) or cls([])))
+    monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES)
     wants = [["--task", "ant", "--compile"], ["--compile", "--device", "cuda"], ["--compile", "--device=cuda:1"]]
     never = [["--task", "ant"], ["--compile", "--device", "cpu"], ["--compile", "--device=cpu"],
              ["--compile", "--no-compile-helper"], ["--compile", "--resume", "runs/a"], ["--compile", "--help"]]
@@ -99,6 +102,8 @@ def test_helpers_on_standby_are_started_only_for_command_lines_that_may_want_the
     for argv in never:
         assert CompileHelpers.standby_for(argv) is None, argv
     assert spawned == [len(HELPER_SHARES)] * len(wants)
+    monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES - 1)  # too few to share
+    assert CompileHelpers.standby_for(wants[0]) is None and len(spawned) == len(wants)
 
 
 def test_a_run_that_wants_no_helpers_lets_those_on_standby_go(tmp_path):
@@ -204,15 +209,21 @@ def test_a_helper_that_finished_is_not_announced(tmp_path):
     assert told == []
 
 
-def test_a_run_starts_a_helper_only_where_it_pays(tmp_path):
-    """On a GPU, fresh, with a cache and no artifact file for the settings: yes; otherwise no."""
+def test_a_run_starts_helpers_only_where_it_pays(tmp_path, monkeypatch):
+    """On a GPU of a machine with enough cores, fresh, with a cache and no artifact file for the settings: yes;
+    otherwise no."""
+    from ablations import compile_helper
     from ablations.runs import RunConfig, _wants_compile_helper
     from gradlab.compiling import CompileCache
 
     cache = CompileCache(tmp_path, CPU)  # the folder's device kind does not matter to the decision
     cfg = RunConfig(task="cartpole", compile=True)
     gpu = torch.device("cuda", 0)
+    monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES)
     assert _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=False)
+    monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES - 1)
+    assert not _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=False)  # too few cores to share
+    monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES)
     assert not _wants_compile_helper(cfg, CPU, cache, "cartpole_x", resuming=False)
     assert not _wants_compile_helper(cfg, gpu, None, "cartpole_x", resuming=False)  # --compile-cache off
     assert not _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=True)
