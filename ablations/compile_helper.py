@@ -18,9 +18,11 @@ separate processes compile at the same time:
 
 ``ablate`` starts the helpers on standby from its first line, before it imports torch
 (:meth:`CompileHelpers.standby_for`): each imports torch, the trainer's modules, dynamo and inductor's compiler
-(~5 s each; none of it reads the cache folders' environment variables), then waits on stdin. The run sends
-each its share once it holds its CUDA context (on a GPU in exclusive-process mode the helpers are then the ones
-that cannot start theirs), or closes stdin to let them go when it wants none (a warm start, a CPU device).
+(8-17 s on an H100 host with four processes importing at once; none of it reads the cache folders' environment
+variables), then waits on stdin. The run sends each its share once it holds its CUDA context (on a GPU in
+exclusive-process mode the helpers are then the ones that cannot start theirs), or closes stdin to let them go
+when it wants none (a warm start, a CPU device); a helper looks at stdin between its imports, so one let go
+stops within one module's import.
 
 The helpers only fill the cache; the run never reads anything from it but torch's and Triton's own cache entries,
 under their own keys. A helper that cannot start or fails costs its head start; one that hangs costs the wait, at
