@@ -212,8 +212,6 @@ def main(argv: list[str] | None = None) -> dict:
         return "; ".join(f"{g['name']} [{g['compile_id']}] {g['kind']} {fmt(g['s'])}/{fmt(g['inductor_s'])}"
                          + (f" ({g['nodes']} nodes)" if g.get("nodes") else "") for g in graphs) or None
 
-    per_run(doc, "where the seconds went (startup_s: the parts before and of the first iteration; compiling, by "
-                 "part)", where_the_seconds_went)
     def helpers(r: dict) -> str | None:
         if not r.get("helpers"):
             return None
@@ -221,6 +219,8 @@ def main(argv: list[str] | None = None) -> dict:
                             for h in r["helpers"])
         return f"the run waited {fmt(r.get('helpers_wait_s'))} s for them | {reports}"
 
+    per_run(doc, "where the seconds went (startup_s: the parts before and of the first iteration; compiling, by "
+                 "part)", where_the_seconds_went)
     per_run(doc, "the compile helpers (each one's seconds, from its log)", helpers)
     per_run(doc, "inside the compiler (torch's phase times, nested: they do not add up)", inside_the_compiler)
     per_run(doc, "Triton kernels compiled in-process, slowest first (seconds)", triton_kernels)

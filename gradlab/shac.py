@@ -125,10 +125,8 @@ class SHAC:
             start_compile_workers(self.device)  # up before the first graphs: see its docstring
             watch = self.compile_watch
             if "networks" in compiled:
-                self._actor_mean = torch.compile(self.actor.mean, dynamic=False)
-                self._target_value = torch.compile(self.target_critic, dynamic=False)
-            self._actor_mean = watch.labelled("actor", self._actor_mean)
-            self._target_value = watch.labelled("critic", self._target_value)
+                self._actor_mean = watch.labelled("actor", torch.compile(self.actor.mean, dynamic=False))
+                self._target_value = watch.labelled("critic", torch.compile(self.target_critic, dynamic=False))
             self._step = watch.labelled("physics step", self._step)
             if self.renderer is not None:
                 self._render = watch.labelled("renderer", self._render)

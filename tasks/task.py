@@ -375,11 +375,9 @@ class Task(abc.ABC):
         if "mode" not in kw and kw.get("backend", "inductor") == "inductor":  # a mode or options, not both
             # PDL with every kernel waiting before its first access (see tasks._pdl for the race it avoids)
             kw["options"] = _pdl.options({**DEFAULT_INDUCTOR_OPTIONS, **(kw.get("options") or {})})
-        compiled = {"substep": lambda: torch.compile(functools.partial(self._chained_substep, copy=True), **kw),
-                    "factorize": lambda: torch.compile(self.sim.factorize, **kw),
-                    "finish": lambda: torch.compile(self._finish_impl, **kw)}
         for part in parts:
-            setattr(self, f"_{part}", compiled[part]())
+            fn = functools.partial(self._chained_substep, copy=True) if part == "substep" else self._eager_part(part)
+            setattr(self, f"_{part}", torch.compile(fn, **kw))
         return self
 
     def _eager_part(self, part: str) -> Callable:
