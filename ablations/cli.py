@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import sys
 
-import tyro
-
 __all__ = ["ablate_main", "memory_main", "plot_main", "report_main"]
 
 
@@ -40,9 +38,12 @@ def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
     from ablations.compile_helper import CompileHelpers
 
-    # before torch is imported: a cold --compile start on a GPU shares its compiling with helper processes, and
-    # their imports then overlap this one's (ablations/compile_helper.py)
-    standby = CompileHelpers.standby_for(sys.argv[1:] if argv is None else argv)
+    args = sys.argv[1:] if argv is None else argv
+    # before torch is imported: the bytecode of every module this process and its helpers import is then kept
+    _keep_bytecode(args)
+    # and a cold --compile start on a GPU shares its compiling with helper processes, whose imports then overlap
+    # this one's (ablations/compile_helper.py)
+    standby = CompileHelpers.standby_for(args)
     try:
         _ablate(argv, standby)
     finally:
@@ -50,7 +51,24 @@ def ablate_main(argv: list[str] | None = None) -> None:
             standby.stop()  # nothing left to do once the run gave them their shares or let them go
 
 
+def _keep_bytecode(argv: list[str]) -> None:
+    """With --compile, keep Python's bytecode in the compile cache folder where the environment keeps it out of the
+    install (gradlab.cache_root.keep_bytecode): without it, every start compiles torch's Python again."""
+    from ablations.compile_helper import flag_value
+    from gradlab.cache_root import keep_bytecode, resolve_cache_root
+
+    if "--compile" not in argv:
+        return
+    try:
+        root = resolve_cache_root(flag_value(argv, "--compile-cache"))
+    except ValueError:  # an empty folder name, reported by the run
+        return
+    keep_bytecode(root)
+
+
 def _ablate(argv: list[str] | None, standby) -> None:
+    import tyro
+
     from ablations.runs import RunConfig, run
     from gradlab.probes import NonFiniteError
 
@@ -67,6 +85,8 @@ def _ablate(argv: list[str] | None, standby) -> None:
 
 def memory_main(argv: list[str] | None = None) -> None:
     """``ablate-memory --task ant --meshes 0 4 16 --verts 64 256 ...``: the mesh-complexity sweep."""
+    import tyro
+
     from ablations.memory import MemoryConfig, sweep
 
     cfg = tyro.cli(MemoryConfig, args=argv)
@@ -82,6 +102,8 @@ def memory_main(argv: list[str] | None = None) -> None:
 
 def plot_main(argv: list[str] | None = None) -> None:
     """``ablate-plot RUN_DIR... --out DIR``: training curves, mean +- std across seeds, as PNG files."""
+    import tyro
+
     from ablations.plot import PlotConfig, plot_runs
 
     cfg = tyro.cli(PlotConfig, args=argv)
@@ -97,6 +119,8 @@ def plot_main(argv: list[str] | None = None) -> None:
 
 def report_main(argv: list[str] | None = None) -> None:
     """``ablate-report RUN_DIR... [--memory DIR...] [--benchmark FILE...] --out report.md``."""
+    import tyro
+
     from ablations.report import ReportConfig, build_report
 
     cfg = tyro.cli(ReportConfig, args=argv)

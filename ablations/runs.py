@@ -602,6 +602,8 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
                         "artifacts_load_s": None if cache is None else round(cache.load_s, 3),
                         "helpers": None if helpers is None else helpers.record(),
                         "helpers_wait_s": None if helpers_wait_s is None else round(helpers_wait_s, 3),
+                        # where Python's bytecode was kept, if not beside the sources (gradlab.cache_root)
+                        "bytecode": sys.pycache_prefix,
                         **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds(),
                         "graphs": compiled_graphs()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,

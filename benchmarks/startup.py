@@ -39,7 +39,7 @@ COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "com
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
                 "artifacts_loaded", "artifacts_load_s", "phase_s", "graphs", "triton_compiles", "triton_compile_s",
                 "triton_cache_hits", "triton_compile_s_by_kernel", "kernel_compile_miss", "kernel_compile_hit",
-                "graphs_saved_ready", "kernels_loaded_ready", "helpers", "helpers_wait_s")
+                "graphs_saved_ready", "kernels_loaded_ready", "helpers", "helpers_wait_s", "bytecode")
 #: compile phases printed per run (summary.json["compile"]["phase_s"] has them all): dynamo's tracing,
 #: AOTAutograd's joint trace, inductor's lowering, fusion decisions and kernel writing, the wait for Triton's
 #: compiler workers, autotuning, and loading compiled modules (also from the cache)
@@ -120,7 +120,9 @@ def meta(args, argv: list[str]) -> dict:
 
     info = {"device": args.device, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
             "command": " ".join(["python", "benchmarks/startup.py", *argv]), "commit": commit(),
-            "torch": torch.__version__, "python": platform.python_version(), "hostname": platform.node()}
+            "torch": torch.__version__, "python": platform.python_version(), "hostname": platform.node(),
+            # set: Python writes no bytecode beside the sources, and ablate keeps it in the cache folder instead
+            "PYTHONDONTWRITEBYTECODE": os.environ.get("PYTHONDONTWRITEBYTECODE")}
     if args.device.startswith("cuda") and torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name()
     return info
@@ -188,6 +190,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     def where_the_seconds_went(r: dict) -> str:
         parts = " ".join(f"{k} {fmt(v)}" for k, v in (r.get("startup_s") or {}).items())
+        if r.get("bytecode"):
+            parts += f" (Python bytecode kept in {r['bytecode']})"
         if r.get("artifacts_load_s"):
             parts += f" (of the compile cache's: loading its artifact file {fmt(r['artifacts_load_s'])})"
         by_part = sorted((r.get("compile_s_by_part") or {}).items(), key=lambda kv: -kv[1])

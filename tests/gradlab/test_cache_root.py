@@ -1,0 +1,85 @@
+"""gradlab.cache_root: the compile cache root and the bytecode kept there, decided before torch is imported."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import gradlab
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# A fresh interpreter told not to write bytecode (as container images often are) imports a module of its own after
+# keep_bytecode, then reports where Python put that module's bytecode and what its children would inherit.
+_PROBE = textwrap.dedent("""
+    import importlib, json, os, sys
+    from pathlib import Path
+    from gradlab.cache_root import keep_bytecode
+    root, sources = sys.argv[1], sys.argv[2]
+    kept = keep_bytecode(None if root == "off" else Path(root))
+    sys.path.insert(0, sources)
+    importlib.import_module("probe_module")
+    print(json.dumps({"kept": None if kept is None else str(kept), "prefix": sys.pycache_prefix,
+                      "torch": "torch" in sys.modules, "env_prefix": os.environ.get("PYTHONPYCACHEPREFIX"),
+                      "env_dont_write": os.environ.get("PYTHONDONTWRITEBYTECODE")}))
+""")
+
+
+def _probe(tmp_path: Path, root: str, **env: str) -> dict:
+    sources = tmp_path / "src"
+    if not sources.exists():  # written once: a pyc records its source's modification time
+        sources.mkdir()
+        (sources / "probe_module.py").write_text("VALUE = 1\n")
+    environ = {k: v for k, v in os.environ.items() if k not in ("PYTHONDONTWRITEBYTECODE", "PYTHONPYCACHEPREFIX")}
+    environ.update(PYTHONPATH=str(ROOT), **env)
+    out = subprocess.run([sys.executable, "-c", _PROBE, root, str(sources)], capture_output=True, text=True,
+                         env=environ, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _pycs(folder: Path, name: str) -> list[Path]:
+    return list(folder.rglob(f"{name}.*.pyc"))
+
+
+def test_bytecode_kept_out_of_the_install_goes_to_the_cache_root_for_this_process_and_its_children(tmp_path):
+    root = tmp_path / "cache"
+    report = _probe(tmp_path, str(root), PYTHONDONTWRITEBYTECODE="1")
+    folder = root / "bytecode"
+    assert report["kept"] == report["prefix"] == report["env_prefix"] == str(folder)
+    assert report["env_dont_write"] is None  # children write it too, to the same folder
+    assert not report["torch"]  # decided before torch is imported
+    assert len(_pycs(folder, "probe_module")) == 1  # the module imported after it left its bytecode there
+    assert not (tmp_path / "src" / "__pycache__").exists()  # and nothing beside the sources
+
+    # the next process reads it from there (an edited source would be compiled again: Python's own check)
+    pyc = _pycs(folder, "probe_module")[0]
+    stamp = pyc.stat().st_mtime_ns
+    assert _probe(tmp_path, str(root), PYTHONDONTWRITEBYTECODE="1")["kept"] == str(folder)
+    assert pyc.stat().st_mtime_ns == stamp
+
+
+def test_bytecode_is_left_alone_where_python_writes_it_or_the_user_chose_where_or_the_cache_is_off(tmp_path):
+    usual = _probe(tmp_path, str(tmp_path / "a"))  # the usual install: __pycache__ beside the sources
+    assert usual["kept"] is None and usual["prefix"] is None and not (tmp_path / "a").exists()
+    assert (tmp_path / "src" / "__pycache__").is_dir()
+    chosen = _probe(tmp_path, str(tmp_path / "b"), PYTHONDONTWRITEBYTECODE="1",
+                    PYTHONPYCACHEPREFIX=str(tmp_path / "mine"))
+    assert chosen["kept"] is None and chosen["prefix"] == str(tmp_path / "mine") and not (tmp_path / "b").exists()
+    off = _probe(tmp_path, "off", PYTHONDONTWRITEBYTECODE="1")
+    assert off["kept"] is None and off["prefix"] is None and off["env_dont_write"] == "1"
+
+
+def test_the_package_door_lists_every_name_it_resolves_and_imports_nothing_until_asked():
+    assert set(gradlab._HOMES) == set(gradlab.__all__)
+    for name in gradlab.__all__:
+        assert getattr(gradlab, name) is not None
+    code = ("import sys, gradlab, gradlab.cache_root; assert 'torch' not in sys.modules, 'torch imported'; "
+            "from gradlab import SHAC, graphs; assert 'torch' in sys.modules")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 0, out.stderr[-2000:]
