@@ -104,8 +104,9 @@ class RunConfig(SHACConfig):
     """Show a progress bar."""
     compile_cache: str | None = None
     """With --compile: the root folder of torch.compile's caches (a subfolder per torch/Triton/device version;
-    delete it to start cold); None: $PIXELGRAD_COMPILE_CACHE, else ~/.cache/pixelgrad/compile; 'off': torch's
-    own cache locations and no artifact file."""
+    delete it to start cold), and of Python's bytecode where PYTHONDONTWRITEBYTECODE keeps it out of the install
+    (bytecode/); None: $PIXELGRAD_COMPILE_CACHE, else ~/.cache/pixelgrad/compile; 'off': torch's own cache
+    locations, no artifact file, no bytecode kept."""
     compile_helper: bool = True
     """With --compile on a GPU and nothing compiled for these settings yet: helper processes compile the rest of
     the physics, the renderer and the networks while this one compiles the physics substep, into the same cache
