@@ -37,33 +37,18 @@ def _plain_compile_cache_warnings() -> None:
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
     from ablations.compile_helper import CompileHelpers
+    from gradlab.cache_dirs import keep_bytecode, resolve_bytecode_folder
 
-    args = sys.argv[1:] if argv is None else argv
-    # before torch is imported: the bytecode of every module this process and its helpers import is then kept
-    _keep_bytecode(args)
-    # and a cold --compile start on a GPU shares its compiling with helper processes, whose imports then overlap
-    # this one's (ablations/compile_helper.py)
-    standby = CompileHelpers.standby_for(args)
+    # Before torch is imported: where the environment keeps Python's bytecode out of the install, every start
+    # would compile torch's Python again (gradlab.cache_dirs); and a cold --compile start on a GPU shares its
+    # compiling with helper processes, whose imports then overlap this one's (ablations/compile_helper.py).
+    keep_bytecode(resolve_bytecode_folder())
+    standby = CompileHelpers.standby_for(sys.argv[1:] if argv is None else argv)
     try:
         _ablate(argv, standby)
     finally:
         if standby is not None:
             standby.stop()  # nothing left to do once the run gave them their shares or let them go
-
-
-def _keep_bytecode(argv: list[str]) -> None:
-    """With --compile, keep Python's bytecode in the compile cache folder where the environment keeps it out of the
-    install (gradlab.cache_root.keep_bytecode): without it, every start compiles torch's Python again."""
-    from ablations.compile_helper import flag_value
-    from gradlab.cache_root import keep_bytecode, resolve_cache_root
-
-    if "--compile" not in argv:
-        return
-    try:
-        root = resolve_cache_root(flag_value(argv, "--compile-cache"))
-    except ValueError:  # an empty folder name, reported by the run
-        return
-    keep_bytecode(root)
 
 
 def _ablate(argv: list[str] | None, standby) -> None:

@@ -52,7 +52,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 __all__ = ["HELPER_SHARES", "HORIZON", "MIN_CORES", "RUN_SHARE", "WAIT_S", "CompileHelper", "CompileHelpers", "cores",
-           "flag_value", "helper_shares", "main"]
+           "helper_shares", "main"]
 
 #: Steps of a helper's one training window (at least enough for the critic's minibatches).
 HORIZON = 2
@@ -90,18 +90,6 @@ def _compile_threads(helpers: int) -> int:
 
 #: Helpers let go while still importing: they end by themselves (or with the run).
 _LET_GO: list[subprocess.Popen] = []
-
-
-def flag_value(argv: Sequence[str], flag: str) -> str | None:
-    """The value of ``flag`` on a command line (``--flag VALUE`` or ``--flag=VALUE``; the last one wins, as in the
-    parser); None where it is absent. For decisions taken before the command line is parsed in full."""
-    value = None
-    for i, arg in enumerate(argv):
-        if arg == flag and i + 1 < len(argv):
-            value = argv[i + 1]
-        elif arg.startswith(flag + "="):
-            value = arg.split("=", 1)[1]
-    return value
 
 
 class CompileHelper:
@@ -256,7 +244,9 @@ class CompileHelpers:
         shares (:meth:`assign`) or lets them go (:meth:`dismiss`)."""
         args = list(argv)
         flags = {a.split("=", 1)[0] for a in args}
-        device = flag_value(args, "--device")
+        device = next((a.split("=", 1)[1] for a in args if a.startswith("--device=")), None)
+        if "--device" in args and args.index("--device") + 1 < len(args):
+            device = args[args.index("--device") + 1]
         if ("--compile" not in flags or flags & {"--no-compile-helper", "--resume", "--help", "-h"}
                 or (device or "auto") == "cpu" or cores() < MIN_CORES):
             return None

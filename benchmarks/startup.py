@@ -9,6 +9,11 @@ around it. With ``--compile-helper on off`` each pair runs with ablate's compile
 (``--no-compile-helper``), each pair with a cache folder of its own. Arguments this script does not know are
 passed on to ``ablate`` (e.g. ``--horizon 4``).
 
+Where Python writes no bytecode beside the sources (``PYTHONDONTWRITEBYTECODE``), ablate keeps it in its own
+folder ($PIXELGRAD_BYTECODE_CACHE, gradlab.cache_dirs), which this script leaves as it finds it: each row
+records how many modules' bytecode that folder held before the run (``bytecode_pyc_before``; 0: the run compiled
+all of its Python too, as the first start in a fresh container does).
+
 Not a test. Examples::
 
     python benchmarks/startup.py --device cuda --tasks ant --modes decoupled --num-envs 64 --out startup.json
@@ -34,6 +39,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # run as a script or l
 from provenance import commit
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from gradlab.cache_dirs import resolve_bytecode_folder  # noqa: E402  (imports no torch)
+
 #: summary.json["compile"] keys copied into each row
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",
                 "fxgraph_cache_miss", "fxgraph_cache_bypass", "autograd_cache_hit", "autograd_cache_miss",
@@ -66,9 +74,11 @@ def ablate_command(task: str, mode: str, args, *, cache: Path, runs: Path, name:
 def run_once(cmd: list[str], run_dir: Path, *, timeout: float) -> dict:
     """One ablate process: its wall time, and what its summary.json says about the start."""
     env = {k: v for k, v in os.environ.items() if k not in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR")}
+    bytecode = resolve_bytecode_folder() if os.environ.get("PYTHONDONTWRITEBYTECODE") else None
+    row = {"bytecode_pyc_before": None if bytecode is None else sum(1 for _ in bytecode.rglob("*.pyc"))}
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=timeout)
-    row = {"process_s": time.perf_counter() - t0, "returncode": proc.returncode}
+    row.update(process_s=time.perf_counter() - t0, returncode=proc.returncode)
     if run_dir.is_dir():  # what the run printed (e.g. TORCH_LOGS=recompiles), beside its summary
         (run_dir / "stderr.log").write_text(proc.stderr)
     summary_path = run_dir / "summary.json"
@@ -121,8 +131,9 @@ def meta(args, argv: list[str]) -> dict:
     info = {"device": args.device, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
             "command": " ".join(["python", "benchmarks/startup.py", *argv]), "commit": commit(),
             "torch": torch.__version__, "python": platform.python_version(), "hostname": platform.node(),
-            # set: Python writes no bytecode beside the sources, and ablate keeps it in the cache folder instead
-            "PYTHONDONTWRITEBYTECODE": os.environ.get("PYTHONDONTWRITEBYTECODE")}
+            # set: Python writes no bytecode beside the sources, and ablate keeps it in its own folder instead
+            "PYTHONDONTWRITEBYTECODE": os.environ.get("PYTHONDONTWRITEBYTECODE"),
+            "bytecode_folder": str(resolve_bytecode_folder())}
     if args.device.startswith("cuda") and torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name()
     return info
@@ -191,7 +202,7 @@ def main(argv: list[str] | None = None) -> dict:
     def where_the_seconds_went(r: dict) -> str:
         parts = " ".join(f"{k} {fmt(v)}" for k, v in (r.get("startup_s") or {}).items())
         if r.get("bytecode"):
-            parts += f" (Python bytecode kept in {r['bytecode']})"
+            parts += f" (Python bytecode kept in {r['bytecode']}: {r.get('bytecode_pyc_before')} modules before)"
         if r.get("artifacts_load_s"):
             parts += f" (of the compile cache's: loading its artifact file {fmt(r['artifacts_load_s'])})"
         by_part = sorted((r.get("compile_s_by_part") or {}).items(), key=lambda kv: -kv[1])

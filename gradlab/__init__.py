@@ -12,12 +12,12 @@ folder the user can see and clear; ``CompileWatch`` names the part being compile
 
 import importlib
 
-# Names resolve on first use (PEP 562), so that ``gradlab.cache_root`` can be imported before torch (``ablate``'s
+# Names resolve on first use (PEP 562), so that ``gradlab.cache_dirs`` can be imported before torch (``ablate``'s
 # first line) without importing the trainer.
 _HOMES = {
     "COMPILE_PARTS": "shac", "SHAC": "shac",
     "CompileCache": "compiling", "CompileCacheWarning": "compiling", "CompileWatch": "compiling",
-    "resolve_cache_root": "cache_root",
+    "resolve_cache_root": "cache_dirs",
     "MODES": "config", "ModePlan": "config", "SHACConfig": "config", "resolve_config": "config",
     "PRESETS": "presets", "preset_record": "presets", "preset_values": "presets",
     "ImageGate": "probes", "NonFiniteError": "probes", "cosine": "probes", "flat_grad": "probes",

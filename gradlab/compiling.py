@@ -9,8 +9,6 @@ under a root the user chooses (``--compile-cache``, else ``$PIXELGRAD_COMPILE_CA
         inductor/            TORCHINDUCTOR_CACHE_DIR: FX graph cache, AOTAutograd cache, autotuning results
         triton/              TRITON_CACHE_DIR: Triton binaries (inductor's and the renderer's own kernels)
         artifacts/<label>.bin  torch.compiler.save_cache_artifacts of one run's settings, checksummed
-    <root>/bytecode/         Python bytecode, where PYTHONDONTWRITEBYTECODE keeps it out of the install
-                             (``ablate``; gradlab.cache_root.keep_bytecode)
 
 The on-disk caches make a second process on the same machine warm; the artifact file carries the same
 entries to another machine (a Ray worker given the folder or the file starts warm). A manifest that records
@@ -41,7 +39,7 @@ from typing import Any
 
 import torch
 
-from gradlab.cache_root import CACHE_ENV_VAR, DEFAULT_CACHE_ROOT, resolve_cache_root
+from gradlab.cache_dirs import CACHE_ENV_VAR, DEFAULT_CACHE_ROOT, resolve_cache_root
 from gradlab.checkpoint import atomic_write_bytes, atomic_write_json
 
 __all__ = ["CACHE_ENV_VAR", "DEFAULT_CACHE_ROOT", "CompileCache", "CompileCacheWarning", "CompileWatch",

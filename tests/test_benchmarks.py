@@ -195,3 +195,21 @@ def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypa
     assert [(r["overlap_critic"], r["status"]) for r in rows] == [(True, "ok"), (False, "ok")], rows
     for r in rows:
         assert r["critic_overlapped"] is False and r["critic_ms"] > 0 and r["iter_ms"] > r["fwd_ms"] > 0
+
+
+def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch):
+    """Where Python writes no bytecode beside the sources, a row says how many modules' bytecode ablate's folder
+    held before the run (0: the run compiled all its Python too); elsewhere there is no such folder to count."""
+    startup = _load("startup")
+    monkeypatch.setattr(startup.subprocess, "run",
+                        lambda *a, **k: subprocess.CompletedProcess(a, 1, stdout="", stderr="stopped"))
+    folder = tmp_path / "bytecode"
+    for name in ("a", "b"):
+        path = folder / "usr" / "lib" / f"{name}.cpython-311.pyc"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"")
+    monkeypatch.setenv("PIXELGRAD_BYTECODE_CACHE", str(folder))
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    assert startup.run_once(["python"], tmp_path / "run", timeout=10)["bytecode_pyc_before"] == 2
+    monkeypatch.delenv("PYTHONDONTWRITEBYTECODE")
+    assert startup.run_once(["python"], tmp_path / "run", timeout=10)["bytecode_pyc_before"] is None

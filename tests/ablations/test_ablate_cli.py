@@ -208,28 +208,28 @@ def test_time_limit_stops_cleanly(tmp_path):
     assert summary["status"] == "finished" and summary["iterations"] == 2
 
 
-@pytest.mark.parametrize("compile_flag", [True, False])
-def test_a_compile_run_keeps_pythons_bytecode_in_its_cache_folder_where_the_install_gets_none(tmp_path,
-                                                                                            compile_flag):
+@pytest.mark.parametrize("folder", ["bytecode", "off"])
+def test_ablate_keeps_pythons_bytecode_in_its_folder_where_the_install_gets_none(tmp_path, folder):
     """Told not to write bytecode beside the sources (PYTHONDONTWRITEBYTECODE, as in many container images),
-    ``ablate --compile`` keeps it in the compile cache folder, torch's included, so that the next start does not
-    compile torch's Python again (gradlab.cache_root); without --compile nothing is written there."""
-    root = tmp_path / "cache"
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPYCACHEPREFIX"}
-    env.update(PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(Path(__file__).resolve().parents[2]))
-    args = [sys.executable, "-m", "ablations", "ablate", "--compile-cache", str(root), "--help"]
-    if compile_flag:
-        args.insert(4, "--compile")
-    out = subprocess.run(args, capture_output=True, text=True, env=env, timeout=300)
-    assert out.returncode == 0 and "--compile-cache" in out.stdout, out.stderr[-2000:]
+    ``ablate`` keeps it in $PIXELGRAD_BYTECODE_CACHE from its first line, torch's included, so that the next start
+    does not compile torch's Python again (gradlab.cache_dirs); ``off`` keeps none."""
     import torch
 
     import ablations.runs
 
+    kept_in = tmp_path / "bytecode"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPYCACHEPREFIX"}
+    env.update(PYTHONDONTWRITEBYTECODE="1", PYTHONPATH=str(Path(__file__).resolve().parents[2]),
+               PIXELGRAD_BYTECODE_CACHE=str(kept_in) if folder == "bytecode" else "off")
+    out = subprocess.run([sys.executable, "-m", "ablations", "ablate", "--help"], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert out.returncode == 0 and "--compile-cache" in out.stdout, out.stderr[-2000:]
+
     def kept(source: str) -> bool:  # where Python keeps a source's bytecode under a prefix: its absolute path
         source = Path(source).resolve()
-        return (root / "bytecode" / source.parent.relative_to(source.anchor)
+        return (kept_in / source.parent.relative_to(source.anchor)
                 / f"{source.stem}.{sys.implementation.cache_tag}.pyc").is_file()
 
-    assert kept(ablations.runs.__file__) is compile_flag and kept(torch.__file__) is compile_flag
-    assert (root / "bytecode").exists() is compile_flag
+    wanted = folder == "bytecode"
+    assert kept(ablations.runs.__file__) is wanted and kept(torch.__file__) is wanted
+    assert kept_in.exists() is wanted

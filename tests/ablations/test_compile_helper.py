@@ -282,12 +282,3 @@ def test_the_run_finds_the_helpers_graphs_in_the_cache_and_trains_to_the_same_nu
     assert (helped["compiles"], helped["recompiles"]) == (alone["compiles"], alone["recompiles"])
     # compiling ahead restored the task's state and reset noise: the same training, to the bit on the CPU
     assert helped["losses"] == alone["losses"] and helped["critic"] == alone["critic"]
-
-
-def test_a_flag_is_read_off_the_command_line_as_the_parser_reads_it():
-    from ablations.compile_helper import flag_value
-
-    assert flag_value(["--compile-cache", "a", "--device=cuda"], "--compile-cache") == "a"
-    assert flag_value(["--device=cuda:1"], "--device") == "cuda:1"
-    assert flag_value(["--device", "cpu", "--device=cuda"], "--device") == "cuda"  # the last one wins
-    assert flag_value(["--compile-cache-x", "a", "--compile-cache"], "--compile-cache") is None

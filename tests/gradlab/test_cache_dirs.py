@@ -1,4 +1,4 @@
-"""gradlab.cache_root: the compile cache root and the bytecode kept there, decided before torch is imported."""
+"""gradlab.cache_dirs: the compile cache root and the bytecode folder, decided before torch is imported."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import textwrap
 from pathlib import Path
 
 import gradlab
+from gradlab.cache_dirs import BYTECODE_ENV_VAR, resolve_bytecode_folder
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -18,9 +19,9 @@ ROOT = Path(__file__).resolve().parents[2]
 _PROBE = textwrap.dedent("""
     import importlib, json, os, sys
     from pathlib import Path
-    from gradlab.cache_root import keep_bytecode
-    root, sources = sys.argv[1], sys.argv[2]
-    kept = keep_bytecode(None if root == "off" else Path(root))
+    from gradlab.cache_dirs import keep_bytecode
+    folder, sources = sys.argv[1], sys.argv[2]
+    kept = keep_bytecode(None if folder == "off" else Path(folder))
     sys.path.insert(0, sources)
     importlib.import_module("probe_module")
     print(json.dumps({"kept": None if kept is None else str(kept), "prefix": sys.pycache_prefix,
@@ -29,14 +30,14 @@ _PROBE = textwrap.dedent("""
 """)
 
 
-def _probe(tmp_path: Path, root: str, **env: str) -> dict:
+def _probe(tmp_path: Path, folder: str, **env: str) -> dict:
     sources = tmp_path / "src"
     if not sources.exists():  # written once: a pyc records its source's modification time
         sources.mkdir()
         (sources / "probe_module.py").write_text("VALUE = 1\n")
     environ = {k: v for k, v in os.environ.items() if k not in ("PYTHONDONTWRITEBYTECODE", "PYTHONPYCACHEPREFIX")}
     environ.update(PYTHONPATH=str(ROOT), **env)
-    out = subprocess.run([sys.executable, "-c", _PROBE, root, str(sources)], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-c", _PROBE, folder, str(sources)], capture_output=True, text=True,
                          env=environ, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -46,10 +47,9 @@ def _pycs(folder: Path, name: str) -> list[Path]:
     return list(folder.rglob(f"{name}.*.pyc"))
 
 
-def test_bytecode_kept_out_of_the_install_goes_to_the_cache_root_for_this_process_and_its_children(tmp_path):
-    root = tmp_path / "cache"
-    report = _probe(tmp_path, str(root), PYTHONDONTWRITEBYTECODE="1")
-    folder = root / "bytecode"
+def test_bytecode_kept_out_of_the_install_goes_to_its_folder_for_this_process_and_its_children(tmp_path):
+    folder = tmp_path / "bytecode"
+    report = _probe(tmp_path, str(folder), PYTHONDONTWRITEBYTECODE="1")
     assert report["kept"] == report["prefix"] == report["env_prefix"] == str(folder)
     assert report["env_dont_write"] is None  # children write it too, to the same folder
     assert not report["torch"]  # decided before torch is imported
@@ -59,11 +59,11 @@ def test_bytecode_kept_out_of_the_install_goes_to_the_cache_root_for_this_proces
     # the next process reads it from there (an edited source would be compiled again: Python's own check)
     pyc = _pycs(folder, "probe_module")[0]
     stamp = pyc.stat().st_mtime_ns
-    assert _probe(tmp_path, str(root), PYTHONDONTWRITEBYTECODE="1")["kept"] == str(folder)
+    assert _probe(tmp_path, str(folder), PYTHONDONTWRITEBYTECODE="1")["kept"] == str(folder)
     assert pyc.stat().st_mtime_ns == stamp
 
 
-def test_bytecode_is_left_alone_where_python_writes_it_or_the_user_chose_where_or_the_cache_is_off(tmp_path):
+def test_bytecode_is_left_alone_where_python_writes_it_or_the_user_chose_where_or_it_is_off(tmp_path):
     usual = _probe(tmp_path, str(tmp_path / "a"))  # the usual install: __pycache__ beside the sources
     assert usual["kept"] is None and usual["prefix"] is None and not (tmp_path / "a").exists()
     assert (tmp_path / "src" / "__pycache__").is_dir()
@@ -78,8 +78,17 @@ def test_the_package_door_lists_every_name_it_resolves_and_imports_nothing_until
     assert set(gradlab._HOMES) == set(gradlab.__all__)
     for name in gradlab.__all__:
         assert getattr(gradlab, name) is not None
-    code = ("import sys, gradlab, gradlab.cache_root; assert 'torch' not in sys.modules, 'torch imported'; "
+    code = ("import sys, gradlab, gradlab.cache_dirs; assert 'torch' not in sys.modules, 'torch imported'; "
             "from gradlab import SHAC, graphs; assert 'torch' in sys.modules")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert out.returncode == 0, out.stderr[-2000:]
+
+
+def test_the_bytecode_folder_is_the_environment_variable_else_the_default(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    default = (tmp_path / "home/.cache/pixelgrad/bytecode").resolve()
+    assert resolve_bytecode_folder(env={}) == resolve_bytecode_folder(env={BYTECODE_ENV_VAR: " "}) == default
+    assert resolve_bytecode_folder(env={BYTECODE_ENV_VAR: "~/b"}) == (tmp_path / "home/b").resolve()
+    for off in ("off", "OFF", "none", "0"):
+        assert resolve_bytecode_folder(env={BYTECODE_ENV_VAR: off}) is None
