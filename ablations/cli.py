@@ -36,11 +36,11 @@ def _plain_compile_cache_warnings() -> None:
 
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
+    from ablations.bytecode import keep_bytecode, resolve_bytecode_folder
     from ablations.compile_helper import CompileHelpers
-    from gradlab.cache_dirs import keep_bytecode, resolve_bytecode_folder
 
     # Before torch is imported: where the environment keeps Python's bytecode out of the install, every start
-    # would compile torch's Python again (gradlab.cache_dirs); and a cold --compile start on a GPU shares its
+    # would compile torch's Python again (ablations/bytecode.py); and a cold --compile start on a GPU shares its
     # compiling with helper processes, whose imports then overlap this one's (ablations/compile_helper.py).
     keep_bytecode(resolve_bytecode_folder())
     standby = CompileHelpers.standby_for(sys.argv[1:] if argv is None else argv)

@@ -105,8 +105,7 @@ class RunConfig(SHACConfig):
     compile_cache: str | None = None
     """With --compile: the root folder of torch.compile's caches (a subfolder per torch/Triton/device version;
     delete it to start cold); None: $PIXELGRAD_COMPILE_CACHE, else ~/.cache/pixelgrad/compile; 'off': torch's
-    own cache locations and no artifact file. (Python's bytecode, where PYTHONDONTWRITEBYTECODE keeps it out of
-    the install, is kept in $PIXELGRAD_BYTECODE_CACHE, else ~/.cache/pixelgrad/bytecode; 'off': none.)"""
+    own cache locations and no artifact file."""
     compile_helper: bool = True
     """With --compile on a GPU and nothing compiled for these settings yet: helper processes compile the rest of
     the physics, the renderer and the networks while this one compiles the physics substep, into the same cache
@@ -603,7 +602,7 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
                         "artifacts_load_s": None if cache is None else round(cache.load_s, 3),
                         "helpers": None if helpers is None else helpers.record(),
                         "helpers_wait_s": None if helpers_wait_s is None else round(helpers_wait_s, 3),
-                        # where Python's bytecode was kept, if not beside the sources (gradlab.cache_dirs)
+                        # where Python's bytecode was kept, if not beside the sources (ablations/bytecode.py)
                         "bytecode": sys.pycache_prefix,
                         **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds(),
                         "graphs": compiled_graphs()}

@@ -10,7 +10,7 @@ around it. With ``--compile-helper on off`` each pair runs with ablate's compile
 passed on to ``ablate`` (e.g. ``--horizon 4``).
 
 Where Python writes no bytecode beside the sources (``PYTHONDONTWRITEBYTECODE``), ablate keeps it in its own
-folder ($PIXELGRAD_BYTECODE_CACHE, gradlab.cache_dirs), which this script leaves as it finds it: each row
+folder ($PIXELGRAD_BYTECODE_CACHE, ablations/bytecode.py), which this script leaves as it finds it: each row
 records how many modules' bytecode that folder held before the run (``bytecode_pyc_before``; 0: the run compiled
 all of its Python too, as the first start in a fresh container does).
 
@@ -40,7 +40,7 @@ from provenance import commit
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from gradlab.cache_dirs import resolve_bytecode_folder  # noqa: E402  (imports no torch)
+from ablations.bytecode import resolve_bytecode_folder  # noqa: E402
 
 #: summary.json["compile"] keys copied into each row
 COMPILE_KEYS = ("compiles", "recompiles", "backward_compiles", "compile_s", "compile_s_by_part", "fxgraph_cache_hit",

@@ -10,19 +10,12 @@ naming the iteration, the horizon step and the tensor. ``CompileCache`` keeps wh
 folder the user can see and clear; ``CompileWatch`` names the part being compiled for a progress display.
 """
 
-import importlib
-
-# Names resolve on first use (PEP 562), so that ``gradlab.cache_dirs`` can be imported before torch (``ablate``'s
-# first line) without importing the trainer.
-_HOMES = {
-    "COMPILE_PARTS": "shac", "SHAC": "shac",
-    "CompileCache": "compiling", "CompileCacheWarning": "compiling", "CompileWatch": "compiling",
-    "resolve_cache_root": "cache_dirs",
-    "MODES": "config", "ModePlan": "config", "SHACConfig": "config", "resolve_config": "config",
-    "PRESETS": "presets", "preset_record": "presets", "preset_values": "presets",
-    "ImageGate": "probes", "NonFiniteError": "probes", "cosine": "probes", "flat_grad": "probes",
-    "resolve_device": "seeding", "seed_everything": "seeding",
-}
+from gradlab.compiling import CompileCache, CompileCacheWarning, CompileWatch, resolve_cache_root
+from gradlab.config import MODES, ModePlan, SHACConfig, resolve_config
+from gradlab.presets import PRESETS, preset_record, preset_values
+from gradlab.probes import ImageGate, NonFiniteError, cosine, flat_grad
+from gradlab.seeding import resolve_device, seed_everything
+from gradlab.shac import COMPILE_PARTS, SHAC
 
 __all__ = [
     "COMPILE_PARTS",
@@ -45,15 +38,3 @@ __all__ = [
     "resolve_config",
     "seed_everything",
 ]
-
-
-def __getattr__(name: str):
-    if name not in _HOMES:
-        raise AttributeError(f"module 'gradlab' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"gradlab.{_HOMES[name]}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))

@@ -39,12 +39,18 @@ from typing import Any
 
 import torch
 
-from gradlab.cache_dirs import CACHE_ENV_VAR, DEFAULT_CACHE_ROOT, resolve_cache_root
 from gradlab.checkpoint import atomic_write_bytes, atomic_write_json
 
 __all__ = ["CACHE_ENV_VAR", "DEFAULT_CACHE_ROOT", "CompileCache", "CompileCacheWarning", "CompileWatch",
            "cache_versions", "compile_counters", "compile_phase_seconds", "compiled_graphs", "resolve_cache_root",
            "start_compile_workers"]
+
+#: Environment variable naming the cache root (a path, or ``off`` for torch's own cache locations).
+CACHE_ENV_VAR = "PIXELGRAD_COMPILE_CACHE"
+#: The cache root when neither the flag nor the environment variable names one.
+DEFAULT_CACHE_ROOT = Path("~/.cache/pixelgrad/compile")
+#: Values of the flag or the environment variable that leave torch's cache locations alone.
+OFF_VALUES = ("off", "none", "0", "false", "no")
 
 _FORMAT = 1  # of the manifest and the artifact files; a change moves older folders aside
 _MAGIC = b"pixelgrad-compile-artifacts\n"
@@ -56,6 +62,20 @@ class CompileCacheWarning(UserWarning):
 
 def _warn(message: str) -> None:
     warnings.warn(message, CompileCacheWarning, stacklevel=3)
+
+
+def resolve_cache_root(path: str | os.PathLike | None = None, *, env: dict | None = None) -> Path | None:
+    """The cache root: ``path`` (a flag), else ``$PIXELGRAD_COMPILE_CACHE``, else ``~/.cache/pixelgrad/compile``;
+    None where the chosen value is ``off`` (torch's own locations). ``~`` is expanded; the result is absolute."""
+    env = os.environ if env is None else env
+    value = path if path is not None else env.get(CACHE_ENV_VAR) or None
+    if value is None:
+        return DEFAULT_CACHE_ROOT.expanduser().resolve()
+    if str(value).strip().lower() in OFF_VALUES:
+        return None
+    if not str(value).strip():
+        raise ValueError(f"compile cache folder is empty; give a folder, or 'off' ({CACHE_ENV_VAR}, --compile-cache)")
+    return Path(value).expanduser().resolve()
 
 
 def _triton_version() -> str | None:

@@ -1,4 +1,4 @@
-"""gradlab.cache_dirs: the compile cache root and the bytecode folder, decided before torch is imported."""
+"""ablations.bytecode: Python's bytecode kept in a folder of its own, decided before torch is imported."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-import gradlab
-from gradlab.cache_dirs import BYTECODE_ENV_VAR, resolve_bytecode_folder
+from ablations.bytecode import BYTECODE_ENV_VAR, OFF_VALUES, resolve_bytecode_folder
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 _PROBE = textwrap.dedent("""
     import importlib, json, os, sys
     from pathlib import Path
-    from gradlab.cache_dirs import keep_bytecode
+    from ablations.bytecode import keep_bytecode
     folder, sources = sys.argv[1], sys.argv[2]
     kept = keep_bytecode(None if folder == "off" else Path(folder))
     sys.path.insert(0, sources)
@@ -74,17 +73,6 @@ def test_bytecode_is_left_alone_where_python_writes_it_or_the_user_chose_where_o
     assert off["kept"] is None and off["prefix"] is None and off["env_dont_write"] == "1"
 
 
-def test_the_package_door_lists_every_name_it_resolves_and_imports_nothing_until_asked():
-    assert set(gradlab._HOMES) == set(gradlab.__all__)
-    for name in gradlab.__all__:
-        assert getattr(gradlab, name) is not None
-    code = ("import sys, gradlab, gradlab.cache_dirs; assert 'torch' not in sys.modules, 'torch imported'; "
-            "from gradlab import SHAC, graphs; assert 'torch' in sys.modules")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert out.returncode == 0, out.stderr[-2000:]
-
-
 def test_the_bytecode_folder_is_the_environment_variable_else_the_default(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     default = (tmp_path / "home/.cache/pixelgrad/bytecode").resolve()
@@ -92,3 +80,6 @@ def test_the_bytecode_folder_is_the_environment_variable_else_the_default(tmp_pa
     assert resolve_bytecode_folder(env={BYTECODE_ENV_VAR: "~/b"}) == (tmp_path / "home/b").resolve()
     for off in ("off", "OFF", "none", "0"):
         assert resolve_bytecode_folder(env={BYTECODE_ENV_VAR: off}) is None
+    from gradlab.compiling import OFF_VALUES as compile_cache_off
+
+    assert OFF_VALUES == compile_cache_off  # one spelling of "off" for both caches
