@@ -94,7 +94,7 @@ _LET_GO: list[subprocess.Popen] = []
 
 class CompileHelper:
     """One helper process (see the module docstring). :meth:`spawn` starts it on standby: it imports what it needs
-    and waits for its share; :meth:`assign` sends it (:meth:`start` does both); :meth:`dismiss` lets a helper on
+    and waits for its share; :meth:`assign` sends it; :meth:`dismiss` lets a helper on
     standby go; :meth:`wait` waits for it to finish (True when it finished cleanly); :meth:`stop` ends it."""
 
     def __init__(self, process: subprocess.Popen, early_log: Path):
@@ -150,15 +150,6 @@ class CompileHelper:
         except OSError:  # it has ended already (a broken pipe): its exit code says how
             pass
         return True
-
-    @classmethod
-    def start(cls, cfg, device, cache_root: Path, log: Path, *, parts: Sequence[str], threads: int | None = None,
-              command: list[str] | None = None) -> CompileHelper | None:
-        """:meth:`spawn` and :meth:`assign` at once."""
-        helper = cls.spawn(threads=threads, command=command)
-        if helper is None or not helper.assign(cfg, device, cache_root, log, parts=parts):
-            return None
-        return helper
 
     def dismiss(self) -> None:
         """Let a helper on standby go (the run needs none): it exits by itself once its imports are done,
@@ -270,13 +261,6 @@ class CompileHelpers:
                         if helper.assign(cfg, device, cache_root, folder / f"compile_helper_{'_'.join(share)}.log",
                                          parts=share)]
         return self
-
-    @classmethod
-    def start(cls, cfg, device, cache_root: Path, folder: Path, *,
-              shares: Sequence[Sequence[str]] | None = None) -> CompileHelpers:
-        """Spawn and :meth:`assign` at once."""
-        shares = helper_shares(cfg) if shares is None else [tuple(share) for share in shares]
-        return cls.spawn(len(shares)).assign(cfg, device, cache_root, folder, shares=shares)
 
     def dismiss(self) -> None:
         """Let every helper go unused."""

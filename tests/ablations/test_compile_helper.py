@@ -30,8 +30,14 @@ def _cfg(**kw):
                                      compile=True, **kw))
 
 
+def _start(cache_root, log, *, parts, command):
+    """A stand-in helper (``command``) spawned and given its share, as the run does; None where that failed."""
+    helper = CompileHelper.spawn(command=command)
+    return helper if helper is not None and helper.assign(_cfg(), CPU, cache_root, log, parts=parts) else None
+
+
 def test_a_helper_that_fails_warns_once_and_the_run_goes_on(tmp_path):
-    helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
+    helper = _start(tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
                                  parts=("networks",),
                                  command=[sys.executable, "-c", "import sys; print('broken'); sys.exit(3)"])
     with pytest.warns(RuntimeWarning, match=r"exited with code 3.*compile_helper.log") as record:
@@ -43,7 +49,7 @@ def test_a_helper_that_fails_warns_once_and_the_run_goes_on(tmp_path):
 
 
 def test_a_helper_that_hangs_is_waited_for_only_until_the_timeout_then_stopped(tmp_path):
-    helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "compile_helper.log",
+    helper = _start(tmp_path / "cache", tmp_path / "compile_helper.log",
                                  parts=("networks",), command=[sys.executable, "-c", "import time; time.sleep(60)"])
     told = []
     with pytest.warns(RuntimeWarning, match="still compiling after 0 s of waiting; stopped"):
@@ -58,7 +64,7 @@ def test_a_helper_that_cannot_start_or_be_given_its_share_is_a_warning_not_an_er
         assert CompileHelper.spawn(command=[str(tmp_path / "no-such-program")]) is None
     (tmp_path / "run").write_text("a file where the run folder should be")
     with pytest.warns(RuntimeWarning, match="could not be given its share") as record:
-        helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
+        helper = _start(tmp_path / "cache", tmp_path / "run" / "compile_helper.log",
                                      parts=("networks",), command=[sys.executable, "-c", _READS_STDIN])
     assert helper is None and len(record) == 1
 
@@ -168,9 +174,9 @@ def test_a_run_that_fails_stops_its_helpers(tmp_path, monkeypatch, where):
 
 def test_helpers_are_waited_for_within_one_deadline_and_told_what_still_compiles(tmp_path):
     """The wait is one deadline for all of them; the run is told which parts are still being compiled."""
-    quick = CompileHelper.start(_cfg(), CPU, tmp_path, tmp_path / "quick.log", parts=("networks",),
+    quick = _start(tmp_path, tmp_path / "quick.log", parts=("networks",),
                                 command=[sys.executable, "-c", "pass"])
-    slow = [CompileHelper.start(_cfg(), CPU, tmp_path, tmp_path / f"slow{i}.log", parts=share,
+    slow = [_start(tmp_path, tmp_path / f"slow{i}.log", parts=share,
                                 command=[sys.executable, "-c", "import time; time.sleep(60)"])
             for i, share in enumerate([("factorize", "finish"), ("renderer",)])]
     quick.process.wait(timeout=30)
@@ -199,7 +205,7 @@ def test_the_work_is_shared_by_what_the_mode_compiles():
 
 
 def test_a_helper_that_finished_is_not_announced(tmp_path):
-    helper = CompileHelper.start(_cfg(), CPU, tmp_path / "cache", tmp_path / "compile_helper.log",
+    helper = _start(tmp_path / "cache", tmp_path / "compile_helper.log",
                                  parts=("networks",), command=[sys.executable, "-c", "pass"])
     helper.process.wait(timeout=30)
     told = []
@@ -248,7 +254,7 @@ _RUN = textwrap.dedent("""
     cfg = resolve_config(SHACConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4,
                                     compile=True, seed=3))
     CompileCache(root, torch.device("cpu")).activate()
-    helpers = CompileHelpers.start(cfg, torch.device("cpu"), root, root) if with_helper else None
+    helpers = CompileHelpers.spawn().assign(cfg, torch.device("cpu"), root, root) if with_helper else None
     trainer = SHAC(cfg, device="cpu")
     if helpers is not None:
         trainer.compile_physics_now(parts=RUN_SHARE)
