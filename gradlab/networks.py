@@ -4,16 +4,24 @@ The visual actor is the DrQ-v2 encoder (4 convolutions, ReLU) followed by a trun
 and an MLP head (Linear -> ELU -> LayerNorm per hidden layer). The policy is a tanh-squashed Gaussian with a
 state-independent log-std initialised at -1; actions are drawn with the reparameterisation trick so that the
 analytic policy gradient flows through them into the simulator.
+
+A population (several runs trained in one process) keeps one ordinary module per member, so that each member's
+initialisation, optimiser, gradient clipping and checkpoint are those of a run of its own. :class:`MemberStack`
+evaluates N members of one architecture on their N batches at once: their parameters stacked along a leading
+member axis (differentiably, once per window), linear layers as batched matrix products, convolutions as one
+grouped convolution (or one per member), LayerNorm with per-member affine parameters.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["MLP", "PixelEncoder", "StateActor", "VisualActor", "Critic", "orthogonal_init"]
+__all__ = ["MLP", "PixelEncoder", "StateActor", "VisualActor", "Critic", "MemberStack", "orthogonal_init"]
 
 
 def orthogonal_init(module: nn.Module, gain: float = 1.0) -> None:
@@ -161,3 +169,110 @@ class Critic(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.net(obs).squeeze(-1)
+
+
+class MemberStack:
+    """N modules of one architecture (a population's actors or critics), evaluated together.
+
+    Each member keeps its own parameters (its optimiser and checkpoint stay a run's own). :meth:`stack` stacks
+    them along a leading member axis, differentiably: gradients of the stacked tensors flow back to each member's
+    own parameters, and a member's loss reaches no other member's parameters. Call it once per window and pass
+    the result to every step. With one member nothing is stacked and the member module itself runs, so a
+    population of one computes exactly what a single run computes.
+
+    Inputs and outputs are member-major: rows ``m * B .. (m + 1) * B`` belong to member ``m``.
+
+    Args:
+        members: modules of identical structure: :class:`StateActor`, :class:`VisualActor` or :class:`Critic`.
+        conv: how a visual encoder's convolutions batch the members: ``"grouped"``, one convolution with
+            ``groups = N`` over the members' images side by side on the channel axis; ``"loop"``, one
+            convolution per member.
+    """
+
+    def __init__(self, members: Sequence[nn.Module], *, conv: Literal["grouped", "loop"] = "grouped"):
+        if not members:
+            raise ValueError("MemberStack needs at least one member")
+        kinds = {type(m) for m in members}
+        if len(kinds) > 1:
+            raise ValueError(f"MemberStack: members of one kind only, got {sorted(k.__name__ for k in kinds)}")
+        shapes = {tuple((n, tuple(p.shape)) for n, p in m.named_parameters()) for m in members}
+        if len(shapes) > 1:
+            raise ValueError("MemberStack: the members' parameter shapes differ")
+        if conv not in ("grouped", "loop"):
+            raise ValueError(f"unknown conv batching {conv!r}; valid: grouped, loop")
+        self.members = list(members)
+        self.n = len(self.members)
+        self.conv = conv
+        self._template = self.members[0]
+
+    def stack(self) -> dict[str, torch.Tensor]:
+        """Every parameter of the members as one (N, ...) tensor, by name; empty for a single member."""
+        if self.n == 1:
+            return {}
+        per_member = [dict(m.named_parameters()) for m in self.members]
+        return {name: torch.stack([p[name] for p in per_member]) for name in per_member[0]}
+
+    # ------------------------------------------------------------------ the members' forward passes
+    def mean(self, params: dict[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
+        """Policies: obs (N * B, ...) -> pre-tanh mean actions (N * B, act_dim)."""
+        if self.n == 1:
+            return self._template.mean(obs)
+        if isinstance(self._template, VisualActor):
+            features = self._encoder(params, obs)
+        else:
+            features = obs.unflatten(0, (self.n, -1))
+        return self._sequential(self._template.mu, "mu.", params, features).flatten(0, 1)
+
+    def value(self, params: dict[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
+        """Critics: obs (N * B, obs_dim) -> values (N * B,)."""
+        if self.n == 1:
+            return self._template(obs)
+        out = self._sequential(self._template.net, "net.", params, obs.unflatten(0, (self.n, -1)))
+        return out.squeeze(-1).flatten(0, 1)
+
+    def _encoder(self, params: dict[str, torch.Tensor], images: torch.Tensor) -> torch.Tensor:
+        """(N * B, C, H, W) in [0, 1] -> (N, B, trunk_dim), as :class:`PixelEncoder` per member."""
+        n = self.n
+        x = (images - 0.5).unflatten(0, (n, -1))  # (N, B, C, H, W)
+        b, c, h, w = x.shape[1:]
+        convs = self._template.encoder.convs
+        if self.conv == "grouped":
+            # the members side by side on the channel axis: group m of every convolution sees member m alone
+            y = x.transpose(0, 1).reshape(b, n * c, h, w).contiguous(memory_format=torch.channels_last)
+            for i, layer in enumerate(convs):
+                if isinstance(layer, nn.Conv2d):
+                    weight, bias = params[f"encoder.convs.{i}.weight"], params[f"encoder.convs.{i}.bias"]
+                    y = F.conv2d(y, weight.flatten(0, 1), bias.flatten(), stride=layer.stride,
+                                 padding=layer.padding, groups=n)
+                else:
+                    y = layer(y)
+            flat = y.reshape(b, n, -1).transpose(0, 1)  # (N, B, C' H' W'), each member's (C, H, W) order
+        else:
+            outs = []
+            for m in range(n):
+                y = x[m].contiguous(memory_format=torch.channels_last)
+                for i, layer in enumerate(convs):
+                    if isinstance(layer, nn.Conv2d):
+                        y = F.conv2d(y, params[f"encoder.convs.{i}.weight"][m], params[f"encoder.convs.{i}.bias"][m],
+                                     stride=layer.stride, padding=layer.padding)
+                    else:
+                        y = layer(y)
+                outs.append(y.flatten(1))
+            flat = torch.stack(outs)
+        return self._sequential(self._template.encoder.trunk, "encoder.trunk.", params, flat)
+
+    def _sequential(self, seq: nn.Sequential, prefix: str, params: dict[str, torch.Tensor],
+                    x: torch.Tensor) -> torch.Tensor:
+        """``seq`` (Linear, LayerNorm and parameter-free layers) applied per member: x (N, B, in) -> (N, B, out)."""
+        for i, layer in enumerate(seq):
+            name = f"{prefix}{i}"
+            if isinstance(layer, nn.Linear):
+                x = torch.baddbmm(params[f"{name}.bias"].unsqueeze(1), x, params[f"{name}.weight"].transpose(1, 2))
+            elif isinstance(layer, nn.LayerNorm):
+                x = F.layer_norm(x, layer.normalized_shape, eps=layer.eps)
+                x = torch.addcmul(params[f"{name}.bias"].unsqueeze(1), x, params[f"{name}.weight"].unsqueeze(1))
+            elif any(True for _ in layer.parameters()):
+                raise TypeError(f"MemberStack cannot batch {type(layer).__name__} ({name})")
+            else:
+                x = layer(x)
+        return x
