@@ -11,7 +11,7 @@ def _members(kind: str, n: int) -> list[torch.nn.Module]:
     for seed in range(n):
         torch.manual_seed(seed)
         if kind == "visual":
-            m = VisualActor(9, 12, 12, 3, trunk_dim=16, hidden=(8, 6), init="default")
+            m = VisualActor(9, 16, 16, 3, trunk_dim=16, hidden=(8, 6), init="default")
         elif kind == "state":
             m = StateActor(11, 3, (8, 6), init="orthogonal")
         else:
@@ -22,7 +22,7 @@ def _members(kind: str, n: int) -> list[torch.nn.Module]:
 
 def _inputs(kind: str, n: int, b: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(5)
-    shape = (n * b, 9, 12, 12) if kind == "visual" else (n * b, 11)
+    shape = (n * b, 9, 16, 16) if kind == "visual" else (n * b, 11)
     return torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
 
 
