@@ -1,0 +1,256 @@
+"""ablations.stats on synthetic run folders whose answers are known by hand."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ablations import stats
+from ablations.stats import Curve
+
+#: Few resamples keep the tests fast; the intervals they check are wide of their bounds at any count.
+REPS = 200
+#: For tests that check point values only (the bootstrap still runs, so its plumbing is exercised).
+FEW = 10
+
+
+def write_run(root, name, *, task="hopper", mode="decoupled", seed=0, evals=(), last_iter=None, every=10,
+              key="eval_return_mean", extra=None):
+    """A run folder as `ablate` writes one: config.json and one metrics line per iteration; ``evals`` are the
+    evaluation returns at iterations every, 2 every, ... (``key`` names them); ``extra``: iter -> more keys."""
+    run = root / name
+    run.mkdir(parents=True)
+    config = {"task": task, "mode": mode, "seed": seed, "raster_model": None, "preset": "dva",
+              "lr_decay_iters": 30000}
+    (run / "config.json").write_text(json.dumps({"config": config, "environment": {}}))
+    at = {every * (i + 1): r for i, r in enumerate(evals)}
+    last_iter = last_iter if last_iter is not None else max(at, default=1)
+    lines = []
+    for it in range(1, last_iter + 1):
+        m = {"iter": it, "wall_s": 0.5 * it, "return_mean": 0.0}
+        if it in at:
+            m[key] = at[it]
+        m.update((extra or {}).get(it, {}))
+        lines.append(json.dumps(m))
+    (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    return run
+
+
+def curve(returns, *, arm="a", seed=0, task="hopper", iters=None, last_iter=None) -> Curve:
+    iters = np.arange(1, len(returns) + 1) * 10 if iters is None else np.asarray(iters)
+    return Curve(task=task, arm=arm, seed=seed, path=f"{arm}{seed}", iters=iters.astype(np.int64),
+                 returns=np.asarray(returns, dtype=np.float64),
+                 last_iter=int(iters[-1]) if last_iter is None and iters.size else (last_iter or 0))
+
+
+# ------------------------------------------------------------------------------------------ reading runs
+def test_load_arms_reads_run_folders_and_the_older_eval_key(tmp_path):
+    write_run(tmp_path / "dec", "s0", seed=0, evals=(1.0, 2.0, 3.0), last_iter=35)
+    write_run(tmp_path / "dec", "s1", seed=1, evals=(4.0, 5.0), key="eval_return")  # a run from before eval_*
+    with open(tmp_path / "dec" / "s1" / "metrics.jsonl", "a") as f:
+        f.write('{"iter": 21, "eval_ret')  # a run killed mid-write: the torn line is ignored
+    curves = stats.load_arms({"decoupled": [tmp_path / "dec"]})  # a folder of runs stands for all of them
+    by_seed = {c.seed: c for c in curves}
+    assert sorted(by_seed) == [0, 1] and {c.arm for c in curves} == {"decoupled"}
+    c0, c1 = by_seed[0], by_seed[1]
+    assert c0.task == "hopper" and c0.key == "eval_return_mean" and c0.last_iter == 35
+    np.testing.assert_array_equal(c0.iters, [10, 20, 30])
+    np.testing.assert_array_equal(c0.returns, [1.0, 2.0, 3.0])
+    assert c1.key == "eval_return" and c1.last_iter == 20
+    np.testing.assert_array_equal(c1.returns, [4.0, 5.0])
+
+
+def test_two_runs_of_one_seed_in_an_arm_are_an_error(tmp_path):
+    write_run(tmp_path, "a", seed=3, evals=(1.0,))
+    write_run(tmp_path, "b", seed=3, evals=(2.0,))
+    with pytest.raises(ValueError, match="two runs of task 'hopper' with seed 3"):
+        stats.load_arms({"full": [tmp_path / "a", tmp_path / "b"]})
+
+
+def test_module_imports_without_torch():
+    code = "import sys, ablations.stats; assert 'torch' not in sys.modules, 'torch was imported'"
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+
+
+# ------------------------------------------------------------------------------------ per-run statistics
+def test_final_return_is_the_mean_of_the_last_three_evaluations():
+    assert stats.final_return(curve([9.0, 1.0, 2.0, 6.0])) == 3.0
+    assert stats.final_return(curve([4.0, 8.0])) == 6.0  # fewer than three: all of them
+    assert math.isnan(stats.final_return(curve([])))
+
+
+def test_auc_is_the_trapezoid_mean_over_the_span():
+    # (0 + 10) / 2 * 10 + 10 * 20 = 250 over iterations 10..40, a span of 30
+    assert stats.auc(curve([0.0, 10.0, 10.0], iters=[10, 20, 40])) == pytest.approx(250 / 30)
+    assert stats.auc(curve([5.0, 5.0, 5.0])) == 5.0
+    assert stats.auc(curve([7.0])) == 7.0
+
+
+def test_collapse_rate_counts_evaluations_below_half_the_running_best_after_the_first_positive_best():
+    # running best -5 -1 10 10 10 20 20 20; the first positive best is the third; of the five after it,
+    # 4 < 10/2 and 9 < 20/2 collapse, 6, 20 and 11 do not
+    assert stats.collapse_rate(curve([-5, -1, 10, 4, 6, 20, 9, 11])) == pytest.approx(2 / 5)
+    assert stats.collapse_rate(curve([1, 2, 3])) == 0.0
+    assert math.isnan(stats.collapse_rate(curve([-3, -2, -1])))  # no positive best
+    assert math.isnan(stats.collapse_rate(curve([-3, 5])))  # nothing after it
+
+
+# ------------------------------------------------------------------------------------------- bootstrap
+def test_iqm_of_a_known_set_and_a_deterministic_interval():
+    # 8 values: two dropped at each end, the mean of 3, 4, 5, 6
+    est = stats.iqm_estimate([7, 1, 100, 3, 2, 6, 4, 5], reps=REPS, seed=4)
+    assert est.value == 4.5 and est.n == 8 and est.reps == REPS
+    assert est.ci_low <= 4.5 <= est.ci_high and est.ci_low < est.ci_high
+    assert stats.iqm_estimate([1, 2, 3, 4, 100], reps=REPS).value == 3.0  # 5 values: the middle 3
+    assert stats.iqm_estimate([1, 2, 9], reps=REPS).value == 4.0  # 3 values: nothing dropped
+    np.random.seed(123)  # noqa: NPY002 (the global state rliable uses; it must come back unchanged)
+    before = np.random.get_state()[1].copy()  # noqa: NPY002
+    again = stats.iqm_estimate([7, 1, 100, 3, 2, 6, 4, 5], reps=REPS, seed=4)
+    assert again == est
+    np.testing.assert_array_equal(np.random.get_state()[1], before)  # noqa: NPY002
+    assert stats.iqm_estimate([], reps=REPS) is None
+
+
+def _arm(name, finals, *, task="hopper", seeds=None):
+    """Curves whose final return (the mean of the last three) is each of ``finals``."""
+    seeds = range(len(finals)) if seeds is None else seeds
+    return [curve([0.0, f - 1.0, f, f + 1.0], arm=name, seed=s, task=task) for s, f in zip(seeds, finals)]
+
+
+FINALS = [120.0, 340.0, 95.0, 410.0, 260.0]
+
+
+def test_identical_arms_difference_and_improvement_cover_no_effect():
+    cmp = stats.compare(_arm("decoupled", FINALS) + _arm("full", FINALS), reps=REPS)
+    d = cmp.differences["full"]
+    assert d.diff == dict.fromkeys(range(5), 0.0) and d.mean.value == 0.0
+    assert d.mean.ci_low <= 0.0 <= d.mean.ci_high
+    assert d.improvement.value == 0.5 and d.improvement.ci_low <= 0.5 <= d.improvement.ci_high
+    # the same returns dealt to other seeds: the paired differences are non-zero but centre on zero
+    d = stats.compare(_arm("decoupled", FINALS) + _arm("full", FINALS[1:] + FINALS[:1]), reps=REPS).differences["full"]
+    assert any(v != 0 for v in d.diff.values()) and d.mean.value == pytest.approx(0.0, abs=1e-9)
+    assert not d.mean.excludes(0.0) and d.mean.ci_low < 0.0 < d.mean.ci_high
+    assert d.improvement.value == 0.5 and not d.improvement.excludes(0.5)
+
+
+def test_a_shifted_arm_has_a_difference_that_excludes_zero_on_its_side():
+    noise = [3.0, -2.0, 5.0, -4.0, 1.0]
+    better = [f + 50.0 + e for f, e in zip(FINALS, noise)]
+    cmp = stats.compare(_arm("decoupled", FINALS) + _arm("full", better) + _arm("blind", [f - 80 for f in FINALS]),
+                        reps=REPS)
+    up, down = cmp.differences["full"], cmp.differences["blind"]
+    assert up.mean.value == pytest.approx(50.6) and up.mean.ci_low > 0.0 and up.mean.excludes(0.0)
+    assert down.mean.value == pytest.approx(-80.0) and down.mean.ci_high < 0.0
+    # unpaired, the arms overlap (returns spread 95..410), so rliable's probability is below 1 but above 1/2
+    assert 0.5 < up.improvement.value < 1.0 and up.improvement.ci_high >= up.improvement.value
+    assert down.improvement.value < 0.5
+    assert set(cmp.differences) == {"full", "blind"} and cmp.reference == "decoupled"
+    assert cmp.arms["full"].final_iqm.value == pytest.approx(np.mean(sorted(better)[1:4]))
+
+
+def test_missing_seeds_are_reported_and_skipped():
+    curves = _arm("decoupled", [1.0, 2.0, 3.0], seeds=[0, 1, 3]) + _arm("full", [5.0, 7.0, 9.0], seeds=[0, 1, 2])
+    curves.append(curve([], arm="full", seed=4, iters=np.array([], np.int64), last_iter=40))  # never evaluated
+    cmp = stats.compare(curves, reps=FEW)
+    d = cmp.differences["full"]
+    assert d.seeds == (0, 1) and d.diff == {0: 4.0, 1: 5.0} and d.mean.n == 2
+    assert d.missing == {"full": (2,), "decoupled": (3,)}
+    assert cmp.arms["full"].without_evals == (4,) and cmp.arms["full"].seeds == (0, 1, 2)
+
+
+def test_compare_refuses_mixed_tasks():
+    with pytest.raises(ValueError, match="one task"):
+        stats.compare(_arm("a", [1.0], task="hopper") + _arm("b", [1.0], task="ant"), reps=FEW)
+
+
+# ------------------------------------------------------------------------ equal iterations and time
+def test_equal_iterations_and_equal_wall_clock_cut_at_the_right_points(tmp_path):
+    # decoupled: 100 iterations at 100 ms alone = 10 s; full: 60 iterations at 250 ms = 15 s; evaluations every
+    # 10 iterations with return = iteration
+    for s in (0, 1):
+        write_run(tmp_path / "dec", f"s{s}", seed=s, evals=[float(10 * (i + 1) + s) for i in range(10)])
+        write_run(tmp_path / "full", f"s{s}", seed=s, mode="full", evals=[float(10 * (i + 1) + s) for i in range(6)])
+    curves = stats.load_arms({"decoupled": [tmp_path / "dec"], "full": [tmp_path / "full"]})
+    assert stats.common_iteration(curves) == 60
+    ts = stats.task_statistics(curves, iter_ms_alone={"decoupled": 100.0, "full": 250.0}, reps=FEW)["hopper"]
+    assert ts.iteration == 60
+    # equal iterations: both arms end at 60, final = mean of the returns at 40, 50, 60 (+ seed)
+    for arm in ("decoupled", "full"):
+        assert ts.equal_iters.arms[arm].final == {0: 50.0, 1: 51.0}
+    assert ts.whole.arms["decoupled"].final == {0: 90.0, 1: 91.0}
+    # equal wall-clock: 10 s, full's 40 iterations (its evaluations 10..40) against all of decoupled
+    assert ts.wall_s == pytest.approx(10.0) and ts.iters_at_wall == {"decoupled": 100, "full": 40}
+    assert ts.equal_wall.arms["full"].final == {0: 30.0, 1: 31.0}
+    assert ts.equal_wall.arms["decoupled"].final == {0: 90.0, 1: 91.0}
+    assert ts.equal_wall.differences["full"].diff == {0: -60.0, 1: -60.0}
+    assert stats.task_statistics(curves, reps=FEW)["hopper"].equal_wall is None
+    with pytest.raises(ValueError, match="iter_ms_alone has no iteration time for arm 'full'"):
+        stats.common_wall_s(curves, {"decoupled": 100.0})
+
+
+def test_the_run_that_sets_the_time_budget_keeps_its_last_iteration():
+    # 30 x 33.3 ms = 0.999 s sets the budget: its round trip through floating point must not lose iteration 30;
+    # the other arm (100 x 20 ms) gets floor(999 / 20) = 49 iterations, its evaluations at 10..40
+    slow, fast = curve([1.0, 2.0, 3.0], arm="slow"), curve([5.0] * 10, arm="fast")
+    ms = {"slow": 33.3, "fast": 20.0}
+    budget = stats.common_wall_s([slow, fast], ms)
+    assert budget == pytest.approx(0.999)
+    cut_slow, cut_fast = stats.truncate_at_wall_s([slow, fast], ms, budget)
+    assert cut_slow.last_iter == 30 and cut_slow.returns.size == 3
+    assert cut_fast.last_iter == 49
+    np.testing.assert_array_equal(cut_fast.iters, [10, 20, 30, 40])
+
+
+# -------------------------------------------------------------------------------- performance profiles
+def test_performance_profile_fractions_and_plot(tmp_path):
+    curves = _arm("decoupled", [1.0, 2.0, 3.0, 4.0]) + _arm("full", [3.0, 3.5, 5.0, 6.0])
+    prof = stats.performance_profiles(curves, thresholds=[0.0, 2.5, 4.5, 7.0], reps=REPS)["hopper"]
+    np.testing.assert_array_equal(prof.arms["decoupled"].fraction, [1.0, 0.5, 0.0, 0.0])
+    np.testing.assert_array_equal(prof.arms["full"].fraction, [1.0, 1.0, 0.5, 0.0])
+    for p in prof.arms.values():
+        assert p.n == 4 and np.all(p.ci_low <= p.fraction) and np.all(p.fraction <= p.ci_high)
+    assert prof.arms["decoupled"].ci_low[1] < 0.5 < prof.arms["decoupled"].ci_high[1]
+    auto = stats.performance_profiles(curves, points=11, reps=FEW)["hopper"]
+    assert auto.thresholds.shape == (11,) and auto.thresholds[0] < 1.0 and auto.thresholds[-1] > 6.0
+    png = stats.plot_performance_profiles(prof, tmp_path / "profile.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# ------------------------------------------------------------------------------------- looking probes
+def _probe(it, f0, f1, cos, **more):
+    return {"iter": it, "grad_norm": 1.0, "grad_norm_clipped": 1.0, "image_sensitivity_f0": f0,
+            "image_sensitivity_f1": f1, "cos_full_decoupled": cos, "grad_norm_full": 10.0 * cos, **more}
+
+
+def test_looking_probes_select_by_a_fraction_of_the_first_probe(tmp_path):
+    rows = [_probe(10, 3.0, 1.0, 1.0),  # sum 4.0: the initial sensitivity, the bar is 0.4
+            {"iter": 11, "grad_norm": 2.0},  # not a probe
+            _probe(20, 0.01, 0.0, 0.99),  # blind phase
+            _probe(30, 0.3, 0.3, 0.2, grad_norm_render_term=5.0),  # 0.6: looks
+            _probe(40, 0.2, 0.1, 0.9),  # 0.3: does not
+            _probe(50, 1.0, 1.0, 0.4)]  # 2.0: looks
+    write_run(tmp_path, "run", evals=(), last_iter=50, extra={r["iter"]: r for r in rows})
+    from ablations.runs import read_metrics
+
+    look = stats.looking_probes(read_metrics(tmp_path / "run"))
+    assert look.probe_iters == (10, 20, 30, 40, 50) and look.n_probes == 5
+    assert look.initial == 4.0 and look.sensitivity[2] == pytest.approx(0.6)
+    assert look.looking_iters == (10, 30, 50) and look.n_looking == 3
+    assert look.medians["cos_full_decoupled"] == 0.4 and look.counts["cos_full_decoupled"] == 3
+    assert look.medians["grad_norm_full"] == pytest.approx(4.0)
+    assert look.medians["grad_norm_render_term"] == 5.0 and look.counts["grad_norm_render_term"] == 1
+    assert "grad_norm_clipped" not in look.medians and "grad_norm" not in look.medians
+    # the mean over frames halves every sensitivity and the bar alike; a higher fraction drops probe 30
+    assert stats.looking_probes(rows, reduce="mean").looking_iters == (10, 30, 50)
+    assert stats.looking_probes(rows, fraction=0.2).looking_iters == (10, 50)
+    only = stats.looking_probes(rows, keys=["cos_full_decoupled", "cos_hard_soft"])
+    assert only.medians == {"cos_full_decoupled": 0.4, "cos_hard_soft": None}
+    none = stats.looking_probes([{"iter": 1, "grad_norm": 1.0}])
+    assert none.n_probes == 0 and none.initial is None and none.medians == {}
+    with pytest.raises(ValueError, match="reduce"):
+        stats.looking_probes(rows, reduce="max")
