@@ -267,7 +267,9 @@ class MemberStack:
         for i, layer in enumerate(seq):
             name = f"{prefix}{i}"
             if isinstance(layer, nn.Linear):
-                x = torch.baddbmm(params[f"{name}.bias"].unsqueeze(1), x, params[f"{name}.weight"].transpose(1, 2))
+                # W x^T rather than x W^T: the weight's gradient then comes out in the weight's own layout
+                weight, bias = params[f"{name}.weight"], params[f"{name}.bias"]
+                x = torch.bmm(weight, x.transpose(1, 2)).transpose(1, 2) + bias.unsqueeze(1)
             elif isinstance(layer, nn.LayerNorm):
                 x = F.layer_norm(x, layer.normalized_shape, eps=layer.eps)
                 x = torch.addcmul(params[f"{name}.bias"].unsqueeze(1), x, params[f"{name}.weight"].unsqueeze(1))
