@@ -37,7 +37,6 @@ through ``ablations.plot.find_runs`` (which imports the run writer, and with it 
 from __future__ import annotations
 
 import contextlib
-import io
 import math
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -91,10 +90,6 @@ class Curve:
     returns: np.ndarray
     last_iter: int
     key: str | None = None
-
-    @property
-    def label(self) -> str:
-        return f"{self.task}/{self.arm}/seed {self.seed} ({self.path})"
 
 
 def curve_of(run, arm: str) -> Curve:
@@ -386,7 +381,9 @@ def common_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float]) -
     """The training-time budget every run reached, in seconds: the minimum over the runs of
     last_iter x iter_ms_alone[arm] / 1000. The time is *modelled*: each arm's iteration time measured alone
     (a benchmark's ms per iteration of that arm as the only work on its device), never a run's logged
-    ``wall_s``, which for a population member is the whole population's time and includes compilation."""
+    ``wall_s``, which for a population member is the whole population's time and includes compilation. So
+    it leaves out what the measurement alone left out (typically compilation, evaluation rollouts, and the
+    extra backward of probe iterations if the benchmark's time excludes them)."""
     if not curves:
         raise ValueError("no runs to compare")
     ms = _iter_ms(curves, iter_ms_alone)
@@ -458,7 +455,7 @@ class ProfileCurve:
 @dataclass(frozen=True)
 class PerformanceProfile:
     """One task's performance profiles (rliable's score distributions of the final return): ``thresholds``
-    (T,) in return units, ``arms`` name -> ProfileCurve."""
+    (T,) in return units, ``arms`` name -> ProfileCurve; CIs at ``confidence``."""
 
     task: str
     thresholds: np.ndarray
@@ -466,6 +463,7 @@ class PerformanceProfile:
     reps: int
     seed: int
     final_evals: int
+    confidence: float = 0.95
 
 
 def performance_profiles(curves: Sequence[Curve], *, thresholds: Sequence[float] | None = None, points: int = 101,
@@ -495,7 +493,7 @@ def performance_profiles(curves: Sequence[Curve], *, thresholds: Sequence[float]
         arms = {a: ProfileCurve(np.asarray(frac[a], np.float64), np.asarray(cis[a][0], np.float64),
                                 np.asarray(cis[a][1], np.float64), len(finals[a])) for a in finals}
         out[task] = PerformanceProfile(task=task, thresholds=taus, arms=arms, reps=reps, seed=seed,
-                                       final_evals=final_evals)
+                                       final_evals=final_evals, confidence=confidence)
     return out
 
 
@@ -507,7 +505,7 @@ def plot_performance_profiles(profile: PerformanceProfile, path: str | Path) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gradlab.checkpoint import atomic_write_bytes
+    from ablations.plot import _save
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     for arm, p in profile.arms.items():
@@ -516,14 +514,12 @@ def plot_performance_profiles(profile: PerformanceProfile, path: str | Path) -> 
     ax.set_xlabel(f"final evaluation return (mean of the last {profile.final_evals})")
     ax.set_ylabel("fraction of runs above")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title(f"{profile.task}: performance profile, {profile.reps} bootstrap resamples")
+    ax.set_title(f"{profile.task}: performance profile (shaded: {profile.confidence:.0%} CI, "
+                 f"{profile.reps} bootstrap resamples)")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
     path = Path(path)
-    atomic_write_bytes(path, buf.getvalue())
+    _save(fig, path)
     return path
 
 
