@@ -14,8 +14,8 @@ Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up t
   kernels (per pixel and per face), ``setup_fwd_ms`` everything else of a no-grad render, i.e. the per-face
   setup with its box levels and the floor, and ``setup_bwd_ms`` the rest of the fwd+bwd: the backward's
   recompute of the setup and its autograd). ``--variants`` times the fused backend again with some of
-  ``diffrender.raster.fused``'s module constants changed (e.g. the former single-level walk and small
-  chunks), each row tagged with its ``variant``; ``--compile on`` with the setup's PyTorch part compiled, as
+  ``diffrender.raster.fused.tuning``'s constants changed (e.g. ``SUPER_BLOCK=1``, a single-level walk over
+  the faces), each row tagged with its ``variant``; ``--compile on`` with the setup's PyTorch part compiled, as
   the trainer runs it.
 - ``iou``: the sharp-limit silhouette of each of our models and of the ray tracer against nvdiffrast's
   coverage (no floor, black background, white unlit robot), 64 ant poses: intersection over union and our
@@ -25,7 +25,7 @@ Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up t
     python benchmarks/anchor.py --faces 0 --models softmax --repeats 5         # a quick look
     python benchmarks/anchor.py --parts time --variants default COEF_ELEMS=16777216,SUPER_BLOCK=1
 
-The scene, poses and camera are ``benchmarks/render.py``'s ``Scene`` (the ant task's tracking camera).
+The scene, poses and camera are ``benchmarks/_common.py``'s ``Scene`` (the ant task's tracking camera).
 """
 
 from __future__ import annotations
@@ -34,69 +34,45 @@ import argparse
 import datetime
 import itertools
 import json
-import os
 import platform
-import statistics
 import sys
 import time
 import traceback
 from pathlib import Path
 
 import torch
-from provenance import commit
-from render import Scene, graphed
+from _common import Scene, commit, graphed, median_ms, sync, write_json
 
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
+from diffrender.raster.fused import tuning
 from diffrender.settings import RASTER_MODELS
 
+CUDA = torch.device("cuda")
 FACES = (0, 4500, 21000, 100000)  # 0: the plain ant (1,856 faces); extra spheres up to about the rest
 
 
-def _sync() -> None:
-    torch.cuda.synchronize()
-
-
-def _median_ms(fn, *, warmup: int, repeats: int) -> float:
-    for _ in range(warmup):
-        fn()
-    _sync()
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        fn()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end))
-    return statistics.median(times)
-
-
 def _apply_variant(variant: str) -> dict:
-    """Set ``diffrender.raster.fused``'s module constants named in ``variant`` ("default" or
-    "NAME=VALUE,NAME=VALUE"), after restoring the defaults; returns the values in force."""
-    from diffrender.raster import fused
-
+    """Set the fused backend's tuning constants named in ``variant`` ("default" or "NAME=VALUE,NAME=VALUE"),
+    after restoring the defaults; returns the values in force."""
     for name, value in _FUSED_DEFAULTS.items():
-        setattr(fused, name, value)
+        setattr(tuning, name, value)
     if variant != "default":
         for item in variant.split(","):
             name, value = item.split("=")
             if name not in _FUSED_DEFAULTS:
                 raise ValueError(f"--variants: {name!r} is not one of {', '.join(_FUSED_DEFAULTS)}")
-            setattr(fused, name, type(_FUSED_DEFAULTS[name] or 0)(float(value)))
-    return {name: getattr(fused, name) for name in _FUSED_DEFAULTS}
+            setattr(tuning, name, type(_FUSED_DEFAULTS[name] or 0)(float(value)))
+    return {name: getattr(tuning, name) for name in _FUSED_DEFAULTS}
 
 
 def _fused_defaults() -> dict:
-    from diffrender.raster import fused
-
-    return {name: getattr(fused, name) for name in ("COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE",
-                                                    "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK",
-                                                    "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS", "FWD_MAX_SPLITS",
-                                                    "FWD_SPLIT_SUPER_BLOCKS", "FWD_SUB_BLOCK", "FWD_WARPS",
-                                                    "FWD_MAXNREG", "BWD_MAXNREG",
-                                                    "BWD_MAXNREG_HARD")}
+    return {name: getattr(tuning, name) for name in ("COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE",
+                                                     "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK",
+                                                     "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS", "FWD_MAX_SPLITS",
+                                                     "FWD_SPLIT_SUPER_BLOCKS", "FWD_SUB_BLOCK", "FWD_WARPS",
+                                                     "FWD_MAXNREG", "BWD_MAXNREG",
+                                                     "BWD_MAXNREG_HARD")}
 
 
 _FUSED_DEFAULTS = _fused_defaults()
@@ -107,10 +83,10 @@ def _stages(fn_fwd, fn_fwdbwd) -> dict:
     from torch.profiler import ProfilerActivity, profile
 
     def by_kernel(fn) -> dict:
-        _sync()
+        sync(CUDA)
         with profile(activities=[ProfilerActivity.CUDA]) as prof:
             fn()
-            _sync()
+            sync(CUDA)
         out = {"fwd": 0.0, "bwd": 0.0, "other": 0.0, "kernels": 0, "by_name": {}}
         for e in prof.events():
             if e.device_type != torch.autograd.DeviceType.CUDA:
@@ -136,11 +112,11 @@ def _stages(fn_fwd, fn_fwdbwd) -> dict:
 
 def _peak(fn) -> dict:
     """Peak allocated / reserved memory [MB] of one call, above what was allocated before it."""
-    _sync()
+    sync(CUDA)
     torch.cuda.reset_peak_memory_stats()
     base = torch.cuda.memory_allocated()
     fn()
-    _sync()
+    sync(CUDA)
     return {"peak_alloc_mb": (torch.cuda.max_memory_allocated() - base) / 2**20,
             "peak_reserved_mb": torch.cuda.max_memory_reserved() / 2**20}
 
@@ -196,15 +172,6 @@ class Anchor:
         return ndr.antialias(rgb.contiguous(), rast, clip, self.tri).permute(0, 3, 1, 2)
 
 
-def time_rows(args) -> list[dict]:
-    rows = []
-    anchor_ok = _nvdiffrast_available()
-    for faces in args.faces:
-        rows += _time_scene(args, faces, anchor_ok=anchor_ok)
-        torch.cuda.empty_cache()
-    return rows
-
-
 def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
     rows = []
     # each scene compiles the setup afresh, as a trainer (one mesh) would: the shapes of earlier scenes would
@@ -230,10 +197,10 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
         try:
             anchor = Anchor(robot, dr.RasterSettings(floor=None), args.res)
             with torch.no_grad():
-                anchor_row["fwd_eager_ms"] = _median_ms(lambda: anchor.image(verts0, cam), warmup=args.warmup,
+                anchor_row["fwd_eager_ms"] = median_ms(lambda: anchor.image(verts0, cam), CUDA, warmup=args.warmup,
                                                         repeats=args.repeats)
             step, _ = fwdbwd_of(lambda v: anchor.image(v, cam))
-            anchor_row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
+            anchor_row["fwdbwd_eager_ms"] = median_ms(step, CUDA, warmup=args.warmup, repeats=args.repeats)
             anchor_row.update(_peak(step))
         except Exception as e:
             anchor_row["error"] = f"{type(e).__name__}: {e}"
@@ -254,9 +221,9 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
                 def fwd_nograd(render=render):
                     with torch.no_grad():
                         render(verts0)
-                row["fwd_eager_ms"] = _median_ms(fwd_nograd, warmup=args.warmup, repeats=args.repeats)
+                row["fwd_eager_ms"] = median_ms(fwd_nograd, CUDA, warmup=args.warmup, repeats=args.repeats)
                 step, _ = fwdbwd_of(render)
-                row["fwdbwd_eager_ms"] = _median_ms(step, warmup=args.warmup, repeats=args.repeats)
+                row["fwdbwd_eager_ms"] = median_ms(step, CUDA, warmup=args.warmup, repeats=args.repeats)
                 row.update(_peak(step))
                 with SavedTensorMeter(exclude=[robot.faces]) as meter:
                     kept = render(verts0.clone().requires_grad_(True))  # alive: its graph holds the saved tensors
@@ -266,9 +233,9 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
                     row.update(_stages(fwd_nograd, step))
                 except Exception as e:  # the breakdown is optional: a profiler failure keeps the timings
                     row["stages_error"] = f"{type(e).__name__}: {e}"
-                row["fwd_ms"] = _median_ms(graphed(fwd_nograd, "cuda", warmup=3), warmup=args.warmup,
+                row["fwd_ms"] = median_ms(graphed(fwd_nograd, CUDA, warmup=3), CUDA, warmup=args.warmup,
                                            repeats=args.repeats)
-                row["fwdbwd_ms"] = _median_ms(graphed(step, "cuda", warmup=3), warmup=args.warmup,
+                row["fwdbwd_ms"] = median_ms(graphed(step, CUDA, warmup=3), CUDA, warmup=args.warmup,
                                               repeats=args.repeats)
             except Exception as e:  # an OOM or a failed capture is a result: record it and go on
                 row["error"] = f"{type(e).__name__}: {e}"
@@ -295,10 +262,10 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
                 with torch.no_grad():
                     tracer(verts0, robot.colors, cam)
             trace()
-            row["fwd_eager_ms"] = _median_ms(trace, warmup=args.warmup, repeats=args.repeats)
+            row["fwd_eager_ms"] = median_ms(trace, CUDA, warmup=args.warmup, repeats=args.repeats)
             row["images_per_s_eager"] = args.batch / row["fwd_eager_ms"] * 1e3
             if args.warp_graph:  # a failed capture leaves the CUDA context unusable: opt in
-                row["fwd_ms"] = _median_ms(graphed(trace, "cuda", warmup=3), warmup=args.warmup,
+                row["fwd_ms"] = median_ms(graphed(trace, CUDA, warmup=3), CUDA, warmup=args.warmup,
                                            repeats=args.repeats)
                 row["images_per_s"] = args.batch / row["fwd_ms"] * 1e3
         except Exception as e:
@@ -355,8 +322,6 @@ def _nvdiffrast_available() -> bool:
     return True
 
 
-
-
 def table(rows: list[dict]) -> str:
     """Markdown: per face count and backend the times [ms] (graph-replayed and eager), nvdiffrast's in the same
     process, the ratios, memory [MB] and the fused backend's stages [ms] of one eager fwd+bwd."""
@@ -403,7 +368,7 @@ def main(argv=None) -> int:
     p.add_argument("--iou-gamma", type=float, default=1e-4, help="gamma of the sharp-limit silhouettes")
     p.add_argument("--variants", nargs="*", default=["default"],
                    help="fused backend settings to time: 'default', or NAME=VALUE,NAME=VALUE of diffrender.raster."
-                        f"fused's constants ({', '.join(_FUSED_DEFAULTS)})")
+                        f"fused.tuning's constants ({', '.join(_FUSED_DEFAULTS)})")
     p.add_argument("--compile", nargs="+", choices=["off", "on"], default=["off"],
                    help="time the fused backend with its setup's PyTorch part eager (off) and/or through "
                         "torch.compile (on: RasterSettings.compile, as the trainer renders under --compile); "
@@ -424,12 +389,9 @@ def main(argv=None) -> int:
                 seconds=None)
     rows: list[dict] = []
 
-    def save() -> None:  # after every part, atomically: a crash later keeps what was measured
+    def save() -> None:  # after every part: a crash later keeps what was measured
         meta["seconds"] = round(time.time() - started, 1)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
-        os.replace(tmp, args.out)
+        write_json(args.out, {"meta": meta, "rows": rows})
     if "iou" in args.parts:
         rows += iou_rows(args)
         save()

@@ -28,14 +28,12 @@ from pathlib import Path
 from unittest import mock
 
 import torch
+from _common import commit, write_json
 
 import diffrender
 import tasks
 from gradlab import SHAC, ModePlan, SHACConfig, resolve_device
 from gradlab.timing import median
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # run as a script or loaded by path
-from provenance import commit
 
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
 
@@ -157,12 +155,11 @@ def main() -> None:
         row = measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on")
         results.append(row)
         print(json.dumps(row), flush=True)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         # The format ablate-report reads: provenance at the top level, one row per (task, mode).
         doc = {"date": env["date"], "command": env["command"], "commit": env["commit"], "device": args.device,
                "gpu": env.get("gpu"),
                "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
-        args.out.write_text(json.dumps(doc, indent=2))
+        write_json(args.out, doc, indent=2)
 
     print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile} "

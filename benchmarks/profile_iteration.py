@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 import time
 from collections import defaultdict
 from pathlib import Path
 
 import torch
-from render import graphed  # benchmarks/render.py, beside this script
+from _common import graphed, median_ms, write_json
 
 from gradlab import SHAC, SHACConfig, resolve_device
 from gradlab.networks import PixelEncoder
@@ -56,13 +55,7 @@ def profile_replay(fn, iters: int) -> dict:
     """Kernel time by category and the top kernels of one call of ``fn``; wall ms median over ``iters``."""
     from torch.profiler import ProfilerActivity, profile
 
-    times = []
-    for _ in range(iters):
-        torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        fn()
-        torch.cuda.synchronize()
-        times.append((time.perf_counter() - t0) * 1e3)
+    wall_ms = median_ms(fn, "cuda", repeats=iters)
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         fn()
         torch.cuda.synchronize()
@@ -77,7 +70,7 @@ def profile_replay(fn, iters: int) -> dict:
         counts[category(e.key)] += e.count
         kernels.append((us / 1e3, e.count, e.key[:110]))
     kernels.sort(reverse=True)
-    return {"wall_ms": statistics.median(times), "kernel_ms": sum(cats.values()),
+    return {"wall_ms": wall_ms, "kernel_ms": sum(cats.values()),
             "kernels": sum(counts.values()),
             "by_category": {k: {"ms": round(v, 3), "count": counts[k]} for k, v in
                             sorted(cats.items(), key=lambda kv: -kv[1])},
@@ -166,8 +159,8 @@ def main() -> None:
             except Exception as e:  # report and go on
                 r = {"task": task, "mode": mode, "error": f"{type(e).__name__}: {e}"[:400]}
             doc["results"].append(r)
-            args.out.write_text(json.dumps(doc, indent=1))
-    args.out.write_text(json.dumps(doc, indent=1))
+            write_json(args.out, doc)
+    write_json(args.out, doc)
 
     if "encoder" in doc:
         e = doc["encoder"]

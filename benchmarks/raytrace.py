@@ -2,14 +2,14 @@
 are fastest.
 
 Not a test. One process. For each scene (64 ant environments at 84 x 84; ``--faces`` 0 is the plain ant,
-1,856 faces, larger targets add extra sphere meshes to its moving bodies as ``benchmarks/render.py``'s
+1,856 faces, larger targets add extra sphere meshes to its moving bodies as ``benchmarks/_common.py``'s
 ``Scene`` does: ~20k and ~100k faces per robot) and each variant (constructor options of ``RayTracer``), it
 times, after warm-up, the median of ``--repeats`` (CUDA events on the GPU, wall clock on the CPU):
 
 - ``refit``: posed vertices copied into the BVH's point buffer and the BVH refitted (``RayTracer.refit``);
 - ``trace``: normals, colours and camera copied, one trace launch (``RayTracer.trace``);
 - ``frame``: both, through ``RayTracer.__call__`` with the trainer's inputs (given normals), as a frame runs;
-- each eager and (CUDA, unless ``--no-graphs``) replayed from a captured CUDA graph (``benchmarks.render.graphed``),
+- each eager and (CUDA, unless ``--no-graphs``) replayed from a captured CUDA graph (``_common.graphed``),
   which is how the trainer runs it;
 - ``build_s``: the first call (the tree built from that frame's poses; ``"sah"`` and ``"median"`` build on
   the host), and ``rebuild`` [ms] for ``"lbvh"`` (a new tree on the GPU every frame instead of a refit; eager:
@@ -26,11 +26,10 @@ about 12 MB in all (5.4 MB of image), a few microseconds of bandwidth. Predicted
 copies; the refit ~0.1 ms, bound by the latency of its leaf-to-root climb (a fence and an atomic per tree level,
 ~30 levels in an LBVH, ~20 in an SAH tree with 4 triangles per leaf); the trace ~0.15 ms with 4 x 8 pixel tiles
 and each group's subtree root looked up once per build (found per pixel, it costs two binary searches over the
-leaves and two leaf-to-root climbs: ~200 dependent loads per pixel). So ~0.25-0.3 ms per frame; BENCHMARKS.md
-section 2 has the frame time of a tracer that found the roots per pixel (``lbvh_rows`` is otherwise that tracer).
-At ~100k faces per robot (6.4M triangles) bytes do count: an LBVH keeps 2 nodes per triangle (12.8M nodes,
-~0.8 GB of node traffic per refit, ~3 ms), an SAH tree with 4 triangles per leaf a quarter of that, so ~1 ms per
-frame with ``"sah"``.
+leaves and two leaf-to-root climbs: ~200 dependent loads per pixel). So ~0.25-0.3 ms per frame (BENCHMARKS.md,
+section 2, has the measured one). At ~100k faces per robot (6.4M triangles) bytes do count: an LBVH keeps 2
+nodes per triangle (12.8M nodes, ~0.8 GB of node traffic per refit, ~3 ms), an SAH tree with 4 triangles per
+leaf a quarter of that, so ~1 ms per frame with ``"sah"``.
 
     python benchmarks/raytrace.py --out benchmarks/results/raytrace.json          # CUDA, < 4 min on an H100
     python benchmarks/raytrace.py --faces 0 --out /tmp/raytrace_ant.json          # the ant scene only
@@ -42,19 +41,14 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import os
 import platform
-import statistics
 import sys
 import time
 import traceback
 from pathlib import Path
 
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from provenance import commit
-from render import Scene, graphed
+from _common import Scene, commit, graphed, median_ms, sync, write_json
 
 import diffrender as dr
 
@@ -84,33 +78,6 @@ VARIANTS: dict[str, dict] = {
 # the variants timed on the scenes with extra meshes (each host-built tree of 6.4M triangles takes seconds)
 LARGE_VARIANTS = ("default", "lbvh", "median", "leaf2", "leaf8", "rows", "lbvh_rows")
 TINY_VARIANTS = ("default", "lbvh", "rows", "rays2", "leaf1")
-
-
-def _median_ms(fn, device: torch.device, *, warmup: int, repeats: int) -> float:
-    for _ in range(warmup):
-        fn()
-    if device.type != "cuda":
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            times.append((time.perf_counter() - t0) * 1e3)
-        return statistics.median(times)
-    torch.cuda.synchronize(device)
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        fn()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end))
-    return statistics.median(times)
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def time_scene(args, faces: int, names: list[str]) -> list[dict]:
@@ -151,25 +118,25 @@ def time_scene(args, faces: int, names: list[str]) -> list[dict]:
             def trace(tracer=tracer):
                 return tracer.trace(colors, cam, normals=normals)
 
-            _sync(device)
+            sync(device)
             t0 = time.perf_counter()
             image = frame()
-            _sync(device)
+            sync(device)
             row["build_s"] = time.perf_counter() - t0
             if reference is None:
                 reference = image
                 row["robot_ray_share"] = float((image != floor).any(1).double().mean())
             row["max_abs_diff_vs_first"] = float((image - reference).abs().max())
             timing = dict(warmup=args.warmup, repeats=args.repeats)
-            row["refit_ms"] = _median_ms(refit, device, **timing)
-            row["trace_ms"] = _median_ms(trace, device, **timing)
-            row["frame_ms"] = _median_ms(frame, device, **timing)
+            row["refit_ms"] = median_ms(refit, device, **timing)
+            row["trace_ms"] = median_ms(trace, device, **timing)
+            row["frame_ms"] = median_ms(frame, device, **timing)
             if tracer.bvh_constructor == "lbvh" and device.type == "cuda":
-                row["rebuild_ms"] = _median_ms(tracer.rebuild, device, **timing)
+                row["rebuild_ms"] = median_ms(tracer.rebuild, device, **timing)
                 frame()  # back to a tree of this frame, refitted
             if device.type == "cuda" and args.graphs:
                 for key, fn in (("refit", refit), ("trace", trace), ("frame", frame)):
-                    row[f"{key}_graph_ms"] = _median_ms(graphed(fn, device, warmup=3), device, **timing)
+                    row[f"{key}_graph_ms"] = median_ms(graphed(fn, device, warmup=3), device, **timing)
             best = row.get("frame_graph_ms", row["frame_ms"])
             row["images_per_s"] = args.batch / best * 1e3
             row["mrays_per_s"] = base["rays"] / best * 1e-3
@@ -183,8 +150,6 @@ def time_scene(args, faces: int, names: list[str]) -> list[dict]:
         if device.type == "cuda":
             torch.cuda.empty_cache()
     return rows
-
-
 
 
 def table(rows: list[dict]) -> str:
@@ -239,12 +204,9 @@ def main(argv: list[str] | None = None) -> int:
         p.error("the ray tracer needs Warp (pip install warp-lang)")
     rows: list[dict] = []
 
-    def save() -> None:  # after every scene, atomically: a crash later keeps what was measured
+    def save() -> None:  # after every scene: a crash later keeps what was measured
         meta["seconds"] = round(time.time() - started, 1)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
-        os.replace(tmp, args.out)
+        write_json(args.out, {"meta": meta, "rows": rows})
 
     for faces in faces_list:
         if args.variants is not None:

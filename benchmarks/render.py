@@ -24,103 +24,37 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import platform
-import statistics
 import sys
 import time
 import traceback
 from pathlib import Path
-from typing import ClassVar
 
+import anchor
 import torch
+from _common import ASSETS, Scene, graphed, median_ms, sync, write_json
 
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
 from diffrender.raster import count_pairs, tiled_static
+from diffrender.raster.fused import tuning
 from diffrender.settings import RASTER_MODELS
 
-ASSETS = Path(__file__).resolve().parents[1] / "tasks" / "assets"
-# (tile, face block, backward sub-block, backward warps) of diffrender.raster.fused
-DEFAULT_FUSED = (4, 64, 8, 64, None)  # tile, face block, backward tile, sub-block, warps: fused.py's defaults
+#: the fused kernels' shape by default: tile, face block, backward tile, backward sub-block, backward warps
+DEFAULT_FUSED = (tuning.TILE, tuning.FACE_BLOCK, tuning.BWD_TILE, tuning.BWD_SUB_BLOCK, tuning.BWD_WARPS)
 TARGET = dict(fwd_ms=3.0, fwdbwd_ms=8.0, saved_mb=4.0)  # H100, 64 ant envs at 84 x 84
 DENSE_MAX_ELEMS = 3e7  # the dense reference materialises B * F * H * W pixel-face pairs (x ~100 floats)
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def _time(fn, device, *, warmup: int, repeats: int) -> tuple[float, float]:
-    """Median and first-call time [ms]."""
-    _sync(device)
+    """Median [ms] of ``repeats`` calls after ``warmup`` (the first call included), and the first call's wall
+    time [ms] (compilation included)."""
+    sync(device)
     t0 = time.perf_counter()
     fn()
-    _sync(device)
+    sync(device)
     first = (time.perf_counter() - t0) * 1e3
-    for _ in range(max(0, warmup - 1)):
-        fn()
-    times = []
-    for _ in range(repeats):
-        _sync(device)
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times), first
-
-
-def graphed(fn, device, *, warmup: int = 2):
-    """``fn`` captured in a CUDA graph (after ``warmup`` calls on a side stream); returns its replay.
-    This is how the trainer runs the renderer under ``--compile``: kernel-launch overhead disappears.
-    The other benchmark scripts capture with it too."""
-    side = torch.cuda.Stream(device)
-    side.wait_stream(torch.cuda.current_stream(device))
-    with torch.cuda.stream(side):
-        for _ in range(warmup):
-            fn()
-    torch.cuda.current_stream(device).wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        fn()
-    return graph.replay
-
-
-class Scene:
-    """The ant at random poses: ``faces`` 0 is the plain ant (detail 1, 1,856 faces), fewer than that its
-    detail-0 model (944), more adds extra sphere meshes (480 or 960 faces each) up to about ``faces``."""
-
-    _cache: ClassVar[dict] = {}
-
-    def __init__(self, faces: int, batch: int, res: int, device, dtype, seed: int = 0):
-        key = (faces, device, dtype)
-        if key not in Scene._cache:
-            robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=1, dtype=dtype, device=device)
-            if faces > robot.num_faces:
-                per_mesh_verts = 242 if faces <= 20_000 else 482  # 480 / 960 faces per sphere
-                per_mesh_faces = 2 * per_mesh_verts - 4
-                n = math.ceil((faces - robot.num_faces) / per_mesh_faces)
-                robot = robot.with_extra_meshes(n, per_mesh_verts, seed=seed)
-            elif 0 < faces < robot.num_faces:
-                robot = dr.RobotModel.from_mjcf(ASSETS / "ant.xml", detail=0, dtype=dtype, device=device)
-            Scene._cache[key] = robot
-        self.robot = robot = Scene._cache[key]
-        g = torch.Generator().manual_seed(seed)
-        q = torch.zeros(batch, robot.nq, dtype=torch.float64)
-        q[:, :2] = torch.randn(batch, 2, generator=g)
-        q[:, 2] = 0.75
-        q[:, 3] = 1.0
-        q[:, 7:] = torch.tensor([0, 1, 0, -1, 0, -1, 0, 1.0]) + 0.3 * torch.randn(batch, 8, generator=g)
-        self.qpos = q.to(device=device, dtype=dtype)
-        with torch.no_grad():
-            self.verts = robot.world_vertices(self.qpos)
-        self.res = res
-
-    def camera(self, qpos: torch.Tensor) -> dr.Camera:
-        # the ant task's camera: eye (0.5, -2, 1) -> (0, 0, 1) from the torso, fov 90
-        return dr.tracking_camera(qpos[:, :3], eye_offset=(0.5, -2.0, 1.0), target_offset=(0.0, 0.0, 1.0),
-                                  track="xyz", fov_deg=90.0, height=self.res, width=self.res)
+    return median_ms(fn, device, warmup=max(0, warmup - 1), repeats=repeats), first
 
 
 def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, compile: bool = False,
@@ -131,15 +65,13 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
     rec = dict(backend=backend, batch=batch, res=res, faces_target=faces, tile=tile, compile=compile,
                raster_model=args.raster_model, cull=not args.no_cull)
     if backend == "fused":
-        from diffrender.raster import fused
-
-        fused.TILE = fused_tile or DEFAULT_FUSED[0]
-        fused.FACE_BLOCK = fused_block or DEFAULT_FUSED[1]
-        fused.BWD_TILE = fused_bwd_tile or DEFAULT_FUSED[2]
-        fused.BWD_SUB_BLOCK = fused_sub or DEFAULT_FUSED[3]
-        fused.BWD_WARPS = fused_warps or DEFAULT_FUSED[4]
-        rec.update(tile=fused.TILE, face_block=fused.FACE_BLOCK, bwd_tile=fused.BWD_TILE,
-                   bwd_sub_block=fused.BWD_SUB_BLOCK, bwd_warps=fused.BWD_WARPS)
+        tuning.TILE = fused_tile or DEFAULT_FUSED[0]
+        tuning.FACE_BLOCK = fused_block or DEFAULT_FUSED[1]
+        tuning.BWD_TILE = fused_bwd_tile or DEFAULT_FUSED[2]
+        tuning.BWD_SUB_BLOCK = fused_sub or DEFAULT_FUSED[3]
+        tuning.BWD_WARPS = fused_warps or DEFAULT_FUSED[4]
+        rec.update(tile=tuning.TILE, face_block=tuning.FACE_BLOCK, bwd_tile=tuning.BWD_TILE,
+                   bwd_sub_block=tuning.BWD_SUB_BLOCK, bwd_warps=tuning.BWD_WARPS)
     scene = Scene(faces, batch, res, device, dtype)
     robot = scene.robot
     rec.update(faces=robot.num_faces, verts=robot.num_vertices)
@@ -211,18 +143,18 @@ def measure(args, *, backend: str, batch: int, res: int, faces: int, tile: int, 
         check_grads()
         # memory of one fwd+bwd
         if device.type == "cuda":
-            _sync(device)
+            sync(device)
             base = torch.cuda.memory_allocated(device)
             torch.cuda.reset_peak_memory_stats(device)
             fwdbwd()
-            _sync(device)
+            sync(device)
             rec["peak_alloc_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
             rec["peak_alloc_above_start_mb"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
             rec["peak_reserved_mb"] = torch.cuda.max_memory_reserved(device) / 2**20
             torch.cuda.reset_peak_memory_stats(device)
             with torch.no_grad():
                 fwd()
-            _sync(device)
+            sync(device)
             rec["fwd_peak_alloc_above_start_mb"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
         v = verts.detach().requires_grad_()
         with SavedTensorMeter(exclude=[robot.faces]) as meter:
@@ -398,10 +330,8 @@ def silhouette_share(args) -> list[dict]:
 
 
 def anchor_comparison(args) -> int:
-    """``--anchor``: :mod:`anchor`'s time part (it shares this module's scene and graph capture) with this
-    command's models, repeats, warm-up, compile choice and output."""
-    import anchor  # here, not at the top: anchor imports this module
-
+    """``--anchor``: :mod:`anchor`'s time part with this command's models, repeats, warm-up, compile choice and
+    output."""
     argv = ["--parts", "time", "--no-warp", "--out", str(args.out), "--models", *args.models]
     argv += ["--repeats", str(args.repeats)] if args.repeats is not None else []
     argv += ["--warmup", str(args.warmup)] if args.warmup is not None else []
@@ -457,7 +387,7 @@ def main(argv=None) -> int:
         return anchor_comparison(args)
     if args.silhouette_share:
         recs = silhouette_share(args)
-        args.out.write_text(json.dumps(recs, indent=2))
+        write_json(args.out, recs, indent=2)
         print("\nmodel    cull   sigma  silhouette share  image share  silhouette part of change  backend")
         for r in recs:
             print(f"{r['raster_model']:7}  {r['cull']!s:5}  {r['sigma']:5}  {r['silhouette_share']:16.3f}  "
@@ -477,7 +407,7 @@ def main(argv=None) -> int:
         rec = measure(args, **pt)
         records.append(rec)
         print(json.dumps(rec), flush=True)
-        args.out.write_text(json.dumps(dict(partial=True, records=records), indent=2))  # survives a kill
+        write_json(args.out, dict(partial=True, records=records), indent=2)  # survives a kill
     info = dict(torch=torch.__version__, python=platform.python_version(), device=args.device,
                 device_name=torch.cuda.get_device_name() if args.device == "cuda" else platform.processor(),
                 threads=torch.get_num_threads(), compile=args.compile, dtype="float64" if args.float64 else "float32",
@@ -501,7 +431,7 @@ def main(argv=None) -> int:
                      graphed="fwd_graph_ms" in target)
         info["target_point"][be] = point
         info["target_met"][be] = {k: point.get(k) is not None and point[k] <= v for k, v in TARGET.items()}
-    args.out.write_text(json.dumps(dict(info=info, records=records), indent=2))
+    write_json(args.out, dict(info=info, records=records), indent=2)
     print(f"\nwrote {args.out} ({len(records)} points, {info['wall_s']:.0f} s, {info['device_name']}, "
           f"torch {torch.__version__}, compile={args.compile})")
     for be, point in info["target_point"].items():

@@ -38,16 +38,12 @@ import time
 from pathlib import Path
 
 import torch
+from _common import sync, time_ms, write_json
 
 import tasks
 
 MODES = ("eager", "compiled", "graph")
 QUICK = [("ant", 64), ("humanoid", 64), ("ant", 4096)]
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 class Rollout:
@@ -98,7 +94,7 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
                 # compile (the first call) concurrently with the other processes, wait for all of them, then
                 # take turns: no measurement overlaps another process's GPU work
                 roll()
-                _sync(device)
+                sync(device)
         finally:
             if args.gpu_lock is not None:  # a failing setting still arrives, or the others would wait forever
                 _barrier(args.gpu_lock, args.parties)
@@ -124,12 +120,12 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
         else:
             for _ in range(max(1, args.warmup)):
                 fn()
-        _sync(device)
+        sync(device)
         # replay for a while before timing: the GPU idled through the compilation
         settle = time.perf_counter()
         while time.perf_counter() - settle < args.settle_s:
             fn()
-            _sync(device)
+            sync(device)
         row["warmup_s"] = round(time.perf_counter() - t0, 2)
         if mode != "eager":  # what compiling cost, graph by graph (cumulative over the process's rows)
             from gradlab.compiling import compiled_graphs
@@ -137,13 +133,7 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
             row["compiled_graphs"] = compiled_graphs()
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-        times = []
-        for _ in range(args.iters):
-            _sync(device)
-            t0 = time.perf_counter()
-            loss, grad = fn()
-            _sync(device)
-            times.append((time.perf_counter() - t0) * 1e3)
+        times, (loss, grad) = time_ms(fn, device, repeats=args.iters)
         row["ms"] = round(statistics.median(times), 3)
         row["ms_min"] = round(min(times), 3)
         row["ms_per_substep"] = round(row["ms"] / (args.horizon * roll.task.substeps), 4)
@@ -333,7 +323,7 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
             if args.out:
-                args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+                write_json(args.out, {"meta": meta, "rows": rows})
     print(f"\n# {meta['device']}, torch {meta['torch']}, {meta['date']}")
     print(table(rows))
 

@@ -1,16 +1,24 @@
-"""The benchmark helpers that record and compare the kernel configs inductor's autotuner kept."""
+"""The benchmark scripts' helpers (kernel configs, provenance, timing, results files) and their command lines on
+the CPU."""
 
 import importlib.util
 import json
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _benchmarks_importable(monkeypatch):
+    """The scripts import their shared module as a sibling, as ``python benchmarks/X.py`` lets them."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
 
 
 def _load(name: str):
@@ -148,37 +156,60 @@ def test_startup_keeps_each_compile_helpers_own_account_of_its_seconds(tmp_path,
 
 
 def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
-    provenance = _load("provenance")
+    common = _load("_common")
     monkeypatch.delenv("PIXELGRAD_COMMIT", raising=False)
-    head = provenance.commit()
+    head = common.commit()
     assert head == "unknown" or re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", head), head
     monkeypatch.setenv("PIXELGRAD_COMMIT", "abc1234")
-    assert provenance.commit() == "abc1234"
+    assert common.commit() == "abc1234"
+
+
+def test_timing_skips_the_warm_up_and_times_each_call():
+    """Every script times through one helper: ``warmup`` untimed calls, then one time [ms] per timed call, and the
+    last call's result. Call k sleeps 5 k ms, so a timed warm-up call would show as a time under its bound."""
+    common = _load("_common")
+    calls = []
+
+    def fn():
+        calls.append(None)
+        time.sleep(0.005 * len(calls))
+        return len(calls)
+
+    times, last = common.time_ms(fn, "cpu", warmup=2, repeats=3)
+    assert len(calls) == 5 and last == 5
+    assert len(times) == 3 and all(t >= bound for t, bound in zip(times, (15.0, 20.0, 25.0))), times
+    calls.clear()
+    assert common.median_ms(fn, "cpu", repeats=3) >= 10.0
+
+
+def test_results_files_are_replaced_whole(tmp_path):
+    """A results file is written beside and renamed over the old one: a reader never sees half a file, and no
+    temporary file is left."""
+    common = _load("_common")
+    out = tmp_path / "new" / "r.json"
+    common.write_json(out, {"rows": [1]})
+    common.write_json(out, {"rows": [1, 2]}, indent=2)
+    assert json.loads(out.read_text()) == {"rows": [1, 2]}
+    assert [p.name for p in out.parent.iterdir()] == ["r.json"]
 
 
 def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monkeypatch, tmp_path):
     """``render.py --anchor`` is anchor.py's comparison with nvdiffrast (one process): its models, repeats,
     warm-up, compiled-and-eager choice and output pass through."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        render = _load("render")
-        import anchor
-
-        seen = []
-        monkeypatch.setattr(anchor, "main", lambda argv: seen.append(argv) or 0)
-        out = tmp_path / "a.json"
-        assert render.main(["--anchor", "--models", "softmax", "--repeats", "5", "--compile", "--out", str(out)]) == 0
-        argv = seen[0]
-        assert argv[:3] == ["--parts", "time", "--no-warp"]
-        assert argv[argv.index("--out") + 1] == str(out)
-        assert argv[argv.index("--models") + 1:argv.index("--repeats")] == ["softmax"]
-        assert argv[argv.index("--repeats") + 1] == "5" and "--warmup" not in argv
-        assert argv[argv.index("--compile") + 1:] == ["off", "on"]
-        seen.clear()
-        render.main(["--anchor", "--out", str(out)])
-        assert "--compile" not in seen[0] and "--repeats" not in seen[0]
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    render = _load("render")
+    seen = []
+    monkeypatch.setattr(render.anchor, "main", lambda argv: seen.append(argv) or 0)
+    out = tmp_path / "a.json"
+    assert render.main(["--anchor", "--models", "softmax", "--repeats", "5", "--compile", "--out", str(out)]) == 0
+    argv = seen[0]
+    assert argv[:3] == ["--parts", "time", "--no-warp"]
+    assert argv[argv.index("--out") + 1] == str(out)
+    assert argv[argv.index("--models") + 1:argv.index("--repeats")] == ["softmax"]
+    assert argv[argv.index("--repeats") + 1] == "5" and "--warmup" not in argv
+    assert argv[argv.index("--compile") + 1:] == ["off", "on"]
+    seen.clear()
+    render.main(["--anchor", "--out", str(out)])
+    assert "--compile" not in seen[0] and "--repeats" not in seen[0]
 
 
 def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypatch):
