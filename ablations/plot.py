@@ -1,18 +1,26 @@
 """Training curves of run folders, per task and mode, mean +- std across seeds: ``ablate-plot RUN_DIR... --out DIR``.
 
-Runs are grouped by task and label from their config.json; each group is one line in one panel per task. The
-label is the mode, followed in brackets by the values of ``preset``, ``raster_model`` and ``renderer`` that
-differ between the given runs of that mode (``full (hard)`` beside ``full (alpha)``); colour = mode, line
-style = the variant within the mode. Curves are aligned on iteration or environment steps and linearly
-interpolated onto a common grid on the wall clock (seeds never finish iterations at the same second), over the
-range every run of the group covers (no tail averaged over fewer seeds than the legend says). The band is +- one
-sample standard deviation across runs (none for a single run). Quantities plotted on a log axis (gradient norms)
-are averaged in log space: the line is the geometric mean and the band multiplies/divides by the geometric
-standard deviation.
+Runs are grouped by task and label from their config.json; each group (an "arm") is one line in one panel per
+task. The label is the mode, followed in brackets by the values of ``preset``, ``raster_model`` and ``renderer``
+that differ between the given runs of that mode (``full (hard)`` beside ``full (alpha)``). Every arm has a style
+of its own, the same in every figure: a colour (its mode's, a darker or lighter shade for a further variant of
+the mode), a line style and a marker, so no two arms look alike and a line lying exactly under another still
+shows through the other's dashes and markers. Series with few points (probe iterations, every K-th) are marked
+at every point; denser ones at about a dozen points, shifted per arm. One legend per figure, right of the panels;
+it gives each arm's number of runs n (per panel, left to right, where the panels differ: ``n=2/1``).
 
-Every return curve has the task's zero-action and random-action return floors beside it as horizontal lines
-(``task-floors``' JSON: docs/floors.json of this checkout, or ``--floors FILE``); a task without an entry is
-drawn without them and named in one warning.
+Curves are aligned on iteration or environment steps and linearly interpolated onto a common grid on the wall
+clock (seeds never finish iterations at the same second), over the range every run of the group covers (no tail
+averaged over fewer seeds than the legend says). The band is +- one sample standard deviation across runs (none
+for a single run). Quantities plotted on a log axis (gradient norms, 1 - cosine) are averaged in log space: the
+line is the geometric mean and the band multiplies/divides by the geometric standard deviation. Linear axes
+print plain tick values (no offset such as ``1e-5+9.9999e-1``).
+
+Return figures draw the training return (mean of the last 100 episodes, lines) and the deterministic evaluation
+return (metrics ``eval_return_mean`` +- ``eval_return_std`` over its episodes; ``eval_return`` alone in older
+runs) of every run as star markers in the arm's colour, and the task's zero-action and random-action return
+floors as labelled horizontal lines (``task-floors``' JSON: docs/floors.json of this checkout, or ``--floors
+FILE``); a task without an entry is drawn without them and named in one warning.
 
 Files (PNG, written atomically; a figure without data is skipped and the reason returned):
     return_vs_env_steps.png  return_vs_wall_clock.png  return_vs_iter.png  grad_norm.png  cosine_hist.png
@@ -20,6 +28,9 @@ Files (PNG, written atomically; a figure without data is skipped and the reason 
     render_term_groups.png (the render term by the actor's parameter groups)
     image_sensitivity.png (the policy's sensitivity to each frame of its stack)
     timing.png (forward and backward ms per iteration)  memory.png (peak allocated MB; CPU: saved for backward)
+
+:func:`build_figures` returns the matplotlib Figures without writing them (to inspect or restyle them);
+:func:`make_plots` writes them.
 """
 
 from __future__ import annotations
@@ -32,23 +43,30 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import tyro
 
-__all__ = ["PlotConfig", "Run", "load_run", "find_runs", "group_runs", "run_labels", "aggregate", "make_plots",
-           "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS", "VARIANT_KEYS", "DEFAULT_FLOORS",
-           "RENDER_TERM_GROUPS", "plot_runs"]
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
+__all__ = ["PlotConfig", "Run", "load_run", "find_runs", "group_runs", "run_labels", "aggregate", "make_plots",
+           "build_figures", "FigureSet", "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS",
+           "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs"]
+
+_EVAL = ("Stars: the deterministic evaluation return of each run (bar: +- std over its evaluation episodes, "
+         "where recorded); dotted and dash-dotted lines: the zero- and random-action return floors.")
 #: File name -> caption of every figure ``make_plots`` can write.
 FIGURES = {
-    "return_vs_env_steps.png": "Return (mean of the last 100 episodes) against environment steps.",
-    "return_vs_wall_clock.png": "Return against wall-clock training time (interpolated across seeds).",
-    "return_vs_iter.png": "Return against training iterations.",
+    "return_vs_env_steps.png": "Training return (mean of the last 100 episodes) against environment steps. " + _EVAL,
+    "return_vs_wall_clock.png": "Training return against wall-clock training time (interpolated across seeds). "
+                                + _EVAL,
+    "return_vs_iter.png": "Training return against training iterations. " + _EVAL,
     "grad_norm.png": "Actor gradient norm before clipping (log scale; geometric mean x/÷ geometric std).",
-    "cosine_hist.png": "Cosine between the full and the decoupled gradient of the same rollout (probe "
-                       "iterations, all seeds pooled).",
-    "cosine_vs_iter.png": "Cosine(full, decoupled) over training.",
+    "cosine_hist.png": "1 - cosine between the full and the decoupled gradient of the same rollout (log scale: "
+                       "0 is the same direction, 1 orthogonal, 2 opposite; probe iterations, all seeds pooled).",
+    "cosine_vs_iter.png": "1 - cos(full, decoupled) over training (log scale; geometric mean x/÷ geometric std).",
     "probe_grad_norms.png": "Norms of the full and the decoupled actor gradient of the same rollout, and of the "
                             "render term (full minus decoupled: the path through the renderer), on probe "
                             "iterations (log scale).",
@@ -63,8 +81,20 @@ FIGURES = {
                   "iterations left out).",
 }
 MODE_COLORS = {"full": "tab:red", "decoupled": "tab:blue", "state": "tab:green", "blind": "tab:gray"}
-#: Line styles of the variants of one mode (in the order of their labels).
-_VARIANT_STYLES = ("-", "--", "-.", ":")
+#: Colours of modes MODE_COLORS does not name, in the order they appear.
+_OTHER_COLORS = ("tab:purple", "tab:brown", "tab:olive", "tab:cyan", "tab:pink", "tab:orange")
+#: Line styles of the arms, in group order: dash patterns (on, off, ... in line widths) told apart at a glance.
+_LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1.5)), (0, (6, 2, 1.5, 2)), (0, (2.5, 1.5)), (0, (8, 2, 1.5, 2, 1.5, 2)),
+               (0, (11, 3)), (0, (3, 1.5, 1, 1.5, 1, 1.5)), (0, (1.5, 3.5)), (0, (8, 1.5, 3, 1.5)))
+#: Markers of the arms (hollow, so a marker under another shows); the evaluation star is none of them.
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "h")
+_EVAL_MARKER = "*"
+#: Series with at most this many points are marked at every point (probe iterations); denser ones about every
+#: ``len / _MARKS``-th point.
+_MARK_ALL = 30
+_MARKS = 12
+#: 1 - cos below float64's resolution near 1 (rounding can even make it negative) is drawn at this value.
+_COS_FLOOR = float(np.finfo(np.float64).eps)
 _TASK_ORDER = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid")
 #: config.json settings that tell runs of one mode apart in labels, when the given runs differ in them.
 VARIANT_KEYS = ("preset", "raster_model", "renderer")
@@ -72,7 +102,7 @@ VARIANT_KEYS = ("preset", "raster_model", "renderer")
 RENDER_TERM_GROUPS = ("encoder", "mlp", "log_std")
 #: The return floors of this checkout (written by ``task-floors``).
 DEFAULT_FLOORS = Path(__file__).resolve().parents[1] / "docs" / "floors.json"
-#: Floor policy -> (line style, legend name).
+#: Floor policy -> (line style, name on the line).
 _FLOOR_LINES = {"zero": (":", "zero action"), "random": ("-.", "random action")}
 
 
@@ -123,6 +153,7 @@ class Run:
             value = self.preset.get("name")
         return value
 
+
     def series(self, x: str, y: str, *, skip_probed: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(x, y) of the iterations where both are finite numbers, sorted by x; ``skip_probed`` leaves out
         probe iterations (they differentiate twice, so their times and memory are not the mode's)."""
@@ -130,6 +161,19 @@ class Run:
                and not (skip_probed and r.get("probed"))]
         pts.sort()
         return np.array([p[0] for p in pts], float), np.array([p[1] for p in pts], float)
+
+    def evaluations(self, x: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, mean, std) of the deterministic evaluations, sorted by x: ``eval_return_mean`` and
+        ``eval_return_std`` (over the evaluation's episodes), or ``eval_return`` with std NaN where a line has
+        only that (older runs)."""
+        pts = []
+        for r in self.metrics:
+            mean = r.get("eval_return_mean", r.get("eval_return"))
+            if _num(r.get(x)) and _num(mean):
+                std = r.get("eval_return_std")
+                pts.append((r[x], mean, std if _num(std) and "eval_return_mean" in r else math.nan))
+        pts.sort()
+        return tuple(np.array([p[i] for p in pts], float) for i in range(3))  # type: ignore[return-value]
 
 
 def _num(v) -> bool:
@@ -227,15 +271,46 @@ def group_runs(runs: list[Run], *, label: Callable[[Run], str] | None = None) ->
     return {k: sorted(groups[k], key=lambda r: (str(r.seed), str(r.path))) for k in sorted(groups, key=order)}
 
 
-def _styles(groups: dict[tuple[str, str], list[Run]]) -> dict[str, tuple[str | None, str]]:
-    """label -> (colour of its mode, line style of its variant within the mode), the same in every panel."""
+class ArmStyle(NamedTuple):
+    """How one arm is drawn in every figure: an RGB colour, a matplotlib line style and a marker."""
+
+    color: tuple[float, float, float]
+    linestyle: str | tuple
+    marker: str
+
+
+def _shade(color, variant: int) -> tuple[float, float, float]:
+    """The mode's colour for its first variant; then alternately darker and lighter, further each time."""
+    from matplotlib.colors import to_rgb
+
+    rgb = np.array(to_rgb(color))
+    if variant == 0:
+        return tuple(float(c) for c in rgb)
+    step = (variant + 1) // 2
+    target, t = (0.0, min(0.3 * step, 0.7)) if variant % 2 else (1.0, min(0.4 * step, 0.75))
+    return tuple(float(c) for c in rgb + (target - rgb) * t)
+
+
+def arm_styles(groups: dict[tuple[str, str], list[Run]]) -> dict[str, ArmStyle]:
+    """label -> :class:`ArmStyle`, the same in every panel and figure, no two alike.
+
+    Colour: the mode's (MODE_COLORS; others get a colour of their own), shaded per variant of the mode. Line
+    style and marker: one per arm in group order; past ten arms the pairs still differ.
+    """
+    labels: list[str] = []
     by_mode: dict[str, list[str]] = {}
     for (_, lab), rs in groups.items():
-        labs = by_mode.setdefault(rs[0].mode, [])
-        if lab not in labs:
-            labs.append(lab)
-    return {lab: (MODE_COLORS.get(mode), _VARIANT_STYLES[i % len(_VARIANT_STYLES)])
-            for mode, labs in by_mode.items() for i, lab in enumerate(labs)}
+        if lab not in labels:
+            labels.append(lab)
+            by_mode.setdefault(rs[0].mode, []).append(lab)
+    others = iter(_OTHER_COLORS * (1 + len(by_mode) // len(_OTHER_COLORS)))
+    colors = {}
+    for mode, labs in by_mode.items():
+        base = MODE_COLORS.get(mode) or next(others)
+        colors.update({lab: _shade(base, i) for i, lab in enumerate(labs)})
+    n = len(_LINESTYLES)
+    return {lab: ArmStyle(colors[lab], _LINESTYLES[i % n], _MARKERS[(i + i // n) % len(_MARKERS)])
+            for i, lab in enumerate(labels)}
 
 
 # ---------------------------------------------------------------------------------------------- floors
@@ -322,6 +397,22 @@ class PlotResult:
     warnings: list[str] = field(default_factory=list)
 
 
+@dataclass
+class FigureSet:
+    """The figures of :func:`build_figures` (file name -> matplotlib Figure, in drawing order), the figures
+    without data (file name -> reason) and the warnings (tasks without floors). ``close()`` frees the figures."""
+
+    figures: dict[str, Figure] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def close(self) -> None:
+        import matplotlib.pyplot as plt
+
+        for fig in self.figures.values():
+            plt.close(fig)
+
+
 def _save(fig, path: Path) -> None:
     import matplotlib.pyplot as plt
 
@@ -339,193 +430,343 @@ def _frame_keys(runs: list[Run]) -> list[str]:
     return sorted(keys, key=lambda k: int(k.rsplit("f", 1)[1]) if k.rsplit("f", 1)[1].isdigit() else 99)
 
 
-def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None = None,
-               label: Callable[[Run], str] | None = None) -> PlotResult:
-    """Write the FIGURES that the runs have data for into ``out``; see the module docstring.
+def _markevery(points: int, arm: int, arms: int):
+    """Every point of a sparse series; about ``_MARKS`` of a dense one, shifted per arm so that the markers of
+    lines lying on each other fall on different points."""
+    if points <= _MARK_ALL:
+        return None
+    step = math.ceil(points / _MARKS)
+    return (arm * step // max(arms, 1)) % step, step
 
-    floors: the return floors (None: :func:`load_floors`'s default file); label: a run's group label (None:
-    :func:`run_labels`). A task without floors is named once in ``PlotResult.warnings`` and a UserWarning.
-    """
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
+def _one_line_per_axis_value(ax) -> None:
+    """Plain tick labels on linear axes: no offset such as ``1e-5+9.9999e-1`` above the ticks."""
+    from matplotlib.ticker import ScalarFormatter
 
-    if not runs:
-        raise ValueError("no runs to plot")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    floors = load_floors() if floors is None else floors
-    groups = group_runs(runs, label=label)
-    styles = _styles(groups)
-    tasks = list(dict.fromkeys(t for t, _ in groups))
-    result = PlotResult()
-    for task in tasks:
-        if floors.of(task) is None:
-            msg = floors.missing_message(task)
-            result.warnings.append(msg)
-            warnings.warn(msg, UserWarning, stacklevel=2)
+    for axis in (ax.xaxis, ax.yaxis):
+        fmt = axis.get_major_formatter()
+        if isinstance(fmt, ScalarFormatter):
+            fmt.set_useOffset(False)
 
-    def legend_label(lab: str, rs: list[Run]) -> str:
-        return f"{lab} (n={len(rs)})"
 
-    def panels(nrows: int = 1):
-        fig, axes = plt.subplots(nrows, len(tasks), figsize=(4.6 * len(tasks), 3.4 * nrows), squeeze=False,
-                                 layout="constrained")
-        return fig, axes
+#: Colours of the quantities of a multi-quantity figure (probe norms, render-term groups, frames).
+_QUANTITY_COLORS = ("tab:purple", "tab:orange", "tab:cyan", "tab:olive", "tab:brown", "tab:pink")
 
-    def floor_lines(ax, task: str) -> None:
-        for policy, stats in (floors.of(task) or {}).items():
-            style, name = _FLOOR_LINES[policy]
-            ax.axhline(stats["mean"], color="0.35", ls=style, lw=1.1, label=f"{name} floor ({stats['mean']:.4g})")
 
-    def band(ax, gx, c, lo, hi, rs, lab, *, color=None, ls=None, name=None) -> None:
-        col, style = styles[lab]
-        ax.plot(gx, c, color=color or col, ls=ls or style, label=name or legend_label(lab, rs), lw=1.4)
+class _Drawer:
+    """Draws the FIGURES of some runs into a FigureSet; one method per kind of figure."""
+
+    def __init__(self, runs: list[Run], floors: Floors, label: Callable[[Run], str] | None):
+        self.runs = runs
+        self.floors = floors
+        self.groups = group_runs(runs, label=label)
+        self.styles = arm_styles(self.groups)
+        self.arm_index = {lab: i for i, lab in enumerate(self.styles)}
+        self.tasks = list(dict.fromkeys(t for t, _ in self.groups))
+        self.out = FigureSet()
+
+    # ------------------------------------------------------------------------------------------ pieces
+    def panels(self, nrows: int = 1):
+        import matplotlib.pyplot as plt
+
+        return plt.subplots(nrows, len(self.tasks), figsize=(4.6 * len(self.tasks), 3.4 * nrows), squeeze=False,
+                            layout="constrained")
+
+    def arms_of(self, task: str, modes: tuple[str, ...] | None = None):
+        """(label, runs) of the task's arms, optionally only those of ``modes``."""
+        for (t, lab), rs in self.groups.items():
+            if t == task and (modes is None or rs[0].mode in modes):
+                yield lab, rs
+
+    def band(self, ax, agg, rs: list[Run], lab: str, *, color=None, marker: str | None = None,
+             lw: float = 1.5, ms: float = 4.5) -> None:
+        """The aggregated curve of an arm in its style (``color``/``marker`` replace the arm's) and, for more
+        than one run, its +-1 std band."""
+        gx, centre, low, high = agg
+        style = self.styles[lab]
+        color = style.color if color is None else color
+        ax.plot(gx, centre, color=color, ls=style.linestyle, lw=lw, marker=marker or style.marker, ms=ms,
+                mfc="none", mew=1.1, markevery=_markevery(len(gx), self.arm_index[lab], len(self.styles)),
+                label=lab)
         if len(rs) > 1:
-            ax.fill_between(gx, lo, hi, color=color or col, alpha=0.2, lw=0)
+            ax.fill_between(gx, low, high, color=color, alpha=0.15, lw=0)
 
-    def finish(ax, task: str, xlabel: str, *, log: bool = False, title: str | None = None) -> None:
-        ax.set_title(title or task)
+    def arm_handle(self, lab: str, *, color=None, marker: bool = True):
+        from matplotlib.lines import Line2D
+
+        style = self.styles[lab]
+        return Line2D([], [], color=style.color if color is None else color, ls=style.linestyle, lw=1.5,
+                      marker=style.marker if marker else None, ms=4.5, mfc="none", mew=1.1)
+
+    def arm_label(self, lab: str, runs: dict[str, int], probes: dict[str, int] | None = None) -> str:
+        """``decoupled (n=2)`` from {task: runs drawn}; where the panels differ, their numbers left to right:
+        ``decoupled (n=2/1)``; ``probes``: {task: probe iterations pooled}, added the same way."""
+
+        def per_panel(values: dict[str, int]) -> str:
+            nums = [values[t] for t in self.tasks if t in values]
+            return str(nums[0]) if len(set(nums)) == 1 else "/".join(map(str, nums))
+
+        return f"{lab} (n={per_panel(runs)}" + (f", {per_panel(probes)} probes)" if probes else ")")
+
+    @staticmethod
+    def legend(fig, handles: list, labels: list[str], *, title: str | None = None) -> None:
+        """One legend for the figure, right of its panels; the figure is widened by the legend's width, so the
+        panels keep theirs."""
+        leg = fig.legend(handles, labels, loc="outside right upper", fontsize=8, title=title, title_fontsize=8,
+                         alignment="left", handlelength=3.2)
+        width = leg.get_window_extent(fig.canvas.get_renderer()).width / fig.dpi
+        fig.set_figwidth(fig.get_figwidth() + width + 0.15)
+
+    def floor_lines(self, ax, task: str) -> None:
+        """The task's floors as horizontal lines, named in the margin right of the panel, where no data lies
+        (the higher one's name above its line, the lower one's below)."""
+        floors = self.floors.of(task) or {}
+        top = max((s["mean"] for s in floors.values()), default=0.0)
+        for policy, stats in floors.items():
+            style, name = _FLOOR_LINES[policy]
+            y = stats["mean"]
+            ax.axhline(y, color="0.15", ls=style, lw=1.0, zorder=1.5, label=f"{name} floor ({y:.4g})",
+                       gid=f"floor:{policy}")
+            above = y == top
+            ax.annotate(f"{name}\nfloor {y:.4g}", xy=(1.0, y), xycoords=("axes fraction", "data"),
+                        xytext=(3, 1 if above else -1), textcoords="offset points", ha="left",
+                        va="bottom" if above else "top", fontsize=7, color="0.15", annotation_clip=False)
+
+    def evaluations(self, ax, task: str, x: str) -> dict[str, int]:
+        """Every run's deterministic evaluations as stars in its arm's colour (+- std over the evaluation's
+        episodes, where recorded); returns {arm: number of runs drawn}."""
+        drawn: dict[str, int] = {}
+        for lab, rs in self.arms_of(task):
+            color = self.styles[lab].color
+            for r in rs:
+                ex, ey, es = r.evaluations(x)
+                if not len(ex):
+                    continue
+                yerr = np.nan_to_num(es) if np.isfinite(es).any() else None
+                bars = ax.errorbar(ex, ey, yerr=yerr, ls="none", marker=_EVAL_MARKER, ms=11, color=color, mec="k",
+                                   mew=0.6, elinewidth=1.2, capsize=3, zorder=3, label=f"_evaluation {lab}")
+                bars.lines[0].set_gid("evaluation")
+                drawn[lab] = drawn.get(lab, 0) + 1
+        return drawn
+
+    def finish(self, ax, title: str, xlabel: str, *, log: bool = False) -> None:
+        ax.set_title(title)
         ax.set_xlabel(xlabel)
         if log:
             ax.set_yscale("log")
         ax.grid(True, alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
+        _one_line_per_axis_value(ax)
 
-    def curve_figure(name: str, x: str, y: str, *, xlabel: str, ylabel: str, log: bool = False,
-                     modes: tuple[str, ...] | None = None, skip_probed: bool = False,
-                     with_floors: bool = False) -> None:
-        fig, axes = panels()
-        drawn = False
-        for col, task in enumerate(tasks):
-            ax = axes[0][col]
-            ax.set_title(task)
-            for (t, lab), rs in groups.items():
-                if t != task or (modes is not None and rs[0].mode not in modes):
-                    continue
-                agg = aggregate([r.series(x, y, skip_probed=skip_probed) for r in rs], log=log)
-                if agg is None:
-                    continue
-                band(ax, *agg, rs, lab)
-                drawn = True
-            if with_floors:
-                floor_lines(ax, task)
-            finish(ax, task, xlabel, log=log)
-        axes[0][0].set_ylabel(ylabel)
-        if not drawn:
+    def keep(self, name: str, fig, drawn: bool, why: str) -> None:
+        if drawn:
+            self.out.figures[name] = fig
+        else:
+            import matplotlib.pyplot as plt
+
             plt.close(fig)
-            result.skipped[name] = f"no run has both {x} and {y}"
-            return
-        _save(fig, out / name)
-        result.files[name] = out / name
+            self.out.skipped[name] = why
 
-    def multi_figure(name: str, keys: dict[str, str], *, ylabel: str, why: str) -> None:
-        """One panel per task; one line per (group, key): colour = key, line style = the group's."""
-        present = [k for k in keys if any(_num(m.get(k)) for r in runs for m in r.metrics)]
-        if not present:
-            result.skipped[name] = why
-            return
-        colors = dict(zip(present, ("tab:purple", "tab:orange", "tab:cyan", "tab:olive", "tab:brown", "tab:pink")))
-        fig, axes = panels()
-        for col, task in enumerate(tasks):
+    # ------------------------------------------------------------------------------------------ figures
+    def curves(self, name: str, x: str, y: str, *, xlabel: str, ylabel: str, log: bool = False,
+               modes: tuple[str, ...] | None = None, skip_probed: bool = False, returns: bool = False,
+               transform: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        """One line per arm and panel per task; ``returns``: with every run's evaluations and the floors."""
+        from matplotlib.lines import Line2D
+
+        fig, axes = self.panels()
+        drawn: dict[str, dict[str, int]] = {}
+        evaluated = False
+        for col, task in enumerate(self.tasks):
             ax = axes[0][col]
-            for (t, lab), rs in groups.items():
-                if t != task:
-                    continue
-                for k in present:
+            for lab, rs in self.arms_of(task, modes):
+                series = [r.series(x, y, skip_probed=skip_probed) for r in rs]
+                agg = aggregate([(sx, transform(sy)) for sx, sy in series] if transform else series, log=log)
+                if agg is not None:
+                    self.band(ax, agg, rs, lab)
+                    drawn.setdefault(lab, {})[task] = len(rs)
+            if returns:
+                for lab, n in self.evaluations(ax, task, x).items():
+                    drawn.setdefault(lab, {}).setdefault(task, n)
+                    evaluated = True
+                self.floor_lines(ax, task)
+            self.finish(ax, task, xlabel, log=log)
+        axes[0][0].set_ylabel(ylabel)
+        labs = [lab for lab in self.styles if lab in drawn]
+        handles = [self.arm_handle(lab) for lab in labs]
+        labels = [self.arm_label(lab, drawn[lab]) for lab in labs]
+        if evaluated:
+            handles += [Line2D([], [], color="0.35", lw=1.5),
+                        Line2D([], [], ls="none", marker=_EVAL_MARKER, ms=11, color="0.6", mec="k", mew=0.6)]
+            labels += ["line: training return (last 100 episodes)", "star: deterministic evaluation (each run)"]
+        if drawn:
+            self.legend(fig, handles, labels)
+        self.keep(name, fig, bool(drawn), f"no run has both {x} and {y}")
+
+    def quantities(self, name: str, keys: dict[str, str], *, ylabel: str, why: str) -> None:
+        """One panel per task, one line per (arm, metrics key): colour and marker = the key, line style = the
+        arm's; the first key's line and markers are the widest, so a later one lying on it leaves it visible at
+        its edges."""
+        from matplotlib.lines import Line2D
+
+        present = [k for k in keys if any(_num(m.get(k)) for r in self.runs for m in r.metrics)]
+        if not present:
+            self.out.skipped[name] = why
+            return
+        colors = dict(zip(present, _QUANTITY_COLORS * len(present)))
+        markers = dict(zip(present, _MARKERS * len(present)))
+        fig, axes = self.panels()
+        drawn: dict[str, dict[str, int]] = {}
+        for col, task in enumerate(self.tasks):
+            ax = axes[0][col]
+            for lab, rs in self.arms_of(task):
+                for i, k in enumerate(present):
                     agg = aggregate([r.series("iter", k) for r in rs], log=True)
                     if agg is not None:
-                        band(ax, *agg, rs, lab, color=colors[k], name=f"{keys[k]}: {legend_label(lab, rs)}")
-            finish(ax, task, "iteration", log=True)
+                        self.band(ax, agg, rs, lab, color=colors[k], marker=markers[k], lw=max(3.2 - i, 1.2),
+                                  ms=max(7.0 - 1.5 * i, 4.5))
+                        drawn.setdefault(lab, {})[task] = len(rs)
+            self.finish(ax, task, "iteration", log=True)
         axes[0][0].set_ylabel(ylabel)
-        _save(fig, out / name)
-        result.files[name] = out / name
+        if drawn:
+            handles = [Line2D([], [], color=colors[k], lw=1.5, marker=markers[k], ms=4.5, mfc="none", mew=1.1)
+                       for k in present]
+            handles += [self.arm_handle(lab, color="0.2", marker=False) for lab in self.styles if lab in drawn]
+            labels = [keys[k] for k in present]
+            labels += [self.arm_label(lab, drawn[lab]) for lab in self.styles if lab in drawn]
+            self.legend(fig, handles, labels, title="colour and marker: quantity\nline style: runs")
+        self.keep(name, fig, bool(drawn), why)
 
-    returns = "return (last 100 episodes)"
-    curve_figure("return_vs_env_steps.png", "env_steps", "return_mean", xlabel="environment steps", ylabel=returns,
-                 with_floors=True)
-    curve_figure("return_vs_wall_clock.png", "wall_s", "return_mean", xlabel="wall clock [s]", ylabel=returns,
-                 with_floors=True)
-    curve_figure("return_vs_iter.png", "iter", "return_mean", xlabel="iteration", ylabel=returns, with_floors=True)
-    curve_figure("grad_norm.png", "iter", "grad_norm", xlabel="iteration", ylabel="actor gradient norm (pre-clip)",
-                 log=True)
-    curve_figure("cosine_vs_iter.png", "iter", "cos_full_decoupled", xlabel="iteration",
-                 ylabel="cos(full, decoupled)", modes=("full", "decoupled"))
-    multi_figure("probe_grad_norms.png", {"grad_norm_full": "full", "grad_norm_decoupled": "decoupled",
-                                          "grad_norm_render_term": "render term"},
-                 ylabel="gradient norm (same rollout)", why="no run has probe iterations (grad_norm_full)")
-    multi_figure("render_term_groups.png", {f"grad_norm_render_term_{g}": g for g in RENDER_TERM_GROUPS},
-                 ylabel="render-term norm", why="no run has the render term by parameter group "
-                                               "(grad_norm_render_term_encoder/_mlp/_log_std)")
-    frame_keys = _frame_keys(runs)
-    n = len(frame_keys)
-    multi_figure("image_sensitivity.png",
-                 {k: f"frame {k.rsplit('f', 1)[1]}" + (" (oldest)" if i == 0 and n > 1 else
-                                                       " (newest)" if i == n - 1 and n > 1 else "")
-                  for i, k in enumerate(frame_keys)},
-                 ylabel="|d mean action / d frame|", why="no run has image_sensitivity_f<i>")
-
-    # Cosine histogram: every probe of every seed pooled (the distribution, not a curve).
-    fig, axes = panels()
-    drawn = False
-    bins = np.linspace(-1, 1, 41)
-    for col, task in enumerate(tasks):
-        ax = axes[0][col]
-        for (t, lab), rs in groups.items():
-            vals = [v for r in rs for v in r.series("iter", "cos_full_decoupled")[1]] if t == task else []
-            if not vals:
-                continue
-            # Outlines, not filled bars: the modes' histograms overlap.
-            color, style = styles[lab]
-            ax.hist(np.clip(vals, -1, 1), bins=bins, color=color, ls=style, histtype="step", lw=1.6,
-                    label=f"{lab} (n={len(rs)}, {len(vals)} probes)")
-            drawn = True
-        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-        finish(ax, task, "cos(full, decoupled)")
-    axes[0][0].set_ylabel("probe iterations")
-    if drawn:
-        _save(fig, out / "cosine_hist.png")
-        result.files["cosine_hist.png"] = out / "cosine_hist.png"
-    else:
-        plt.close(fig)
-        result.skipped["cosine_hist.png"] = "no run has probe iterations (cos_full_decoupled)"
-
-    # Timing: forward and backward per iteration, two rows.
-    fig, axes = panels(2)
-    drawn = False
-    for row, (key, name) in enumerate((("fwd_ms", "forward"), ("bwd_ms", "backward"))):
-        for col, task in enumerate(tasks):
-            ax = axes[row][col]
-            spans: list[float] = []
-            for (t, lab), rs in groups.items():
-                if t != task:
+    def cosine_hist(self) -> None:
+        """1 - cos of every probe of every seed pooled (the distribution, not a curve), two bins per decade."""
+        fig, axes = self.panels()
+        values = {(t, lab): np.clip(1.0 - np.concatenate([r.series("iter", "cos_full_decoupled")[1] for r in rs]),
+                                    _COS_FLOOR, None) for (t, lab), rs in self.groups.items()}
+        values = {k: v for k, v in values.items() if len(v)}
+        drawn: dict[str, dict[str, int]] = {}
+        probes: dict[str, dict[str, int]] = {}
+        if values:
+            lo = math.floor(math.log10(min(float(v.min()) for v in values.values())))
+            hi = math.log10(max(2.0, *(float(v.max()) for v in values.values())))
+            bins = np.logspace(lo, hi, max(2 * math.ceil(hi - lo), 8) + 1)  # two bins per decade
+        for col, task in enumerate(self.tasks):
+            ax = axes[0][col]
+            for lab, rs in self.arms_of(task):
+                if (task, lab) not in values:
                     continue
-                agg = aggregate([r.series("iter", key, skip_probed=True) for r in rs], log=True)
-                if agg is None:
-                    continue
-                spans += [float(agg[1].min()), float(agg[1].max())]
-                band(ax, *agg, rs, lab)
-                drawn = True
-            # warm-up and full vs decoupled often differ by decades; else linear
-            log = bool(spans) and min(spans) > 0 and max(spans) >= 10 * min(spans)
-            finish(ax, task, "iteration", log=log, title=f"{task}: {name}")
-            ax.grid(True, which="both", alpha=0.3)
-        axes[row][0].set_ylabel(f"{name} [ms]")
-    if drawn:
-        _save(fig, out / "timing.png")
-        result.files["timing.png"] = out / "timing.png"
-    else:
-        plt.close(fig)
-        result.skipped["timing.png"] = "no run has fwd_ms/bwd_ms"
+                style = self.styles[lab]
+                # Outlines, not filled bars: the arms' histograms overlap.
+                ax.hist(values[task, lab], bins=bins, color=style.color, ls=style.linestyle, histtype="step",
+                        lw=1.6, label=lab)
+                drawn.setdefault(lab, {})[task] = len(rs)
+                probes.setdefault(lab, {})[task] = len(values[task, lab])
+            ax.set_xscale("log")
+            from matplotlib.ticker import MaxNLocator
 
-    # Memory: CUDA peak allocated where any run has it, else what autograd saved (the CPU-visible quantity).
-    has_alloc = any(_num(m.get("peak_alloc_mb")) for r in runs for m in r.metrics)
-    key, ylabel = ("peak_alloc_mb", "peak allocated [MB] (CUDA)") if has_alloc else \
-        ("saved_mb", "saved for backward [MB]")
-    curve_figure("memory.png", "iter", key, xlabel="iteration", ylabel=ylabel, skip_probed=True)
+            ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+            self.finish(ax, task, "1 - cos(full, decoupled)  (0: same direction, 1: orthogonal)")
+        axes[0][0].set_ylabel("probe iterations")
+        if drawn:
+            labs = [lab for lab in self.styles if lab in drawn]
+            self.legend(fig, [self.arm_handle(lab, marker=False) for lab in labs],
+                        [self.arm_label(lab, drawn[lab], probes[lab]) for lab in labs])
+        self.keep("cosine_hist.png", fig, bool(drawn), "no run has probe iterations (cos_full_decoupled)")
+
+    def timing(self) -> None:
+        """Forward and backward time per iteration, two rows; a log axis where a panel spans a decade."""
+        fig, axes = self.panels(2)
+        drawn: dict[str, dict[str, int]] = {}
+        for row, (key, name) in enumerate((("fwd_ms", "forward"), ("bwd_ms", "backward"))):
+            for col, task in enumerate(self.tasks):
+                ax = axes[row][col]
+                spans: list[float] = []
+                for lab, rs in self.arms_of(task):
+                    agg = aggregate([r.series("iter", key, skip_probed=True) for r in rs], log=True)
+                    if agg is None:
+                        continue
+                    spans += [float(agg[1].min()), float(agg[1].max())]
+                    self.band(ax, agg, rs, lab)
+                    drawn.setdefault(lab, {})[task] = len(rs)
+                # warm-up and full vs decoupled often differ by decades; else linear
+                log = bool(spans) and min(spans) > 0 and max(spans) >= 10 * min(spans)
+                self.finish(ax, f"{task}: {name}", "iteration", log=log)
+                ax.grid(True, which="both", alpha=0.3)
+            axes[row][0].set_ylabel(f"{name} [ms]")
+        if drawn:
+            labs = [lab for lab in self.styles if lab in drawn]
+            self.legend(fig, [self.arm_handle(lab) for lab in labs], [self.arm_label(lab, drawn[lab]) for lab in labs])
+        self.keep("timing.png", fig, bool(drawn), "no run has fwd_ms/bwd_ms")
+
+    def all(self) -> FigureSet:
+        returns = "return"
+        for name, x, xlabel in (("return_vs_env_steps.png", "env_steps", "environment steps"),
+                                ("return_vs_wall_clock.png", "wall_s", "wall clock [s]"),
+                                ("return_vs_iter.png", "iter", "iteration")):
+            self.curves(name, x, "return_mean", xlabel=xlabel, ylabel=returns, returns=True)
+        self.curves("grad_norm.png", "iter", "grad_norm", xlabel="iteration", ylabel="actor gradient norm (pre-clip)",
+                    log=True)
+        self.curves("cosine_vs_iter.png", "iter", "cos_full_decoupled", xlabel="iteration",
+                    ylabel="1 - cos(full, decoupled)\n(0: same direction, 1: orthogonal)", modes=("full", "decoupled"),
+                    log=True, transform=lambda cos: np.clip(1.0 - cos, _COS_FLOOR, None))
+        self.quantities("probe_grad_norms.png", {"grad_norm_full": "full gradient",
+                                                 "grad_norm_decoupled": "decoupled gradient",
+                                                 "grad_norm_render_term": "render term"},
+                        ylabel="gradient norm (same rollout)", why="no run has probe iterations (grad_norm_full)")
+        self.quantities("render_term_groups.png", {f"grad_norm_render_term_{g}": g for g in RENDER_TERM_GROUPS},
+                        ylabel="render-term norm", why="no run has the render term by parameter group "
+                                                       "(grad_norm_render_term_encoder/_mlp/_log_std)")
+        frame_keys = _frame_keys(self.runs)
+        n = len(frame_keys)
+        self.quantities("image_sensitivity.png",
+                        {k: f"frame {k.rsplit('f', 1)[1]}" + (" (oldest)" if i == 0 and n > 1 else
+                                                              " (newest)" if i == n - 1 and n > 1 else "")
+                         for i, k in enumerate(frame_keys)},
+                        ylabel="|d mean action / d frame|", why="no run has image_sensitivity_f<i>")
+        self.cosine_hist()
+        self.timing()
+        # Memory: CUDA peak allocated where any run has it, else what autograd saved (the CPU-visible quantity).
+        has_alloc = any(_num(m.get("peak_alloc_mb")) for r in self.runs for m in r.metrics)
+        key, ylabel = ("peak_alloc_mb", "peak allocated [MB] (CUDA)") if has_alloc else \
+            ("saved_mb", "saved for backward [MB]")
+        self.curves("memory.png", "iter", key, xlabel="iteration", ylabel=ylabel, skip_probed=True)
+        return self.out
+
+
+def build_figures(runs: list[Run], *, floors: Floors | None = None,
+                  label: Callable[[Run], str] | None = None) -> FigureSet:
+    """The FIGURES that the runs have data for, as matplotlib Figures (not written; close them with
+    ``FigureSet.close``); see the module docstring.
+
+    floors: the return floors (None: :func:`load_floors`'s default file); label: a run's group label (None:
+    :func:`run_labels`). A task without floors is named once in ``FigureSet.warnings`` and a UserWarning.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    if not runs:
+        raise ValueError("no runs to plot")
+    floors = load_floors() if floors is None else floors
+    drawer = _Drawer(runs, floors, label)
+    for task in drawer.tasks:
+        if floors.of(task) is None:
+            msg = floors.missing_message(task)
+            drawer.out.warnings.append(msg)
+            warnings.warn(msg, UserWarning, stacklevel=2)
+    return drawer.all()
+
+
+def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None = None,
+               label: Callable[[Run], str] | None = None) -> PlotResult:
+    """Write the FIGURES that the runs have data for into ``out`` (:func:`build_figures`' arguments)."""
+    figures = build_figures(runs, floors=floors, label=label)
+    out = Path(out)
+    result = PlotResult(skipped=figures.skipped, warnings=figures.warnings)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for name, fig in figures.figures.items():
+            _save(fig, out / name)
+            result.files[name] = out / name
+    finally:
+        figures.close()
     return result
 
 

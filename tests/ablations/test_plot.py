@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
+from matplotlib.colors import to_rgb
 
 from ablations import plot
-from ablations.plot import FIGURES, aggregate, find_runs, group_runs, load_floors, load_run, make_plots
+from ablations.plot import FIGURES, aggregate, build_figures, find_runs, group_runs, load_floors, load_run, make_plots
 from tests.ablations.conftest import write_run
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -139,9 +141,13 @@ def test_blind_has_a_colour_and_variants_get_labels(tmp_path):
     assert list(groups) == [("hopper", "full (dva, alpha)"), ("hopper", "full (shac-diffrender, hard)"),
                             ("hopper", "decoupled"), ("hopper", "blind")]
     assert [r.path.name for r in groups[("hopper", "full (shac-diffrender, hard)")]] == ["hard0", "hard1"]
-    styles = plot._styles(groups)
-    assert styles["full (dva, alpha)"][0] == styles["full (shac-diffrender, hard)"][0] == plot.MODE_COLORS["full"]
-    assert styles["full (dva, alpha)"][1] != styles["full (shac-diffrender, hard)"][1]
+    styles = plot.arm_styles(groups)
+    full_a, full_h = styles["full (dva, alpha)"], styles["full (shac-diffrender, hard)"]
+    # Variants of a mode share its hue (the first has the mode's colour itself) but no two arms look alike.
+    assert full_a.color == to_rgb(plot.MODE_COLORS["full"]) and full_h.color != full_a.color
+    assert full_h.color[0] == max(full_h.color), "a shade of the mode's red"
+    for part in ("color", "linestyle", "marker"):
+        assert len({getattr(st, part) for st in styles.values()}) == len(styles), part
     # A caller's labels (ablate-paper's arms) replace them.
     named = group_runs(runs, label=lambda r: "arm-" + r.mode)
     assert set(named) == {("hopper", "arm-full"), ("hopper", "arm-decoupled"), ("hopper", "arm-blind")}
@@ -159,25 +165,26 @@ def floors_file(path, tasks):
     return path
 
 
-def test_floors_are_drawn_beside_every_return_curve(runs_dir, tmp_path, monkeypatch):
-    import matplotlib.axes
-
-    drawn = []
-    real = matplotlib.axes.Axes.axhline
-
-    def spy(self, y=0, *args, **kw):
-        drawn.append((self.get_title(), y, kw.get("label")))
-        return real(self, y, *args, **kw)
-
-    monkeypatch.setattr(matplotlib.axes.Axes, "axhline", spy)
+def test_floors_are_drawn_beside_every_return_curve(runs_dir, tmp_path):
     floors = load_floors(floors_file(tmp_path / "floors.json", {"cartpole": (5.0, 7.0)}))
     with pytest.warns(UserWarning, match=r"no return floor for task 'hopper'.*task-floors --tasks hopper"):
-        res = make_plots(find_runs([runs_dir]), tmp_path / "plots", floors=floors)
-    # Once per task, although three figures draw hopper's return.
-    assert res.warnings == [floors.missing_message("hopper")]
-    # Three return figures x the two floors of cartpole's panel; none elsewhere.
-    assert sorted(drawn) == sorted([("cartpole", 5.0, "zero action floor (5)"),
-                                    ("cartpole", 7.0, "random action floor (7)")] * 3)
+        figs = build_figures(find_runs([runs_dir]), floors=floors)
+    try:
+        # Once per task, although three figures draw hopper's return.
+        assert figs.warnings == [floors.missing_message("hopper")]
+        for name, fig in figs.figures.items():
+            cartpole, hopper = fig.axes[:2]
+            drawn = {ln.get_gid(): ln.get_ydata()[0] for ln in cartpole.lines if str(ln.get_gid()).startswith("floor")}
+            if name.startswith("return_"):
+                assert drawn == {"floor:zero": 5.0, "floor:random": 7.0}, name
+                # named on the figure beside the line, the higher floor above the lower
+                texts = {t.get_text(): t.get_va() for t in cartpole.texts}
+                assert texts == {"zero action\nfloor 5": "top", "random action\nfloor 7": "bottom"}
+                assert not any(str(ln.get_gid()).startswith("floor") for ln in hopper.lines)
+            else:
+                assert not drawn, name
+    finally:
+        figs.close()
 
 
 def test_default_floors_are_this_checkouts(tmp_path):
@@ -218,3 +225,190 @@ def test_plot_runs_reads_the_floors_flag(runs_dir, tmp_path):
     assert not res.warnings and "return_vs_iter.png" in res.files
     with pytest.raises(ValueError, match="no such file"):
         plot_runs(PlotConfig(runs=(runs_dir,), out=tmp_path / "p", floors=tmp_path / "none.json"))
+
+
+# ------------------------------------------------------------------------------------- what the figures show
+def _dashes(line):
+    """A line's dash pattern: Line2D's public getter names every custom pattern just '--'."""
+    return line._unscaled_dash_pattern
+
+
+def _arm_lines(ax):
+    """The arms' curves of a panel (not floors, evaluations or histogram patches)."""
+    return [ln for ln in ax.lines if ln.get_gid() is None and not ln.get_label().startswith("_")]
+
+
+def _rewrite_metrics(run, change):
+    lines = [json.loads(s) for s in (run / "metrics.jsonl").read_text().splitlines()]
+    for m in lines:
+        change(m)
+    (run / "metrics.jsonl").write_text("".join(json.dumps(m) + "\n" for m in lines))
+
+
+@pytest.fixture
+def arms_dir(tmp_path):
+    """Six hopper arms as ablate-paper runs them (three full variants, decoupled, state, blind), two seeds each,
+    60 iterations (dense curves); seed 0 of decoupled evaluates as `ablate` does (mean and std over episodes),
+    seed 0 of state as older runs did (eval_return only)."""
+    parent = tmp_path / "arms"
+    variants = {"alpha": {"raster_model": "alpha"}, "softmax": {"raster_model": "softmax"},
+                "hard": {"raster_model": "hard"}}
+    for seed in (0, 1):
+        for name, settings in variants.items():
+            write_run(parent, task="hopper", mode="full", seed=seed, iters=60, name=f"full-{name}{seed}",
+                      settings=settings)
+        for mode in ("decoupled", "state", "blind"):
+            write_run(parent, task="hopper", mode=mode, seed=seed, iters=60, settings={"raster_model": "alpha"})
+
+    def evaluate(m):
+        if m["iter"] % 30 == 0:
+            m.update(eval_return_mean=500.0 + m["iter"], eval_return_std=25.0, eval_length_mean=300.0)
+
+    def evaluate_old(m):
+        if m["iter"] == 60:
+            m.update(eval_return=900.0, eval_steps=300)
+
+    _rewrite_metrics(parent / "hopper_decoupled_seed0", evaluate)
+    _rewrite_metrics(parent / "hopper_state_seed0", evaluate_old)
+    return parent
+
+
+@pytest.fixture
+def arm_figures(arms_dir, tmp_path):
+    floors = load_floors(floors_file(tmp_path / "floors.json", {"hopper": (150.0, -40.0)}))
+    runs = find_runs([arms_dir])
+    figs = build_figures(runs, floors=floors)
+    yield figs, plot.arm_styles(group_runs(runs))
+    figs.close()
+
+
+def test_every_arm_has_a_style_of_its_own(arm_figures):
+    figs, styles = arm_figures
+    assert len(styles) == 6
+    for name in ("return_vs_iter.png", "return_vs_env_steps.png", "grad_norm.png", "memory.png"):
+        ax = figs.figures[name].axes[0]
+        lines = _arm_lines(ax)
+        assert [ln.get_label() for ln in lines] == list(styles), name
+        for ln in lines:
+            assert to_rgb(ln.get_color()) == styles[ln.get_label()].color, name
+        for part in (lambda ln: to_rgb(ln.get_color()), _dashes, lambda ln: ln.get_marker()):
+            assert len({part(ln) for ln in lines}) == len(lines), name
+        # Dense curves carry a dozen markers, each arm's on other points, so lines on top of each other show.
+        marks = [ln.get_markevery() for ln in lines]
+        assert all(m[1] == math.ceil(len(ln.get_xdata()) / 12) for m, ln in zip(marks, lines)), (name, marks)
+        assert len({m[0] for m in marks}) > 1, name
+    timing = figs.figures["timing.png"]
+    assert len(timing.axes) == 2 and all(len(_arm_lines(ax)) == 6 for ax in timing.axes)
+
+
+def test_one_legend_outside_the_panels(arm_figures):
+    figs, styles = arm_figures
+    # one figure of each kind (drawing all eleven takes seconds)
+    for name in ("return_vs_iter.png", "probe_grad_norms.png", "cosine_hist.png", "timing.png"):
+        fig = figs.figures[name]
+        fig.canvas.draw()
+        assert len(fig.legends) == 1 and all(ax.get_legend() is None for ax in fig.axes), name
+        legend = fig.legends[0].get_window_extent()
+        for ax in fig.axes:
+            assert not legend.overlaps(ax.get_window_extent()), name
+    texts = [t.get_text() for t in figs.figures["return_vs_iter.png"].legends[0].get_texts()]
+    # six arms, then what the line and the stars are: eight entries
+    assert texts == [f"{lab} (n=2)" for lab in styles] + ["line: training return (last 100 episodes)",
+                                                          "star: deterministic evaluation (each run)"]
+
+
+def test_evaluations_are_drawn_beside_the_training_return(arm_figures, arms_dir):
+    figs, styles = arm_figures
+    for name, x in (("return_vs_iter.png", "iter"), ("return_vs_wall_clock.png", "wall_s")):
+        ax = figs.figures[name].axes[0]
+        stars = {to_rgb(ln.get_color()): ln for ln in ax.lines if ln.get_gid() == "evaluation"}
+        assert set(stars) == {styles["decoupled"].color, styles["state"].color}, name
+        assert all(ln.get_marker() == "*" and ln.get_linestyle() == "None" for ln in stars.values())
+        new = stars[styles["decoupled"].color]
+        np.testing.assert_array_equal(new.get_ydata(), [530.0, 560.0])
+        assert list(new.get_xdata()) == list(load_run(arms_dir / "hopper_decoupled_seed0").evaluations(x)[0])
+        np.testing.assert_array_equal(stars[styles["state"].color].get_ydata(), [900.0])  # eval_return
+        with_bars = [c for c in ax.containers if c.has_yerr]
+        assert len(with_bars) == 1  # the std over episodes exists only where the run recorded it
+        segments = with_bars[0].lines[2][0].get_segments()
+        np.testing.assert_allclose([s[1][1] - s[0][1] for s in segments], [50.0, 50.0])
+    assert "eval" not in str([ln.get_label() for ln in _arm_lines(figs.figures["grad_norm.png"].axes[0])])
+
+
+def test_run_evaluations_read_new_and_old_metrics(arms_dir):
+    x, mean, std = load_run(arms_dir / "hopper_decoupled_seed0").evaluations("env_steps")
+    np.testing.assert_array_equal(x, [30 * 32, 60 * 32])
+    np.testing.assert_array_equal(mean, [530.0, 560.0])
+    np.testing.assert_array_equal(std, [25.0, 25.0])
+    x, mean, std = load_run(arms_dir / "hopper_state_seed0").evaluations("iter")
+    assert list(x) == [60] and list(mean) == [900.0] and np.isnan(std).all()
+    assert len(load_run(arms_dir / "hopper_blind_seed0").evaluations("iter")[0]) == 0
+
+
+def test_cosine_is_one_minus_cos_on_a_log_axis_with_every_probe_marked(runs_dir):
+    figs = build_figures(find_runs([runs_dir]), floors=load_floors())
+    try:
+        ax = figs.figures["cosine_vs_iter.png"].axes[0]
+        assert ax.get_yscale() == "log"
+        full = next(ln for ln in _arm_lines(ax) if ln.get_label() == "full")
+        assert full.get_marker() not in (None, "None", "") and full.get_markevery() is None
+        # probes at iterations 1, 4, 7, 10; the geometric mean of 1 - cos over seeds 0 and 1
+        np.testing.assert_array_equal(full.get_xdata(), [1, 4, 7, 10])
+        it = np.array([1, 4, 7, 10])
+        np.testing.assert_allclose(full.get_ydata(), np.sqrt((1 - np.cos(0.1 * it)) * (1 - np.cos(0.1 * it + 1))))
+        hist = figs.figures["cosine_hist.png"].axes[0]
+        assert hist.get_xscale() == "log" and hist.get_xlim()[1] >= 2.0
+        for name in ("probe_grad_norms.png", "render_term_groups.png", "image_sensitivity.png"):
+            lines = _arm_lines(figs.figures[name].axes[0])
+            assert lines and all(ln.get_marker() not in (None, "None", "") and ln.get_markevery() is None
+                                 for ln in lines), name
+    finally:
+        figs.close()
+
+
+def test_quantities_lying_on_each_other_stay_visible(tmp_path):
+    """The quick start's probe figure: one decoupled run, whose full and decoupled norms are the same."""
+    run = write_run(tmp_path / "runs", task="cartpole", mode="decoupled", seed=0)
+    _rewrite_metrics(run, lambda m: m.update(grad_norm_decoupled=m["grad_norm_full"]) if m["probed"] else None)
+    figs = build_figures([load_run(run)], floors=load_floors())
+    try:
+        fig = figs.figures["probe_grad_norms.png"]
+        full, decoupled, _render_term = _arm_lines(fig.axes[0])
+        np.testing.assert_array_equal(full.get_ydata(), decoupled.get_ydata())
+        # the one underneath is wider, with larger markers of another shape
+        assert full.get_linewidth() > decoupled.get_linewidth() and full.get_markersize() > decoupled.get_markersize()
+        assert full.get_marker() != decoupled.get_marker() and full.get_markerfacecolor() == "none"
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert labels == ["full gradient", "decoupled gradient", "render term", "decoupled (n=1)"]
+    finally:
+        figs.close()
+
+
+def test_linear_axes_print_plain_ticks(tmp_path):
+    """Values that differ only in the sixth digit get no offset label such as 1e-5+9.9999e-1."""
+    run = write_run(tmp_path / "runs", task="cartpole", mode="state", seed=0, probe_every=0)
+    _rewrite_metrics(run, lambda m: m.update(return_mean=0.99999 + 1e-7 * m["iter"]))
+    with pytest.warns(UserWarning, match="no return floor"):  # floors would widen the axis: none here
+        figs = build_figures([load_run(run)], floors=load_floors(floors_file(tmp_path / "f.json", {})))
+    try:
+        fig = figs.figures["return_vs_iter.png"]
+        fig.canvas.draw()
+        ax = fig.axes[0]
+        assert ax.get_yscale() == "linear" and ax.yaxis.get_offset_text().get_text() == ""
+        assert all(t.get_text() for t in ax.get_yticklabels())
+    finally:
+        figs.close()
+
+
+def test_runs_differing_per_panel_say_so(tmp_path):
+    parent = tmp_path / "runs"
+    for seed in (0, 1):
+        write_run(parent, task="cartpole", mode="decoupled", seed=seed)
+    write_run(parent, task="hopper", mode="decoupled", seed=0)
+    figs = build_figures(find_runs([parent]), floors=load_floors())
+    try:
+        assert [t.get_text() for t in figs.figures["grad_norm.png"].legends[0].get_texts()] == ["decoupled (n=2/1)"]
+        hist = [t.get_text() for t in figs.figures["cosine_hist.png"].legends[0].get_texts()]
+        assert hist == ["decoupled (n=2/1, 8/4 probes)"]
+    finally:
+        figs.close()
