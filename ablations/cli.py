@@ -16,51 +16,26 @@ def _fail(msg: str) -> None:
     raise SystemExit(2)
 
 
-def _plain_compile_cache_warnings() -> None:
-    """A compile cache warning as one ``warning: ...`` line, like the run's other warnings, not Python's
-    file:line format."""
-    import warnings
-
-    from gradlab.compiling import CompileCacheWarning
-
-    show = warnings.showwarning
-
-    def show_plainly(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, CompileCacheWarning):
-            print(f"warning: {message}", file=sys.stderr)
-        else:
-            show(message, category, filename, lineno, file, line)
-
-    warnings.showwarning = show_plainly
-
-
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
-    from ablations.bytecode import keep_bytecode, resolve_bytecode_folder
-    from ablations.compile_helper import CompileHelpers
+    from ablations.startup import Startup
 
-    # Before torch is imported: where the environment keeps Python's bytecode out of the install, every start
-    # would compile torch's Python again (ablations/bytecode.py); and a cold --compile start on a GPU shares its
-    # compiling with helper processes, whose imports then overlap this one's (ablations/compile_helper.py).
-    keep_bytecode(resolve_bytecode_folder())
-    standby = CompileHelpers.standby_for(sys.argv[1:] if argv is None else argv)
+    startup = Startup.before_torch(sys.argv[1:] if argv is None else argv)  # first: torch is not imported yet
     try:
-        _ablate(argv, standby)
+        _ablate(argv, startup)
     finally:
-        if standby is not None:
-            standby.stop()  # nothing left to do once the run gave them their shares or let them go
+        startup.close()
 
 
-def _ablate(argv: list[str] | None, standby) -> None:
+def _ablate(argv: list[str] | None, startup) -> None:
     import tyro
 
     from ablations.runs import RunConfig, run
     from gradlab.probes import NonFiniteError
 
     cfg = tyro.cli(RunConfig, args=argv, description=RunConfig.__doc__)
-    _plain_compile_cache_warnings()
     try:
-        run_dir = run(cfg, standby=standby)
+        run_dir = run(cfg, startup=startup)
     except ValueError as e:
         _fail(str(e))
     except NonFiniteError as e:

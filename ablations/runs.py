@@ -24,15 +24,13 @@ import subprocess
 import sys
 import tempfile
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ablations import compile_helper
-from ablations.compile_helper import RUN_SHARE, CompileHelpers
+from ablations.startup import Startup
 from gradlab.checkpoint import (
     LoadedCheckpoint,
     NoReadableCheckpointError,
@@ -43,16 +41,7 @@ from gradlab.checkpoint import (
     prune_checkpoints,
     save_checkpoint,
 )
-from gradlab.compiling import (
-    CompileCache,
-    CompileCacheWarning,
-    compile_counters,
-    compile_phase_seconds,
-    compiled_graphs,
-    resolve_cache_root,
-    start_compile_workers,
-)
-from gradlab.config import SHACConfig, resolve_config
+from gradlab.config import SHACConfig
 from gradlab.presets import preset_record
 from gradlab.probes import NonFiniteError
 from gradlab.seeding import resolve_device
@@ -109,7 +98,7 @@ class RunConfig(SHACConfig):
     compile_helper: bool = True
     """With --compile on a GPU and nothing compiled for these settings yet: helper processes compile the rest of
     the physics, the renderer and the networks while this one compiles the physics substep, into the same cache
-    (ablations/compile_helper.py); --no-compile-helper compiles everything in this process."""
+    (ablations/startup/helpers.py); --no-compile-helper compiles everything in this process."""
 
     def validate(self) -> None:
         """SHACConfig's checks plus the run options'."""
@@ -247,7 +236,7 @@ def _process_started() -> float:
 
 def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, started: float, *,
              first_iter_s: float | None = None, compiled: dict | None = None,
-             startup: dict | None = None) -> dict:
+             startup_s: dict | None = None) -> dict:
     timed = [r for r in rows if r["iter"] > cfg.warmup_iters]
     plain = [r for r in timed if not r.get("probed")]
     probed = [r for r in timed if r.get("probed")]
@@ -292,7 +281,7 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
         "first_iter_s": first_iter_s,
         # seconds of each part of that: imports (process start to ablate's own code), opening the compile cache,
         # building the trainer, its first reset and render, the first iteration (a resumed run: the ones it ran)
-        "startup_s": startup,
+        "startup_s": startup_s,
         "compile": compiled,
     }
 
@@ -383,103 +372,36 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device, LoadedCheckp
     return cfg, run_dir, device, None
 
 
-def _compile_cache(cfg: RunConfig, device: torch.device) -> tuple[CompileCache | None, str]:
-    """The compile cache folder of a --compile run (checked, not yet activated) and the label of its artifact
-    file; None where --compile-cache is off or the folder is not usable (a warning)."""
-    resolved = resolve_config(shac_part(cfg))
-    label = f"{resolved.task}_{resolved.mode}_{resolved.num_envs}envs_{resolved.image_size}px"
-    root = resolve_cache_root(cfg.compile_cache)
-    if root is None:
-        print("compile cache: torch's own locations (--compile-cache off)", file=sys.stderr)
-        return None, label
-    try:
-        return CompileCache(root, device), label
-    except OSError as e:
-        _unusable(root, e)
-        return None, label
-
-
-def _activate_compile_cache(cache: CompileCache, label: str, device: torch.device) -> CompileCache | None:
-    """Point torch at the cache folder, load the artifact file of ``label``, start the compile workers; says
-    where the cache is. None where the folder turns out not usable (a warning)."""
-    try:
-        cache.activate(label)
-    except OSError as e:
-        _unusable(cache.folder, e)
-        return None
-    start_compile_workers(device)  # after activating: the workers inherit the cache folder
-    loaded = ", ".join(f"{n} {kind}" for kind, n in cache.loaded.items())
-    print(f"compile cache: {cache.folder}" + (f" (loaded {loaded} artifacts)" if loaded else ""), file=sys.stderr)
-    return cache
-
-
-def _unusable(where: Path, error: OSError) -> None:
-    warnings.warn(f"compile cache under {where} is not usable ({error}); compiling with torch's own caches",
-                  CompileCacheWarning, stacklevel=3)
-
-
-def _wants_compile_helper(cfg: RunConfig, device: torch.device, cache: CompileCache | None, label: str, *,
-                          resuming: bool) -> bool:
-    """Whether a --compile run starts compile helpers (ablations/compile_helper.py): on a CUDA device (on the
-    CPU inductor's C++ compiles leave no cores to spare) of a machine with MIN_CORES cores or more, with a cache
-    folder to share, on a fresh run whose settings have no artifact file yet (a warm start loads everything in
-    seconds), unless --no-compile-helper."""
-    return (cfg.compile and cfg.compile_helper and cache is not None and device.type == "cuda" and not resuming
-            and compile_helper.cores() >= compile_helper.MIN_CORES and not cache.artifact_path(label).exists())
-
-
-def _save_compile_cache(cache: CompileCache, label: str) -> None:
-    try:
-        cache.save(label)
-    except OSError as e:  # a full disk loses the artifact file, not the run
-        warnings.warn(f"compile cache artifacts not saved to {cache.folder}: {e}", CompileCacheWarning, stacklevel=2)
-
-
-def run(cfg: RunConfig, *, standby: CompileHelpers | None = None) -> Path:
-    """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work. ``standby``:
-    compile helpers started before this process imported torch (``CompileHelpers.standby_for``), given their
-    shares if the run wants helpers and dismissed otherwise."""
+def run(cfg: RunConfig, *, startup: Startup | None = None) -> Path:
+    """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work. ``startup``:
+    this process's start-up (``Startup.before_torch``: the bytecode folder, compile helpers on standby); None: one
+    that started nothing before torch was imported."""
     started = time.time()
-    helpers = None
+    startup = startup or Startup()
     try:
         cfg, run_dir, device, resume_from = prepare(cfg)
         cache_opened = time.time()
-        cache, cache_label = _compile_cache(cfg, device) if cfg.compile else (None, "")
-        if _wants_compile_helper(cfg, device, cache, cache_label, resuming=resume_from is not None):
-            # this process takes its CUDA context first: on a GPU in exclusive-process mode the helpers are then
-            # the ones that cannot start their own, and the run compiles everything itself. They get their shares
-            # before the cache is activated here (the seconds that takes are theirs too): they activate it
-            # themselves.
-            torch.empty(1, device=device)
-            helpers, standby = (standby or CompileHelpers.spawn()), None
-            helpers.assign(resolve_config(shac_part(cfg)), device, cache.folder.parent, run_dir)
-        if standby is not None:
-            standby.dismiss()
-        if cache is not None:
-            cache = _activate_compile_cache(cache, cache_label, device)
-        return _train(cfg, run_dir, device, resume_from, cache, cache_label, helpers, started=started,
-                      cache_opened=cache_opened)
+        startup.open(cfg, shac_part(cfg), device, run_dir, resuming=resume_from is not None)
+        return _train(cfg, run_dir, device, resume_from, startup, started=started, cache_opened=cache_opened)
     finally:
-        for group in (standby, helpers):  # on every way out, an error before the training loop included
-            if group is not None:
-                group.stop()
+        startup.close()  # on every way out, an error before the training loop included
 
 
 def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: LoadedCheckpoint | None,
-           cache: CompileCache | None, cache_label: str, helpers: CompileHelpers | None, *, started: float,
-           cache_opened: float) -> Path:
-    """The rest of :func:`run` once its folder, compile cache and helpers are settled: build the trainer, train,
-    write the summary."""
+           startup: Startup, *, started: float, cache_opened: float) -> Path:
+    """The rest of :func:`run` once its folder and start-up are settled: build the trainer, train, write the
+    summary."""
     from gradlab.shac import SHAC
 
     trainer_built = time.time()
     trainer = SHAC(shac_part(cfg), device=device)
+    startup.trainer_built(trainer)
     trainer_done = time.time()
     # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py): parts
     # that together make up first_iter_s; "run_folder" is the bookkeeping around the trainer (checking the
     # config, the run folder, a checkpoint to resume, git and environment records, the progress bar)
-    startup = {"imports": started - _process_started(), "compile_cache": trainer_built - cache_opened,
-               "trainer": trainer_done - trainer_built}
+    startup_s = {"imports": started - _process_started(), "compile_cache": trainer_built - cache_opened,
+                 "trainer": trainer_done - trainer_built}
     shac_fields = dataclasses.fields(SHACConfig)
     resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
     ckpt_dir = run_dir / "checkpoints"
@@ -514,27 +436,19 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
     base = f"{cfg.task}/{cfg.mode}"
     bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=base, unit="it",
                dynamic_ncols=True)
-    watch = trainer.compile_watch
-    # The first iterations wait for the compiler: the bar says which part it compiles or captures, then its name.
-    watch.on_change = lambda text: bar.set_description(base if text is None else f"{base}: {text}")
-    saved_at = watch.done  # compilations the artifact file holds
-    first_iter_s = helpers_wait_s = None
+    first_iter_s = None
     status, error = "running", None
     metrics_path = run_dir / "metrics.jsonl"
-    startup["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
+    startup_s["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
     try:
-        if helpers is not None:
-            # the run's share now, while the helpers compile theirs; then their graphs come from the cache
-            ahead = time.time()
-            trainer.compile_physics_now(parts=RUN_SHARE)
-            waited = time.time()
-            helpers.wait(on_wait=lambda parts: watch.announce(f"waiting for the compile helpers ({parts})"))
-            helpers_wait_s = time.time() - waited
-            watch.announce(None)
-            startup["compile_ahead"] = time.time() - ahead
+        # The first iterations wait for the compiler: the bar says which part it compiles or captures, then its name.
+        ahead_s = startup.before_first_iteration(
+            lambda text: bar.set_description(base if text is None else f"{base}: {text}"))
+        if ahead_s is not None:
+            startup_s["compile_ahead"] = ahead_s
             # compiling counts in the training wall-clock (--time-limit-min, the wall_s curves) wherever it happens:
             # runs with and without helpers spend their budgets alike
-            trainer.wall_s += startup["compile_ahead"]
+            trainer.wall_s += ahead_s
         # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
         # the same training time as one that ran through, so that return-against-time curves stay comparable.
         budget_s = None if cfg.time_limit_min is None else 60.0 * cfg.time_limit_min
@@ -544,15 +458,14 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
             if first_iter_s is None:
                 first_iter_s = time.time() - _process_started()
                 # a resumed run starts from its checkpoint's state and frames: no reset and render
-                startup.update(first_reset_render=trainer.start_s or 0.0, first_iteration=m["iter_ms"] / 1e3)
-            watch.announce(None)
+                startup_s.update(first_reset_render=trainer.start_s or 0.0, first_iteration=m["iter_ms"] / 1e3)
+            startup.after_iteration()
             it = m["iter"]
             last = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
             if cfg.video_every and (it % cfg.video_every == 0 or last):
                 steps = min(cfg.video_steps or trainer.task.episode_length, trainer.task.episode_length)
-                with watch.part("evaluation"):
+                with startup.evaluating():
                     eval_return, frames = trainer.evaluate(steps=steps, record=True)
-                watch.announce(None)
                 m["eval_return"] = eval_return  # undiscounted, deterministic policy, over eval_steps steps
                 m["eval_steps"] = steps
                 write_video(run_dir / "videos" / f"iter_{it:06d}.mp4", frames)
@@ -567,9 +480,6 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
             if it % cfg.checkpoint_every == 0 or last:
                 save_checkpoint(checkpoint_path(ckpt_dir, it), trainer.state_dict())
                 prune_checkpoints(ckpt_dir, keep=cfg.keep_checkpoints)
-            if cache is not None and watch.done != saved_at:  # new compilations: keep them for the next process
-                _save_compile_cache(cache, cache_label)
-                saved_at = watch.done
             ret = m["return_mean"]
             bar.set_postfix(ret="-" if ret is None else f"{ret:.1f}", ms=f"{m['iter_ms']:.0f}",
                             gn=f"{m['grad_norm']:.2g}")
@@ -587,26 +497,11 @@ def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: Loa
         status, error = "oom", str(e).splitlines()[0]
         raise
     finally:
-        if helpers is not None:
-            helpers.stop()
-        watch.on_change = None
+        startup.close()
         bar.close()
         if writer is not None:
             writer.close()
-        compiled = None
-        if cfg.compile:
-            if cache is not None and watch.done != saved_at:
-                _save_compile_cache(cache, cache_label)
-            compiled = {"cache": None if cache is None else str(cache.folder),
-                        "artifacts_loaded": {} if cache is None else cache.loaded,
-                        "artifacts_load_s": None if cache is None else round(cache.load_s, 3),
-                        "helpers": None if helpers is None else helpers.record(),
-                        "helpers_wait_s": None if helpers_wait_s is None else round(helpers_wait_s, 3),
-                        # where Python's bytecode was kept, if not beside the sources (ablations/bytecode.py)
-                        "bytecode": sys.pycache_prefix,
-                        **watch.summary(), **compile_counters(), "phase_s": compile_phase_seconds(),
-                        "graphs": compiled_graphs()}
         atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,
-                                                             first_iter_s=first_iter_s, compiled=compiled,
-                                                             startup=startup))
+                                                             first_iter_s=first_iter_s, compiled=startup.record(),
+                                                             startup_s=startup_s))
     return run_dir

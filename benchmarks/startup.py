@@ -10,7 +10,7 @@ around it. With ``--compile-helper on off`` each pair runs with ablate's compile
 passed on to ``ablate`` (e.g. ``--horizon 4``).
 
 Where Python writes no bytecode beside the sources (``PYTHONDONTWRITEBYTECODE``), ablate keeps it in its own
-folder ($PIXELGRAD_BYTECODE_CACHE, ablations/bytecode.py), which this script leaves as it finds it: each row
+folder ($PIXELGRAD_BYTECODE_CACHE, ablations/startup/bytecode.py), which this script leaves as it finds it: each row
 records how many modules' bytecode that folder held before the run (``bytecode_pyc_before``; 0: the run compiled
 all of its Python too, as the first start in a fresh container does).
 
@@ -35,10 +35,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ablations.bytecode import resolve_bytecode_folder
+from _common import commit
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # run as a script or loaded by path
-from provenance import commit
+from ablations.startup import resolve_bytecode_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 #: summary.json["compile"] keys copied into each row

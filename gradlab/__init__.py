@@ -6,11 +6,10 @@ policy gradients through the renderer), ``decoupled`` (D.Va: the image detached 
 the mode decides; presets (``gradlab.presets``) hold the reference code's hyperparameters. Probes measure
 both gradients of one rollout, their norms, cosine and split by parameter group, and the policy's sensitivity
 to each frame; every iteration reports CUDA-synchronised times and peak memory; a NaN/inf stops the run
-naming the iteration, the horizon step and the tensor. ``CompileCache`` keeps what ``--compile`` compiled in a
-folder the user can see and clear; ``CompileWatch`` names the part being compiled for a progress display.
+naming the iteration, the horizon step and the tensor. With ``--compile`` the trainer compiles the parts of its
+``compile_table`` (``COMPILE_PARTS``) and replays its iterations from CUDA graphs on a GPU.
 """
 
-from gradlab.compiling import CompileCache, CompileCacheWarning, CompileWatch, resolve_cache_root
 from gradlab.config import MODES, ModePlan, SHACConfig, resolve_config
 from gradlab.presets import PRESETS, preset_record, preset_values
 from gradlab.probes import ImageGate, NonFiniteError, cosine, flat_grad
@@ -19,9 +18,6 @@ from gradlab.shac import COMPILE_PARTS, SHAC
 
 __all__ = [
     "COMPILE_PARTS",
-    "CompileCache",
-    "CompileCacheWarning",
-    "CompileWatch",
     "MODES",
     "ModePlan",
     "SHAC",
@@ -34,7 +30,6 @@ __all__ = [
     "preset_record",
     "preset_values",
     "resolve_device",
-    "resolve_cache_root",
     "resolve_config",
     "seed_everything",
 ]

@@ -17,8 +17,9 @@ One iteration, top to bottom (docs/design.md, "A SHAC window"):
 5. Critic fit on TD(lambda) targets of the window; Polyak-update the target critic. The fit is independent of
    the actor's gradient, so with CUDA graphs it runs alongside the backward of step 3 (``overlap_critic``).
 
-With ``--compile`` on a CUDA device the window (steps 1-3) and the critic fit are CUDA graphs replayed every
-iteration; ``gradlab.graphs`` holds that machinery, and this module calls it the same way either way.
+With ``--compile`` the parts in :meth:`SHAC.compile_table` run through ``torch.compile``, and on a CUDA device the
+window (steps 1-3) and the critic fit are CUDA graphs replayed every iteration; ``gradlab.graphs`` holds that
+machinery, and this module calls it the same way either way.
 
 Every iteration reports CUDA-synchronised forward / backward / critic times, peak allocated and reserved memory
 (CUDA), bytes saved for backward, pre- and post-clip gradient norms; a NaN/inf anywhere stops the run with the
@@ -31,14 +32,14 @@ import copy
 import dataclasses
 import time
 from collections import deque
-from collections.abc import Collection
+from collections.abc import Callable, Collection
+from typing import ClassVar
 
 import numpy as np
 import torch
 from torch import nn
 
 import tasks
-from gradlab.compiling import CompileWatch, start_compile_workers
 from gradlab.config import ModePlan, SHACConfig, resolve_config
 from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
 from gradlab.graphs import WARMUP_ITERS, GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
@@ -51,9 +52,9 @@ from tasks.vision import FrameStack, TaskRenderer
 
 __all__ = ["COMPILE_PARTS", "SHAC", "NonFiniteError"]
 
-#: What ``--compile`` compiles, in parts that separate processes can compile at the same time into one cache
-#: (ablations/compile_helper.py): the physics' own parts (tasks.PHYSICS_PARTS), the renderer's PyTorch work, and
-#: the actor with the critic.
+#: What ``--compile`` compiles (:meth:`SHAC.compile_table`), in parts that are each their own graphs and compile
+#: work, so that separate processes can compile them at the same time into one cache: the physics' own parts
+#: (tasks.PHYSICS_PARTS), the renderer's PyTorch work, and the actor with the critic.
 COMPILE_PARTS = (*tasks.PHYSICS_PARTS, "renderer", "networks")
 
 _FLAG_NAMES = ["state_obs", "reward", "terminal_value", "image", "action", "qpos", "qvel"]
@@ -65,45 +66,30 @@ class SHAC:
     Args:
         cfg: the configuration; None fields are resolved to the task's reference values.
         device: "auto" | "cpu" | "cuda[:N]".
-        compile_parts: with ``cfg.compile``, which of :data:`COMPILE_PARTS` to compile (None: all); the others
-            run eagerly. A compile helper process compiles its share this way (``ablations.compile_helper``).
+
+    With ``cfg.compile`` the trainer compiles every part of :meth:`compile_table` at its first iteration, unless
+    :meth:`compile` named the parts before (a process that compiles only some of them).
     """
 
-    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto",
-                 compile_parts: Collection[str] | None = None):
+    #: Where the trainer calls what it compiles, by the name a progress display gives the compilations made
+    #: there: attribute paths from the trainer, each holding the callable that is called.
+    COMPILE_SITES: ClassVar[dict[str, str]] = {
+        "physics step": "task.step", "renderer": "_render", "actor": "_actor_mean", "critic": "_target_value",
+        "backward pass": "window.backward"}
+
+    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto"):
         self.cfg = resolve_config(cfg)
         cfg = self.cfg
-        if compile_parts is None:
-            compile_parts = COMPILE_PARTS
-        if isinstance(compile_parts, str) or not set(compile_parts) <= set(COMPILE_PARTS):
-            raise ValueError(f"compile_parts are some of {COMPILE_PARTS}, got {compile_parts!r}")
-        compiled = set(compile_parts) if cfg.compile else set()
         self.plan = ModePlan.of(cfg.mode)
         self.device = device if isinstance(device, torch.device) else resolve_device(device)
         seed_everything(cfg.seed)
 
         overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
         self.task = tasks.make(cfg.task, cfg.num_envs, device=self.device, seed=cfg.seed, **overrides)
-        if cfg.compile:
-            # Probe iterations differentiate one graph twice (retain_graph=True), which AOTAutograd's donated
-            # buffers forbid in compiled backward functions. (Task.compile raises dynamo's recompile limit: a
-            # window calls the substep with and without grad-requiring state and cached mass matrices.)
-            import torch._functorch.config as functorch_config
-
-            functorch_config.donated_buffer = False
-        # the physics parts this trainer compiled (compile_physics_now compiles them ahead)
-        self._physics_compiled = tuple(p for p in tasks.PHYSICS_PARTS if p in compiled)
-        if self._physics_compiled:
-            self.task.compile(parts=self._physics_compiled)
         self.renderer = None
         if self.plan.renders:
             self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
                                          **self._render_options())
-            if "renderer" in compiled:
-                # Forward kinematics, vertices, camera and the fused rasterizer's per-face setup are ~500 small
-                # kernels per frame eagerly, in forward and again in backward. (The tiled backend's compiled
-                # kernel stays off: on an H200 its backward produced NaN image gradients in full mode.)
-                self.renderer.compile()
         if self.plan.actor_input == "state":
             self.actor = StateActor(self.task.num_obs, self.task.num_act, cfg.actor_hidden, init=cfg.actor_init)
         else:
@@ -115,21 +101,11 @@ class SHAC:
         self.target_critic = copy.deepcopy(self.critic)
         for p in self.target_critic.parameters():
             p.requires_grad_(False)
-        # What the rollout calls every step: the actor's mean and the target critic (both differentiated
-        # through). Compiled, their small layers (bias, ReLU, LayerNorm, ELU and their backward) fuse; the
-        # convolutions and GEMMs stay cuDNN/cuBLAS calls. The action noise stays eager (same draws).
+        # What the rollout calls every step (both differentiated through); compiled in place (compile_table).
         self._actor_mean, self._target_value = self.actor.mean, self.target_critic
-        # What this process compiles, and which part of the iteration is compiling (a progress display's text).
-        self.compile_watch = CompileWatch()
-        if cfg.compile:
-            start_compile_workers(self.device)  # up before the first graphs: see its docstring
-            watch = self.compile_watch
-            if "networks" in compiled:
-                self._actor_mean = watch.labelled("actor", torch.compile(self.actor.mean, dynamic=False))
-                self._target_value = watch.labelled("critic", torch.compile(self.target_critic, dynamic=False))
-            self._step = watch.labelled("physics step", self._step)
-            if self.renderer is not None:
-                self._render = watch.labelled("renderer", self._render)
+        self.compiled: tuple[str, ...] | None = None  # the parts of COMPILE_PARTS compiled (compile)
+        # Told a short text before an iteration spends seconds capturing CUDA graphs (a progress display).
+        self.on_status: Callable[[str], None] | None = None
         # CUDA graphs (compile on a CUDA device) capture the critic fit too, so its Adam must be capturable
         # and read its learning rate from a tensor that the decay updates in place.
         self.graphs = cfg.compile and self.device.type == "cuda"
@@ -155,18 +131,17 @@ class SHAC:
         self._started = False
         self.start_s: float | None = None  # seconds of the first reset and render (the first render compiles)
         self.live = LiveState()
-        backward = self.compile_watch.labelled("backward pass", self._backward) if cfg.compile else self._backward
         self.critic_fit = (GraphedCriticPhase(self._fit_critic, self.critic, self.device) if self.graphs
                            else self._fit_critic)
-        self.window = WindowGraphs(forward=self._window_forward, backward=backward, commit=self._commit_state,
+        self.window = WindowGraphs(forward=self._window_forward, backward=self._backward, commit=self._commit_state,
                                    params=list(self.actor.parameters()), timer=self.timer, device=self.device,
                                    capture=self.graphs,
                                    critic=self.critic_fit if self.graphs and cfg.overlap_critic else None)
 
     def _render_options(self) -> dict:
         cfg = self.cfg
-        # save_blend_state: a full-mode window keeps 7 numbers per pixel per frame (12.6 MB per 64-image frame
-        # at 84 px, flat in faces) so that each render backward skips a second forward pass (fused backend)
+        # save_blend_state: a full-mode window keeps 7 numbers per pixel per frame (flat in faces) so that each
+        # render backward skips a second forward pass (fused backend)
         options = dict(detail=cfg.render_detail, extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts,
                        sigma=cfg.sigma, gamma=cfg.render_gamma, raster_model=cfg.raster_model,
                        renderer=cfg.renderer, save_blend_state=True)
@@ -179,27 +154,39 @@ class SHAC:
         cfg = self.cfg
         return torch.zeros(n, 3 * cfg.frames, cfg.image_size, cfg.image_size, device=self.device)
 
-    def compile_physics_now(self, *, parts: Collection[str] | None = None) -> None:
-        """Compile the physics step's ``parts`` (of tasks.PHYSICS_PARTS; None: all this trainer compiles) and
-        their backward before the first reset, with the training windows' guards (the cut state and the action
-        require grad, grad mode on), by stepping twice and differentiating; the other parts run eagerly meanwhile.
-        The task's state and reset RNG are restored, so the run goes on as without this call. With compile
-        helper processes compiling the other parts meanwhile (``ablations.compile_helper``), the longest parts of
-        a cold start overlap. Does nothing for parts not compiled, or once the run has started."""
-        parts = [p for p in (self._physics_compiled if parts is None else parts) if p in self._physics_compiled]
-        if not parts or self._started:
-            return
-        task = self.task
-        state = task.get_state()
-        with torch.enable_grad(), task.running_eagerly([p for p in tasks.PHYSICS_PARTS if p not in parts]):
-            task.detach(requires_grad=True)
-            action = torch.zeros(task.num_envs, task.num_act, device=self.device, dtype=task.dtype,
-                                 requires_grad=True)
-            obs, reward, _, _ = self._step(action)
-            _, reward2, _, info2 = self._step(torch.tanh(obs.sum(-1, keepdim=True)) * action)  # a later step's
-            loss = reward.sum() + reward2.sum() + info2["obs_before_reset"].sum() + task.qpos.sum()
-            loss.backward()
-        task.set_state(state)
+    # ------------------------------------------------------------------ compiling
+    def compile_table(self) -> dict[str, tuple]:
+        """What ``--compile`` compiles, by part (:data:`COMPILE_PARTS`), each entry something with a ``compile()``:
+        the task's physics parts (``Task.compile_table``: the callable, where the step calls it, torch.compile's
+        options); the renderer (``TaskRenderer.compile``: forward kinematics, vertices, camera and the fused
+        rasterizer's per-face setup, hundreds of small kernels per frame eagerly, in forward and again in
+        backward; nothing where the trainer does not render); and the actor's mean and the target critic, which
+        the rollout calls every step: compiled, their small layers (bias, ReLU, LayerNorm, ELU and their backward)
+        fuse, while the convolutions and GEMMs stay cuDNN/cuBLAS calls and the action noise stays eager (same
+        draws)."""
+        physics = self.task.compile_table()
+        return {**{part: (physics[part],) for part in tasks.PHYSICS_PARTS},
+                "renderer": () if self.renderer is None else (self.renderer,),
+                "networks": (tasks.CompiledCall(self, "_actor_mean", self.actor.mean),
+                             tasks.CompiledCall(self, "_target_value", self.target_critic))}
+
+    def compile(self, parts: Collection[str] = COMPILE_PARTS) -> None:
+        """Compile ``parts`` (of :data:`COMPILE_PARTS`) where the trainer calls them, each at its first call; the
+        other parts run eagerly. Once per trainer, before its first iteration."""
+        if isinstance(parts, str) or not set(parts) <= set(COMPILE_PARTS):
+            raise ValueError(f"compile parts are some of {COMPILE_PARTS}, got {parts!r}")
+        if self.compiled is not None:
+            raise RuntimeError(f"this trainer compiled {self.compiled} already")
+        import torch._functorch.config as functorch_config
+
+        # Probe iterations differentiate one graph twice (retain_graph=True), which AOTAutograd's donated buffers
+        # forbid in compiled backward functions.
+        functorch_config.donated_buffer = False
+        table = self.compile_table()
+        for part in parts:
+            for entry in table[part]:
+                entry.compile()
+        self.compiled = tuple(parts)
 
     # ------------------------------------------------------------------ state the windows hand on
     def _render(self, *, grad: bool) -> torch.Tensor:
@@ -209,9 +196,6 @@ class SHAC:
             return self.renderer.soft(self.task.qpos)
         with torch.no_grad():
             return self.renderer(self.task.qpos)
-
-    def _step(self, action: torch.Tensor) -> tuple:
-        return self.task.step(action)
 
     def _start(self) -> None:
         """First reset: state, frame stack tiled with the first image, running stats seeded."""
@@ -282,7 +266,7 @@ class SHAC:
             action = self.actor.sample(self._actor_mean(actor_in))
             self.flags.watch_grad(t, "action", action)
 
-            obs, reward, done, info = self._step(action)
+            obs, reward, done, info = task.step(action)
             self.flags.watch_grad(t, "qpos", task.qpos)
             self.flags.watch_grad(t, "qvel", task.qvel)
             self.flags.check(t, "state_obs", info["obs_before_reset"])
@@ -396,11 +380,17 @@ class SHAC:
             return
         probing = self.plan.probes and self.cfg.cosine_every > 0
         kinds = 2 if probing and self.cfg.cosine_every > 1 else 1
-        self.compile_watch.announce(f"capturing CUDA graphs (window {len(self.window.captured) + 1}/{kinds})")
+        self._status(f"capturing CUDA graphs (window {len(self.window.captured) + 1}/{kinds})")
+
+    def _status(self, text: str) -> None:
+        if self.on_status is not None:
+            self.on_status(text)
 
     def train_iteration(self) -> dict:
         """Run one iteration; returns its metrics (Python scalars)."""
         cfg = self.cfg
+        if cfg.compile and self.compiled is None:
+            self.compile()
         if not self._started:
             t_start = time.perf_counter()
             self._start()
@@ -414,7 +404,7 @@ class SHAC:
         # overlap_critic a replayed window also fits the critic ("critic") alongside its backward.
         self._announce_capture(probe)
         if self.graphs and self.critic_fit.graph is None:
-            self.compile_watch.announce("capturing CUDA graph (critic fit)")
+            self._status("capturing CUDA graph (critic fit)")
         window = self.window.run(iteration=self.iteration, probe=probe)
         loss, buf = window.loss, window.buffers
         params = list(self.actor.parameters())
@@ -488,7 +478,7 @@ class SHAC:
         overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
         task = tasks.make(cfg.task, num_envs, device=self.device, seed=cfg.seed + 10_007, **overrides)
         if cfg.compile:
-            task.compile()  # an eager ant episode is ~1000 x 16 unfused substeps: minutes on a GPU
+            task.compile()  # an eager episode is episode_length x substeps unfused substeps
         obs = task.reset()
         stats = self.obs_rms.snapshot()
         renderer = video = None

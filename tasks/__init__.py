@@ -16,13 +16,14 @@ dynamics that equals MuJoCo's ``qacc``.
 from .dynamics import ContactParams, LimitParams, Simulator
 from .model import ArticulatedModel, UnsupportedModelError, load_model
 from .registry import TASKS, make
-from .task import PHYSICS_PARTS, CameraSpec, Task, TaskConfig
+from .task import PHYSICS_PARTS, CameraSpec, CompiledCall, Task, TaskConfig
 
 __all__ = [
     "PHYSICS_PARTS",
     "TASKS",
     "ArticulatedModel",
     "CameraSpec",
+    "CompiledCall",
     "ContactParams",
     "LimitParams",
     "Simulator",

@@ -31,15 +31,15 @@ from .dynamics import ContactParams, LimitParams, Simulator
 from .model import ArticulatedModel, load_model
 from .rng import CounterRNG
 
-__all__ = ["ASSETS", "DEFAULT_INDUCTOR_OPTIONS", "PHYSICS_PARTS", "CameraSpec", "Task", "TaskConfig"]
+__all__ = ["ASSETS", "DEFAULT_INDUCTOR_OPTIONS", "PHYSICS_PARTS", "CameraSpec", "CompiledCall", "Task", "TaskConfig"]
 
-#: The separately compiled pieces of a control step (:meth:`Task.compile`): the physics substep, the mass-matrix
-#: factorisation and the per-step reward/observation/reset. Each is its own graph, and with its backward its own
-#: compile work, so separate processes can compile them at the same time (ablations/compile_helper.py).
+#: The separately compiled pieces of a control step (:meth:`Task.compile_table`): the physics substep, the
+#: mass-matrix factorisation and the per-step reward/observation/reset. Each is its own graph, and with its backward
+#: its own compile work, so separate processes can compile them at the same time.
 PHYSICS_PARTS = ("substep", "factorize", "finish")
 
 ASSETS = Path(__file__).resolve().parent / "assets"
-#: inductor options of :meth:`Task.compile` (see the comments there for what each one measured)
+#: inductor options of the physics parts (:meth:`Task.compile_table` says why each one is there)
 DEFAULT_INDUCTOR_OPTIONS = {"combo_kernels": True, "unroll_reductions_threshold": 32, "triton.enable_pdl": True}
 
 
@@ -115,6 +115,39 @@ class TaskConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v >= 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class CompiledCall:
+    """A callable that ``--compile`` runs through ``torch.compile``, and where it is called from:
+    ``owner.<attr>``. :meth:`compile` puts ``torch.compile(fn, **options)`` there (which compiles at its first
+    call), :meth:`run_eagerly` puts ``eager`` back (``fn`` where None).
+
+    ``options`` are torch.compile's keyword arguments; their inductor ``options`` are merged under a caller's, and
+    dropped for a caller's ``mode`` or another backend (torch.compile takes a mode or options, not both);
+    programmatic dependent launch in them is made race-free (``tasks._pdl``)."""
+
+    owner: Any
+    attr: str
+    fn: Callable
+    options: dict[str, Any] = field(default_factory=lambda: {"dynamic": False})
+    eager: Callable | None = None
+
+    def compile(self, **overrides: Any) -> None:
+        import torch._dynamo.config as dynamo_config
+
+        # Dynamo keeps one guard set per batch size, dtype, device and grad pattern of a compiled function's
+        # inputs, shared by every object whose method it compiled (every Task shares the compiled substep's code).
+        # Past its default limit of 8 it quietly runs the function eagerly for the rest of the process.
+        dynamo_config.recompile_limit = max(getattr(dynamo_config, "recompile_limit", 8), 64)
+        kw = {**{k: v for k, v in self.options.items() if k != "options"}, **overrides}
+        inductor = {**self.options.get("options", {}), **(overrides.get("options") or {})}
+        if inductor and "mode" not in kw and kw.get("backend", "inductor") == "inductor":
+            kw["options"] = _pdl.options(inductor)
+        setattr(self.owner, self.attr, torch.compile(self.fn, **kw))
+
+    def run_eagerly(self) -> None:
+        setattr(self.owner, self.attr, self.fn if self.eager is None else self.eager)
 
 
 @functools.cache
@@ -307,8 +340,8 @@ class Task(abc.ABC):
         set (one compilation) instead of one per pattern (three for the substep: the start state, the first
         step's later substeps, the later steps' mass matrices). Gradients into the parameters are unchanged
         (eagerly to the bit; compiled, to float rounding, as the first step then runs the later steps' graphs);
-        the leaf's own gradient is computed and dropped, a few more backward kernels per window (an H100
-        iteration's time is unchanged: BENCHMARKS.md, section 6).
+        the leaf's own gradient is computed and dropped, a few more backward kernels per window (their cost:
+        BENCHMARKS.md, section 6).
         """
         self.qpos = self.qpos.detach()
         self.qvel = self.qvel.detach()
@@ -348,40 +381,36 @@ class Task(abc.ABC):
         self.prev_actions = state["prev_actions"].to(self.device, self.dtype).clone()
         self.rng.set_state(state["rng"])
 
+    def compile_table(self) -> dict[str, CompiledCall]:
+        """What ``--compile`` compiles of a control step, by part (:data:`PHYSICS_PARTS`): each part where
+        :meth:`step` calls it, with static shapes and :data:`DEFAULT_INDUCTOR_OPTIONS`. The substep is compiled on
+        its own (not the whole control step) so that compile time does not grow with ``substeps``; compiled, it
+        hands ``tau`` and the mass matrix on as new tensors (:meth:`_chained_substep`).
+
+        A substep is many tiny kernels whose launch latency, not their work, is its time (BENCHMARKS.md section
+        3), so each inductor option removes launches or hides their latency, with the same losses: combo kernels
+        launch independent small kernels as one; reductions over up to 32 elements (the simulator's 3-, 6- and
+        joint-sized sums) are unrolled into the pointwise code around them instead of launching their own
+        kernels; programmatic dependent launch (Hopper and newer; a no-op elsewhere) lets each kernel be scheduled
+        while the one before it drains, with every kernel waiting before its first access (``tasks._pdl`` says
+        which race that avoids)."""
+        options = {"dynamic": False, "options": DEFAULT_INDUCTOR_OPTIONS}
+        return {
+            "substep": CompiledCall(self, "_substep", functools.partial(self._chained_substep, copy=True), options,
+                                    eager=self._chained_substep),
+            "factorize": CompiledCall(self, "_factorize", self.sim.factorize, options),
+            "finish": CompiledCall(self, "_finish", self._finish_impl, options),
+        }
+
     def compile(self, *, parts: Collection[str] = PHYSICS_PARTS, **compile_kwargs: Any) -> Task:
         """Compile the physics substep, the mass-matrix factorisation and the per-step reward/reset with
-        ``torch.compile`` (static shapes); ``parts`` names which of them (:data:`PHYSICS_PARTS`), the others
-        stay as they are.
-
-        Keyword arguments go to ``torch.compile`` (default ``dynamic=False``; inductor ``options`` are merged over
-        :data:`DEFAULT_INDUCTOR_OPTIONS` unless a ``mode`` is given). The substep is compiled on
-        its own (not the whole control step) so compile time does not grow with ``substeps``. Returns self.
-        """
-        import torch._dynamo.config as dynamo_config
-
-        parts = _check_parts(parts)
-        # Every Task shares the compiled code objects (``substep`` etc.), and each batch size, dtype, device and
-        # grad/no-grad variant of the state is one more guard set. Past dynamo's default limit of 8 it quietly
-        # falls back to eager, and a process that simulates several batch sizes runs several times slower.
-        dynamo_config.recompile_limit = max(getattr(dynamo_config, "recompile_limit", 8), 64)
-        # A substep of 64 ants is ~100 tiny kernels whose launch latency, not their work, is the time
-        # (BENCHMARKS.md section 3), so each option below removes launches or hides their latency, with the
-        # same losses. Inductor's combo kernels launch independent small kernels as one. Reductions over up to
-        # 32 elements (the simulator's 3-, 6- and joint-sized sums) are unrolled into the pointwise code around
-        # them instead of launching their own kernels. Programmatic dependent launch (Hopper and newer; a no-op
-        # elsewhere) lets each kernel be scheduled while the one before it drains, and at ~2 us per dependent
-        # kernel that latency is most of a substep's time.
-        kw = {"dynamic": False, **compile_kwargs}
-        if "mode" not in kw and kw.get("backend", "inductor") == "inductor":  # a mode or options, not both
-            # PDL with every kernel waiting before its first access (see tasks._pdl for the race it avoids)
-            kw["options"] = _pdl.options({**DEFAULT_INDUCTOR_OPTIONS, **(kw.get("options") or {})})
-        for part in parts:
-            fn = functools.partial(self._chained_substep, copy=True) if part == "substep" else self._eager_part(part)
-            setattr(self, f"_{part}", torch.compile(fn, **kw))
+        ``torch.compile`` (:meth:`compile_table`); ``parts`` names which of them (:data:`PHYSICS_PARTS`), the
+        others stay as they are. Keyword arguments go to ``torch.compile`` (inductor ``options`` are merged over
+        :data:`DEFAULT_INDUCTOR_OPTIONS` unless a ``mode`` is given). Returns self."""
+        table = self.compile_table()
+        for part in _check_parts(parts):
+            table[part].compile(**compile_kwargs)
         return self
-
-    def _eager_part(self, part: str) -> Callable:
-        return {"substep": self._chained_substep, "factorize": self.sim.factorize, "finish": self._finish_impl}[part]
 
     @contextmanager
     def running_eagerly(self, parts: Collection[str]) -> Iterator[None]:
@@ -389,14 +418,15 @@ class Task(abc.ABC):
         it, as before. A process that compiles only some parts ahead steps with the others eager, so that it
         does not compile them too (same values: the compiled parts are the same functions)."""
         parts = _check_parts(parts)
-        kept = {part: getattr(self, f"_{part}") for part in parts}
+        table = self.compile_table()
+        kept = {part: getattr(self, table[part].attr) for part in parts}
         for part in parts:
-            setattr(self, f"_{part}", self._eager_part(part))
+            table[part].run_eagerly()
         try:
             yield
         finally:
             for part, fn in kept.items():
-                setattr(self, f"_{part}", fn)
+                setattr(self, table[part].attr, fn)
 
     def _check_action(self, action: torch.Tensor) -> None:
         if not isinstance(action, torch.Tensor):

@@ -19,7 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ablations.compile_helper import HELPER_SHARES, RUN_SHARE, CompileHelper, CompileHelpers, helper_shares
+from ablations.startup import Startup
+from ablations.startup.helpers import HELPER_SHARES, RUN_SHARE, CompileHelper, CompileHelpers, helper_shares
 from gradlab.config import SHACConfig, resolve_config
 
 CPU = torch.device("cpu")
@@ -76,7 +77,7 @@ _READS_STDIN = "import sys; sys.stdin.buffer.read()"
 def _helper(tmp_path, *args: str) -> subprocess.CompletedProcess:
     early = tmp_path / "early.log"
     early.write_text("")
-    return subprocess.run([sys.executable, "-X", "importtime", "-m", "ablations.compile_helper", str(early), *args],
+    return subprocess.run([sys.executable, "-X", "importtime", "-m", "ablations.startup.helpers", str(early), *args],
                           input=b"", capture_output=True, timeout=300)
 
 
@@ -95,7 +96,7 @@ def test_a_helper_on_standby_that_is_let_go_or_whose_run_is_gone_does_nothing(tm
 
 
 def test_helpers_on_standby_are_started_only_for_command_lines_that_may_want_them(monkeypatch):
-    from ablations import compile_helper
+    from ablations.startup import helpers as compile_helper
 
     spawned = []
     monkeypatch.setattr(CompileHelpers, "spawn", classmethod(lambda cls, n=3: spawned.append(n) or cls([])))
@@ -120,7 +121,7 @@ def test_a_run_that_wants_no_helpers_lets_those_on_standby_go(tmp_path):
     processes = [h.process for h in standby.helpers]
     cfg = runs.RunConfig(task="cartpole", mode="state", num_envs=2, horizon=4, iters=1, device="cpu",
                          out=tmp_path / "runs", name="r", progress=False, video_every=0)
-    runs.run(cfg, standby=standby)
+    runs.run(cfg, startup=Startup(standby))
     assert len(processes) == len(HELPER_SHARES)
     assert [p.wait(timeout=30) for p in processes] == [0] * len(processes)  # ended by themselves: let go
     assert not list((tmp_path / "runs" / "r").glob("compile_helper*"))
@@ -128,7 +129,9 @@ def test_a_run_that_wants_no_helpers_lets_those_on_standby_go(tmp_path):
 
 def _failing_run(tmp_path, monkeypatch, where: str):
     """A --compile run on the CPU made to start its helpers (sleeping stand-ins), failing ``where``."""
-    from ablations import compile_helper, runs
+    from ablations import runs
+    from ablations.startup import ahead, wing
+    from ablations.startup import helpers as compile_helper
 
     helpers = []
     spawn = CompileHelper.spawn
@@ -140,12 +143,12 @@ def _failing_run(tmp_path, monkeypatch, where: str):
     def boom(*args, **kwargs):
         raise KeyboardInterrupt if where == "compiling ahead" else RuntimeError("the trainer cannot be built")
 
-    monkeypatch.setattr(runs, "_wants_compile_helper", lambda *a, **k: True)
+    monkeypatch.setattr(wing, "wants_helpers", lambda *a, **k: True)
     monkeypatch.setattr(compile_helper.CompileHelper, "spawn", spawn_sleeper)
     import gradlab.shac
 
     if where == "compiling ahead":
-        monkeypatch.setattr(gradlab.shac.SHAC, "compile_physics_now", boom)
+        monkeypatch.setattr(ahead, "compile_physics_ahead", boom)
     else:
         monkeypatch.setattr(gradlab.shac.SHAC, "__init__", boom)
     cfg = runs.RunConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4, iters=1,
@@ -218,35 +221,38 @@ def test_a_helper_that_finished_is_not_announced(tmp_path):
 def test_a_run_starts_helpers_only_where_it_pays(tmp_path, monkeypatch):
     """On a GPU of a machine with enough cores, fresh, with a cache and no artifact file for the settings: yes;
     otherwise no."""
-    from ablations import compile_helper
-    from ablations.runs import RunConfig, _wants_compile_helper
-    from gradlab.compiling import CompileCache
+    from ablations.runs import RunConfig
+    from ablations.startup import helpers as compile_helper
+    from ablations.startup.cache import CompileCache
+    from ablations.startup.wing import wants_helpers
 
     cache = CompileCache(tmp_path, CPU)  # the folder's device kind does not matter to the decision
     cfg = RunConfig(task="cartpole", compile=True)
     gpu = torch.device("cuda", 0)
     monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES)
-    assert _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=False)
+    assert wants_helpers(cfg, gpu, cache, "cartpole_x", resuming=False)
     monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES - 1)
-    assert not _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=False)  # too few cores to share
+    assert not wants_helpers(cfg, gpu, cache, "cartpole_x", resuming=False)  # too few cores to share
     monkeypatch.setattr(compile_helper, "cores", lambda: compile_helper.MIN_CORES)
-    assert not _wants_compile_helper(cfg, CPU, cache, "cartpole_x", resuming=False)
-    assert not _wants_compile_helper(cfg, gpu, None, "cartpole_x", resuming=False)  # --compile-cache off
-    assert not _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=True)
-    assert not _wants_compile_helper(RunConfig(task="cartpole", compile=True, compile_helper=False), gpu, cache,
+    assert not wants_helpers(cfg, CPU, cache, "cartpole_x", resuming=False)
+    assert not wants_helpers(cfg, gpu, None, "cartpole_x", resuming=False)  # --compile-cache off
+    assert not wants_helpers(cfg, gpu, cache, "cartpole_x", resuming=True)
+    assert not wants_helpers(RunConfig(task="cartpole", compile=True, compile_helper=False), gpu, cache,
                                      "cartpole_x", resuming=False)
-    assert not _wants_compile_helper(RunConfig(task="cartpole"), gpu, cache, "cartpole_x", resuming=False)
+    assert not wants_helpers(RunConfig(task="cartpole"), gpu, cache, "cartpole_x", resuming=False)
     cache.artifact_path("cartpole_x").parent.mkdir(parents=True, exist_ok=True)
     cache.artifact_path("cartpole_x").write_bytes(b"compiled before")  # a warm start: nothing to gain
-    assert not _wants_compile_helper(cfg, gpu, cache, "cartpole_x", resuming=False)
+    assert not wants_helpers(cfg, gpu, cache, "cartpole_x", resuming=False)
 
 
 _RUN = textwrap.dedent("""
     import json, sys
     import torch
     from pathlib import Path
-    from ablations.compile_helper import RUN_SHARE, CompileHelpers
-    from gradlab.compiling import CompileCache, compile_counters
+    from ablations.startup.ahead import compile_physics_ahead
+    from ablations.startup.cache import CompileCache
+    from ablations.startup.helpers import RUN_SHARE, CompileHelpers
+    from ablations.startup.stats import CompileWatch, compile_counters
     from gradlab.config import SHACConfig, resolve_config
     from gradlab.shac import SHAC
 
@@ -256,11 +262,12 @@ _RUN = textwrap.dedent("""
     CompileCache(root, torch.device("cpu")).activate()
     helpers = CompileHelpers.spawn().assign(cfg, torch.device("cpu"), root, root) if with_helper else None
     trainer = SHAC(cfg, device="cpu")
+    trainer.compile()
+    watch = CompileWatch()
     if helpers is not None:
-        trainer.compile_physics_now(parts=RUN_SHARE)
+        compile_physics_ahead(trainer, RUN_SHARE)
         assert helpers.wait(timeout=900), [Path(h.log).read_text()[-3000:] for h in helpers.helpers]
     metrics = [trainer.train_iteration() for _ in range(2)]
-    watch = trainer.compile_watch
     print(json.dumps({"losses": [m["actor_loss"] for m in metrics], "critic": [m["critic_loss"] for m in metrics],
                       "compiles": watch.compiles, "recompiles": watch.recompiles, **compile_counters()}))
 """)

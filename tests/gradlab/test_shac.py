@@ -131,12 +131,39 @@ def test_config_errors_are_clear():
         SHAC(tiny(num_envs=0), device="cpu")
     with pytest.raises(ValueError, match="horizon must be a positive integer"):
         SHAC(tiny(horizon=-1), device="cpu")
-    with pytest.raises(ValueError, match=r"compile_parts are some of \('substep', 'factorize', 'finish', "
+    trainer = SHAC(tiny(compile=True), device="cpu")
+    with pytest.raises(ValueError, match=r"compile parts are some of \('substep', 'factorize', 'finish', "
                                          r"'renderer', 'networks'\), got \('renderer', 'critic'\)"):
-        SHAC(tiny(compile=True), device="cpu", compile_parts=("renderer", "critic"))
-    with pytest.raises(ValueError, match="compile_parts are some of"):
-        SHAC(tiny(compile=True), device="cpu", compile_parts="networks")  # a string, not a collection of parts
+        trainer.compile(parts=("renderer", "critic"))
+    with pytest.raises(ValueError, match="compile parts are some of"):
+        trainer.compile(parts="networks")  # a string, not a collection of parts
+    trainer.compile(parts=("networks",))
+    with pytest.raises(RuntimeError, match=r"compiled \('networks',\) already"):
+        trainer.compile()
     assert "ant" in tasks.TASKS
+
+
+@pytest.mark.parametrize("mode", ["full", "blind"])
+def test_compile_table_and_sites_name_what_the_trainer_calls(mode):
+    """Every part of COMPILE_PARTS has an entry (the renderer's empty where nothing is rendered), each entry can
+    compile; every compile site is an attribute path to a callable the trainer calls. Compiling a part puts a
+    compiled callable where the trainer calls it, lazily: nothing is compiled before the first call."""
+    from gradlab.shac import COMPILE_PARTS
+
+    trainer = SHAC(tiny(mode=mode, compile=True), device="cpu")
+    table = trainer.compile_table()
+    assert tuple(table) == COMPILE_PARTS
+    assert (len(table["renderer"]) == 0) == (mode == "blind")
+    assert all(callable(entry.compile) for entries in table.values() for entry in entries)
+    for path in trainer.COMPILE_SITES.values():
+        holder = trainer
+        for name in path.split("."):
+            holder = getattr(holder, name)
+        assert callable(holder), path
+    eager_mean = trainer._actor_mean
+    trainer.compile(parts=("networks",))
+    assert trainer.compiled == ("networks",) and trainer._actor_mean is not eager_mean
+    assert trainer.task._substep == trainer.task._chained_substep  # not compiled: the physics stays eager
 
 
 def test_raster_model_option_reaches_the_renderer():
@@ -150,6 +177,8 @@ def test_raster_model_option_reaches_the_renderer():
 @pytest.mark.skipif(not (__import__("shutil").which("g++") or __import__("shutil").which("c++")),
                     reason="torch.compile on the CPU needs a C++ compiler")
 def test_compile_matches_eager_on_cpu():
+    from gradlab.shac import COMPILE_PARTS
+
     # --compile's non-graph part (torch.compile'd physics substep and reward/reset; CUDA graphs need a GPU and
     # are tested in tests/test_cuda.py) gives the eager numbers within float tolerance, probes included.
     # Compiled, each window starts from a leaf that requires grad (one guard set for every control step;
@@ -165,6 +194,7 @@ def test_compile_matches_eager_on_cpu():
         trainer.task.detach = detach
         out = [trainer.train_iteration() for _ in range(3)]
         assert starts == [compile_] * len(starts) and len(starts) >= 3
+        assert trainer.compiled == (COMPILE_PARTS if compile_ else None)  # compiled at its first iteration
         return out
 
     eager, compiled = run(False), run(True)

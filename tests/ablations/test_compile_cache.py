@@ -1,4 +1,5 @@
-"""The compile cache folder (resolution, manifest, artifact files) and the compile watch (CPU, tiny graphs)."""
+"""The start-up wing's compile cache folder (resolution, manifest, artifact files), compile statistics and compile
+watch (CPU, tiny graphs)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,15 @@ from pathlib import Path
 import pytest
 import torch
 
-from gradlab import CompileCache, CompileCacheWarning, CompileWatch, resolve_cache_root
-from gradlab.compiling import CACHE_ENV_VAR, cache_versions
+from ablations.startup.cache import (
+    CACHE_ENV_VAR,
+    CompileCache,
+    CompileCacheWarning,
+    cache_versions,
+    resolve_cache_root,
+    start_compile_workers,
+)
+from ablations.startup.stats import CompileWatch, compile_phase_seconds, compiled_graphs
 
 CPU = torch.device("cpu")
 
@@ -118,8 +126,8 @@ def test_a_damaged_artifact_file_is_moved_aside_with_one_warning_and_compiling_s
 _WARM = textwrap.dedent("""
     import json, os, sys
     import torch
-    from gradlab import CompileCache
-    from gradlab.compiling import compile_counters
+    from ablations.startup.cache import CompileCache
+    from ablations.startup.stats import compile_counters
 
     SCALE = float(os.environ.get("BACKWARD_SCALE", "1"))
 
@@ -210,8 +218,6 @@ def test_the_watch_names_the_part_that_compiles_and_counts_recompiles():
 def test_a_backward_graph_is_named_after_the_part_that_compiled_its_forward():
     """The lazily compiled backward of a labelled part is that part's ("physics step backward"), whichever label
     the backward pass itself runs under; compiled_graphs lists forward and backward by function, slowest first."""
-    from gradlab.compiling import compiled_graphs
-
     shown = []
     watch = CompileWatch(on_change=shown.append)
 
@@ -269,8 +275,6 @@ def test_compile_workers_start_early_for_a_gpu_only_and_never_fail_a_run(monkeyp
     the CPU (C++ there); a torch whose private pool function fails or is missing costs the head start only."""
     import torch._inductor.async_compile as async_compile
 
-    from gradlab.compiling import start_compile_workers
-
     started = []
     monkeypatch.setattr(async_compile, "maybe_warm_pool", lambda: started.append(True))
     assert start_compile_workers("cpu") is False and started == []
@@ -288,8 +292,6 @@ def test_compile_workers_start_early_for_a_gpu_only_and_never_fail_a_run(monkeyp
 def test_the_compile_phases_say_where_compiling_went(monkeypatch):
     """compile_phase_seconds: torch's own phase times of this process, in seconds; nested phases are within the
     ones that contain them; a torch without the table gives an empty breakdown, not an error."""
-    from gradlab.compiling import compile_phase_seconds
-
     torch.compile(lambda x: x.sin() * 3.0, backend="eager", dynamic=False)(torch.ones(4))
     phases = compile_phase_seconds()
     assert phases["_compile.compile_inner"] > 0
@@ -328,3 +330,18 @@ def test_a_run_summary_has_its_time_to_the_first_iteration(tmp_path, monkeypatch
     assert summary["compile"] is None  # not a --compile run
     with pytest.raises(ValueError, match="compile_cache is empty"):
         runs.RunConfig(compile_cache=" ").validate()
+
+
+def test_the_watch_labels_the_callables_an_owner_calls_its_compiled_parts_through():
+    """label_sites wraps each attribute path (``task.step``, ``window.backward``) with the watch's label, so that
+    what compiles inside is named so; calls still return what the callable returns."""
+    from types import SimpleNamespace
+
+    shown = []
+    watch = CompileWatch(on_change=shown.append)
+    compiled = torch.compile(lambda x: x * 3.0 - 1.0, backend="eager", dynamic=False)
+    owner = SimpleNamespace(task=SimpleNamespace(step=compiled), window=SimpleNamespace(backward=lambda x: x))
+    watch.label_sites(owner, {"physics step": "task.step", "backward pass": "window.backward"})
+    assert torch.equal(owner.task.step(torch.ones(2)), torch.full((2,), 2.0))
+    assert shown == ["compiling physics step (0 done)"]
+    assert owner.window.backward(5) == 5

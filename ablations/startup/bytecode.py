@@ -2,11 +2,11 @@
 
 Where Python is told not to write bytecode beside the sources (``PYTHONDONTWRITEBYTECODE``, ``python -B``; common
 in container images, the GPU image included), every process compiles the Python source of torch, inductor,
-Triton and the rest again: 2559 modules, 9 s of a profiled warm ``ablate --compile`` start on an H100 host
-(BENCHMARKS.md section 6). ``ablate`` calls :func:`keep_bytecode` on its first line, before torch is imported
-(this module imports nothing heavy), so that the bytecode goes to a folder of its own instead. Not the compile
-cache's folder: bytecode belongs to the Python install, not to what was compiled, and clearing the compile cache
-for a cold-compiled comparison should not make the next start recompile torch's Python.
+Triton and the rest again, seconds of every start (BENCHMARKS.md section 6). ``ablate`` calls :func:`keep_bytecode`
+on its first line, before torch is imported (this module imports nothing heavy), so that the bytecode goes to a
+folder of its own instead. Not the compile cache's folder: bytecode belongs to the Python install, not to what was
+compiled, and clearing the compile cache for a cold-compiled comparison should not make the next start recompile
+torch's Python.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ __all__ = ["BYTECODE_ENV_VAR", "DEFAULT_BYTECODE_FOLDER", "OFF_VALUES", "keep_by
 BYTECODE_ENV_VAR = "PIXELGRAD_BYTECODE_CACHE"
 #: The bytecode folder when the environment variable names none.
 DEFAULT_BYTECODE_FOLDER = Path("~/.cache/pixelgrad/bytecode")
-#: Values that turn it off, as for the compile cache (gradlab.compiling.OFF_VALUES, which imports torch).
+#: Values that turn a start-up folder off, the bytecode folder's and the compile cache's.
 OFF_VALUES = ("off", "none", "0", "false", "no")
 
 

@@ -1,16 +1,16 @@
 """Helper processes that compile parts of a cold ``--compile`` run at the same time as the run compiles its own.
 
 Inductor compiles one graph at a time in a process, and a cold run on a GPU compiles about twenty: the physics
-step, its mass-matrix factorisation and its reward/reset step, each with its backward (~45 s on an H100), and the
-renderer's scene, the actor and the critic with theirs, plus the renderer's own Triton kernels (~30 s more;
-BENCHMARKS.md section 6). Every graph goes into the same cache folder under its own key and none needs another
-to be compiled first, so the work is split into shares (parts of :data:`gradlab.shac.COMPILE_PARTS`) that
-separate processes compile at the same time:
+step, its mass-matrix factorisation and its reward/reset step, each with its backward, and the renderer's scene,
+the actor and the critic with theirs, plus the renderer's own Triton kernels (their seconds: BENCHMARKS.md
+section 6). Every graph goes into the same cache folder under its own key and none needs another to be compiled
+first, so the work is split into shares (parts of :data:`gradlab.shac.COMPILE_PARTS`) that separate processes
+compile at the same time:
 
 * the run compiles :data:`RUN_SHARE` (the physics substep, the largest graph pair) before its first reset
-  (:meth:`gradlab.shac.SHAC.compile_physics_now`), the other physics parts running eagerly meanwhile;
+  (:func:`ablations.startup.ahead.compile_physics_ahead`), the other physics parts running eagerly meanwhile;
 * one helper per share of :data:`HELPER_SHARES` builds a trainer of the same resolved settings that compiles
-  only its share (``SHAC(..., compile_parts=share)``, the rest eager).
+  only its share (``SHAC.compile(parts=share)``, the rest eager).
   A physics share steps the physics twice and differentiates, as the run does; any other share runs one training
   iteration of :data:`HORIZON` steps (no compiled graph's shapes depend on the horizon: the renderer, actor and
   critic see one step's batch, and a longer eager window only costs time);
@@ -18,11 +18,10 @@ separate processes compile at the same time:
 
 ``ablate`` starts the helpers on standby from its first line, before it imports torch
 (:meth:`CompileHelpers.standby_for`): each imports torch, the trainer's modules, dynamo and inductor's compiler
-(8-17 s on an H100 host with four processes importing at once; none of it reads the cache folders' environment
-variables), then waits on stdin. The run sends each its share once it holds its CUDA context (on a GPU in
-exclusive-process mode the helpers are then the ones that cannot start theirs), or closes stdin to let them go
-when it wants none (a warm start, a CPU device); a helper looks at stdin between its imports, so one let go
-stops within one module's import.
+(none of it reads the cache folders' environment variables), then waits on stdin. The run sends each its share
+once it holds its CUDA context (on a GPU in exclusive-process mode the helpers are then the ones that cannot start
+theirs), or closes stdin to let them go when it wants none (a warm start, a CPU device); a helper looks at stdin
+between its imports, so one let go stops within one module's import.
 
 The helpers only fill the cache; the run never reads anything from it but torch's and Triton's own cache entries,
 under their own keys. A helper that cannot start or fails costs its head start; one that hangs costs the wait, at
@@ -64,9 +63,9 @@ RUN_SHARE = ("substep",)
 #: Fewest CPU cores on which helpers are started: the run and three helpers each keep a core busy with their own
 #: compiling (inductor's lowering and code generation run in the calling process) besides their compile workers.
 MIN_CORES = 8
-#: What each helper compiles (parts of gradlab.shac.COMPILE_PARTS), one helper per share. The physics' other two
-#: parts, the renderer and the networks each cost about as much as the substep alone on the ant (BENCHMARKS.md
-#: section 6); a share with nothing to compile for the mode (a renderer that never runs) is dropped.
+#: What each helper compiles (parts of gradlab.shac.COMPILE_PARTS), one helper per share, split so that the shares
+#: take similar times (BENCHMARKS.md section 6); a share with nothing to compile for the mode (a renderer that never
+#: runs) is dropped.
 HELPER_SHARES = (("factorize", "finish"), ("renderer",), ("networks",))
 
 
@@ -118,7 +117,7 @@ class CompileHelper:
             fd, early = tempfile.mkstemp(prefix="pixelgrad-compile-helper-", suffix=".log")
             with os.fdopen(fd, "wb") as out:
                 process = subprocess.Popen(
-                    command or [sys.executable, "-m", "ablations.compile_helper", early, str(os.getpid())],
+                    command or [sys.executable, "-m", "ablations.startup.helpers", early, str(os.getpid())],
                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.PIPE, env=env)
         except (OSError, ValueError) as e:
             if early is not None:
@@ -289,7 +288,7 @@ class CompileHelpers:
         return [helper.record() for helper in self.helpers]
 
 
-#: What a helper imports on standby, in this order (each a few seconds on a GPU host's CPU).
+#: What a helper imports on standby, in this order.
 _STANDBY_IMPORTS = ("torch", "gradlab.shac", "torch._dynamo", "torch._inductor.compile_fx")
 
 
@@ -347,7 +346,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     import torch
 
-    from gradlab.compiling import CompileCache, start_compile_workers
+    from ablations.startup.ahead import compile_physics_ahead
+    from ablations.startup.cache import CompileCache, start_compile_workers
+    from ablations.startup.stats import CompileWatch
     from gradlab.shac import SHAC
     from tasks import PHYSICS_PARTS
 
@@ -359,20 +360,22 @@ def main(argv: list[str] | None = None) -> int:
     seconds["cache"], mark = time.perf_counter() - mark, time.perf_counter()
     cfg = spec["config"]
     horizon = min(cfg.horizon, max(HORIZON, -(-cfg.critic_batches // cfg.num_envs)))
-    trainer = SHAC(dataclasses.replace(cfg, horizon=horizon), device=device, compile_parts=parts)
+    trainer = SHAC(dataclasses.replace(cfg, horizon=horizon), device=device)
+    trainer.compile(parts=parts)
+    watch = CompileWatch()
     seconds["trainer"], mark = time.perf_counter() - mark, time.perf_counter()
     if set(parts) <= set(PHYSICS_PARTS):
-        trainer.compile_physics_now()  # the run's own way of compiling the physics: the same guards
+        compile_physics_ahead(trainer)  # the run's own way of compiling the physics: the same guards
     else:
         trainer.train_iteration()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     seconds["compiling"] = time.perf_counter() - mark
-    watch = trainer.compile_watch.summary()
+    counts = watch.summary()
     spent = ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items())
-    print(f"compile helper ({', '.join(parts)}): {spent}; {watch['compiles']} graphs compiled in "
-          f"{watch['compile_s']:.1f} s and {watch['triton_compiles']} Triton kernels in "
-          f"{watch['triton_compile_s']:.1f} s; done after {time.perf_counter() - began:.1f} s", flush=True)
+    print(f"compile helper ({', '.join(parts)}): {spent}; {counts['compiles']} graphs compiled in "
+          f"{counts['compile_s']:.1f} s and {counts['triton_compiles']} Triton kernels in "
+          f"{counts['triton_compile_s']:.1f} s; done after {time.perf_counter() - began:.1f} s", flush=True)
     return 0
 
 
