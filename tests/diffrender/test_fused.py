@@ -16,6 +16,8 @@ pytest.importorskip("triton")
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
 from diffrender.raster import fused
+from diffrender.raster.fused import rasterize, tuning
+from diffrender.raster.kernel import Static
 
 from .helpers import F64, ant_camera, ant_pose, asset, degenerate_scene, tiny_camera, tiny_scene, tiny_settings
 
@@ -29,9 +31,9 @@ def ant64():
 
 
 def _set(monkeypatch, **constants):
-    """Set ``diffrender.raster.fused``'s module constants for one test (restored after it)."""
+    """Set ``diffrender.raster.fused.tuning``'s constants for one test (restored after it)."""
     for name, value in constants.items():
-        monkeypatch.setattr(fused, name, value)
+        monkeypatch.setattr(tuning, name, value)
 
 
 def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
@@ -79,7 +81,7 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     q = ant_pose(2, seed=6).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=12)
-    assert fused.backward_tile(ant64.num_faces, cam.height, cam.width) == fused.BWD_TILE_DENSE
+    assert fused.backward_tile(ant64.num_faces, cam.height, cam.width) == tuning.BWD_TILE_DENSE
     assert fused.backward_splits(30) == 4 and fused.forward_splits(30) == 3
     _compare(verts, ant64.faces, ant64.colors, cam, dict(raster_model=model, save_blend_state=model != "hard"))
 
@@ -124,17 +126,17 @@ def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=12)
     settings = dr.RasterSettings(backend="fused", raster_model=model)
-    st = fused.Static.make(settings, focal=cam.focal, height=cam.height, width=cam.width, tile_h=fused.TILE,
-                           tile_w=fused.TILE)
-    coef, box, bbox, sbox, floor = fused._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces, st,
-                                                16, 2)
+    st = Static.make(settings, focal=cam.focal, height=cam.height, width=cam.width, tile_h=tuning.TILE,
+                     tile_w=tuning.TILE)
+    coef, box, bbox, sbox, floor = rasterize._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces,
+                                                    st, 16, 2)
     results = []
     for splits in (1, 3):
-        monkeypatch.setattr(fused, "FWD_MAX_SPLITS", splits)
+        monkeypatch.setattr(tuning, "FWD_MAX_SPLITS", splits)
         assert fused.forward_splits(sbox.shape[2]) == splits
         out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
-        state = torch.full((2, fused.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
-        fused._launch_forward(coef, box, bbox, sbox, floor, st, fused.TILE, 16, out, state)
+        state = torch.full((2, rasterize.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
+        rasterize._launch_forward(coef, box, bbox, sbox, floor, st, tuning.TILE, 16, out, state)
         results.append((out, state))
     (out1, state1), (out3, state3) = results
     assert torch.isfinite(out1).all() and torch.isfinite(state1).all()
@@ -177,13 +179,13 @@ def test_super_block_boxes_are_unions_of_their_blocks(monkeypatch):
     for k, (a, b) in enumerate(((0, 4), (4, 7))):
         for row, reduce in enumerate((torch.amin, torch.amax, torch.amin, torch.amax)):
             assert torch.equal(sup[:, row, k], reduce(block[:, row, a:b], -1))
-    monkeypatch.setattr(fused, "BWD_TILE_DENSE", fused.BWD_TILE // 2)  # the defaults are equal: tell them apart
-    assert fused.backward_tile(100_000, 84, 84) == fused.BWD_TILE_DENSE
-    assert fused.backward_tile(1856, 84, 84) == fused.BWD_TILE
+    monkeypatch.setattr(tuning, "BWD_TILE_DENSE", tuning.BWD_TILE // 2)  # the defaults are equal: tell them apart
+    assert fused.backward_tile(100_000, 84, 84) == tuning.BWD_TILE_DENSE
+    assert fused.backward_tile(1856, 84, 84) == tuning.BWD_TILE
     # one program per tile for the ant (2 super-blocks), the most for 100k faces (99)
-    assert fused.backward_splits(2) == 1 and fused.backward_splits(99) == fused.BWD_MAX_SPLITS > 1
+    assert fused.backward_splits(2) == 1 and fused.backward_splits(99) == tuning.BWD_MAX_SPLITS > 1
     assert fused.backward_splits(0) == 1
-    assert fused.forward_splits(2) == 1 and fused.forward_splits(99) == fused.FWD_MAX_SPLITS > 1
+    assert fused.forward_splits(2) == 1 and fused.forward_splits(99) == tuning.FWD_MAX_SPLITS > 1
     assert fused.forward_splits(0) == 1
 
 
@@ -192,8 +194,8 @@ def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, su
     """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
     the backward uses to skip them (no atomics, pixels skipped); the gradients must still equal dense's, with
     the backward walking each face block whole or in sub-blocks, over tiles of either size."""
-    monkeypatch.setattr(fused, "BWD_TILE", bwd_tile)
-    monkeypatch.setattr(fused, "BWD_SUB_BLOCK", sub_block)
+    monkeypatch.setattr(tuning, "BWD_TILE", bwd_tile)
+    monkeypatch.setattr(tuning, "BWD_SUB_BLOCK", sub_block)
     q = ant_pose(2, seed=3).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=16)
@@ -266,7 +268,7 @@ def test_fused_saved_memory_is_flat_in_faces(ant64, keep_state):
         assert torch.isfinite(v.grad).all() and v.grad.abs().sum() > 0
         saved.append(meter.bytes)
     assert saved[0] == saved[1]
-    per_pixel = (3 + fused.STATE_PER_PIXEL) * 2 * cam.height * cam.width * verts.element_size()
+    per_pixel = (3 + rasterize.STATE_PER_PIXEL) * 2 * cam.height * cam.width * verts.element_size()
     inputs = sum(x.numel() * x.element_size() for x in (verts, ant64.colors, cam.rotation, cam.eye))
     assert saved[0] <= inputs + per_pixel * keep_state
     assert saved[0] > per_pixel * keep_state
@@ -280,8 +282,8 @@ def test_fused_chunks_over_environments_change_nothing(ant64, monkeypatch, share
     colors = ant64.colors if shared_colors else torch.rand(3, ant64.num_vertices, 3, dtype=F64, device=DEV)
     cam = ant_camera(q, size=8)
     res = []
-    for elems in (fused.COEF_ELEMS, 2 * fused.NUM_COEFFS * 960):  # 944 faces -> 960 padded (64-face blocks)
-        monkeypatch.setattr(fused, "COEF_ELEMS", elems)
+    for elems in (tuning.COEF_ELEMS, 2 * fused.NUM_COEFFS * 960):  # 944 faces -> 960 padded (64-face blocks)
+        monkeypatch.setattr(tuning, "COEF_ELEMS", elems)
         v, n, c, e = (x.clone().requires_grad_() for x in (verts, normals, colors, cam.eye))
         camera = dr.Camera(rotation=cam.rotation, eye=e, focal=cam.focal, height=cam.height, width=cam.width)
         img = fused.rasterize_fused(v, n, c, camera, ant64.faces, dr.RasterSettings(), face_block=64)
@@ -324,8 +326,8 @@ def test_fused_backward_skips_an_undefined_gradient(ant64, monkeypatch):
             return None
 
     calls = []
-    setup = fused.face_setup
-    monkeypatch.setattr(fused, "face_setup", lambda *a, **k: (calls.append(1), setup(*a, **k))[1])
+    setup = rasterize.face_setup
+    monkeypatch.setattr(rasterize, "face_setup", lambda *a, **k: (calls.append(1), setup(*a, **k))[1])
     q = ant_pose(1).to(DEV)
     verts = ant64.world_vertices(q).detach().requires_grad_()
     img = dr.render(verts, ant64.faces, ant64.colors, ant_camera(q, size=8), dr.RasterSettings(backend="fused"))

@@ -4,19 +4,22 @@ Elsewhere on a CPU the kernels run in Triton's interpreter, which accepts some p
 this builds them for real, in a fresh process (the interpreter, once on, replaces every kernel it defines).
 """
 
+import importlib.util
 import os
 import subprocess
 import sys
 
 import pytest
 
-pytest.importorskip("triton")
+# find, not import: triton imported here, before another module of the session sets TRITON_INTERPRET, would
+# leave that module's kernels compiled instead of interpreted
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="triton is not installed")
 
 _BUILD = """
 import triton
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
-from diffrender.raster import fused
+from diffrender.raster.fused import backward, forward, rasterize, tuning
 
 def build(kernel, consts, **options):
     names = kernel.arg_names
@@ -27,12 +30,13 @@ def build(kernel, consts, **options):
 
 for model in (0, 1, 2):  # hard, softmax, alpha
     for split in (False, True):
-        assert build(fused._fused_forward, dict(TILE_=4, FB=64, SB=16, FS=32, SAVE=True, SPLIT=split,
-                                                      MODEL=model))
-    assert build(fused._merge_forward, dict(BLOCK=256, SAVE=True, MODEL=model))
-    assert build(fused._pixel_backward, dict(BLOCK=256, MODEL=model))
-    cap = fused.BWD_MAXNREG_HARD if model == 0 else fused.BWD_MAXNREG  # as the renderer launches it
-    assert build(fused._fused_backward, dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=model), **fused._max_registers(cap))
+        assert build(forward._fused_forward, dict(TILE_=4, FB=64, SB=16, FS=32, SAVE=True, SPLIT=split,
+                                                  MODEL=model))
+    assert build(forward._merge_forward, dict(BLOCK=256, SAVE=True, MODEL=model))
+    assert build(backward._pixel_backward, dict(BLOCK=256, MODEL=model))
+    cap = tuning.BWD_MAXNREG_HARD if model == 0 else tuning.BWD_MAXNREG  # as the renderer launches it
+    assert build(backward._fused_backward, dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=model),
+                 **rasterize._max_registers(cap))
 print("built")
 """
 

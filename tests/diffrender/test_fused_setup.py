@@ -17,7 +17,9 @@ pytest.importorskip("triton")
 
 import diffrender as dr
 from diffrender.raster import fused
+from diffrender.raster.fused import reference
 from diffrender.raster.kernel import Static, face_validity, project, vertex_normals
+from diffrender.raster.setup_kernels import floor_planes
 
 from .helpers import F64, ant_camera, ant_pose, asset, degenerate_scene
 
@@ -228,8 +230,8 @@ def test_floor_planes_match_the_pytorch_floor(kw):
     cam = _floor_cameras()
     st = _static(cam, **kw)
     r_ref, e_ref, r_new, e_new = (x.clone().requires_grad_() for x in (cam.rotation, cam.eye) * 2)
-    ref = fused._floor_planes(r_ref, e_ref, st, F64, DEV)
-    new = fused.floor_planes(r_new, e_new, st)
+    ref = reference.floor_planes(r_ref, e_ref, st, F64, DEV)
+    new = floor_planes(r_new, e_new, st)
     hit = ref[:, 4] > 0.5
     assert hit.any() and (~hit).any() and not hit[2].any()
     if "zfar" in kw:
@@ -255,7 +257,7 @@ def test_floor_planes_match_the_pytorch_floor(kw):
 def test_floor_planes_gradcheck():
     cam = _floor_cameras()
     st = _static(cam, gamma=0.05, zfar=6.0)
-    torch.autograd.gradcheck(lambda r, e: fused.floor_planes(r, e, st)[:, :4],
+    torch.autograd.gradcheck(lambda r, e: floor_planes(r, e, st)[:, :4],
                              (cam.rotation.clone().requires_grad_(), cam.eye.clone().requires_grad_()), eps=1e-7,
                              atol=1e-6, rtol=1e-5, fast_mode=True)
 
@@ -270,8 +272,8 @@ def test_floor_planes_at_rays_parallel_to_the_floor():
     st = _static(cam)
     assert st.cy == 6.5 and float(cam.rotation[0, 2, 2]) == 0.0 and float(cam.rotation[0, 0, 2]) == 0.0
     r_ref, e_ref, r_new, e_new = (x.clone().requires_grad_() for x in (cam.rotation, cam.eye) * 2)
-    ref = fused._floor_planes(r_ref, e_ref, st, F64, DEV)
-    new = fused.floor_planes(r_new, e_new, st)
+    ref = reference.floor_planes(r_ref, e_ref, st, F64, DEV)
+    new = floor_planes(r_new, e_new, st)
     hit = new[0, 4] > 0.5
     assert not hit[6].any() and hit[7:].all() and not hit[:6].any()
     assert torch.isfinite(new).all() and (new.detach() - ref.detach()).abs().max() <= 1e-12

@@ -1,0 +1,67 @@
+"""The fused rasterizer's tuning constants: tile sides, face blocks, splits, warps, register caps and memory
+bounds. None changes an image or a gradient beyond float rounding order; each trades launch shape against
+work per program. :mod:`.rasterize` reads them when it launches, so a benchmark may set them between renders
+(``fused.tuning.BWD_SUB_BLOCK = 32``). The timings behind the defaults are in BENCHMARKS.md, section 2
+("The fused constants' defaults").
+"""
+
+#: Forward: pixels per tile side and faces per block. A forward program evaluates a block's faces at all its
+#: pixels as one (FACE_BLOCK, TILE^2) array: 4 x 4 pixels and 64 faces make 1,024 pairs, 8 per thread of 4
+#: warps. A smaller tile skips more blocks by their boxes but reads each block's coefficients for fewer
+#: pixels; a larger one the reverse. Powers of two (``rasterize_fused`` takes others per call).
+TILE = 4
+FACE_BLOCK = 64
+#: Face blocks per super-block: the coarse level of the kernels' walk over the faces (see
+#: :func:`.reference.super_block_boxes`). One box test skips SUPER_BLOCK x FACE_BLOCK faces, so a program far
+#: from a detailed mesh pays O(F / 1024) tests instead of O(F / 64).
+SUPER_BLOCK = 16
+#: Faces the forward evaluates at once (a block in parts of this many; <= FACE_BLOCK) and its warps (None: 4,
+#: or 8 for more than 1024 face-pixel pairs at once, so that each thread holds at most 8 pairs).
+FWD_SUB_BLOCK = 64
+FWD_WARPS: int | None = None
+#: The forward's walk over the super-blocks is split between up to FWD_MAX_SPLITS programs per tile (program s
+#: takes super-blocks s, s + S, ...), one per FWD_SPLIT_SUPER_BLOCKS super-blocks (see
+#: :func:`.rasterize.forward_splits`): the few tiles where a detailed mesh crowds thousands of faces would
+#: otherwise finish long after the rest. The parts are merged by a second kernel over MERGE_BLOCK pixels per
+#: program, as the backward's per-pixel kernel, so a split forward pays a launch and a round trip of
+#: PART_PER_PIXEL numbers per pixel and split: worth it only for many super-blocks, hence 4 per split.
+FWD_MAX_SPLITS = 8
+FWD_SPLIT_SUPER_BLOCKS = 4
+MERGE_BLOCK = 256
+#: Numbers the split forward's parts may hold at once (fewer splits for large batches or images): bounds the
+#: transient (splits, B, PART_PER_PIXEL, H, W) to 2^27 numbers, a quarter of the coefficients' bound.
+PART_ELEMS = 1 << 27
+#: Backward: tile side [px] (its own: it reads the forward's per-pixel state, not its tiling), faces per
+#: sub-block and warps (None: one warp per 32 faces). A backward program keeps one face per lane, with its 45
+#: coefficients and 45 gradient accumulators in registers, and walks the tile's pixels inside the sub-block's
+#: face boxes; each face then issues one atomic add per coefficient and tile. An 8 x 8 tile halves the tiles a
+#: face straddles against 4 x 4 (fewer atomics) at the price of more pixels walked per program; 64 faces per
+#: sub-block share one pixel walk between two warps.
+BWD_TILE = 8
+BWD_SUB_BLOCK = 64
+BWD_WARPS: int | None = None
+#: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px] (see
+#: :func:`.rasterize.backward_tile`): a smaller tile shares the busiest tiles' pairs among more programs. Equal
+#: to BWD_TILE by default: with the backward split (below) the smaller dense tile did not pay; the knob stays
+#: for scenes whose faces crowd a few tiles more than the benchmarked meshes.
+BWD_TILE_DENSE = 8
+DENSE_FACES_PER_PIXEL = 1.0
+#: The backward's walk over the super-blocks is split between up to BWD_MAX_SPLITS programs per tile, one per
+#: BWD_SPLIT_SUPER_BLOCKS super-blocks (see :func:`.rasterize.backward_splits`). Each face's gradient is a sum
+#: over tiles anyway (atomic adds), so a split costs no merge, only the super-block tests each program repeats:
+#: hence finer (2 per split) and wider (16) than the forward's.
+BWD_MAX_SPLITS = 16
+BWD_SPLIT_SUPER_BLOCKS = 2
+#: Registers per thread the forward kernel and the soft and hard models' backward kernels may use (None: the
+#: compiler's choice, 255 for the backward kernels, so that only 8 warps fit on a multiprocessor). Capped, more
+#: programs share a multiprocessor at the cost of spills: the soft backward, whose every pixel keeps many
+#: pairs and so waits on many loads, gains; the hard backward (one pair per pixel) and the forward lose.
+FWD_MAXNREG: int | None = None
+BWD_MAXNREG: int | None = 128
+BWD_MAXNREG_HARD: int | None = None
+#: Per-face coefficients held at once: environments are rendered in chunks of at most this many, which bounds
+#: the renderer's working set at any face count. Every chunk is a kernel launch whose time is at least that of
+#: its busiest tile, plus a few hundred setup kernels, so the bound is as large as memory allows: 2^29 numbers
+#: hold 64 images of 100k faces in one chunk (64 x 100,736 x 45 x 4 bytes = 1.2 GB at float32; peak memory in
+#: BENCHMARKS.md, section 2).
+COEF_ELEMS = 1 << 29
