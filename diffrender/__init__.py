@@ -11,6 +11,7 @@ Public API:
     render(verts, faces, colors, camera, settings, *, normals)  the soft rasterizer
     backend_for(settings, device)  which rasterizer backend render() uses there
     measure_bin_capacity(verts, faces, camera, settings)  a tiled-backend bin capacity for a frame
+    BinCapacityWarning  the tiled backend's automatic bin capacity grew (given once per process)
     RasterSettings, FloorSettings  keyword-only frozen settings
     RayTracer(faces, *, num_envs, num_verts, device, settings, shadows)  forward-only Warp ray tracer of the
         same scene (the rasterizer's sharp limit; no gradient), render_raytraced(...) its functional form
@@ -21,11 +22,12 @@ import torch
 from . import raster
 from .camera import Camera, focal_length, tracking_camera
 from .raytrace import RayTracer, render_raytraced
-from .render import backend_for, render
+from .render import BinCapacityWarning, backend_for, render
 from .robot import MJCFError, RobotModel, RobotPose
 from .settings import FloorSettings, RasterSettings
 
 __all__ = [
+    "BinCapacityWarning",
     "Camera",
     "FloorSettings",
     "MJCFError",

@@ -13,7 +13,15 @@ from .raster.dense import rasterize_dense
 from .raster.tiled import chunk_of, measure_capacity, rasterize_tiled, tiled_static
 from .settings import RasterSettings
 
-__all__ = ["backend_for", "render"]
+__all__ = ["BinCapacityWarning", "backend_for", "render"]
+
+
+class BinCapacityWarning(UserWarning):
+    """The tiled backend's automatic bin capacity (``RasterSettings(bin_capacity=None)``) was too small for a
+    frame and grew. The frame is still rendered completely; the tiled kernel's shapes change with the capacity
+    (a recompile under ``torch.compile``). Given once per process, as a moving robot grows it a few times,
+    all alike; filter it by this category, or fix the capacity with :func:`diffrender.measure_bin_capacity`."""
+
 
 # Automatic bin capacities (settings.bin_capacity None), per scene layout: measured once (one sync), then
 # static, so later calls neither sync to size buffers nor change shapes (compile / CUDA-graph friendly).
@@ -201,7 +209,7 @@ def render(
                 _growth_warned = True
                 warnings.warn(f"diffrender: automatic bin capacity grown from {capacity} to {new_capacity} "
                               f"(pairs needed {flags[-1]}); the tiled kernel's shapes change with it (further "
-                              "growths are not reported)", stacklevel=2)
+                              "growths are not reported)", BinCapacityWarning, stacklevel=2)
             _capacity_cache[key] = new_capacity
             img, _ = rasterize_tiled(verts, normals, colors, camera, faces, settings, new_capacity)
     return img
