@@ -1,8 +1,8 @@
 """The fused rasterizer's tuning constants: tile sides, face blocks, splits, warps, register caps and memory
 bounds. None changes an image or a gradient beyond float rounding order; each trades launch shape against
 work per program. :mod:`.rasterize` reads them when it launches, so a benchmark may set them between renders
-(``fused.tuning.BWD_SUB_BLOCK = 32``). The timings behind the defaults are in BENCHMARKS.md, section 2
-("The fused constants' defaults").
+(``fused.tuning.BWD_SUB_BLOCK = 32``). The same-call A/B timings behind the splits, the backward tiles and
+the register cap are in BENCHMARKS.md, section 2 ("The fused constants' defaults").
 """
 
 #: Forward: pixels per tile side and faces per block. A forward program evaluates a block's faces at all its
@@ -16,7 +16,7 @@ FACE_BLOCK = 64
 #: from a detailed mesh pays O(F / 1024) tests instead of O(F / 64).
 SUPER_BLOCK = 16
 #: Faces the forward evaluates at once (a block in parts of this many; <= FACE_BLOCK) and its warps (None: 4,
-#: or 8 for more than 1024 face-pixel pairs at once, so that each thread holds at most 8 pairs).
+#: or 8 for more than 1024 face-pixel pairs at once).
 FWD_SUB_BLOCK = 64
 FWD_WARPS: int | None = None
 #: The forward's walk over the super-blocks is split between up to FWD_MAX_SPLITS programs per tile (program s
@@ -34,16 +34,16 @@ PART_ELEMS = 1 << 27
 #: Backward: tile side [px] (its own: it reads the forward's per-pixel state, not its tiling), faces per
 #: sub-block and warps (None: one warp per 32 faces). A backward program keeps one face per lane, with its 45
 #: coefficients and 45 gradient accumulators in registers, and walks the tile's pixels inside the sub-block's
-#: face boxes; each face then issues one atomic add per coefficient and tile. An 8 x 8 tile halves the tiles a
-#: face straddles against 4 x 4 (fewer atomics) at the price of more pixels walked per program; 64 faces per
+#: face boxes; each face then issues one atomic add per coefficient and tile. A face straddles fewer 8 x 8
+#: tiles than 4 x 4 ones (fewer atomics), at the price of more pixels walked per program; 64 faces per
 #: sub-block share one pixel walk between two warps.
 BWD_TILE = 8
 BWD_SUB_BLOCK = 64
 BWD_WARPS: int | None = None
 #: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px] (see
 #: :func:`.rasterize.backward_tile`): a smaller tile shares the busiest tiles' pairs among more programs. Equal
-#: to BWD_TILE by default: with the backward split (below) the smaller dense tile did not pay; the knob stays
-#: for scenes whose faces crowd a few tiles more than the benchmarked meshes.
+#: to BWD_TILE by default: where the backward's walk is split (below), the split already shares those pairs
+#: out, and a smaller tile only adds atomics; the knob stays for scenes whose faces crowd fewer tiles.
 BWD_TILE_DENSE = 8
 DENSE_FACES_PER_PIXEL = 1.0
 #: The backward's walk over the super-blocks is split between up to BWD_MAX_SPLITS programs per tile, one per
@@ -55,7 +55,7 @@ BWD_SPLIT_SUPER_BLOCKS = 2
 #: Registers per thread the forward kernel and the soft and hard models' backward kernels may use (None: the
 #: compiler's choice, 255 for the backward kernels, so that only 8 warps fit on a multiprocessor). Capped, more
 #: programs share a multiprocessor at the cost of spills: the soft backward, whose every pixel keeps many
-#: pairs and so waits on many loads, gains; the hard backward (one pair per pixel) and the forward lose.
+#: pairs, gains; the hard backward (one pair per pixel) and the forward lose.
 FWD_MAXNREG: int | None = None
 BWD_MAXNREG: int | None = 128
 BWD_MAXNREG_HARD: int | None = None
