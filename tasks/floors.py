@@ -14,14 +14,14 @@ seeded with ``seed``, so they are the same on every device.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NoReturn
 
 import torch
 from tqdm import tqdm
@@ -29,7 +29,7 @@ from tqdm import tqdm
 from .registry import TASKS, make
 from .task import Task
 
-__all__ = ["POLICIES", "action_floors", "main", "rollout_returns"]
+__all__ = ["POLICIES", "FloorsConfig", "action_floors", "main", "rollout_returns"]
 
 #: the action policies whose returns are measured
 POLICIES: tuple[str, ...] = ("zero", "random")
@@ -38,7 +38,10 @@ POLICIES: tuple[str, ...] = ("zero", "random")
 def _resolve_device(device: str | torch.device) -> torch.device:
     if str(device) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    d = torch.device(device)
+    try:
+        d = torch.device(device)
+    except RuntimeError:
+        raise ValueError(f"unknown device {str(device)!r} (use 'auto', 'cpu' or 'cuda')") from None
     if d.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {str(device)!r} was asked for, but CUDA is not available (use 'cpu' or 'auto')")
     return d
@@ -160,13 +163,16 @@ def action_floors(
 
 def _write_json_atomic(path: Path, data: dict) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``, so a reader
-    never sees a half-written file."""
+    never sees a half-written file; readable by others as the umask allows (mkstemp's file is 0600)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as f:
             json.dump(data, f, indent=2)
             f.write("\n")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -187,97 +193,93 @@ def format_table(results: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="task-floors",
-        description="Undiscounted episode returns of zero and of uniform random actions in [-1, 1] per task "
-        "(the floors a learning curve should be read against). Writes JSON and prints a table.",
-    )
-    p.add_argument(
-        "--tasks",
-        nargs="+",
-        default=list(TASKS),
-        metavar="TASK",
-        help=f"tasks to measure (default: all of {', '.join(TASKS)})",
-    )
-    p.add_argument(
-        "--episodes",
-        type=int,
-        default=32,
-        help="at least this many episodes per task and policy; every environment runs ceil(episodes / num-envs) "
-        "whole episodes (default: 32)",
-    )
-    p.add_argument("--num-envs", type=int, default=16, help="environments stepped in parallel (default: 16)")
-    p.add_argument("--seed", type=int, default=0, help="reset seed and random-action seed (default: 0)")
-    p.add_argument(
-        "--device",
-        choices=("auto", "cpu", "cuda"),
-        default="auto",
-        help="where to simulate: auto (CUDA when available, else CPU), cpu or cuda (default: auto)",
-    )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=Path("docs/floors.json"),
-        help="JSON file to write; entries of tasks not measured in this run are kept from an existing file "
-        "unless --fresh is given (default: docs/floors.json)",
-    )
-    p.add_argument("--fresh", action="store_true", help="start from an empty file instead of merging into --out")
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="CPU threads for torch; the simulator's tensors are small, so more threads mostly add "
-        "synchronisation (default: 1)",
-    )
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
-    return p
+@dataclass
+class FloorsConfig:
+    """Undiscounted episode returns of zero and of uniform random actions in [-1, 1] per task (the floors a
+    learning curve should be read against). Writes JSON and prints a table."""
+
+    # Each field's docstring (its --help) is one source line: tyro breaks the help text where a line ends.
+
+    tasks: tuple[str, ...] = TASKS
+    """Tasks to measure."""
+    episodes: int = 32
+    """Episodes per task and policy, at least: each environment runs ceil(episodes / num-envs) whole ones."""
+    num_envs: int = 16
+    """Environments stepped in parallel."""
+    seed: int = 0
+    """Reset seed and random-action seed."""
+    device: str = "auto"
+    """Where to simulate: auto (CUDA when available, else CPU), cpu or cuda."""
+    out: Path = Path("docs/floors.json")
+    """JSON file to write; it keeps the entries of tasks not measured in this run (unless --fresh)."""
+    fresh: bool = False
+    """Start from an empty file instead of merging into --out."""
+    threads: int = 1
+    """CPU threads for torch (the simulator's tensors are small: more threads mostly add synchronisation)."""
+    progress: bool = True
+    """Progress bars per task and policy (--no-progress hides them)."""
+
+    def validate(self) -> torch.device:
+        """The device to simulate on; ValueError naming the flag of the first bad value, before any work."""
+        unknown = [t for t in self.tasks if t not in TASKS]
+        if unknown or not self.tasks:
+            raise ValueError(f"--tasks: unknown task(s) {unknown or '(none given)'}; known tasks: {', '.join(TASKS)}")
+        for flag, value in (("--episodes", self.episodes), ("--num-envs", self.num_envs), ("--threads", self.threads)):
+            if value < 1:
+                raise ValueError(f"{flag} must be >= 1, got {value}")
+        if self.out.is_dir():
+            raise ValueError(f"--out {self.out} is a folder; give the JSON file to write")
+        try:
+            return _resolve_device(self.device)
+        except ValueError as e:
+            raise ValueError(f"--device: {e}") from None
+
+
+def _fail(msg: str) -> NoReturn:
+    print(f"error: {msg}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console entry point ``task-floors`` (``--help`` lists the flags)."""
-    p = _parser()
-    args = p.parse_args(argv)
-    unknown = [t for t in args.tasks if t not in TASKS]
-    if unknown:
-        p.error(f"--tasks: unknown task(s) {unknown}; known tasks: {', '.join(TASKS)}")
-    if args.episodes < 1:
-        p.error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.num_envs < 1:
-        p.error(f"--num-envs must be >= 1, got {args.num_envs}")
-    if args.threads < 1:
-        p.error(f"--threads must be >= 1, got {args.threads}")
-    torch.set_num_threads(args.threads)
+    """Console entry point ``task-floors`` (``--help`` lists the flags); bad flags exit with status 2 and one
+    line naming the flag."""
+    import tyro
+
+    cfg = tyro.cli(FloorsConfig, args=argv, prog="task-floors")
     try:
-        device = _resolve_device(args.device)
+        device = cfg.validate()
     except ValueError as e:
-        p.error(f"--device: {e}")
+        _fail(str(e))
+    torch.set_num_threads(cfg.threads)
     data: dict[str, Any] = {"tasks": {}}
-    if args.out.exists() and not args.fresh:
+    if cfg.out.exists() and not cfg.fresh:
         try:
-            old = json.loads(args.out.read_text())
-        except json.JSONDecodeError as e:
-            p.error(f"--out {args.out} is not valid JSON ({e}); pass --fresh to overwrite it")
+            old = json.loads(cfg.out.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            _fail(f"--out {cfg.out} is not a readable JSON file ({e}); pass --fresh to overwrite it")
         if isinstance(old, dict) and isinstance(old.get("tasks"), dict):
             data = old
     data["description"] = (
         "Undiscounted episode return (mean, population std, min, max) and mean episode length in control steps "
         "of zero action and of uniform random actions in [-1, 1], per task; written by task-floors."
     )
-    for name in args.tasks:
+    for name in cfg.tasks:
         data["tasks"][name] = action_floors(
             name,
-            episodes=args.episodes,
-            num_envs=args.num_envs,
-            seed=args.seed,
+            episodes=cfg.episodes,
+            num_envs=cfg.num_envs,
+            seed=cfg.seed,
             device=device,
-            progress=not args.no_progress,
+            progress=cfg.progress,
         )
-        _write_json_atomic(args.out, data)  # after every task, so a long run keeps what it has measured
+        try:
+            _write_json_atomic(cfg.out, data)  # after every task, so a long run keeps what it has measured
+        except OSError as e:
+            _fail(f"--out {cfg.out}: cannot be written ({e.strerror or e})")
     # entries kept from an older file are shown too, when they have the fields of a measurement
     shown = {n: r for n, r in data["tasks"].items() if isinstance(r, dict) and all(p in r for p in POLICIES)}
     print(format_table(shown))
-    print(f"wrote {args.out}")
+    print(f"wrote {cfg.out}")
     return 0
 
 

@@ -7,9 +7,11 @@ of poses; ``--size`` sets the resolution (the policy sees 84 x 84).
 
 from __future__ import annotations
 
-import argparse
 import math
+import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 import torch
@@ -17,7 +19,7 @@ import torch
 import tasks
 from tasks.vision import TaskRenderer
 
-__all__ = ["snapshot", "main"]
+__all__ = ["SnapshotsConfig", "snapshot", "main"]
 
 
 @torch.no_grad()
@@ -40,25 +42,62 @@ def snapshot(name: str, *, poses: int = 4, size: int = 192, steps_between: int =
     return strip.permute(1, 2, 0).numpy()
 
 
+@dataclass
+class SnapshotsConfig:
+    """PNGs of each robot at a few poses (the seeded reset state, then after some steps of smooth random
+    actions), seen from its task camera: <out>/<task>.png, one row of poses per image."""
+
+    # Each field's docstring (its --help) is one source line: tyro breaks the help text where a line ends.
+    out: Path = Path("docs/robots")
+    """Folder for <task>.png."""
+    tasks: tuple[str, ...] = tasks.TASKS
+    """Robots to draw, by task name."""
+    poses: int = 4
+    """Poses per robot (images side by side)."""
+    size: int = 192
+    """Image height and width [px] (>= 16; the policy sees 84 x 84)."""
+    steps_between: int = 20
+    """Control steps between poses."""
+    seed: int = 0
+    """Reset seed and seed of the actions' phases."""
+
+    def validate(self) -> None:
+        """ValueError naming the flag of the first bad value, before any work."""
+        unknown = [t for t in self.tasks if t not in tasks.TASKS]
+        if unknown or not self.tasks:
+            raise ValueError(f"--tasks: unknown task(s) {unknown or '(none given)'}; known tasks: "
+                             f"{', '.join(tasks.TASKS)}")
+        for flag, value, least in (("--poses", self.poses, 1), ("--size", self.size, 16),
+                                   ("--steps-between", self.steps_between, 0)):
+            if value < least:
+                raise ValueError(f"{flag} must be >= {least}, got {value}")
+        if self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"--out {self.out} is a file; give the folder for the PNGs")
+
+
+def _fail(msg: str) -> NoReturn:
+    print(f"error: {msg}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=Path("docs/robots"), help="folder for <task>.png")
-    p.add_argument("--tasks", nargs="+", default=list(tasks.TASKS), choices=tasks.TASKS)
-    p.add_argument("--poses", type=int, default=4, help="poses per robot (images side by side)")
-    p.add_argument("--size", type=int, default=192, help="image height and width [px]")
-    p.add_argument("--steps-between", type=int, default=20, help="control steps between poses")
-    p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args(argv)
-    if args.poses < 1 or args.size < 16 or args.steps_between < 0:
-        p.error("--poses >= 1, --size >= 16 and --steps-between >= 0 are required")
+    """Console entry point ``robot-snapshots`` (``--help`` lists the flags); prints the path of every PNG. Bad
+    flags exit with status 2 and one line naming the flag."""
+    import tyro
+
+    cfg = tyro.cli(SnapshotsConfig, args=argv, prog="robot-snapshots")
+    try:
+        cfg.validate()
+        cfg.out.mkdir(parents=True, exist_ok=True)
+    except (ValueError, OSError) as e:
+        _fail(str(e) if isinstance(e, ValueError) else f"--out {cfg.out}: cannot be created ({e.strerror or e})")
     import cv2
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    for name in args.tasks:
-        img = snapshot(name, poses=args.poses, size=args.size, steps_between=args.steps_between, seed=args.seed)
-        path = args.out / f"{name}.png"
+    for name in cfg.tasks:
+        img = snapshot(name, poses=cfg.poses, size=cfg.size, steps_between=cfg.steps_between, seed=cfg.seed)
+        path = cfg.out / f"{name}.png"
         if not cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
-            raise SystemExit(f"error: could not write {path}")
+            _fail(f"--out {cfg.out}: could not write {path}")
         print(path)
 
 

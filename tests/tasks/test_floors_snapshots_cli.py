@@ -1,0 +1,117 @@
+"""``task-floors`` and ``robot-snapshots``: tyro configs whose docstrings are the --help, one-line errors that name
+the flag (before anything is written), and a tiny real run of each."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import tasks
+from tasks import floors, snapshots
+
+FLOORS_FLAGS = ("--tasks", "--episodes", "--num-envs", "--seed", "--device", "--out", "--fresh", "--threads",
+                "--no-progress")
+SNAPSHOTS_FLAGS = ("--out", "--tasks", "--poses", "--size", "--steps-between", "--seed")
+
+
+@pytest.mark.parametrize("main, flags", [(floors.main, FLOORS_FLAGS), (snapshots.main, SNAPSHOTS_FLAGS)])
+def test_help_lists_every_flag(main, flags, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    for flag in flags:
+        assert flag in out, flag
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["--episodes", "0"], "--episodes must be >= 1, got 0"),
+    (["--num-envs", "-2"], "--num-envs must be >= 1, got -2"),
+    (["--threads", "0"], "--threads must be >= 1, got 0"),
+    (["--tasks", "walker", "hopper"], "--tasks: unknown task(s) ['walker']"),
+    (["--tasks"], "--tasks: unknown task(s) (none given)"),
+    (["--device", "tpu"], "--device: unknown device 'tpu'"),
+])
+def test_floors_bad_flags_are_one_line_errors(argv, flag, tmp_path, capsys):
+    out = tmp_path / "f.json"
+    with pytest.raises(SystemExit) as e:
+        floors.main([*argv, "--out", str(out)])
+    assert e.value.code == 2 and flag in _one_line_error(capsys)
+    assert not out.exists()
+
+
+def test_floors_out_must_be_a_readable_json_file(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        floors.main(["--out", str(tmp_path)])
+    assert e.value.code == 2 and f"--out {tmp_path} is a folder" in _one_line_error(capsys)
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    with pytest.raises(SystemExit) as e:
+        floors.main(["--tasks", "cartpole", "--device", "cpu", "--out", str(bad)])
+    assert e.value.code == 2 and "--out" in _one_line_error(capsys) and bad.read_text() == "{"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="asks for CUDA where there is none")
+def test_floors_cuda_without_cuda_names_the_flag(capsys):
+    with pytest.raises(SystemExit):
+        floors.main(["--device", "cuda", "--tasks", "cartpole"])
+    assert "--device" in _one_line_error(capsys)
+
+
+def test_floors_tiny_run_writes_what_action_floors_measures(tmp_path, capsys, monkeypatch):
+    # 8-step episodes: the command is under test here, the physics in test_fidelity.py
+    monkeypatch.setattr(floors, "make", lambda name, n, **kw: tasks.make(name, n, **kw, episode_length=8))
+    out = tmp_path / "f.json"
+    old_umask = os.umask(0o022)
+    try:
+        assert floors.main(["--tasks", "cartpole", "--episodes", "1", "--num-envs", "1", "--device", "cpu",
+                            "--no-progress", "--out", str(out)]) == 0
+    finally:
+        os.umask(old_umask)
+    printed = capsys.readouterr().out
+    entry = json.loads(out.read_text())["tasks"]["cartpole"]
+    assert entry == floors.action_floors("cartpole", episodes=1, num_envs=1, seed=0, device="cpu")
+    assert entry["episode_length"] == 8
+    assert "cartpole" in printed and printed.rstrip().endswith(f"wrote {out}")
+    assert (out.stat().st_mode & 0o777) == 0o644  # readable by others, as the umask allows
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["--poses", "0"], "--poses must be >= 1, got 0"),
+    (["--size", "8"], "--size must be >= 16, got 8"),
+    (["--steps-between", "-1"], "--steps-between must be >= 0, got -1"),
+    (["--tasks", "walker"], "--tasks: unknown task(s) ['walker']"),
+])
+def test_snapshots_bad_flags_are_one_line_errors(argv, flag, tmp_path, capsys):
+    out = tmp_path / "robots"
+    with pytest.raises(SystemExit) as e:
+        snapshots.main([*argv, "--out", str(out)])
+    assert e.value.code == 2 and flag in _one_line_error(capsys)
+    assert not out.exists()
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SystemExit):
+        snapshots.main(["--out", str(tmp_path / "file")])
+    assert f"--out {tmp_path / 'file'} is a file" in _one_line_error(capsys)
+
+
+def test_snapshots_tiny_run_writes_the_strip(tmp_path, capsys):
+    import cv2
+
+    out = tmp_path / "robots"
+    snapshots.main(["--tasks", "cartpole", "--poses", "2", "--size", "16", "--steps-between", "1", "--out", str(out)])
+    assert capsys.readouterr().out.split() == [str(out / "cartpole.png")]
+    image = cv2.cvtColor(cv2.imread(str(out / "cartpole.png")), cv2.COLOR_BGR2RGB)
+    expected = snapshots.snapshot("cartpole", poses=2, size=16, steps_between=1, seed=0)
+    assert image.shape == (16, 32, 3)
+    np.testing.assert_array_equal(image, expected)  # PNG is lossless
+    assert set(tasks.TASKS) == set(snapshots.SnapshotsConfig().tasks)
