@@ -38,7 +38,6 @@ if os.environ.get("TRITON_INTERPRET", "0") == "1":
     sys.exit("fused_ptx: unset TRITON_INTERPRET (the interpreter compiles nothing)")
 os.environ["TRITON_DISABLE_LINE_INFO"] = "1"
 os.environ.setdefault("TRITON_DEFAULT_FP_FUSION", "1")  # the default the renderer's kernels run with
-os.environ.setdefault("TRITON_CACHE_DIR", tempfile.mkdtemp(prefix="fused_ptx_cache_"))  # compile, don't reuse
 
 import triton
 from triton.backends.compiler import GPUTarget
@@ -162,7 +161,9 @@ def main() -> int:
         return compare(*args.compare)
     if args.out is None:
         p.error("--out FILE or --compare A B is required")
-    result = fingerprint()
+    with tempfile.TemporaryDirectory(prefix="fused_ptx_cache_") as cache:  # compile every kernel, reuse none
+        os.environ["TRITON_CACHE_DIR"] = cache
+        result = fingerprint()
     tmp = args.out.with_name(args.out.name + ".tmp")
     tmp.write_text(json.dumps(result, indent=1, sort_keys=True) + "\n")
     os.replace(tmp, args.out)
