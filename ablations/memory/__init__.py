@@ -15,7 +15,7 @@ Modules, by role:
     worker    the worker process: runs a measurement, classifies its exceptions, hands back the result
     sweep     :func:`sweep` and :func:`run_point`: one worker per point, timeouts, OOM classification, resume
     table     memory.csv / memory.json rows (``COLUMNS``), read and written atomically
-    plots     :func:`plot_sweep`: the PNGs
+    plots     :func:`plot_sweep`: the PNGs (:func:`sweep_figures`: their matplotlib Figures)
 
 Outputs in ``--out``:
     memory.csv          one row per point (``COLUMNS``), rewritten atomically (temp + rename) after every point
@@ -37,10 +37,10 @@ used), so a worker process starts with nothing but what its measurement needs.
 
 from ablations.memory.config import MemoryConfig, point_id
 from ablations.memory.measure import measure_point, scene_size
-from ablations.memory.plots import plot_sweep
+from ablations.memory.plots import plot_sweep, sweep_figures
 from ablations.memory.sweep import run_point, sweep
 from ablations.memory.table import COLUMNS, csv_text, read_csv
 from ablations.memory.worker import DEFAULT_MEASURE
 
 __all__ = ["MemoryConfig", "COLUMNS", "sweep", "measure_point", "run_point", "read_csv", "csv_text", "plot_sweep",
-           "scene_size", "point_id", "DEFAULT_MEASURE"]
+           "sweep_figures", "scene_size", "point_id", "DEFAULT_MEASURE"]

@@ -6,14 +6,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-__all__ = ["MemoryConfig", "RENDERERS", "SWEPT_MODES", "TASKS", "point_id"]
+__all__ = ["MemoryConfig", "SWEPT_MODES", "point_id"]
 
 #: Gradient modes a sweep can compare (state mode renders nothing, so it has no rendering cost to sweep).
 SWEPT_MODES = ("full", "decoupled")
-TASKS = ("cartpole", "hopper", "ant", "humanoid")
-#: Image sources (``SHACConfig.renderer``): the soft rasterizer, or the Warp ray tracer for modes whose images
-#: need no gradient.
-RENDERERS = ("soft", "warp")
 
 
 @dataclass
@@ -22,20 +18,27 @@ class MemoryConfig:
 
     Each point runs the real SHAC trainer in a fresh process: warm-up iterations, then measured iterations whose
     medians (times) and maxima (peak memory) are reported. Out-of-memory points are rows with status "oom".
+    One renderer per sweep folder: sweep the other into another --out. For each --verts value the renderer
+    builds the latitude-longitude sphere closest to it (V = 2r(r-1)+2: 6, 14, 26, 42, ...); the CSV's
+    scene_verts and scene_faces are the exact counts. With --jobs above 1 the peak memory stays exact (each
+    process's own), but times and out-of-memory share the device: keep 1 for times of record and retry an "oom"
+    point alone.
     """
 
+    # Each field's docstring (its --help) is one source line: tyro breaks the help text where a line ends.
+
+    # The tasks and renderers are those of tasks.TASKS and tasks.vision.RENDERERS, checked in validate(): this
+    # module imports only the standard library (see the package docstring), so they are not Literal types here.
     task: str = "cartpole"
-    """Task: cartpole, hopper, ant or humanoid."""
+    """Task, as ablate's --task: cartpole, cartpole-swingup, hopper, ant or humanoid."""
     modes: tuple[Literal["full", "decoupled"], ...] = ("decoupled", "full")
     """Gradient modes to sweep (full: through the rendered images; decoupled: D.Va)."""
-    renderer: Literal["soft", "warp"] = "soft"
-    """Image source of every point: soft (the differentiable rasterizer) or warp (the forward-only ray tracer,
-    decoupled mode only). One renderer per sweep folder: sweep the other into another --out."""
+    renderer: str = "soft"
+    """Image source: soft (the differentiable rasterizer) or warp (forward-only ray tracer; decoupled only)."""
     meshes: tuple[int, ...] = (0, 4, 16, 64)
     """Numbers of extra meshes attached to robot links (0: the robot alone, measured once per mode)."""
     verts: tuple[int, ...] = (64, 256, 1024)
-    """Vertices per extra mesh (each >= 6). The renderer builds the latitude-longitude sphere closest to it
-    (V = 2r(r-1)+2: 6, 14, 26, 42, ...); the CSV's scene_verts and scene_faces are the exact counts."""
+    """Vertices per extra mesh, each >= 6 (the closest sphere is built; the CSV has the exact counts)."""
     num_envs: int = 64
     """Parallel environments per point."""
     horizon: int = 32
@@ -59,20 +62,24 @@ class MemoryConfig:
     progress: bool = True
     """Show a progress bar over the points."""
     jobs: int = 1
-    """Points run at once, each in its own process. Peak memory is each process's own, so it stays exact;
-    times and out-of-memory share the device: keep 1 for times of record and retry an "oom" point alone."""
+    """Points run at once, each in its own process (keep 1 for times of record: they share the device)."""
 
     def validate(self) -> None:
-        """Clear errors for bad values, before any work."""
+        """Clear errors for bad values, each naming its flag, before any work."""
+        from tasks import TASKS
+        from tasks.vision import RENDERERS
+
         if self.task not in TASKS:
-            raise ValueError(f"unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
+            raise ValueError(f"--task: unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
         if not self.modes:
             raise ValueError("--modes is empty: give full and/or decoupled")
         for m in self.modes:
             if m not in SWEPT_MODES:
-                raise ValueError(f"mode {m!r} cannot be swept (no rendering cost); use full and/or decoupled")
+                raise ValueError(f"--modes: mode {m!r} cannot be swept (no rendering cost); use full and/or "
+                                 f"decoupled")
         if self.renderer not in RENDERERS:
-            raise ValueError(f"unknown renderer {self.renderer!r}; valid renderers: {', '.join(RENDERERS)}")
+            raise ValueError(f"--renderer: unknown renderer {self.renderer!r}; valid renderers: "
+                             f"{', '.join(RENDERERS)}")
         if self.renderer == "warp" and "full" in self.modes:
             raise ValueError("--renderer warp renders without gradient, so --modes full (gradients through the "
                              "images) needs --renderer soft; sweep --modes decoupled with warp")

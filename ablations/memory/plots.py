@@ -9,7 +9,11 @@ from pathlib import Path
 
 from ablations.memory.config import SWEPT_MODES
 
-__all__ = ["plot_sweep"]
+__all__ = ["plot_sweep", "sweep_figures"]
+
+#: Line style per mode; the marker tells the vertices per mesh apart (the colour's shade does too).
+_MODE_LINES = {"full": "-", "decoupled": "--"}
+_VERTS_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "h")
 
 
 def _x_of(rows: list[dict]) -> tuple[str, Callable[[dict], float | None], bool]:
@@ -26,10 +30,29 @@ def _spans_decade(values) -> bool:
 
 
 def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
-    """memory_peak.png and memory_bwd.png from sweep rows; returns the files written (none without ok rows).
+    """memory_peak.png and memory_bwd.png (:func:`sweep_figures`) written into ``out``; returns the files
+    written (none without ok rows)."""
+    import matplotlib.pyplot as plt
 
-    One line per (mode, vertices per mesh); the robot-only point (0 meshes) starts every line of its mode.
-    Out-of-memory points are crosses at the top edge (their x known when the worker counted the scene first).
+    from gradlab.checkpoint import atomic_write_bytes
+
+    written = []
+    for name, fig in sweep_figures(rows).items():
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
+        plt.close(fig)
+        atomic_write_bytes(Path(out) / name, buf.getvalue())
+        written.append(Path(out) / name)
+    return written
+
+
+def sweep_figures(rows: list[dict]) -> dict:
+    """{"memory_peak.png": Figure, "memory_bwd.png": Figure} from sweep rows; {} without ok rows.
+
+    One line per (mode, vertices per mesh): colour = the mode's (full red, decoupled blue, as in ablate-plot),
+    darker for more vertices; line style = the mode; marker = the vertices per mesh. The robot-only point
+    (0 meshes) starts every line of its mode. Out-of-memory and timed-out points are crosses at the top edge
+    (their x known when the worker counted the scene first). One legend per figure, right of the panels.
     """
     import matplotlib
 
@@ -37,12 +60,9 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
     import matplotlib.pyplot as plt
     from matplotlib.transforms import blended_transform_factory
 
-    from gradlab.checkpoint import atomic_write_bytes
-
-    out = Path(out)
     ok = [r for r in rows if r["status"] == "ok"]
     if not ok:
-        return []
+        return {}
     xlabel, xf, logx = _x_of(rows)
     cuda = any(r.get("peak_alloc_mb") is not None for r in ok)
     panels = [("peak_alloc_mb", "peak allocated [MB] (CUDA)")] if cuda else []
@@ -59,10 +79,9 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
         i = verts.index(v) if v in verts else len(verts) - 1
         return ramps.get(mode, plt.get_cmap("Greys"))(0.45 + 0.5 * i / max(len(verts) - 1, 1))
 
-    styles = {"full": ("-", "o"), "decoupled": ("--", "s")}
     task = rows[0]["task"]
     renderer = rows[0].get("renderer") or "soft"  # one per sweep (a FIXED column)
-    written = []
+    figures = {}
 
     def lines(ax, key: str) -> None:
         drawn = False
@@ -74,11 +93,11 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
                 pts = sorted((xf(r), r[key]) for r in pts if xf(r) is not None)
                 if not pts:
                     continue
-                ls, mk = styles.get(mode, ("-", "o"))
+                marker = _VERTS_MARKERS[verts.index(v) % len(_VERTS_MARKERS)] if v in verts else "o"
                 name = mode if renderer == "soft" else f"{mode} ({renderer})"
                 label = f"{name}, {v} verts/mesh" if verts else name
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], ls, marker=mk, color=color(mode, v),
-                        label=label, ms=4)
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], ls=_MODE_LINES.get(mode, "-"), marker=marker,
+                        color=color(mode, v), label=label, ms=4.5)
                 drawn = True
         trans = blended_transform_factory(ax.transData, ax.transAxes)
         failed = [r for r in rows if r["status"] in ("oom", "timeout")]
@@ -105,12 +124,11 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
         ax.set_xlabel(xlabel)
         ax.grid(True, which="both", alpha=0.3)
 
-    def save(fig, name: str) -> None:
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
-        plt.close(fig)
-        atomic_write_bytes(out / name, buf.getvalue())
-        written.append(out / name)
+    def legend(fig, ax) -> None:
+        """The lines' legend right of the panels (the first panel has every line), the figure widened by it."""
+        handles, labels = ax.get_legend_handles_labels()
+        leg = fig.legend(handles, labels, loc="outside right center", fontsize=7)  # clear of the title
+        fig.set_figwidth(fig.get_figwidth() + leg.get_window_extent(fig.canvas.get_renderer()).width / fig.dpi)
 
     setting = (f"{task}, {ok[0]['num_envs']} envs x {ok[0]['horizon']} steps, {ok[0]['image_size']} px, "
                f"{ok[0]['device']}" + (f" ({ok[0]['gpu']})" if ok[0].get("gpu") else ""))
@@ -120,14 +138,14 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
         for ax, (key, label) in zip(axes[0], panels):
             lines(ax, key)
             ax.set_ylabel(label)
-        axes[0][0].legend(fontsize=7)
+        legend(fig, axes[0][0])
         fig.suptitle(f"Memory vs scene size: {setting}", fontsize=10)
-        save(fig, "memory_peak.png")
+        figures["memory_peak.png"] = fig
 
     fig, ax = plt.subplots(figsize=(5.5, 4.2), layout="constrained")
     lines(ax, "bwd_ms")
     ax.set_ylabel("backward per iteration [ms] (median)")
-    ax.legend(fontsize=7)
-    ax.set_title(f"Backward time vs scene size: {setting}", fontsize=9)
-    save(fig, "memory_bwd.png")
-    return written
+    legend(fig, ax)
+    fig.suptitle(f"Backward time vs scene size: {setting}", fontsize=9)  # over the legend too
+    figures["memory_bwd.png"] = fig
+    return figures

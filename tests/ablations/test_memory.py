@@ -214,13 +214,26 @@ def test_points_and_validation(tmp_path):
     pts = [(p["mode"], p["meshes"], p["verts_per_mesh"]) for p in cfg.points("cpu")]
     assert pts == [("full", 0, 0), ("decoupled", 0, 0), ("full", 4, 8), ("decoupled", 4, 8), ("full", 4, 16),
                    ("decoupled", 4, 16)]
-    for bad, match in ((dict(task="walker"), "unknown task"), (dict(verts=(5,)), "verts"),
-                       (dict(meshes=(-1,)), "meshes"), (dict(modes=()), "modes"), (dict(modes=("state",)),
-                                                                                    "cannot be swept"),
-                       (dict(num_envs=0), "num-envs"), (dict(image_size=8), "image-size"),
-                       (dict(timeout_s=0), "timeout")):
-        with pytest.raises(ValueError, match=match):
+    # every error starts with the flag it is about
+    for bad, match in ((dict(task="walker"), "--task: unknown task 'walker'; valid tasks: cartpole, cartpole-swingup"),
+                       (dict(verts=(5,)), "--verts"), (dict(meshes=(-1,)), "--meshes"), (dict(modes=()), "--modes"),
+                       (dict(modes=("state",)), "--modes: mode 'state' cannot be swept"),
+                       (dict(num_envs=0), "--num-envs"), (dict(image_size=8), "--image-size"),
+                       (dict(timeout_s=0), "--timeout-s"), (dict(renderer="nvdiffrast"), "--renderer: unknown")):
+        with pytest.raises(ValueError, match=f"^{match}"):
             cfg_for(tmp_path, **bad).validate()
+
+
+def test_every_task_and_renderer_can_be_swept(tmp_path):
+    """The task and renderer lists are those of the rest of the toolkit (tasks.TASKS, tasks.vision.RENDERERS)."""
+    import tasks
+    from tasks.vision import RENDERERS
+
+    for task in tasks.TASKS:
+        cfg_for(tmp_path, task=task).validate()
+    for renderer in RENDERERS:
+        cfg_for(tmp_path, renderer=renderer, modes=("decoupled",)).validate()
+    assert "cartpole-swingup" in tasks.TASKS
 
 
 def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
@@ -245,6 +258,31 @@ def test_plot_sweep_marks_failures(tmp_path):
     files = memory.plot_sweep(rows, tmp_path)
     assert [f.name for f in files] == ["memory_peak.png", "memory_bwd.png"]
     assert memory.plot_sweep([dict(rows[0], status="oom")], tmp_path / "none") == []
+
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_rgb
+
+    figures = memory.sweep_figures(rows)
+    try:
+        for name, fig in figures.items():
+            fig.canvas.draw()
+            ax = fig.axes[0]
+            lines = [ln for ln in ax.lines if ln.get_label() not in ("oom", "timeout")]
+            # one line per (mode, vertices per mesh), none alike: the mode's line style, the vertices' marker
+            assert [ln.get_label() for ln in lines] == [f"{m}, {v} verts/mesh" for m in ("full", "decoupled")
+                                                         for v in (8, 32)], name
+            assert len({(to_rgb(ln.get_color()), ln.get_linestyle(), ln.get_marker()) for ln in lines}) == 4
+            assert {ln.get_linestyle() for ln in lines} == {"-", "--"} and len({ln.get_marker() for ln in lines}) == 2
+            crosses = {ln.get_label(): ln for ln in ax.lines if ln.get_label() in ("oom", "timeout")}
+            assert set(crosses) == {"oom"}, "the timed-out point has no scene size: named in a note instead"
+            assert any("oom/timeout, size unknown" in t.get_text() for t in ax.texts)
+            # the legend right of the panels, over none of them
+            assert len(fig.legends) == 1 and all(a.get_legend() is None for a in fig.axes)
+            legend = fig.legends[0].get_window_extent()
+            assert not any(legend.overlaps(a.get_window_extent()) for a in fig.axes), name
+    finally:
+        for fig in figures.values():
+            plt.close(fig)
 
 
 def test_worker_result_lines_merge_and_a_torn_line_is_ignored(tmp_path):
