@@ -2,7 +2,7 @@
 bounds. None changes an image or a gradient beyond float rounding order; each trades launch shape against
 work per program. :mod:`.rasterize` reads them when it launches, so a benchmark may set them between renders
 (``fused.tuning.BWD_SUB_BLOCK = 32``). The same-call A/B timings behind the splits, the backward tiles and
-the register cap are in BENCHMARKS.md, section 2 ("The fused constants' defaults").
+the register cap are in BENCHMARKS.md, section 2.1 ("The fused constants' defaults").
 """
 
 #: Forward: pixels per tile side and faces per block. A forward program evaluates a block's faces at all its
@@ -63,5 +63,5 @@ BWD_MAXNREG_HARD: int | None = None
 #: the renderer's working set at any face count. Every chunk is a kernel launch whose time is at least that of
 #: its busiest tile, plus a few hundred setup kernels, so the bound is as large as memory allows: 2^29 numbers
 #: hold 64 images of 100k faces in one chunk (64 x 100,736 x 45 x 4 bytes = 1.2 GB at float32; peak memory in
-#: BENCHMARKS.md, section 2).
+#: BENCHMARKS.md, section 2.1).
 COEF_ELEMS = 1 << 29
