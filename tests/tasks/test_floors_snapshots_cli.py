@@ -34,19 +34,23 @@ def _one_line_error(capsys) -> str:
     return err
 
 
-@pytest.mark.parametrize("argv, flag", [
-    (["--episodes", "0"], "--episodes must be >= 1, got 0"),
-    (["--num-envs", "-2"], "--num-envs must be >= 1, got -2"),
-    (["--threads", "0"], "--threads must be >= 1, got 0"),
-    (["--tasks", "walker", "hopper"], "--tasks: unknown task(s) ['walker']"),
-    (["--tasks"], "--tasks: unknown task(s) (none given)"),
-    (["--device", "tpu"], "--device: unknown device 'tpu'"),
+@pytest.mark.parametrize("main, out_name, argv, message", [
+    (floors.main, "f.json", ["--episodes", "0"], "--episodes must be >= 1, got 0"),
+    (floors.main, "f.json", ["--num-envs", "-2"], "--num-envs must be >= 1, got -2"),
+    (floors.main, "f.json", ["--threads", "0"], "--threads must be >= 1, got 0"),
+    (floors.main, "f.json", ["--tasks", "walker", "hopper"], "--tasks: unknown task(s) ['walker']"),
+    (floors.main, "f.json", ["--tasks"], "--tasks: unknown task(s) (none given)"),
+    (floors.main, "f.json", ["--device", "tpu"], "--device: unknown device 'tpu'"),
+    (snapshots.main, "robots", ["--poses", "0"], "--poses must be >= 1, got 0"),
+    (snapshots.main, "robots", ["--size", "8"], "--size must be >= 16, got 8"),
+    (snapshots.main, "robots", ["--steps-between", "-1"], "--steps-between must be >= 0, got -1"),
+    (snapshots.main, "robots", ["--tasks", "walker"], "--tasks: unknown task(s) ['walker']"),
 ])
-def test_floors_bad_flags_are_one_line_errors(argv, flag, tmp_path, capsys):
-    out = tmp_path / "f.json"
+def test_bad_flags_are_one_line_errors_before_any_output(main, out_name, argv, message, tmp_path, capsys):
+    out = tmp_path / out_name
     with pytest.raises(SystemExit) as e:
-        floors.main([*argv, "--out", str(out)])
-    assert e.value.code == 2 and flag in _one_line_error(capsys)
+        main([*argv, "--out", str(out)])
+    assert e.value.code == 2 and message in _one_line_error(capsys)
     assert not out.exists()
 
 
@@ -86,22 +90,11 @@ def test_floors_tiny_run_writes_what_action_floors_measures(tmp_path, capsys, mo
     assert (out.stat().st_mode & 0o777) == 0o644  # readable by others, as the umask allows
 
 
-@pytest.mark.parametrize("argv, flag", [
-    (["--poses", "0"], "--poses must be >= 1, got 0"),
-    (["--size", "8"], "--size must be >= 16, got 8"),
-    (["--steps-between", "-1"], "--steps-between must be >= 0, got -1"),
-    (["--tasks", "walker"], "--tasks: unknown task(s) ['walker']"),
-])
-def test_snapshots_bad_flags_are_one_line_errors(argv, flag, tmp_path, capsys):
-    out = tmp_path / "robots"
-    with pytest.raises(SystemExit) as e:
-        snapshots.main([*argv, "--out", str(out)])
-    assert e.value.code == 2 and flag in _one_line_error(capsys)
-    assert not out.exists()
+def test_snapshots_out_must_be_a_folder(tmp_path, capsys):
     (tmp_path / "file").write_text("")
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as e:
         snapshots.main(["--out", str(tmp_path / "file")])
-    assert f"--out {tmp_path / 'file'} is a file" in _one_line_error(capsys)
+    assert e.value.code == 2 and f"--out {tmp_path / 'file'} is a file" in _one_line_error(capsys)
 
 
 def test_snapshots_tiny_run_writes_the_strip(tmp_path, capsys):
