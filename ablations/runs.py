@@ -42,7 +42,7 @@ from gradlab.checkpoint import (
     save_checkpoint,
 )
 from gradlab.config import SHACConfig
-from gradlab.presets import preset_record
+from gradlab.presets import PRESET_FIELDS, PRESETS, preset_record
 from gradlab.probes import NonFiniteError
 from gradlab.seeding import resolve_device
 from gradlab.timing import median
@@ -314,6 +314,12 @@ def _stored_config(run_dir: Path, cfg_path: Path, overrides: RunConfig) -> RunCo
     for k in ("actor_hidden", "critic_hidden", "betas"):
         if stored.get(k) is not None:
             stored[k] = tuple(stored[k])
+    if stored.get("preset") not in PRESETS and all(stored.get(k) is not None for k in PRESET_FIELDS):
+        # config.json holds every value a preset supplied, so a run whose preset has no table here (an older
+        # folder's) resumes with exactly its values, under the default preset's name
+        print(f"note: --resume {run_dir}: preset {stored.get('preset')!r} has no table here; the run resumes with "
+              f"the values its config.json records (as --preset {RunConfig.preset} with them set)", file=sys.stderr)
+        stored["preset"] = RunConfig.preset
     stored["out"] = Path(stored.get("out", run_dir.parent))
     stored.update(resume=run_dir, progress=overrides.progress)
     # What a resume may change: where it runs, and how long it goes on (a longer run extends the same curve).

@@ -80,11 +80,11 @@ class SHACConfig:
     task: str = "cartpole"
     """Task: cartpole (D.Va's, with joint springs), cartpole-swingup (SHAC's spring-free swing-up), hopper,
     ant or humanoid (docs/tasks.md lists every constant and its source)."""
-    preset: Literal["dva", "shac-diffrender", "project"] = "dva"
+    preset: Literal[PRESETS] = "dva"
     """Hyperparameters every field left unset takes (gradlab/presets.py, with sources): dva, D.Va's per-task
     configs (SHAC's state-based ones for --mode state where they differ); shac-diffrender, the paper's
-    full-APG baseline (its decay length, the hard rasterizer); project, this toolkit's earlier defaults.
-    Explicit flags override the preset; config.json records both."""
+    full-APG baseline (its decay length, the hard rasterizer). Explicit flags override the preset; config.json
+    records both."""
     mode: Literal["full", "decoupled", "state", "blind"] = "decoupled"
     """full: gradients flow through the rendered images into the robot state; decoupled (D.Va): the image
     stack is detached at the actor's input; state: the actor sees the state vector (upper bound); blind: the
@@ -95,7 +95,7 @@ class SHACConfig:
     """Training iterations (one iteration = num_envs x horizon env steps)."""
     lr_decay_iters: int | None = None
     """Iterations over which both learning rates decay linearly to 1e-5 (the reference's max_epochs:
-    D.Va 4000 cartpole, 30000 hopper/ant, 60000 humanoid); None: the preset's (project: --iters)."""
+    D.Va 4000 cartpole, 30000 hopper/ant, 60000 humanoid); None: the preset's."""
     num_envs: int | None = None
     """Parallel environments; None: the preset's (64; SHAC's state-based hopper 256)."""
     horizon: int = 32
@@ -129,14 +129,14 @@ class SHACConfig:
     actor_init: Literal["default", "orthogonal"] | None = None
     """Initialisation of the actor's MLP: default (PyTorch's nn.Linear init, as the reference's actor:
     initial mean actions of order 0.5 before the tanh) or orthogonal (gain sqrt(2), last layer 0.01: mean
-    actions near 0); None: the preset's (dva: default; project: orthogonal)."""
+    actions near 0); None: the preset's (default)."""
     obs_clip: float | None = None
     """Clip normalised state observations to +-obs_clip; 0 disables (the reference does not clip); None: the
-    preset's (dva: 0; project: 5)."""
+    preset's (0)."""
     bootstrap_last_step: bool | None = None
     """An episode that fails exactly on its last step is bootstrapped with the target critic (the reference
     counts only episodes shorter than the episode length as early terminations) instead of ending with a zero
-    value; None: the preset's (dva: true; project: false)."""
+    value; None: the preset's (true)."""
     image_size: int = 84
     """Rendered image height and width in pixels."""
     frames: int = 3
@@ -241,8 +241,6 @@ def resolve_config(cfg: SHACConfig) -> SHACConfig:
     cfg.validate()
     table = preset_values(cfg.preset, cfg.task, cfg.mode)
     out = dataclasses.replace(cfg, **{k: table[k] for k in PRESET_FIELDS if getattr(cfg, k) is None})
-    if out.lr_decay_iters is None:  # the project preset decays over the run's own length
-        out.lr_decay_iters = out.iters
     out.actor_hidden = tuple(out.actor_hidden)
     out.critic_hidden = tuple(out.critic_hidden)
     out.validate()

@@ -19,9 +19,9 @@ HaoxiangYou/D.VA ``01b2be4`` and NVlabs/DiffRL ``a4c0dd1`` (facts, no code):
     The paper's full-APG baseline, D.Va's ``examples/cfg/dva/diff_render_*.yaml``: the same learning rates
     and networks as ``dva``, decay over ``max_epochs`` 800 (cartpole) or 2000 (others), and the hard
     rasterizer (PyTorch3D ``MeshRasterizer`` at its default ``blur_radius=0, faces_per_pixel=1``).
-``project``
-    This toolkit's earlier defaults, kept as a named variant: orthogonal actor init with a 0.01 last layer,
-    observations clipped to +-5, failures on the last step not bootstrapped, the decay over ``--iters``.
+
+Other trainer choices are flags over a preset (``--actor-init orthogonal``, ``--obs-clip 5``,
+``--bootstrap-last-step False``, ``--lr-decay-iters``).
 """
 
 from __future__ import annotations
@@ -67,14 +67,13 @@ _SHAC_STATE = {
 
 _REFERENCE_TRAINER = dict(num_envs=64, actor_lr=2e-3, actor_init="default", obs_clip=0.0, bootstrap_last_step=True)
 
-PRESETS = ("dva", "shac-diffrender", "project")
+PRESETS = ("dva", "shac-diffrender")
 
 
 def preset_values(preset: str, task: str, mode: str) -> dict[str, Any]:
     """The values ``preset`` gives every field of :data:`PRESET_FIELDS` for ``task`` trained in ``mode``.
 
-    ``lr_decay_iters`` of ``project`` is None (the decay follows ``iters``). Raises ValueError naming the
-    valid presets or tasks.
+    Raises ValueError naming the valid presets or tasks.
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; valid presets: {', '.join(PRESETS)}")
@@ -87,8 +86,6 @@ def preset_values(preset: str, task: str, mode: str) -> dict[str, Any]:
         values.update(_SHAC_STATE[task])
     elif preset == "shac-diffrender":
         values.update(lr_decay_iters=_DIFFRENDER_DECAY[task], raster_model="hard")
-    elif preset == "project":
-        values.update(actor_init="orthogonal", obs_clip=5.0, bootstrap_last_step=False, lr_decay_iters=None)
     return values
 
 

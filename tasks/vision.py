@@ -131,15 +131,12 @@ class TaskRenderer:
 
     def compile(self, **compile_kwargs) -> TaskRenderer:
         """Run the renderer's PyTorch work through ``torch.compile`` (static shapes): :meth:`scene` (forward
-        kinematics, posed vertices and normals, the tracking camera) and, where the fused rasterizer is used
-        (CUDA), its per-face setup (``RasterSettings.compile``). Eager, these are several hundred small
-        kernels per frame and again in backward; the tiled backend's own kernels stay eager (their
-        compiled backward was not trusted on a GPU, see gradlab.shac). Same images and gradients up to
-        float rounding (tested on CUDA). Keyword arguments go to ``torch.compile``. Returns self.
+        kinematics, posed vertices and normals, the tracking camera) on CUDA and, where the fused rasterizer is
+        used, its per-face setup (``RasterSettings.compile``). Same images and gradients up to float rounding
+        (tested on CUDA). Keyword arguments go to ``torch.compile``. Returns self.
 
-        On the CPU :meth:`scene` stays eager: inductor's C++ code for the backward of pytorch-kinematics'
-        forward kinematics corrupts the heap (torch 2.13: the process aborts), and the CPU is
-        not where the kernel launches cost anything."""
+        The tiled backend's own kernels and, on the CPU, :meth:`scene` stay eager: the tests that pin this say why
+        (tests/tasks/test_tasks.py, tests/test_cuda.py); the CPU is not where kernel launches cost anything."""
         kw = {"dynamic": False, **compile_kwargs}
         if self.robot.device.type == "cuda":
             self._scene = torch.compile(self.scene, **kw)

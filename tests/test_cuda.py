@@ -82,6 +82,9 @@ def test_compiled_task_renderer_matches_eager(name):
     eager = TaskRenderer(task, height=32, width=32)
     compiled = TaskRenderer(task, height=32, width=32).compile()
     assert compiled.settings.compile and not eager.settings.compile
+    # the tiled backend's own kernels stay eager (tests/tasks/test_tasks.py says why); its scene is compiled
+    tiled = TaskRenderer(task, height=32, width=32, backend="tiled").compile()
+    assert not tiled.settings.compile and tiled._scene != tiled.scene
     out = []
     for r in (eager, compiled):
         with torch.no_grad():

@@ -73,7 +73,7 @@ def compiled_graphs() -> list[dict]:
     forward; None where torch did not time it) and of inductor's part (``inductor_s``), the FX graph's node
     count (``nodes``, forwards only) and whether inductor's FX graph cache missed (``cache_miss``). From torch's
     own per-compilation records (``torch._dynamo.utils.get_compilation_metrics``); empty where this torch keeps
-    none. This is where a cold start's minutes go, graph by graph."""
+    none. This is where a cold start's time goes, graph by graph."""
     try:
         from torch._dynamo.utils import get_compilation_metrics
 

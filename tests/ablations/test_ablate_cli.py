@@ -100,6 +100,28 @@ def test_resume_starts_from_the_newest_readable_checkpoint(tmp_path, capsys):
                                                        "ckpt_000006.pt.damaged"]
 
 
+def test_a_run_folder_whose_preset_has_no_table_resumes_with_its_recorded_values(tmp_path, capsys):
+    """config.json records every value a preset supplied, so a folder naming a preset this toolkit has no table for
+    (``project``) resumes with exactly those values, said on stderr; one without them is a clear error."""
+    from gradlab.config import resolve_config
+    from gradlab.presets import PRESET_FIELDS
+
+    recorded = dataclasses.asdict(resolve_config(RunConfig(task="hopper", device="cpu", out=tmp_path, iters=30)))
+    recorded.update(preset="project", actor_init="orthogonal", obs_clip=5.0, bootstrap_last_step=False,
+                    lr_decay_iters=30)
+    atomic_write_json(tmp_path / "run" / "config.json", {"config": recorded})
+    save_checkpoint(checkpoint_path(tmp_path / "run" / "checkpoints", 2), {"iteration": 2})
+    cfg, _, _, _ = prepare(RunConfig(resume=tmp_path / "run", progress=False))
+    assert cfg.preset == "dva" and "preset 'project' has no table here" in capsys.readouterr().err
+    assert resolve_config(cfg) == cfg  # nothing left for the preset to fill in
+    assert {k: getattr(cfg, k) for k in PRESET_FIELDS} == {k: (tuple(v) if isinstance(v, list) else v)
+                                                           for k, v in recorded.items() if k in PRESET_FIELDS}
+    recorded["obs_clip"] = None  # a value the preset would have to supply
+    atomic_write_json(tmp_path / "run" / "config.json", {"config": recorded})
+    with pytest.raises(ValueError, match="unknown preset 'project'; valid presets: dva, shac-diffrender"):
+        prepare(RunConfig(resume=tmp_path / "run", progress=False))
+
+
 @pytest.mark.slow
 def test_resume_skips_a_damaged_checkpoint_and_says_when_none_is_readable(tmp_path, capsys):
     """End to end with the trainer: the resumed run reproduces the uninterrupted one from the older checkpoint."""
@@ -160,7 +182,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     (["--horizon", "-2"], "horizon must be a positive integer"),
     (["--iters", "0"], "iters must be a positive integer"),
     (["--device", "tpu"], "unknown device 'tpu'"),
-    (["--preset", "paper"], "--preset"),  # tyro names the flag and lists dva, shac-diffrender, project
+    (["--preset", "paper"], "--preset"),  # tyro names the flag and lists dva, shac-diffrender
     (["--raster-model", "blurry"], "--raster-model"),
     (["--mode", "full", "--renderer", "warp"], "--renderer warp renders without gradient, but --mode full"),
 ])

@@ -81,13 +81,23 @@ def test_explicit_flags_override_the_preset_and_the_record_holds_both():
     assert record["supplied"]["lr_decay_iters"] == 2000 and "raster_model" not in record["supplied"]
 
 
-def test_project_preset_decays_over_the_run():
-    c = resolve_config(SHACConfig(task="hopper", preset="project", iters=123))
+def test_presets_are_the_references_and_every_other_choice_is_a_flag():
+    """The presets are the reference code's (the --preset choices are PRESETS); the trainer's other choices are flags
+    over one: orthogonal init with a small last layer, clipped observations, no last-step bootstrap, the decay over
+    the run's own length."""
+    from typing import get_args, get_type_hints
+
+    assert get_args(get_type_hints(SHACConfig)["preset"]) == PRESETS == ("dva", "shac-diffrender")
+    c = resolve_config(SHACConfig(task="hopper", iters=123, lr_decay_iters=123, obs_clip=5.0, actor_init="orthogonal",
+                                  bootstrap_last_step=False))
     assert (c.lr_decay_iters, c.obs_clip, c.actor_init, c.bootstrap_last_step) == (123, 5.0, "orthogonal", False)
+    assert (c.critic_lr, c.actor_hidden) == (2e-4, (128, 64, 32))  # the rest from the dva preset
+    with pytest.raises(ValueError, match="unknown preset 'project'; valid presets: dva, shac-diffrender"):
+        resolve_config(SHACConfig(task="hopper", preset="project"))
 
 
 @pytest.mark.parametrize(("field", "value", "message"), [
-    ("preset", "paper", "unknown preset 'paper'; valid presets: dva, shac-diffrender, project"),
+    ("preset", "paper", "unknown preset 'paper'; valid presets: dva, shac-diffrender"),
     ("raster_model", "blurry", "unknown raster_model 'blurry'"),
     ("renderer", "opengl", "unknown renderer 'opengl'"),
     ("lr_decay_iters", 0, "lr_decay_iters must be a positive integer"),

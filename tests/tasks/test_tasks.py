@@ -533,6 +533,19 @@ def test_counter_rng_is_uniform_reproducible_and_advances_in_place():
     assert not torch.equal(other, a)
 
 
+def test_renderer_compile_keeps_the_cpu_scene_and_the_tiled_kernels_eager():
+    """TaskRenderer.compile on the CPU compiles nothing. The scene stays eager: inductor's C++ code for the backward
+    of pytorch-kinematics' forward kinematics corrupted the heap (torch 2.13; the process aborted). The tiled
+    backend's own kernels stay eager wherever it renders (tests/test_cuda.py pins it on a GPU): their compiled
+    backward gave NaN image gradients in full mode on an H200."""
+    from tasks.vision import TaskRenderer
+
+    renderer = TaskRenderer(tasks.make("cartpole", 2), height=16, width=16)
+    scene = renderer._scene
+    assert renderer.compile() is renderer
+    assert renderer._scene == scene and not renderer.settings.compile
+
+
 def test_compile_settings_combo_kernels_unless_a_mode_is_given(monkeypatch):
     """Task.compile's defaults (static shapes, inductor combo kernels, small reductions unrolled, programmatic
     dependent launch made race-free) reach torch.compile; a user's mode replaces the options (torch.compile
