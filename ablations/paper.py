@@ -35,6 +35,7 @@ from ablations.plot import Run, load_floors, load_run, make_plots
 from ablations.report import (
     NOT_RUN,
     collect_bwd,
+    command_text,
     figure_lines,
     floors_section,
     load_benchmark,
@@ -42,11 +43,12 @@ from ablations.report import (
     markdown_table,
     memory_section,
     provenance_section,
+    report_path,
     runs_table,
     table1_section,
 )
 
-__all__ = ["ARMS", "DEFAULT_ARMS", "PaperConfig", "sweep_config", "build_paper_report", "main"]
+__all__ = ["ARMS", "DEFAULT_ARMS", "PaperConfig", "sweep_config", "gpus_per_run", "build_paper_report", "main"]
 
 #: The arms: name -> mode, extra ablate flags, what it stands for, and the paper's method it reproduces.
 ARMS: dict[str, dict] = {
@@ -99,8 +101,9 @@ class PaperConfig:
     lengths do not depend on it)."""
     set: tuple[str, ...] = ()
     """More ablate flags for every run, as FLAG=VALUE (e.g. compile=true cosine-every=10 device=cuda)."""
-    gpus_per_run: float = 1.0
-    """GPUs Ray reserves per run (0.25: four runs share a GPU; 0: CPU runs)."""
+    gpus_per_run: float | None = None
+    """GPUs Ray reserves per run (0.25: four runs share a GPU; 0: CPU runs). None: 1 on a machine with a CUDA GPU
+    or with --address, else 0 (CPU runs, said before they start)."""
     cpus_per_run: float = 1.0
     """CPUs Ray reserves per run."""
     address: str | None = None
@@ -134,6 +137,23 @@ def _arm_table(names: tuple[str, ...]) -> dict[str, dict]:
             for n in names}
 
 
+def cuda_gpus() -> int:
+    """CUDA GPUs this process can see."""
+    import torch
+
+    return torch.cuda.device_count()
+
+
+def gpus_per_run(cfg: PaperConfig) -> tuple[float, str | None]:
+    """(--gpus-per-run to use, a line saying why when it was not given and the runs go to the CPU)."""
+    if cfg.gpus_per_run is not None:
+        return float(cfg.gpus_per_run), None
+    if cfg.address is not None or cuda_gpus() > 0:
+        return 1.0, None
+    return 0.0, ("no CUDA GPU on this machine: the runs train on the CPU (--gpus-per-run 0); on a GPU machine "
+                 "each run gets one (--gpus-per-run 1)")
+
+
 def sweep_config(cfg: PaperConfig):
     """(SweepConfig, arms) of the experiment set; ValueError naming a bad option."""
     from ablations.sweep import SweepConfig
@@ -150,7 +170,7 @@ def sweep_config(cfg: PaperConfig):
     own = [f"iters={cfg.iters}"] + ([f"time-limit-min={cfg.time_limit_min:g}"] if cfg.time_limit_min else [])
     modes = tuple(dict.fromkeys(a["mode"] for a in arms.values()))
     sweep = SweepConfig(out=cfg.out, tasks=cfg.tasks, modes=modes, seeds=cfg.seeds, set=(*own, *cfg.set),
-                        gpus_per_run=cfg.gpus_per_run, cpus_per_run=cfg.cpus_per_run, address=cfg.address,
+                        gpus_per_run=gpus_per_run(cfg)[0], cpus_per_run=cfg.cpus_per_run, address=cfg.address,
                         max_retries=cfg.max_retries, progress=cfg.progress)
     return sweep, arms
 
@@ -306,8 +326,8 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
     label = (lambda r: arm_of.get(r.path.name, r.mode))  # noqa: E731 - the group label of a run is its arm
 
     lines = [f"# D.Va paper experiments: {', '.join(tasks)}", "",
-             f"Sweep folder `{folder}`; {len(runs)} of {len(manifest.get('runs', {}))} runs have a run folder. "
-             "Nothing here is estimated: a number without a measurement says so.", "",
+             f"Sweep folder `{report_path(folder, base)}`; {len(runs)} of {len(manifest.get('runs', {}))} runs "
+             "have a run folder. Nothing here is estimated: a number without a measurement says so.", "",
              "## 1. Arms", ""]
     counts = {a: {} for a in arms}
     for rec in manifest.get("runs", {}).values():
@@ -333,7 +353,7 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
         lines += ["Mean +- one sample standard deviation across seeds (n in the legends), with the zero- and "
                   "random-action floors as horizontal lines.", ""]
         lines += figure_lines(res, _RETURN_FIGURES, base)
-        lines += floors_section(runs, floor_data)
+        lines += floors_section(runs, floor_data, base=base)
     lines += ["## 3. Full and decoupled gradients of the same rollout (the paper's Fig. 3)", ""]
     if res is not None:
         lines += ["On probe iterations the trainer computes both gradients of one rollout: the full one "
@@ -348,8 +368,8 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
         lines += ["### Cost over training", "", *figure_lines(res, _COST_FIGURES, base)]
     lines += memory_section(sweeps, fig_dir, base, heading="## 6. Memory against scene complexity (Fig. 10)")
     lines += ["## 7. Runs", "", *(runs_table(runs, label=label) if runs else ["No run folders.", ""])]
-    lines += provenance_section(runs, sweeps, benchmarks, heading="## 8. Provenance")
-    lines += [f"Sweep command: `{' '.join(str(c) for c in manifest.get('command', [])) or '?'}`; sweep created "
+    lines += provenance_section(runs, sweeps, benchmarks, base=base, heading="## 8. Provenance")
+    lines += [f"Sweep command: `{command_text(manifest.get('command'))}`; sweep created "
               f"{manifest.get('created', '?')}, updated {manifest.get('updated', '?')}; report "
               f"{_dt.datetime.now().astimezone().isoformat(timespec='seconds')}."]
 
@@ -370,15 +390,20 @@ def main(argv: list[str] | None = None) -> None:
         from ablations.sweep import dry_run, run_sweep
 
         sweep, arms = sweep_config(cfg)
+        cpu_note = gpus_per_run(cfg)[1]
         if cfg.dry_run:
             dry_run(sweep, arms=arms)
+            if cpu_note:
+                print(cpu_note)
             return
+        if cpu_note:
+            print(cpu_note, file=sys.stderr)
         # Inputs of the report are checked before hours of training, not after.
         for b in cfg.benchmark:
             load_benchmark(b)
         load_memory_sweeps(cfg.memory)
         load_floors(cfg.floors)
-        manifest = run_sweep(sweep, arms=arms, argv=argv)
+        manifest = run_sweep(sweep, arms=arms, command=["ablate-paper", *(sys.argv[1:] if argv is None else argv)])
         print(build_paper_report(cfg.out, out=cfg.report, benchmark=cfg.benchmark, memory=cfg.memory,
                                  floors=cfg.floors))
     except ValueError as e:

@@ -30,7 +30,9 @@ Benchmark JSON (a dedicated timing measurement; the format this module reads)::
 
 A bare list of result objects is accepted too; ``median_bwd_ms`` is accepted for ``bwd_ms``. Results whose
 ``status`` is not ``ok`` (``benchmarks/iteration.py`` records oom and error points) are left out.
-The figures are (re)drawn into ``<report folder>/figures/`` so the report folder is self-contained.
+The figures are (re)drawn into ``<report folder>/figures/`` so the report folder is self-contained. Every path
+the report names (inputs, figures, the floors file) is relative to the report's folder, and recorded commands show
+their program by name: a report holds no absolute path of the machine that wrote it.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ import json
 import os
 import shlex
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import tyro
@@ -52,7 +54,7 @@ from gradlab.timing import median
 __all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
            "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN",
-           "figure_lines", "runs_table"]
+           "figure_lines", "runs_table", "report_path", "command_text"]
 
 TASKS = ("cartpole", "hopper", "ant", "humanoid")
 _PAPER = load_paper_numbers()
@@ -227,9 +229,17 @@ def _ended(run: Run) -> str:
     return f"{_mtime(path)} (file time)" if path.exists() else "-"
 
 
-def _command(cmd) -> str:
-    if isinstance(cmd, (list, tuple)):
-        return shlex.join(str(c) for c in cmd)
+def _program(path: str) -> str:
+    """A command's program by its name, not the path it had on the machine that ran it: ``ablate``, or
+    ``python -m ablations`` for a package's ``__main__.py``."""
+    p = Path(path)
+    return f"python -m {p.parent.name}" if p.name == "__main__.py" else p.name
+
+
+def command_text(cmd) -> str:
+    """A recorded command line (argument list, or text as recorded) as the report shows it."""
+    if isinstance(cmd, (list, tuple)) and cmd:
+        return " ".join([_program(str(cmd[0])), *(shlex.quote(str(c)) for c in cmd[1:])])
     return str(cmd) if cmd else "(not recorded)"
 
 
@@ -241,7 +251,9 @@ def _commit(run: Run) -> str:
     return first.split()[1][:12] if first.startswith("commit ") and len(first.split()) > 1 else first[:40]
 
 
-def _rel(target: Path, base: Path) -> str:
+def report_path(target: str | os.PathLike, base: Path) -> str:
+    """``target`` relative to ``base`` (the report's folder): a report names no absolute path of the machine that
+    wrote it, and its links hold wherever the folders move together."""
     return Path(os.path.relpath(target, base)).as_posix()
 
 
@@ -300,10 +312,13 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
     return [*out, ""]
 
 
-def floors_section(runs: list[Run], floors: Floors) -> list[str]:
-    """The zero- and random-action return floors of the runs' tasks, their source, and the tasks without one."""
+def floors_section(runs: list[Run], floors: Floors, *, base: Path) -> list[str]:
+    """The zero- and random-action return floors of the runs' tasks, their source (relative to ``base``, the
+    report's folder), and the tasks without one."""
     tasks = list(dict.fromkeys(t for t, _ in group_runs(runs)))
     out = ["### Return floors", ""]
+    if floors.source is not None:
+        floors = replace(floors, source=Path(report_path(floors.source, base)))
     if floors.source is None:
         out += ["No floors file (docs/floors.json of this checkout is missing; give --floors FILE written by "
                 "`task-floors`): the return curves have no floor lines.", ""]
@@ -334,7 +349,7 @@ def figure_lines(res: PlotResult, names, base: Path) -> list[str]:
     for name in names:
         caption = FIGURES[name]
         if name in res.files:
-            out += [f"![{caption}]({_rel(res.files[name], base)})", "", f"*{caption}*", ""]
+            out += [f"![{caption}]({report_path(res.files[name], base)})", "", f"*{caption}*", ""]
         elif name in res.skipped:
             out += [f"*{name} not drawn: {res.skipped[name]}.*", ""]
     return out
@@ -368,7 +383,7 @@ def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors
     res = make_plots(runs, fig_dir, floors=floors)
     out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends).", ""]
     out += figure_lines(res, FIGURES, base)
-    out += floors_section(runs, floors)
+    out += floors_section(runs, floors, base=base)
     return [*out, "### Runs", "", *runs_table(runs)]
 
 
@@ -383,7 +398,7 @@ def memory_section(sweeps: list[Path], fig_dir: Path, base: Path, *, heading: st
     for i, folder in enumerate(sweeps):
         rows = read_csv(folder / "memory.csv")
         task = rows[0]["task"] if rows else "?"
-        out += [f"### {task} ({folder})", ""]
+        out += [f"### {task} ({report_path(folder, base)})", ""]
         if not rows:
             out += ["The sweep has no finished point yet.", ""]
             continue
@@ -400,15 +415,16 @@ def memory_section(sweeps: list[Path], fig_dir: Path, base: Path, *, heading: st
         out.append("")
         sub = fig_dir / f"memory_{i}_{task}"
         for f in plot_sweep(rows, sub):
-            out += [f"![{f.stem} ({task})]({_rel(f, base)})", ""]
+            out += [f"![{f.stem} ({task})]({report_path(f, base)})", ""]
     return out
 
 
 def provenance_section(runs: list[Run], sweeps: list[Path], benchmarks: list[tuple[Path, dict, list[dict]]], *,
-                       heading: str = "## 4. Provenance") -> list[str]:
-    """Device, versions, commit, start and end, and command of every input, and this report's command."""
+                       base: Path, heading: str = "## 4. Provenance") -> list[str]:
+    """Device, versions, commit, start and end, and command of every input (paths relative to ``base``, the
+    report's folder), and this report's command."""
     out = [heading, "", f"Report written {_dt.datetime.now().astimezone().isoformat(timespec='seconds')} "
-           f"by `{_command(sys.argv)}`.", ""]
+           f"by `{command_text(sys.argv)}`.", ""]
     if runs:
         out += ["### Runs", ""]
         rows = []
@@ -416,8 +432,8 @@ def provenance_section(runs: list[Run], sweeps: list[Path], benchmarks: list[tup
             env = r.environment
             versions = ", ".join(f"{k} {env[k]}" for k in ("python", "torch", "cuda", "mujoco",
                                                              "pytorch_kinematics") if env.get(k))
-            rows.append([str(r.path), _run_device(r), versions, _commit(r), _started(r), _ended(r),
-                         f"`{_command(r.command)}`"])
+            rows.append([report_path(r.path, base), _run_device(r), versions, _commit(r), _started(r), _ended(r),
+                         f"`{command_text(r.command)}`"])
         out += markdown_table(["run", "device", "versions", "commit", "started (config.json started_utc)",
                                "ended (summary.json ended_utc)", "command"], rows)
         out.append("")
@@ -427,19 +443,19 @@ def provenance_section(runs: list[Run], sweeps: list[Path], benchmarks: list[tup
         except (OSError, json.JSONDecodeError):
             meta = {}
         env = meta.get("environment") or {}
-        out += [f"### Memory sweep {folder}", "",
+        out += [f"### Memory sweep {report_path(folder, base)}", "",
                 f"- dates: started {meta.get('started', '?')}, last point {meta.get('updated', '?')}",
                 f"- device: {env.get('gpu') or env.get('device') or '?'}; versions: "
                 + (", ".join(f"{k} {env[k]}" for k in ("python", "torch", "cuda", "mujoco") if env.get(k)) or "?")]
         for c in meta.get("commands", []):
-            out.append(f"- command ({c.get('started', '?')}): `{_command(c.get('argv'))}`")
+            out.append(f"- command ({c.get('started', '?')}): `{command_text(c.get('argv'))}`")
         out.append("")
     for path, meta, _ in benchmarks:
-        out += [f"### Benchmark {path}", "",
+        out += [f"### Benchmark {report_path(path, base)}", "",
                 f"- date: {meta.get('date', _mtime(path) + ' (file time)')}",
                 f"- device: {meta.get('gpu') or meta.get('device') or '?'}; versions: "
                 f"{meta.get('versions') or '?'}",
-                f"- command: `{_command(meta.get('command'))}`", ""]
+                f"- command: `{command_text(meta.get('command'))}`", ""]
     return out
 
 
@@ -486,7 +502,7 @@ def build_report(cfg: ReportConfig) -> Path:
     lines += table1_section(collect_bwd(runs, benchmarks))
     lines += curves_section(runs, fig_dir, base, floors=floors)
     lines += memory_section(sweeps, fig_dir, base)
-    lines += provenance_section(runs, sweeps, benchmarks)
+    lines += provenance_section(runs, sweeps, benchmarks, base=base)
 
     from gradlab.checkpoint import atomic_write_text
 

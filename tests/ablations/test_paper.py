@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,7 +20,8 @@ from tests.ablations.test_report import write_sweep
 WALL = 600.0
 
 
-def test_arms_expand_to_the_papers_sweep():
+def test_arms_expand_to_the_papers_sweep(monkeypatch):
+    monkeypatch.setattr(paper, "cuda_gpus", lambda: 1)
     cfg = PaperConfig(out=Path("p"), time_limit_min=55.0, set=("cosine-every=5",))
     sweep, arms = sweep_config(cfg)
     specs = plan(sweep, arms=arms)
@@ -53,13 +55,31 @@ def test_dry_run_lists_the_runs_and_starts_nothing(tmp_path, capsys):
     assert not (tmp_path / "p").exists()
 
 
+def test_without_a_gpu_the_runs_go_to_the_cpu_and_dry_run_says_so(tmp_path, capsys, monkeypatch):
+    argv = ["--dry-run", "--out", str(tmp_path / "p"), "--tasks", "hopper", "--arms", "state", "--seeds", "0"]
+    monkeypatch.setattr(paper, "cuda_gpus", lambda: 0)
+    main(argv)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[-2:] == ["1 runs; 1.0 CPU and 0.0 GPU each",
+                          "no CUDA GPU on this machine: the runs train on the CPU (--gpus-per-run 0); on a GPU "
+                          "machine each run gets one (--gpus-per-run 1)"]
+    main([*argv, "--gpus-per-run", "0"])  # asked for: nothing to explain
+    assert capsys.readouterr().out.splitlines()[-1] == "1 runs; 1.0 CPU and 0.0 GPU each"
+    monkeypatch.setattr(paper, "cuda_gpus", lambda: 2)
+    main(argv)
+    assert capsys.readouterr().out.splitlines()[-1] == "1 runs; 1.0 CPU and 1.0 GPU each"
+    # A cluster to join decides for itself what it has: one GPU per run unless told otherwise.
+    monkeypatch.setattr(paper, "cuda_gpus", lambda: 0)
+    assert paper.gpus_per_run(PaperConfig(address="auto")) == (1.0, None)
+
+
 @pytest.mark.parametrize(("argv", "message"), [
     (["--arms", "full-medium"], "--arms full-medium: choose from decoupled, full-hard"),
     (["--arms", "state", "state"], "--arms lists an arm twice"),
     (["--set", "iters=5"], "--set iters=5: ablate-paper sets it; use --iters"),
     (["--set", "time-limit-min=5"], "use --time-limit-min"),
     (["--time-limit-min", "0"], "--time-limit-min must be positive"),
-    (["--tasks", "hoper"], "run hoper_decoupled_seed0: unknown task 'hoper'"),
+    (["--tasks", "hoper"], "--tasks hoper: choose from cartpole, cartpole-swingup, hopper, ant, humanoid"),
 ])
 def test_bad_options_are_one_line_errors(tmp_path, capsys, argv, message):
     with pytest.raises(SystemExit) as e:
@@ -252,3 +272,32 @@ def test_bad_paper_numbers_file_is_named(tmp_path):
     (tmp_path / "n.json").write_text(json.dumps(bad))
     with pytest.raises(ValueError, match="needs a numeric value, or low and high"):
         load_paper_numbers(tmp_path / "n.json")
+
+
+def test_recorded_command_reruns_as_written_and_the_report_holds_relative_paths(tmp_path, monkeypatch, capsys):
+    """A sweep whose runs have all finished needs no Ray: ablate-paper records its command, writes the report, and
+    that command, run again as written, does the same."""
+    import shlex
+
+    from tests.ablations.test_report import absolute_paths
+
+    monkeypatch.chdir(tmp_path)
+    argv = ["--out", "p", "--tasks", "hopper", "--arms", "decoupled", "state", "--seeds", "0", "--iters", "12",
+            "--time-limit-min", "30", "--gpus-per-run", "0", "--no-progress"]
+    for arm, mode in (("decoupled", "decoupled"), ("state", "state")):
+        write_run(tmp_path / "p" / "runs", task="hopper", mode=mode, seed=0, name=f"hopper_{arm}_seed0",
+                  probe_every=0)
+    monkeypatch.setattr(sys, "argv", [str(tmp_path / "venv" / "bin" / "ablate-paper"), *argv])
+    main(argv)
+    report = Path(capsys.readouterr().out.strip())
+    manifest = json.loads((tmp_path / "p" / "sweep.json").read_text())
+    assert manifest["command"] == ["ablate-paper", *argv]
+    assert manifest["counts"]["done"] == 2
+    text = (tmp_path / report).read_text()
+    recorded = re.search(r"Sweep command: `([^`]*)`", text).group(1)
+    assert shlex.split(recorded) == manifest["command"]
+    assert absolute_paths(text) == [] and str(tmp_path) not in text
+    assert "Sweep folder `..`" in text and "| ../runs/hopper_state_seed0 |" in text
+
+    main(shlex.split(recorded)[1:])  # the recorded command, run again as written
+    assert json.loads((tmp_path / "p" / "sweep.json").read_text())["command"] == manifest["command"]

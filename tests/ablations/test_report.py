@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,12 @@ import pytest
 from ablations.memory import COLUMNS, csv_text
 from ablations.report import PAPER_TABLE1_MS, ReportConfig, build_report, load_benchmark
 from tests.ablations.conftest import write_run
+
+
+def absolute_paths(text: str) -> list[str]:
+    """Words of a report that start like an absolute path: at a line start, or after a space, quote, backtick,
+    bracket or table bar."""
+    return re.findall(r"(?:^|[\s`'\"(\[|=])(/[\w.~/-]+)", text, flags=re.MULTILINE)
 
 
 def table_row(text: str, task: str) -> list[str]:
@@ -167,7 +174,7 @@ def test_report_lists_floors_dates_and_variants(tmp_path):
     assert "full (alpha): 4x8" in rows[0][4] and "full (hard): 4x8" in rows[1][4]
     assert "humanoid blind 7 ms" in text
     # Floors: a table with their source, and the task without one named.
-    assert f"from `{floors}`" in text
+    assert "from `floors.json`" in text  # relative to the report's folder
     assert table_row(text, "hopper")[0] == "hopper"
     assert "| hopper | -12.5 +- 3 | 40.25 +- 9 | 64 |" in text
     assert "| humanoid | no entry | no entry | - |" in text
@@ -206,3 +213,32 @@ def test_benchmark_rows_of_several_raster_models_stay_apart(tmp_path):
     ant = [[c.strip() for c in ln.strip("|").split("|")] for ln in text.splitlines() if ln.startswith("| ant |")]
     assert [r[1:4] for r in ant] == [["10.0", "50.0", "5.00x"], ["10.0", "30.0", "3.00x"]]
     assert "full (alpha):" in ant[0][4] and "full (hard):" in ant[1][4]
+
+
+def test_report_names_no_absolute_path(inputs, tmp_path, monkeypatch):
+    """Inputs given as absolute paths, a run recorded by `python -m ablations ablate`, the report's own command run
+    through a console script: the report names them relative to its folder, and programs by name."""
+    runs, sweep = inputs
+    run = next(runs.iterdir())
+    record = json.loads((run / "config.json").read_text())
+    record["command"] = [str(tmp_path / "site-packages" / "ablations" / "__main__.py"), "ablate", "--task", "hopper"]
+    (run / "config.json").write_text(json.dumps(record))
+    bench = tmp_path / "bench" / "b.json"
+    bench.parent.mkdir()
+    bench.write_text(json.dumps({"command": "python benchmarks/iteration.py", "results": [
+        {"task": "ant", "mode": "full", "bwd_ms": 10.0}]}))
+    floors = tmp_path / "floors.json"
+    floors.write_text(json.dumps({"tasks": {t: {"zero": {"mean": 1.0}} for t in ("cartpole", "hopper")}}))
+    monkeypatch.setattr(sys, "argv", [str(tmp_path / "venv" / "bin" / "ablate-report"), "--out", "rep/report.md"])
+    out = build_report(ReportConfig(runs=(runs.resolve(),), memory=(sweep.resolve(),), benchmark=(bench,),
+                                    floors=floors, out=tmp_path / "rep" / "report.md"))
+    text = out.read_text()
+    assert absolute_paths(text) == [] and str(tmp_path) not in text
+    assert "by `ablate-report --out rep/report.md`" in text
+    assert "`python -m ablations ablate --task hopper`" in text
+    assert f"| ../runs/{run.name} |" in text and "### Benchmark ../bench/b.json" in text
+    assert "### Memory sweep ../sweep" in text and "from `../floors.json`" in text
+    # The default floors file of this checkout, too.
+    text = build_report(ReportConfig(runs=(runs,), out=tmp_path / "rep2" / "report.md")).read_text()
+    assert absolute_paths(text) == [] and "floors.json`" in text
+    assert absolute_paths("a `/home/x` b\n/tmp/y | /z |") == ["/home/x", "/tmp/y", "/z"]

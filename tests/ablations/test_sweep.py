@@ -1,11 +1,15 @@
 """``ablate-sweep``: the grid, its checks, run folders as archives, the driver's store, and real sweeps on a local
-Ray cluster (a worker killed mid-run, a failed run, a rerun that skips and resumes)."""
+Ray cluster (a worker killed mid-run, a failed run, a rerun that skips and resumes, how many runs train at once)."""
 
 from __future__ import annotations
 
 import io
 import json
+import os
+import subprocess
+import sys
 import tarfile
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -15,17 +19,29 @@ from ablations.sweep import (
     KEPT_CHECKPOINTS,
     RunStore,
     SweepConfig,
+    attempt_command,
     dry_run,
     load_manifest,
     main,
     pack_run,
     parse_args,
     plan,
+    run_slots,
     run_sweep,
     unpack_run,
 )
+from gradlab.config import MODES
+from tasks import TASKS
 
 ROOT = Path(__file__).resolve().parents[2]
+#: Stand-ins for ablate that a sweep's workers start instead (the sweep's ``program`` seam).
+FAKE_ABLATE = Path(__file__).with_name("fake_ablate.py")
+
+
+def kill_worker_once(out: Path, *run_ids: str) -> tuple[str, ...]:
+    """The real ablate, but the named runs' Ray workers are SIGKILLed once each, right after the run's first
+    checkpoint has reached the sweep folder (tests/ablations/fake_ablate.py)."""
+    return (sys.executable, str(FAKE_ABLATE), "kill-worker-once", str(out), ",".join(run_ids), "--")
 #: A run of a few seconds on one CPU core: 12 iterations, a checkpoint every 2.
 TINY = ("iters=12", "num-envs=2", "horizon=3", "image-size=24", "critic-iterations=1", "critic-batches=1",
         "checkpoint-every=2", "video-every=0", "cosine-every=0", "device=cpu")
@@ -104,7 +120,8 @@ def test_bad_arms_are_refused(arms, message):
     (dict(vary=("horizon=4,,8",)), "an empty value"),
     (dict(vary=("horizon=4,4",)), "values repeat"),
     (dict(set=("horizon=4",), vary=("horizon=8,16",)), "horizon: given in both --set and --vary"),
-    (dict(tasks=("cartpol",)), "run cartpol_full_seed0: unknown task 'cartpol'"),
+    (dict(tasks=("cartpol",)), "--tasks cartpol: choose from cartpole, cartpole-swingup, hopper"),
+    (dict(modes=("full", "blnd")), "--modes blnd: choose from full, decoupled, state, blind"),
     (dict(seeds=(1, 1)), "--seeds lists a value twice"),
     (dict(modes=()), "--modes needs at least one value"),
     (dict(set=("num-envs=0",)), "run cartpole_full_seed0: num_envs must be a positive integer"),
@@ -117,6 +134,29 @@ def test_bad_grid_is_refused_naming_the_flag(kw, message):
     with pytest.raises(ValueError) as info:
         plan(SweepConfig(**kw))
     assert message in str(info.value)
+
+
+def test_every_task_and_mode_is_a_grid_value(monkeypatch, capsys):
+    """The axes take the lists every command shares (tasks.TASKS, gradlab.config.MODES), and --help names them."""
+    specs = plan(SweepConfig(tasks=TASKS, modes=MODES, set=("iters=7",)))
+    assert {(s.task, s.mode) for s in specs} == {(t, m) for t in TASKS for m in MODES}
+    assert "blind" in MODES and "cartpole-swingup" in TASKS
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert "--tasks {" + ",".join(TASKS) + "}" in text and "--modes {" + ",".join(MODES) + "}" in text
+
+
+def test_attempt_command_names_no_folder_of_the_worker_node():
+    """An attempt runs in its scratch folder with relative paths, so the run's config.json records none of the
+    node's folders (reports show the recorded command)."""
+    (spec,) = plan(SweepConfig(modes=("state",), set=("iters=3",)))
+    fresh = attempt_command(spec.args, spec.run_id, resume=False)
+    assert fresh == [sys.executable, "-m", "ablations", "ablate", *spec.args, "--out", ".", "--name", spec.run_id,
+                     "--no-progress", "--no-compile-helper"]
+    assert attempt_command(spec.args, spec.run_id, resume=True, program=["fake"]) == [
+        "fake", "--resume", spec.run_id, "--no-progress", "--no-compile-helper"]
 
 
 def test_tyro_rejection_names_the_run(capsys):
@@ -169,7 +209,7 @@ def field_docs() -> dict[str, str]:
     """SweepConfig's attribute docstrings (what tyro shows as each flag's help), from the source."""
     import ast
 
-    tree = ast.parse((ROOT / "ablations" / "sweep.py").read_text())
+    tree = ast.parse((ROOT / "ablations" / "sweep" / "config.py").read_text())
     cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "SweepConfig")
     docs = {}
     for a, b in zip(cls.body, cls.body[1:]):
@@ -283,8 +323,6 @@ def test_store_hands_out_resume_state_and_refuses_stale_attempts(tmp_path):
     assert store.begin("b") == (4, None)
     assert not (tmp_path / "runs" / "b").exists()
     assert [p.name.split(".")[:2] for p in (tmp_path / "discarded").iterdir()] == [["b", "attempt3"]]
-    assert store.claim_kill("a", "ckpt_000002.pt") and not store.claim_kill("a", "ckpt_000004.pt")
-    assert (tmp_path / ".killed" / "a").read_text() == "ckpt_000002.pt"
 
 
 def test_rerun_with_other_flags_in_the_same_folder_is_refused(tmp_path):
@@ -328,14 +366,15 @@ def assert_complete_run(run: Path, iters: int, *, checkpoint: bool = True) -> No
 
 
 def killed_at(out: Path, run_id: str) -> int:
-    """The iteration of the checkpoint the run had shipped when --kill-once killed its worker."""
+    """The iteration of the checkpoint the run had shipped when its worker was killed (fake_ablate.py's note)."""
     return int((out / ".killed" / run_id).read_text().split("_")[1].split(".")[0])
 
 
 def test_sweep_recovers_a_killed_worker_then_a_rerun_skips_everything(ray_cluster, tmp_path):
     out = tmp_path / "sweep"
     killed = "cartpole_decoupled_seed0"
-    manifest = run_sweep(tiny_sweep(out, kill_once=(killed,), progress=True))  # the live table too
+    program = kill_worker_once(out, killed)
+    manifest = run_sweep(tiny_sweep(out, progress=True), program=program)  # the live table too
     runs = manifest["runs"]
     assert set(runs) == {killed, "cartpole_state_seed0"}
     assert manifest["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0}
@@ -344,26 +383,29 @@ def test_sweep_recovers_a_killed_worker_then_a_rerun_skips_everything(ray_cluste
         assert rec["status"] == "done" and rec["error"] is None and rec["iteration"] == 12, (run_id, rec)
         assert rec["folder"] == f"runs/{run_id}"
         assert_complete_run(out / rec["folder"], 12)
+        # The recorded command names no folder of the worker node (the run trained in a scratch folder there).
+        command = json.loads((out / rec["folder"] / "config.json").read_text())["command"]
+        assert command[command.index("--out") + 1] == "." and command[command.index("--name") + 1] == run_id
+        assert not any(tempfile.gettempdir() in arg for arg in command[1:]), command
     # The worker died after shipping an early checkpoint; Ray retried it and the retry resumed from there.
     assert 2 <= killed_at(out, killed) < 12
     assert runs[killed]["attempts"] == 2 and runs[killed]["resumed"] is True
     assert runs["cartpole_state_seed0"]["attempts"] == 1 and runs["cartpole_state_seed0"]["resumed"] is False
-    first_log = (out / "logs" / f"{killed}.attempt1.log").read_text()
-    assert "the Ray worker kills itself" in first_log and "ablate-sweep" in first_log
-    assert (out / "logs" / f"{killed}.attempt2.log").exists()
+    # A killed worker sends no log: its attempt's output was in the node's scratch folder.
+    logs = {f"{killed}.attempt2.log", "cartpole_state_seed0.attempt1.log"}
+    assert {p.name for p in (out / "logs").iterdir()} == logs
 
-    again = run_sweep(tiny_sweep(out, kill_once=(killed,)))
+    again = run_sweep(tiny_sweep(out), program=program)
     assert {k: (r["status"], r["attempts"]) for k, r in again["runs"].items()} == {
         killed: ("done", 2), "cartpole_state_seed0": ("done", 1)}
-    assert {p.name for p in (out / "logs").iterdir()} == {
-        f"{killed}.attempt1.log", f"{killed}.attempt2.log", "cartpole_state_seed0.attempt1.log"}
+    assert {p.name for p in (out / "logs").iterdir()} == logs
 
 
 def test_failed_run_is_recorded_and_a_rerun_resumes_it(ray_cluster, tmp_path):
     out = tmp_path / "sweep"
     killed = "cartpole_state_seed1"
-    cfg = tiny_sweep(out, modes=("state",), seeds=(1,), kill_once=(killed,), max_retries=0)
-    manifest = run_sweep(cfg)
+    program = kill_worker_once(out, killed)
+    manifest = run_sweep(tiny_sweep(out, modes=("state",), seeds=(1,), max_retries=0), program=program)
     rec = manifest["runs"][killed]
     assert rec["status"] == "failed" and manifest["counts"]["failed"] == 1
     assert "Worker" in rec["error"] or "worker" in rec["error"], rec["error"]
@@ -372,10 +414,79 @@ def test_failed_run_is_recorded_and_a_rerun_resumes_it(ray_cluster, tmp_path):
     assert [r["iter"] for r in read_metrics(out / rec["folder"])][:step] == list(range(1, step + 1))
     assert (out / rec["folder"] / "checkpoints" / f"ckpt_{step:06d}.pt").exists()
 
-    manifest = run_sweep(tiny_sweep(out, modes=("state",), seeds=(1,), kill_once=(killed,), keep_checkpoints=False))
+    manifest = run_sweep(tiny_sweep(out, modes=("state",), seeds=(1,), keep_checkpoints=False), program=program)
     rec = manifest["runs"][killed]
     assert rec["status"] == "done" and rec["error"] is None and rec["resumed"] is True and rec["attempts"] == 2
     assert_complete_run(out / rec["folder"], 12, checkpoint=False)
+
+
+def max_overlap(spans: list[dict]) -> int:
+    """The most intervals [start, end] open at one moment."""
+    events = sorted([(s["start"], 1) for s in spans] + [(s["end"], -1) for s in spans])
+    most = now = 0
+    for _, step in events:  # at equal times an end (-1) sorts first: touching intervals do not overlap
+        now += step
+        most = max(most, now)
+    return most
+
+
+def test_sweep_trains_at_most_cpus_over_cpus_per_run_runs_at_once(ray_cluster, tmp_path):
+    """Two CPUs, one per run: six runs, never more than two training at once (each run records when it trained)."""
+    log = tmp_path / "spans.jsonl"
+    cfg = SweepConfig(out=tmp_path / "sweep", tasks=("cartpole",), modes=("decoupled", "state"), seeds=(0, 1, 2),
+                      set=("iters=8",), cpus_per_run=1.0, progress=False)
+    assert run_slots(cfg) == 2
+    manifest = run_sweep(cfg, program=(sys.executable, str(FAKE_ABLATE), "record", str(log), "4", "--"))
+    assert manifest["counts"]["done"] == 6
+    spans = [json.loads(line) for line in log.read_text().splitlines()]
+    assert sorted(s["run"] for s in spans) == sorted(manifest["runs"])
+    assert max_overlap(spans) == 2
+
+
+def test_run_slots_divide_each_node_by_what_a_run_takes(monkeypatch):
+    ray = pytest.importorskip("ray")
+    nodes = [{"Alive": True, "Resources": {"CPU": 16.0, "GPU": 1.0}},
+             {"Alive": True, "Resources": {"CPU": 3.0}},
+             {"Alive": False, "Resources": {"CPU": 64.0, "GPU": 8.0}}]
+    monkeypatch.setattr(ray, "nodes", lambda: nodes)
+    assert run_slots(SweepConfig(cpus_per_run=1.0)) == 16 + 3
+    assert run_slots(SweepConfig(cpus_per_run=1.5)) == 10 + 2
+    assert run_slots(SweepConfig(cpus_per_run=0.5, gpus_per_run=0.25)) == 4  # the GPU node's four quarters
+    assert run_slots(SweepConfig(cpus_per_run=0.1)) == 160 + 30  # 3.0 / 0.1 is 29.999999999999996 in floats
+    assert run_slots(SweepConfig(cpus_per_run=32.0)) == 1  # never none (_check_resources refuses such a sweep)
+
+
+def test_rays_token_notice_is_left_out_and_its_warning_kept():
+    pytest.importorskip("ray")
+    import logging
+
+    from ray._private.authentication import authentication_token_setup as auth
+
+    from ablations.sweep.driver import quiet_token_notice
+
+    seen: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: seen.append(record.getMessage())
+    logger = logging.getLogger(auth.__name__)
+    logger.addHandler(handler)
+    try:
+        quiet_token_notice()
+        auth._warn_token_auth_enabled()  # what Ray logs on every ray.init that starts a local cluster
+        auth._warn_token_auth_disabled()
+    finally:
+        logger.removeHandler(handler)
+    assert len(seen) == 1 and seen[0].startswith("Token authentication is disabled"), seen
+
+
+@pytest.mark.slow
+def test_a_local_cluster_starts_without_rays_token_notice(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("RAY_AUTH_MODE", "RAY_ADDRESS")}
+    code = ("import ray\nfrom ablations.sweep import SweepConfig\nfrom ablations.sweep.driver import _ray_init\n"
+            "assert _ray_init(SweepConfig(num_cpus=1))\nray.shutdown()\n")
+    proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "Token authentication" not in proc.stderr + proc.stdout
 
 
 @pytest.mark.slow
@@ -385,10 +496,11 @@ def test_grid_of_two_modes_and_two_seeds_with_a_kill_and_failing_runs(ray_cluste
     killed = "cartpole_decoupled_seed1_abort-grad-norm1e8"
     with pytest.raises(SystemExit) as info:
         main(["--out", str(out), "--modes", "decoupled", "state", "--seeds", "0", "1", "--set", *TINY,
-              "--vary", "abort-grad-norm=1e8,1e-12", "--kill-once", killed, "--no-progress"])
+              "--vary", "abort-grad-norm=1e8,1e-12", "--no-progress"], program=kill_worker_once(out, killed))
     assert info.value.code == 1  # some runs failed
     manifest = load_manifest(out)
     assert len(manifest["runs"]) == 8
+    assert manifest["command"][:3] == ["ablate-sweep", "--out", str(out)]
     for run_id, rec in manifest["runs"].items():
         if run_id.endswith("1e-12"):
             assert rec["status"] == "failed" and "abort_grad_norm" in rec["error"], rec

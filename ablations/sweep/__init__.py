@@ -1,0 +1,57 @@
+"""``ablate-sweep``: a grid of ``ablate`` runs (tasks x modes x seeds x any ``ablate`` flag) on Ray core.
+
+Each run is one Ray task that starts ``python -m ablations ablate`` as a child process in a scratch folder on
+whichever node Ray picked, so a crash, an out-of-memory kill or a bad configuration stays inside that run.
+The node needs no filesystem shared with the driver: a small actor pinned to the driver's node (``RunStore``)
+receives the run folder packed as a tar archive every time a new checkpoint appears and once at the end, and
+writes it under ``<sweep>/runs/<run_id>/``. A retried task (its worker died, or its child was killed by a
+signal) asks the store for the latest checkpoint it holds and continues with ``ablate --resume``. The driver
+keeps at most (CPUs / ``--cpus-per-run``) runs in flight per node (:func:`run_slots`).
+
+The sweep folder::
+
+    sweep.json                    the manifest (written atomically): grid, the command that made it, and per run
+                                  its status (queued / running / done / failed), error, folder, iteration,
+                                  latest return
+    runs/<run_id>/                each run folder as ``ablate`` writes it (config.json, metrics.jsonl,
+                                  summary.json, videos/, the two newest checkpoints)
+    logs/<run_id>.attempt<N>.log  the child's output of each attempt that ended (a killed worker leaves none)
+    discarded/                    folders of earlier attempts that stopped before any checkpoint (a fresh
+                                  start needs an empty folder; nothing is deleted)
+
+A rerun with the same folder skips runs whose summary says they finished, resumes the others from their last
+checkpoint and starts the rest from scratch. Library use (the ``ablate-paper`` layer): build a
+:class:`SweepConfig` (or :func:`parse_args`), then :func:`run_sweep` returns the manifest; :func:`plan` lists
+the runs without starting anything. Both take ``arms``: named sets of ablate flags, each with its own mode,
+that replace the modes axis (tasks x arms x seeds x --vary), for comparisons whose sides differ in more than
+the mode (the paper's full arm with its own preset beside the soft-rasterizer one).
+
+Each run folder keeps its ``KEPT_CHECKPOINTS`` newest checkpoints, so a resume survives a damaged newest one
+(``ablate --resume`` falls back to the next).
+
+Modules, by role:
+    config    :class:`SweepConfig` (the flags), the TOML file, ``--set``/``--vary`` as ablate arguments
+    grid      :func:`plan` (every run, checked by ablate's parser) and :func:`attempt_command` (the one place
+              that turns a run into the command line its process runs)
+    transfer  :func:`pack_run` / :func:`unpack_run`: run folders as tar archives between nodes
+    store     :class:`RunStore` (the driver-side actor) and every read of a run folder the sweep makes
+    worker    the Ray task: one attempt of one run; ``child.py`` ties its process to the worker
+    manifest  sweep.json
+    table     the live table
+    driver    :func:`run_sweep`, :func:`dry_run` and :func:`main` (the ``ablate-sweep`` command)
+
+Test seam (not a user option): ``run_sweep(..., program=[...])`` runs that program with ablate's arguments
+instead of ``python -m ablations ablate`` (tests/ablations/fake_ablate.py: a worker killed mid-run, a run that
+records when it trained).
+"""
+
+from ablations.sweep.config import SweepConfig, parse_args
+from ablations.sweep.driver import dry_run, main, run_slots, run_sweep
+from ablations.sweep.grid import RunSpec, attempt_command, plan
+from ablations.sweep.manifest import load_manifest
+from ablations.sweep.store import RunStore
+from ablations.sweep.transfer import KEPT_CHECKPOINTS, pack_run, unpack_run
+from ablations.sweep.worker import RunProcessDied
+
+__all__ = ["SweepConfig", "RunSpec", "RunStore", "RunProcessDied", "parse_args", "plan", "run_sweep", "dry_run",
+           "load_manifest", "pack_run", "unpack_run", "main", "KEPT_CHECKPOINTS", "run_slots", "attempt_command"]

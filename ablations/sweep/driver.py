@@ -1,0 +1,252 @@
+"""The driver: runs (or resumes) the grid on Ray, keeps sweep.json current, and the ``ablate-sweep`` command."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ablations.runs import check_writable
+from ablations.sweep.config import SweepConfig, parse_args, parse_set, parse_vary
+from ablations.sweep.grid import plan
+from ablations.sweep.manifest import MANIFEST, load_manifest, prepare_manifest, write_manifest
+from ablations.sweep.store import RunStore, drop_checkpoints, run_folder, run_state
+from ablations.sweep.table import LiveTable
+from ablations.sweep.worker import RunProcessDied, run_attempt
+
+__all__ = ["run_sweep", "dry_run", "main", "run_slots", "quiet_token_notice", "DRIVER_POLL_S"]
+
+#: Seconds between the driver's looks at the runs (and table updates).
+DRIVER_POLL_S = 1.0
+#: The start of the line Ray logs whenever it starts a local cluster with token authentication, its default.
+_TOKEN_NOTICE = "Token authentication is enabled for this Ray cluster"
+
+
+class _DropTokenNotice(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(_TOKEN_NOTICE)
+
+
+def quiet_token_notice() -> None:
+    """Leave out Ray's notice that it enabled token authentication: printed on every sweep, it asks nothing of the
+    user. Its warning that authentication is disabled (RAY_AUTH_MODE=disabled) is still printed."""
+    logger = logging.getLogger("ray._private.authentication.authentication_token_setup")
+    if not any(isinstance(f, _DropTokenNotice) for f in logger.filters):
+        logger.addFilter(_DropTokenNotice())
+
+
+def _ray_init(cfg: SweepConfig) -> bool:
+    """Connect to (or start) the cluster unless this process already is; True when this call did it."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    kwargs: dict[str, Any] = dict(address=cfg.address, include_dashboard=False, logging_level=logging.WARNING,
+                                  log_to_driver=False)
+    if cfg.num_cpus is not None:
+        kwargs["num_cpus"] = cfg.num_cpus
+    if cfg.num_gpus is not None:
+        kwargs["num_gpus"] = cfg.num_gpus
+    quiet_token_notice()
+    try:
+        ray.init(**kwargs)
+    except ConnectionError as e:
+        raise ValueError(f"--address {cfg.address}: cannot join the Ray cluster: {e}") from None
+    return True
+
+
+def _check_resources(cfg: SweepConfig) -> None:
+    """Refuse a sweep that no node could ever schedule (Ray would wait for ever)."""
+    import ray
+
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    cpus = max((n["Resources"].get("CPU", 0) for n in nodes), default=0)
+    gpus = max((n["Resources"].get("GPU", 0) for n in nodes), default=0)
+    if cfg.cpus_per_run > cpus:
+        raise ValueError(f"--cpus-per-run {cfg.cpus_per_run}: no node of the cluster has that many (largest: {cpus})")
+    if cfg.gpus_per_run > gpus:
+        raise ValueError(f"--gpus-per-run {cfg.gpus_per_run}: no node of the cluster has that many GPUs "
+                         f"(largest: {gpus}); --gpus-per-run 0 trains on the CPU")
+
+
+def run_slots(cfg: SweepConfig) -> int:
+    """How many runs the cluster trains at once: per live node, its CPUs / --cpus-per-run (and GPUs /
+    --gpus-per-run), rounded down, summed; at least 1.
+
+    The driver keeps no more runs than this in flight. Ray's reservations alone do not hold the line: a task
+    blocked in ``ray.get`` (a worker waiting for the run store) hands its CPU back, and Ray starts another run on it.
+    """
+    import ray
+
+    total = 0
+    for node in ray.nodes():
+        if not node.get("Alive"):
+            continue
+        res = node["Resources"]
+        fit = math.floor(res.get("CPU", 0) / cfg.cpus_per_run + 1e-9)
+        if cfg.gpus_per_run:
+            fit = min(fit, math.floor(res.get("GPU", 0) / cfg.gpus_per_run + 1e-9))
+        total += fit
+    return max(1, total)
+
+
+def _describe_failure(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None)
+    if isinstance(cause, BaseException):
+        exc = cause
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".strip()[:2000]
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S")
+
+
+def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
+              command: Sequence[str] | None = None, arms: dict | None = None,
+              program: Sequence[str] | None = None) -> dict:
+    """Run (or resume) the sweep; returns the final manifest. Bad input raises ValueError before any run.
+
+    ``arms``: see :func:`~ablations.sweep.plan`. ``command``: the command line sweep.json records (None:
+    ``ablate-sweep`` and this process's arguments). Uses the Ray connection of this process when there is one
+    (it is left open), else joins or starts the cluster that ``cfg.address`` names and shuts the connection down
+    at the end. ``program`` is a test seam, not a user option: a stand-in for ``python -m ablations ablate``
+    (see :func:`~ablations.sweep.grid.attempt_command`).
+    """
+    specs = plan(cfg, set_table, vary_table, arms=arms)
+    set_table = parse_set(cfg.set) if set_table is None else set_table
+    vary_table = parse_vary(cfg.vary) if vary_table is None else vary_table
+    out = Path(cfg.out).resolve()
+    check_writable(out)
+    manifest, todo = prepare_manifest(cfg, specs, set_table, vary_table, None if command is None else list(command),
+                                      arms)
+    write_manifest(out, manifest)
+    if not todo:
+        return manifest
+
+    import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    started_here = _ray_init(cfg)
+    table = None
+    pending: dict = {}
+    try:
+        _check_resources(cfg)
+        runs = manifest["runs"]
+        store = ray.remote(RunStore).options(
+            num_cpus=0, max_concurrency=1,
+            scheduling_strategy=NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False),
+        ).remote(str(out), {k: r.get("attempts", 0) for k, r in runs.items()})
+        task = ray.remote(run_attempt).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
+                                               max_retries=cfg.max_retries, retry_exceptions=[RunProcessDied])
+        opts = {"sweep_id": manifest["id"], "gpus_per_run": cfg.gpus_per_run, "cpus_per_run": cfg.cpus_per_run,
+                "keep_checkpoints": cfg.keep_checkpoints, "program": None if program is None else list(program)}
+        queue = list(todo)
+        table = LiveTable(manifest, todo, enabled=cfg.progress)
+        last_write = time.monotonic()
+        while queue or pending:
+            if queue:
+                free = max(0, run_slots(cfg) - len(pending))
+                for spec in queue[:free]:
+                    pending[task.remote(dataclasses.asdict(spec), store, opts)] = spec.run_id
+                del queue[:free]
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=DRIVER_POLL_S)
+            changed = False
+            for run_id, info in ray.get(store.snapshot.remote()).items():
+                rec = runs[run_id]
+                if rec["status"] in ("done", "failed") and info.get("attempts", 0) <= rec.get("attempts", 0):
+                    continue
+                new = {k: info[k] for k in ("iteration", "latest_return", "node", "host", "attempts", "resumed")
+                       if k in info}
+                if info.get("status") == "running" and rec["status"] == "queued":
+                    new["status"] = "running"
+                if any(rec.get(k) != v for k, v in new.items()):
+                    rec.update(new, updated=_now())
+                    changed = changed or "status" in new
+            for ref in ready:
+                run_id = pending.pop(ref)
+                rec = runs[run_id]
+                try:
+                    result = ray.get(ref)
+                except ray.exceptions.RayError as e:
+                    # Retries are spent (a worker death, a killed ablate) or the task itself broke.
+                    tries = max(rec.get("attempts") or 0, 1)
+                    result = {"status": "failed", "error": f"{_describe_failure(e)} (attempt {tries}, "
+                                                           f"--max-retries {cfg.max_retries})"}
+                rec.update({k: v for k, v in result.items() if k in ("status", "error", "iteration", "latest_return",
+                                                                     "node", "host", "summary_status")},
+                           updated=_now())
+                rec["attempts"] = max(rec.get("attempts", 0), result.get("attempt", 0))
+                if rec["status"] == "done" and not cfg.keep_checkpoints:
+                    drop_checkpoints(out / rec["folder"])
+                changed = True
+            if changed or time.monotonic() - last_write > 10 * DRIVER_POLL_S:
+                write_manifest(out, manifest)
+                last_write = time.monotonic()
+            table.update()
+        snap = ray.get(store.snapshot.remote())
+        for run_id, info in snap.items():
+            runs[run_id]["attempts"] = max(runs[run_id].get("attempts", 0), info.get("attempts", 0))
+    except KeyboardInterrupt:
+        # Unfinished runs go back to queued: a rerun resumes them from the checkpoints the folder holds.
+        for run_id in pending.values():
+            manifest["runs"][run_id]["status"] = "queued"
+        raise
+    finally:
+        if table is not None:
+            table.close()
+        write_manifest(out, manifest)
+        if started_here:
+            ray.shutdown()
+    return manifest
+
+
+def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
+            arms: dict | None = None) -> list[str]:
+    """Print (and return) one line per run, with what a (re)run would do with it; starts nothing."""
+    specs = plan(cfg, set_table, vary_table, arms=arms)
+    out = Path(cfg.out)
+    manifest = load_manifest(out) or {"runs": {}}
+    lines = []
+    for spec in specs:
+        state = run_state(run_folder(out, spec.run_id), spec.iters)
+        if state != "done" and manifest["runs"].get(spec.run_id, {}).get("status") == "failed" \
+                and not cfg.rerun_failed:
+            state = "failed (left)"
+        lines.append(f"{state:8s} {spec.run_id}: ablate {' '.join(spec.args)}")
+    lines.append(f"{len(specs)} runs; {cfg.cpus_per_run} CPU and {cfg.gpus_per_run} GPU each")
+    for line in lines:
+        print(line)
+    return lines
+
+
+def main(argv: list[str] | None = None, *, program: Sequence[str] | None = None) -> None:
+    """``ablate-sweep --tasks cartpole hopper --modes full decoupled --seeds 0 1 2 --vary image-size=64,84``.
+
+    ``program``: the test seam of :func:`run_sweep`.
+    """
+    try:
+        cfg, set_table, vary_table = parse_args(argv)
+        if cfg.dry_run:
+            dry_run(cfg, set_table, vary_table)
+            return
+        command = None if argv is None else ["ablate-sweep", *argv]
+        manifest = run_sweep(cfg, set_table, vary_table, command=command, program=program)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"interrupted; rerun the same command to resume ({Path(cfg.out) / MANIFEST})", file=sys.stderr)
+        raise SystemExit(130) from None
+    counts = manifest["counts"]
+    print(f"{Path(cfg.out) / MANIFEST}: " + ", ".join(f"{n} {s}" for s, n in counts.items()))
+    for run_id, rec in manifest["runs"].items():
+        if rec["status"] == "failed":
+            print(f"failed {run_id}: {rec['error']}", file=sys.stderr)
+    if counts.get("failed"):
+        raise SystemExit(1)

@@ -1,0 +1,89 @@
+"""sweep.json: the grid, the command that made it, and per run its status, error, folder and progress."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+import uuid
+from pathlib import Path
+
+from ablations.sweep.config import SweepConfig
+from ablations.sweep.grid import RunSpec
+from ablations.sweep.store import run_folder, run_state
+from gradlab.checkpoint import atomic_write_json
+
+__all__ = ["MANIFEST", "STATUSES", "load_manifest", "prepare_manifest", "write_manifest", "status_counts"]
+
+MANIFEST = "sweep.json"
+STATUSES = ("queued", "running", "done", "failed")
+
+
+def load_manifest(out: str | os.PathLike) -> dict | None:
+    """The sweep folder's sweep.json, or None when there is none yet."""
+    path = Path(out) / MANIFEST
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} is not valid JSON ({e}); written atomically, it was edited by hand") from None
+
+
+def _new_record(spec: RunSpec) -> dict:
+    return {"task": spec.task, "mode": spec.mode, "arm": spec.arm, "seed": spec.seed, "flags": spec.flags,
+            "args": list(spec.args), "iters": spec.iters, "folder": run_folder(".", spec.run_id).as_posix(),
+            "status": "queued", "error": None, "iteration": None, "latest_return": None, "attempts": 0,
+            "resumed": False, "node": None, "host": None, "updated": None}
+
+
+def prepare_manifest(cfg: SweepConfig, specs: list[RunSpec], set_table: dict, vary_table: dict,
+                     command: list[str] | None, arms: dict | None = None) -> tuple[dict, list[RunSpec]]:
+    """The manifest to start from (existing runs checked against the grid) and the runs to launch.
+
+    ``command``: the command line to record (None: ``ablate-sweep`` and this process's arguments).
+    """
+    out = Path(cfg.out)
+    manifest = load_manifest(out) or {"version": 1, "id": uuid.uuid4().hex[:12],
+                                      "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "runs": {}}
+    runs = manifest["runs"]
+    for spec in specs:
+        old = runs.get(spec.run_id)
+        if old is not None and old.get("args") != list(spec.args):
+            raise ValueError(f"{out / MANIFEST}: run {spec.run_id} was made with the flags {' '.join(old['args'])}, "
+                             f"this sweep gives it {' '.join(spec.args)}; use another --out for a different sweep")
+    todo = []
+    for spec in specs:
+        rec = runs.setdefault(spec.run_id, _new_record(spec))
+        state = run_state(run_folder(out, spec.run_id), spec.iters)
+        if state == "done":
+            rec.update(status="done", error=None)
+        elif rec["status"] == "failed" and not cfg.rerun_failed:
+            continue
+        else:
+            rec.update(status="queued", resumed=state == "resume")
+            todo.append(spec)
+    manifest["sweep"] = {"tasks": list(cfg.tasks), "modes": list(cfg.modes), "seeds": list(cfg.seeds),
+                         "set": {k: v for k, v in set_table.items()}, "vary": {k: v for k, v in vary_table.items()},
+                         "cpus_per_run": cfg.cpus_per_run, "gpus_per_run": cfg.gpus_per_run,
+                         "max_retries": cfg.max_retries}
+    if arms is not None:
+        manifest["sweep"]["arms"] = arms
+    manifest["command"] = list(command) if command is not None else ["ablate-sweep", *sys.argv[1:]]
+    return manifest, todo
+
+
+def status_counts(manifest: dict) -> dict[str, int]:
+    """Runs per status, every status listed."""
+    counts = {s: 0 for s in STATUSES}
+    for rec in manifest["runs"].values():
+        counts[rec["status"]] = counts.get(rec["status"], 0) + 1
+    return counts
+
+
+def write_manifest(out: Path, manifest: dict) -> None:
+    """Write sweep.json atomically, with the counts and the time of this write."""
+    manifest["counts"] = status_counts(manifest)
+    manifest["updated"] = time.strftime("%Y-%m-%dT%H:%M:%S")
+    atomic_write_json(out / MANIFEST, manifest)

@@ -1,0 +1,82 @@
+"""Run folders as tar archives: the only way files travel between a worker node and the driver's node."""
+
+from __future__ import annotations
+
+import io
+import os
+import tarfile
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+from gradlab.checkpoint import atomic_write_bytes, list_checkpoints, prune_checkpoints
+
+__all__ = ["pack_run", "unpack_run", "archive_names", "KEPT_CHECKPOINTS"]
+
+#: Checkpoints a run folder in the sweep keeps (the newest ones): a resume falls back to the older one when the
+#: newest does not load.
+KEPT_CHECKPOINTS = 2
+
+
+def pack_run(run_dir: str | os.PathLike, *, checkpoints: int = 1, only: Iterable[str] | None = None) -> bytes:
+    """The files of a run folder as an uncompressed tar archive (checkpoints hardly compress).
+
+    Only the ``checkpoints`` newest checkpoints go in (0: none). ``only``: relative paths to include (default:
+    every file). metrics.jsonl is cut after its last complete line: the run may be appending to it.
+    """
+    run_dir = Path(run_dir)
+    if checkpoints < 0:
+        raise ValueError(f"checkpoints must be >= 0, got {checkpoints}")
+    kept = set(list_checkpoints(run_dir / "checkpoints")[:checkpoints])
+    names = sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()) if only is None \
+        else sorted(set(only))
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name in names:
+            path = run_dir / name
+            if name.startswith("checkpoints/") and path not in kept:
+                continue
+            if Path(name).name.startswith("."):  # a file being written atomically under a temporary name
+                continue
+            try:
+                data = path.read_bytes()
+            except FileNotFoundError:  # rotated away (an old checkpoint) or not written yet
+                continue
+            if name == "metrics.jsonl":
+                data = data[:data.rfind(b"\n") + 1]
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            info.mtime = int(path.stat().st_mtime) if path.exists() else int(time.time())
+            tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def unpack_run(data: bytes, run_dir: str | os.PathLike) -> list[str]:
+    """Write an archive of :func:`pack_run` into run_dir, each file atomically; returns the names written.
+
+    Files already there and not in the archive stay. When the archive brings checkpoints, its newest is the
+    run's state: checkpoints of later iterations (an abandoned timeline: the run resumed from an older one)
+    are deleted, and of the rest the ``KEPT_CHECKPOINTS`` newest stay.
+    """
+    run_dir = Path(run_dir)
+    written = []
+    with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
+        for member in tar.getmembers():
+            parts = Path(member.name).parts
+            if not member.isfile() or Path(member.name).is_absolute() or ".." in parts:
+                raise ValueError(f"run archive: refusing member {member.name!r}")
+            src = tar.extractfile(member)
+            atomic_write_bytes(run_dir / member.name, src.read() if src else b"")
+            written.append(member.name)
+    folder = run_dir / "checkpoints"
+    shipped = [p for p in list_checkpoints(folder) if f"checkpoints/{p.name}" in written]
+    if shipped:
+        for later in list_checkpoints(folder)[:list_checkpoints(folder).index(shipped[0])]:
+            later.unlink()
+        prune_checkpoints(folder, keep=KEPT_CHECKPOINTS)
+    return written
+
+
+def archive_names(data: bytes) -> list[str]:
+    """The member names of an archive of :func:`pack_run`."""
+    return tarfile.open(fileobj=io.BytesIO(data)).getnames()

@@ -1,0 +1,98 @@
+"""Stand-ins for ``python -m ablations ablate`` that an ``ablate-sweep`` worker starts (the ``program`` seam of
+``ablations.sweep.run_sweep``). Run by path, with ablate's arguments after the stand-in's own::
+
+    python fake_ablate.py kill-worker-once SWEEP_DIR RUN_ID[,RUN_ID...] -- ABLATE_ARGS...
+        The real ablate, except that a named run, the first time it writes a checkpoint, waits until that
+        checkpoint has reached the sweep folder, notes it in SWEEP_DIR/.killed/<run_id> and SIGKILLs the Ray worker
+        that started it (as a node's out-of-memory killer would); the worker's death takes this process with it.
+        A run with a note runs as ablate does: the retry, and any later sweep in the same folder.
+
+    python fake_ablate.py record LOG SECONDS -- ABLATE_ARGS...
+        No training: spends SECONDS writing --iters iterations (a metrics line and a small checkpoint each, which
+        the worker ships to the driver as it does a real run's), then a summary, and appends {"run", "pid",
+        "start", "end"} (time.time() seconds) to LOG, to measure how many runs overlap.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import runpy
+import signal
+import sys
+import time
+from pathlib import Path
+
+#: Seconds a run waits for the sweep folder to receive its checkpoint before it gives up killing its worker.
+WAIT_FOR_STORE_S = 120.0
+
+
+def _value(args: list[str], flag: str) -> str | None:
+    return args[args.index(flag) + 1] if flag in args else None
+
+
+def run_id_of(args: list[str]) -> str:
+    """The run an ablate command line is about: its --name, or the folder it resumes."""
+    return _value(args, "--name") or Path(_value(args, "--resume")).name
+
+
+def kill_worker_once(sweep: Path, victims: set[str], args: list[str]) -> None:
+    run_id = run_id_of(args)
+    note = sweep / ".killed" / run_id
+    if run_id in victims and not note.exists():
+        # Patched before ablations is imported, so the run module binds this one.
+        import gradlab.checkpoint
+
+        save = gradlab.checkpoint.save_checkpoint
+
+        def save_then_kill_worker(path, state):
+            save(path, state)
+            shipped = sweep / "runs" / run_id / "checkpoints" / Path(path).name
+            deadline = time.monotonic() + WAIT_FOR_STORE_S
+            while not shipped.exists():
+                if time.monotonic() > deadline:
+                    return  # the test sees no kill and fails on the attempt count
+                time.sleep(0.05)
+            note.parent.mkdir(parents=True, exist_ok=True)
+            note.write_text(Path(path).name)
+            os.kill(os.getppid(), signal.SIGKILL)
+            signal.pause()  # until PR_SET_PDEATHSIG (ablations/sweep/child.py) ends this process
+
+        gradlab.checkpoint.save_checkpoint = save_then_kill_worker
+    sys.argv = [sys.argv[0], "ablate", *args]
+    runpy.run_module("ablations", run_name="__main__", alter_sys=True)
+
+
+def record(log: Path, seconds: float, args: list[str]) -> None:
+    start = time.time()
+    run_id = run_id_of(args)
+    iters = int(_value(args, "--iters") or 1)
+    run = Path(_value(args, "--out") or ".") / run_id
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"config": {"iters": iters}, "command": ["fake_ablate.py", *args]}))
+    with open(run / "metrics.jsonl", "a") as metrics:
+        for it in range(1, iters + 1):
+            time.sleep(seconds / iters)
+            metrics.write(json.dumps({"iter": it, "return_mean": float(it)}) + "\n")
+            metrics.flush()
+            (run / "checkpoints" / f"ckpt_{it:06d}.pt").write_bytes(b"fake state %d" % it)
+    (run / "summary.json").write_text(json.dumps({"status": "finished", "iterations": iters,
+                                                  "final_return": float(iters)}))
+    line = json.dumps({"run": run_id, "pid": os.getpid(), "start": start, "end": time.time()}) + "\n"
+    with open(log, "a") as f:  # one short append per run: lines of concurrent runs do not interleave
+        f.write(line)
+
+
+def main() -> None:
+    split = sys.argv.index("--")
+    own, args = sys.argv[1:split], sys.argv[split + 1:]
+    if own[0] == "kill-worker-once":
+        kill_worker_once(Path(own[1]), set(own[2].split(",")), args)
+    elif own[0] == "record":
+        record(Path(own[1]), float(own[2]), args)
+    else:
+        sys.exit(f"fake_ablate.py: unknown stand-in {own[0]!r}")
+
+
+if __name__ == "__main__":
+    main()
