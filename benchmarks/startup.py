@@ -38,6 +38,8 @@ from pathlib import Path
 from _common import commit
 
 from ablations.startup import resolve_bytecode_folder
+from gradlab import MODES
+from tasks import TASKS
 
 ROOT = Path(__file__).resolve().parents[1]
 #: summary.json["compile"] keys copied into each row
@@ -159,8 +161,8 @@ def main(argv: list[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda", help="cpu | cuda | cuda:N (passed to ablate)")
-    p.add_argument("--tasks", nargs="+", default=["ant"])
-    p.add_argument("--modes", nargs="+", default=["decoupled"])
+    p.add_argument("--tasks", nargs="+", default=["ant"], choices=TASKS)
+    p.add_argument("--modes", nargs="+", default=["decoupled"], choices=MODES)
     p.add_argument("--num-envs", type=int, default=None, help="default: the preset's")
     p.add_argument("--image-size", type=int, default=None, help="default: ablate's")
     p.add_argument("--iters", type=int, default=2, help="iterations per run (the first one is what is timed)")

@@ -12,7 +12,10 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
+from diffrender.settings import RASTER_MODELS
 from gradlab.presets import PRESET_FIELDS, PRESETS, preset_values
+from tasks import TASKS
+from tasks.vision import RENDERERS
 
 __all__ = ["SHACConfig", "MODES", "ModePlan", "resolve_config"]
 
@@ -85,7 +88,7 @@ class SHACConfig:
     configs (SHAC's state-based ones for --mode state where they differ); shac-diffrender, the paper's
     full-APG baseline (its decay length, the hard rasterizer). Explicit flags override the preset; config.json
     records both."""
-    mode: Literal["full", "decoupled", "state", "blind"] = "decoupled"
+    mode: Literal[MODES] = "decoupled"
     """full: gradients flow through the rendered images into the robot state; decoupled (D.Va): the image
     stack is detached at the actor's input; state: the actor sees the state vector (upper bound); blind: the
     decoupled visual actor, critic and rewards, but the actor sees a constant all-black image stack, so it
@@ -152,13 +155,13 @@ class SHACConfig:
     """Soft-rasterizer edge softness in pixels; None: the renderer's default."""
     render_gamma: float | None = None
     """Soft-rasterizer depth-blend temperature; None: the renderer's default."""
-    raster_model: Literal["hard", "softmax", "alpha"] | None = None
+    raster_model: Literal[RASTER_MODELS] | None = None
     """The rasterizer's image model, and so the gradient estimator of --mode full (docs/design.md, "Image
     model"): hard, a z-buffer whose gradients flow only through interpolation and shading (the paper's
     full-APG baseline, PyTorch3D at blur 0); softmax, SoftRas aggregation with the floor and sky as
     candidates; alpha, faces composited over floor and sky by coverage. The soft models' silhouettes carry
     gradient. None: the preset's (shac-diffrender: hard; else the soft default, gradlab.presets)."""
-    renderer: Literal["soft", "warp"] = "soft"
+    renderer: Literal[RENDERERS] = "soft"
     """Where the images the actor trains on come from: soft, the differentiable rasterizer; warp, the
     forward-only Warp ray tracer (the rasterizer's sharp limit, cost nearly flat in mesh faces) for modes
     whose images need no gradient (decoupled, blind, state's videos). Probe iterations render with the
@@ -189,17 +192,15 @@ class SHACConfig:
 
     def validate(self) -> None:
         """Clear errors for bad values, before any work."""
-        from tasks import TASKS
-
         if self.task not in TASKS:
             raise ValueError(f"unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
         plan = ModePlan.of(self.mode)  # raises for an unknown mode, naming the valid ones
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}; valid presets: {', '.join(PRESETS)}")
-        if self.raster_model is not None and self.raster_model not in ("hard", "softmax", "alpha"):
-            raise ValueError(f"unknown raster_model {self.raster_model!r}; valid: hard, softmax, alpha")
-        if self.renderer not in ("soft", "warp"):
-            raise ValueError(f"unknown renderer {self.renderer!r}; valid renderers: soft, warp")
+        if self.raster_model is not None and self.raster_model not in RASTER_MODELS:
+            raise ValueError(f"unknown raster_model {self.raster_model!r}; valid: {', '.join(RASTER_MODELS)}")
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"unknown renderer {self.renderer!r}; valid renderers: {', '.join(RENDERERS)}")
         if self.renderer == "warp" and plan.grad_through_images:
             raise ValueError(f"--renderer warp renders without gradient, but --mode {self.mode} backpropagates "
                              "through the images: use --renderer soft (the differentiable rasterizer)")

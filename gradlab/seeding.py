@@ -1,8 +1,7 @@
 """Where a run's randomness and its device come from: one seed drives every RNG; one function picks the device.
 
-:func:`resolve_device` is the one place a ``--device`` flag (``auto``, ``cpu``, ``cuda``, ``cuda:N``) becomes a
-``torch.device``: the trainer, ``ablate``, ``ablate-memory`` and the benchmarks all call it, so ``auto`` means the
-same thing everywhere and asking for a GPU that is not there is an error, never a silent fallback to the CPU.
+:func:`resolve_device` (``tasks.device``, re-exported here) is the one place a ``--device`` flag becomes a
+``torch.device``.
 """
 
 from __future__ import annotations
@@ -12,6 +11,8 @@ import random
 
 import numpy as np
 import torch
+
+from tasks import resolve_device
 
 __all__ = ["seed_everything", "rng_state", "set_rng_state", "resolve_device"]
 
@@ -42,27 +43,3 @@ def set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """``auto`` -> CUDA when present, else CPU; ``cpu``; ``cuda`` or ``cuda:N``, which must exist.
-
-    Raises ValueError naming the ``--device`` value for an unknown device or a CUDA device torch cannot see.
-    """
-    if isinstance(device, torch.device):
-        device = str(device)
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device != "cpu" and not device.startswith("cuda"):
-        raise ValueError(f"unknown device {device!r}: use auto, cpu or cuda[:N]")
-    try:
-        resolved = torch.device(device)
-    except RuntimeError:
-        raise ValueError(f"unknown device {device!r}: use auto, cpu or cuda[:N]") from None
-    if resolved.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError(f"--device {device} asked for, but torch sees no CUDA device (use auto or cpu)")
-        if resolved.index is not None and resolved.index >= torch.cuda.device_count():
-            raise ValueError(f"--device {device}: torch sees {torch.cuda.device_count()} CUDA device(s), "
-                             f"numbered from 0")
-    return resolved

@@ -13,6 +13,7 @@ static shapes and no host synchronisation, so a whole SHAC iteration can be capt
 dynamics that equals MuJoCo's ``qacc``.
 """
 
+from .device import resolve_device
 from .dynamics import ContactParams, LimitParams, Simulator
 from .model import ArticulatedModel, UnsupportedModelError, load_model
 from .registry import TASKS, make
@@ -32,4 +33,5 @@ __all__ = [
     "UnsupportedModelError",
     "load_model",
     "make",
+    "resolve_device",
 ]

@@ -610,3 +610,19 @@ def test_pdl_kernels_wait_before_their_first_access():
     off, buf = Kernel(False), Buffer()
     TritonKernel._handle_pdl_before_access(off, buf, "buf7")
     assert buf.lines == [] and off.body.lines == []
+
+
+def test_one_device_resolver_for_every_command():
+    """tasks.resolve_device turns a --device flag into a torch.device (gradlab re-exports the same function): auto
+    is CUDA where present, a missing GPU or an unknown name is an error naming the flag's value, never the CPU."""
+    import gradlab
+
+    assert gradlab.resolve_device is tasks.resolve_device
+    cuda = torch.cuda.is_available()
+    assert tasks.resolve_device("auto") == torch.device("cuda" if cuda else "cpu")
+    assert tasks.resolve_device(torch.device("cpu")) == torch.device("cpu")
+    with pytest.raises(ValueError, match="unknown device 'tpu': use auto, cpu or cuda"):
+        tasks.resolve_device("tpu")
+    if not cuda:
+        with pytest.raises(ValueError, match="--device cuda:1 asked for, but torch sees no CUDA device"):
+            tasks.resolve_device("cuda:1")
