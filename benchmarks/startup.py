@@ -123,8 +123,6 @@ def measure(task: str, mode: str, args, *, work: Path, helper: str = "on") -> li
     return rows
 
 
-
-
 def meta(args, argv: list[str]) -> dict:
     import torch
 

@@ -341,7 +341,7 @@ class Task(abc.ABC):
         step's later substeps, the later steps' mass matrices). Gradients into the parameters are unchanged
         (eagerly to the bit; compiled, to float rounding, as the first step then runs the later steps' graphs);
         the leaf's own gradient is computed and dropped, a few more backward kernels per window (their cost:
-        BENCHMARKS.md, section 6).
+        BENCHMARKS.md, section 1).
         """
         self.qpos = self.qpos.detach()
         self.qvel = self.qvel.detach()

@@ -239,6 +239,14 @@ class CompileWatch:
 
         return call
 
+    def label_sites(self, owner: Any, sites: dict[str, str]) -> None:
+        """Label the callables ``owner`` calls its compiled parts through: ``sites`` maps a label to an attribute
+        path from ``owner`` (``"window.backward"``), whose callable is replaced by :meth:`labelled` of it."""
+        for label, path in sites.items():
+            *parents, name = path.split(".")
+            holder = functools.reduce(getattr, parents, owner)
+            setattr(holder, name, self.labelled(label, getattr(holder, name)))
+
     @contextlib.contextmanager
     def part(self, name: str) -> Iterator[None]:
         self._parts.append(name)
@@ -299,11 +307,3 @@ class CompileWatch:
                 "triton_cache_hits": self.triton_cache_hits,
                 "triton_compile_s_by_kernel": {k: round(v, 3) for k, v in sorted(
                     self._triton_by_kernel.items(), key=lambda kv: -kv[1])[:TRITON_KERNELS_KEPT]}}
-
-    def label_sites(self, owner: Any, sites: dict[str, str]) -> None:
-        """Label the callables ``owner`` calls its compiled parts through: ``sites`` maps a label to an attribute
-        path from ``owner`` (``"window.backward"``), whose callable is replaced by :meth:`labelled` of it."""
-        for label, path in sites.items():
-            *parents, name = path.split(".")
-            holder = functools.reduce(getattr, parents, owner)
-            setattr(holder, name, self.labelled(label, getattr(holder, name)))
