@@ -234,7 +234,7 @@ def test_time_limit_stops_cleanly(tmp_path):
 def test_ablate_keeps_pythons_bytecode_in_its_folder_where_the_install_gets_none(tmp_path, folder):
     """Told not to write bytecode beside the sources (PYTHONDONTWRITEBYTECODE, as in many container images),
     ``ablate`` keeps it in $PIXELGRAD_BYTECODE_CACHE from its first line, torch's included, so that the next start
-    does not compile torch's Python again (ablations/bytecode.py); ``off`` keeps none."""
+    does not compile torch's Python again (ablations/startup/bytecode.py); ``off`` keeps none."""
     import torch
 
     import ablations.runs
