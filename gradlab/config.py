@@ -189,6 +189,18 @@ class SHACConfig:
     added to the iteration's. False: fit after the backward (the phases' times add up)."""
     abort_grad_norm: float = 1e8
     """Stop (as D.Va does) when the actor's pre-clip gradient norm exceeds this."""
+    eval_every: int = 100
+    """Every K-th iteration (and at the last), evaluate the deterministic policy (its mean action) on eval_envs
+    environments started from fixed evaluation seeds (the same initial states at every evaluation, for every
+    run), for one whole episode each; logs eval_return_mean, eval_return_std and eval_length_mean. 0 disables."""
+    eval_envs: int = 16
+    """Environments (whole episodes) per evaluation."""
+    encoder_lr_scale: float = 1.0
+    """Scale of the visual encoder's learning rate against the actor's (an ablation of the early blind phase,
+    where the first Adam steps on the large trunk layer saturate it; the reference: 1)."""
+    lr_warmup_iters: int = 0
+    """Iterations over which the actor's learning rate ramps linearly from 0 to its schedule (an ablation of
+    the early blind phase; the reference: 0, none)."""
 
     def validate(self) -> None:
         """Clear errors for bad values, before any work."""
@@ -232,6 +244,14 @@ class SHACConfig:
             raise ValueError("critic_batches cannot exceed num_envs * horizon")
         if self.episode_length is not None and self.episode_length <= 0:
             raise ValueError(f"episode_length must be positive, got {self.episode_length}")
+        for name in ("eval_every", "lr_warmup_iters"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 0:
+                raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
+        if not isinstance(self.eval_envs, int) or self.eval_envs <= 0:
+            raise ValueError(f"eval_envs must be a positive integer, got {self.eval_envs!r}")
+        if not self.encoder_lr_scale > 0:
+            raise ValueError(f"encoder_lr_scale must be positive, got {self.encoder_lr_scale}")
         if self.image_size < 16:
             raise ValueError(f"image_size must be >= 16 pixels for the encoder, got {self.image_size}")
 
