@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import torch
 
@@ -29,7 +30,7 @@ def make(
     num_envs: int,
     *,
     device: torch.device | str = "cpu",
-    seed: int = 0,
+    seed: int | Sequence[int] = 0,
     dtype: torch.dtype = torch.float32,
     **overrides,
 ) -> Task:

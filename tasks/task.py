@@ -18,7 +18,7 @@ import dataclasses
 import functools
 import math
 import os
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -184,7 +184,7 @@ class Task(abc.ABC):
         num_envs: int,
         *,
         device: torch.device | str = "cpu",
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
         dtype: torch.dtype = torch.float32,
         config: TaskConfig | None = None,
     ) -> None:
@@ -197,7 +197,9 @@ class Task(abc.ABC):
         self.num_envs = num_envs
         self.device = _resolve_device(device)
         self.dtype = dtype
-        self.seed = int(seed)
+        # One seed, or one per equal group of environments (a population of runs simulated as one batch: each
+        # group's resets are those its run would draw alone, tasks.rng)
+        self.seed = int(seed) if isinstance(seed, int) else tuple(int(s) for s in seed)
         self.mjcf_path = str(ASSETS / self.asset)
         self.model = _cached_model(self.mjcf_path)
         contact = None
@@ -367,7 +369,7 @@ class Task(abc.ABC):
             "qvel": (self.num_envs, self.model.nv),
             "progress": (self.num_envs,),
             "prev_actions": (self.num_envs, self.num_act),
-            "rng": (2,),
+            "rng": (self.rng.groups + 1,),
         }
         missing = set(expected) - set(state)
         if missing:
