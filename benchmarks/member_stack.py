@@ -1,5 +1,6 @@
-"""How a population's visual actors batch on one device: ``MemberStack``'s grouped and per-member convolutions
-against each member's own module, forward and backward of the mean action at the paper's sizes, by member count.
+"""How a population's visual actors batch on one device: ``MemberStack``'s batchings (grouped convolutions, one
+convolution per member, each member's own module), forward and backward of the mean action at the paper's sizes,
+by member count.
 Also checks that a CUDA graph replays per-member noise generators as eager code draws them.
 
     python benchmarks/member_stack.py --device cuda --members 1 2 4 8 12 16 --out member_stack.json
@@ -74,14 +75,10 @@ def main() -> None:
         x = torch.rand(n * args.envs, 9, 84, 84, device=device)
         row = {"members": n, "envs_per_member": args.envs}
         for variant in ("grouped", "loop", "modules"):
-            stack = MemberStack(actors, conv="grouped" if variant == "modules" else variant)
+            stack = MemberStack(actors, batching=variant)
 
-            def step(variant=variant, stack=stack, actors=actors, x=x):
-                if variant == "modules":
-                    loss = sum(a.mean(x[i * args.envs:(i + 1) * args.envs]).sum() for i, a in enumerate(actors))
-                else:
-                    loss = stack.mean(stack.stack(), x).sum()
-                loss.backward()
+            def step(stack=stack, x=x):
+                stack.mean(stack.stack(), x).sum().backward()
 
             try:
                 row[f"{variant}_ms"] = round(median_ms(step, device, warmup=3, repeats=args.repeats), 3)

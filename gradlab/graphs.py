@@ -76,7 +76,7 @@ class LiveState:
 class Window:
     """What one window's forward and backward leave behind (a replay's static outputs, overwritten by the next).
 
-    loss: the actor loss (0-d); buffers: the rollout's (T, B, ...) buffers; probe_metrics: 0-d tensors of a
+    loss: the actor loss (0-d; a population's: one per member); buffers: the rollout's (T, B, ...) buffers; probe_metrics: 0-d tensors of a
     probe iteration (empty otherwise); saved_bytes: bytes autograd kept for backward; memory: the peak memory
     of forward and backward (a capture is outside it); replayed: the window ran as a CUDA-graph replay;
     critic_loss: the critic fit's loss where the fit ran alongside the backward (``overlapped``), else None
@@ -106,6 +106,8 @@ class _CapturedWindow:
         zero_grads_(owner.params)
         pool = torch.cuda.graph_pool_handle()
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+        for generator in owner.generators:  # a population's noise streams: each replay continues each one
+            self.fwd.register_generator_state(generator)
         torch.cuda.synchronize(owner.device)
         with torch.cuda.graph(self.fwd, pool=pool, stream=owner.capture_stream):
             with SavedTensorMeter() as saved:
@@ -134,13 +136,17 @@ class WindowGraphs:
         capture: capture and replay (a CUDA device and ``--compile``); False runs every window eagerly.
         critic: the critic fit's graph, run on its own stream while a replayed backward replays (once it is
             captured); None: the window never runs the fit (the trainer runs it after the actor's step).
+        generators: random generators other than torch's default one that the forward draws from (a
+            population's per-member action noise): registered with the captured forward, so that every replay
+            draws their next numbers as eager code would.
     """
 
     def __init__(self, *, forward: Callable[[bool], tuple[torch.Tensor, dict]],
                  backward: Callable[[torch.Tensor, bool], dict], commit: Callable[[], None],
                  params: list[torch.nn.Parameter], timer: RegionTimer, device: torch.device, capture: bool,
-                 critic: GraphedCriticPhase | None = None):
+                 critic: GraphedCriticPhase | None = None, generators: Iterable[torch.Generator] = ()):
         self.forward, self.backward, self.commit = forward, backward, commit
+        self.generators = list(generators)
         self.params, self.timer, self.device, self.capture = params, timer, device, capture
         self.critic = critic
         # The window's graphs are captured on a stream of their own, never the critic's: cuBLAS keeps a

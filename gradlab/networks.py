@@ -9,7 +9,8 @@ A population (several runs trained in one process) keeps one ordinary module per
 initialisation, optimiser, gradient clipping and checkpoint are those of a run of its own. :class:`MemberStack`
 evaluates N members of one architecture on their N batches at once: their parameters stacked along a leading
 member axis (differentiably, once per window), linear layers as batched matrix products, convolutions as one
-grouped convolution (or one per member), LayerNorm with per-member affine parameters.
+grouped convolution (or one per member), LayerNorm with per-member affine parameters; or each member's own module
+on its rows.
 """
 
 from __future__ import annotations
@@ -184,12 +185,15 @@ class MemberStack:
 
     Args:
         members: modules of identical structure: :class:`StateActor`, :class:`VisualActor` or :class:`Critic`.
-        conv: how a visual encoder's convolutions batch the members: ``"grouped"``, one convolution with
-            ``groups = N`` over the members' images side by side on the channel axis; ``"loop"``, one
-            convolution per member.
+        batching: ``"grouped"``, the stacked parameters in batched matrix products and a visual encoder's
+            convolutions as one convolution with ``groups = N`` over the members' images side by side on the
+            channel axis; ``"loop"``, the same with one convolution per member; ``"modules"``, each member's own
+            module on its rows, one after the other (exactly a run alone's arithmetic, and its kernel launches).
     """
 
-    def __init__(self, members: Sequence[nn.Module], *, conv: Literal["grouped", "loop"] = "grouped"):
+    BATCHINGS = ("grouped", "loop", "modules")
+
+    def __init__(self, members: Sequence[nn.Module], *, batching: Literal["grouped", "loop", "modules"] = "grouped"):
         if not members:
             raise ValueError("MemberStack needs at least one member")
         kinds = {type(m) for m in members}
@@ -198,16 +202,17 @@ class MemberStack:
         shapes = {tuple((n, tuple(p.shape)) for n, p in m.named_parameters()) for m in members}
         if len(shapes) > 1:
             raise ValueError("MemberStack: the members' parameter shapes differ")
-        if conv not in ("grouped", "loop"):
-            raise ValueError(f"unknown conv batching {conv!r}; valid: grouped, loop")
+        if batching not in self.BATCHINGS:
+            raise ValueError(f"unknown member batching {batching!r}; valid: {', '.join(self.BATCHINGS)}")
         self.members = list(members)
         self.n = len(self.members)
-        self.conv = conv
+        self.batching = batching
         self._template = self.members[0]
 
     def stack(self) -> dict[str, torch.Tensor]:
-        """Every parameter of the members as one (N, ...) tensor, by name; empty for a single member."""
-        if self.n == 1:
+        """Every parameter of the members as one (N, ...) tensor, by name; empty for a single member or
+        ``"modules"`` batching."""
+        if self.n == 1 or self.batching == "modules":
             return {}
         per_member = [dict(m.named_parameters()) for m in self.members]
         return {name: torch.stack([p[name] for p in per_member]) for name in per_member[0]}
@@ -217,6 +222,8 @@ class MemberStack:
         """Policies: obs (N * B, ...) -> pre-tanh mean actions (N * B, act_dim)."""
         if self.n == 1:
             return self._template.mean(obs)
+        if self.batching == "modules":
+            return torch.cat([m.mean(x) for m, x in zip(self.members, obs.chunk(self.n))])
         if isinstance(self._template, VisualActor):
             features = self._encoder(params, obs)
         else:
@@ -227,6 +234,8 @@ class MemberStack:
         """Critics: obs (N * B, obs_dim) -> values (N * B,)."""
         if self.n == 1:
             return self._template(obs)
+        if self.batching == "modules":
+            return torch.cat([m(x) for m, x in zip(self.members, obs.chunk(self.n))])
         out = self._sequential(self._template.net, "net.", params, obs.unflatten(0, (self.n, -1)))
         return out.squeeze(-1).flatten(0, 1)
 
@@ -236,7 +245,7 @@ class MemberStack:
         x = (images - 0.5).unflatten(0, (n, -1))  # (N, B, C, H, W)
         b, c, h, w = x.shape[1:]
         convs = self._template.encoder.convs
-        if self.conv == "grouped":
+        if self.batching == "grouped":
             # the members side by side on the channel axis: group m of every convolution sees member m alone
             y = x.transpose(0, 1).reshape(b, n * c, h, w).contiguous(memory_format=torch.channels_last)
             for i, layer in enumerate(convs):

@@ -38,12 +38,12 @@ def _alone(member, kind: str, x):
     return member(x) if kind == "critic" else member.mean(x)
 
 
-@pytest.mark.parametrize("kind,conv", [("visual", "grouped"), ("visual", "loop"), ("state", "grouped"),
-                                       ("critic", "grouped")])
-def test_stacked_members_equal_each_member_alone_forward_and_backward(kind, conv):
+@pytest.mark.parametrize("kind,batching", [("visual", "grouped"), ("visual", "loop"), ("visual", "modules"),
+                                           ("state", "grouped"), ("critic", "grouped"), ("critic", "modules")])
+def test_stacked_members_equal_each_member_alone_forward_and_backward(kind, batching):
     n, b = 3, 4
     members = _members(kind, n)
-    stack = MemberStack(members, conv=conv)
+    stack = MemberStack(members, batching=batching)
     x = _inputs(kind, n, b)
     weights = torch.randn(_apply(stack, kind, stack.stack(), x.detach()).shape, dtype=torch.float64)
     out = _apply(stack, kind, stack.stack(), x)
@@ -91,5 +91,5 @@ def test_members_of_different_shapes_or_kinds_are_refused():
         MemberStack([StateActor(11, 3, (8, 6)), StateActor(11, 3, (8, 7))])
     with pytest.raises(ValueError, match="one kind"):
         MemberStack([StateActor(11, 1, (8,)), Critic(11, (8,))])
-    with pytest.raises(ValueError, match="conv batching"):
-        MemberStack([Critic(11, (8,))], conv="vmap")
+    with pytest.raises(ValueError, match="member batching"):
+        MemberStack([Critic(11, (8,))], batching="vmap")

@@ -1,0 +1,180 @@
+"""Populations: several runs trained in one process as one batched simulation, each member a run of its own.
+
+The arithmetic of every member is that of its run alone except where its networks run as batched kernels: with
+``batching="modules"`` (each member's own modules) a member must equal its standalone run bit for bit; with the
+batched kernels (``"grouped"``) to float32 rounding, whose differences the window's chaotic dynamics then grow.
+"""
+
+import copy
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from gradlab.config import SHACConfig
+from gradlab.probes import NonFiniteError
+from gradlab.shac_new import SHAC, check_population
+
+# Keys whose values depend on the clock or the process, not on the run's arithmetic.
+_UNCOMPARED = {"wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb"}
+
+BASE = SHACConfig(task="cartpole", num_envs=3, horizon=4, image_size=16, iters=5, cosine_every=2, episode_length=6,
+                  critic_iterations=2)
+MIXED = [dataclasses.replace(BASE, mode=mode, seed=seed) for seed in (0, 1) for mode in ("decoupled", "full", "blind")]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the same reduction order in every run of this module
+    yield
+    torch.set_num_threads(threads)
+
+
+def _train(trainer: SHAC, iters: int) -> list:
+    return [trainer.train_iteration() for _ in range(iters)]
+
+
+def _same(a: dict, b: dict) -> bool:
+    def eq(x, y):
+        return x == y or (isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y))
+
+    return a.keys() == b.keys() and all(eq(a[k], b[k]) for k in a if k not in _UNCOMPARED)
+
+
+def test_a_population_of_one_is_the_single_run():
+    cfg = dataclasses.replace(BASE, mode="full", seed=4)
+    single = _train(SHAC(cfg, device="cpu"), 3)
+    population = _train(SHAC([cfg], device="cpu"), 3)
+    assert all(_same(s, p[0]) for s, p in zip(single, population))
+    assert any(s["probed"] for s in single)
+
+
+def test_each_member_of_a_mixed_population_is_its_run_alone_bit_for_bit():
+    population = SHAC(MIXED, device="cpu", batching="modules")
+    together = _train(population, 5)
+    assert [m.cfg.mode for m in population.members] == ["full", "full", "decoupled", "decoupled", "blind", "blind"]
+    for m in population.members:
+        alone = _train(SHAC(m.cfg, device="cpu"), 5)
+        for it in range(5):
+            assert _same(alone[it], together[it][m.index]), (m.cfg.mode, m.cfg.seed, it)
+        probed = [row for row in alone if row["probed"]]
+        assert len(probed) == (3 if m.plan.probes else 0)
+        if m.plan.grad_through_images:
+            assert "cos_hard_soft" in probed[0] and "cos_full_decoupled" in probed[0]
+
+
+def test_batched_networks_follow_the_members_runs_to_float_rounding():
+    population = SHAC(MIXED, device="cpu", batching="grouped")
+    (together,) = _train(population, 1)
+    for m in population.members:
+        (alone,) = _train(SHAC(m.cfg, device="cpu"), 1)
+        mine = together[m.index]
+        for key in ("actor_loss", "critic_loss", "grad_norm", "grad_norm_clipped", "grad_norm_full",
+                    "grad_norm_decoupled", "cos_full_decoupled", "image_sensitivity_f2", "action_std"):
+            if key in alone:
+                assert mine[key] == pytest.approx(alone[key], rel=1e-4, abs=1e-6), (m.cfg.mode, key)
+
+
+def test_one_members_loss_reaches_no_other_members_parameters():
+    population = SHAC(MIXED, device="cpu", batching="grouped")
+    population._start()
+    loss, _ = population._rollout(render_grad=[True] * population.n)
+    population.gate.set_route(("image",) * 4 + (None, None))  # every seeing member's image path open
+    target = population.members[2]
+    loss[target.index].backward()
+    for m in population.members:
+        grads = [p.grad for p in m.params]
+        if m is target:
+            assert any(g is not None and torch.count_nonzero(g) > 0 for g in grads)
+        else:
+            assert all(g is None or torch.count_nonzero(g) == 0 for g in grads), m.cfg.mode
+
+
+def test_a_member_that_goes_non_finite_stops_alone():
+    population = SHAC(MIXED, device="cpu", batching="modules")
+    _train(population, 1)
+    broken = population.members[2]
+    with torch.no_grad():
+        next(broken.actor.parameters()).fill_(float("nan"))
+    rows = _train(population, 3)
+    assert rows[0][broken.index] is None and broken.failed is not None
+    assert "iteration 1" in broken.failed and "non-finite" in broken.failed
+    # the others trained on, as they would have alone
+    for m in population.members:
+        if m is broken:
+            continue
+        alone = _train(SHAC(m.cfg, device="cpu"), 4)
+        assert all(_same(alone[it + 1], rows[it][m.index]) for it in range(3)), (m.cfg.mode, m.cfg.seed)
+
+
+def test_every_member_stopped_stops_the_run():
+    population = SHAC(MIXED[:2], device="cpu", batching="modules")
+    for m in population.members:
+        with torch.no_grad():
+            next(m.actor.parameters()).fill_(float("nan"))
+    with pytest.raises(NonFiniteError, match="every member"):
+        population.train_iteration()
+
+
+def test_a_resumed_population_continues_as_if_uninterrupted():
+    uninterrupted = SHAC(MIXED, device="cpu", batching="modules")
+    straight = _train(uninterrupted, 5)
+    first = SHAC(MIXED, device="cpu", batching="modules")
+    _train(first, 3)
+    states = first.state_dict()
+    assert len(states) == 6 and all(s["iteration"] == 3 for s in states)
+    assert all(s["task"]["qpos"].shape[0] == BASE.num_envs for s in states)  # a member's rows, a run's format
+    resumed = SHAC(MIXED[::-1], device="cpu", batching="modules")  # members matched by their settings
+    resumed.load_state_dict(states[::-1])
+    rest = _train(resumed, 2)
+    index = {(m.cfg.mode, m.cfg.seed): m.index for m in uninterrupted.members}
+    for it in range(2):
+        for m in resumed.members:
+            assert _same(straight[3 + it][index[m.cfg.mode, m.cfg.seed]], rest[it][m.index])
+
+
+def test_a_single_runs_checkpoint_resumes_as_a_population_of_one():
+    cfg = dataclasses.replace(BASE, mode="decoupled", seed=2)
+    run = SHAC(cfg, device="cpu")
+    _train(run, 2)
+    state = copy.deepcopy(run.state_dict())  # a checkpoint file's copy, not the live tensors
+    expected = run.train_iteration()
+    # (built after the run's iteration: a single run draws its noise from torch's default generator, which a
+    # second trainer in the process shares)
+    population = SHAC([cfg], device="cpu")
+    population.load_state_dict([state])
+    assert _same(expected, population.train_iteration()[0])
+
+
+def test_members_that_cannot_share_a_process_are_refused_naming_the_flag():
+    resolved = [dataclasses.replace(SHAC(c, device="cpu").cfg) for c in (BASE, dataclasses.replace(BASE, seed=1))]
+    with pytest.raises(ValueError, match="appears twice"):
+        check_population([resolved[0], resolved[0]])
+    with pytest.raises(ValueError, match="--num-envs"):
+        SHAC([BASE, dataclasses.replace(BASE, num_envs=5, seed=1)], device="cpu")
+    with pytest.raises(ValueError, match="--mode state"):
+        SHAC([BASE, dataclasses.replace(BASE, mode="state", seed=1)], device="cpu")
+
+
+def test_evaluation_is_deterministic_and_leaves_training_untouched():
+    cfg = dataclasses.replace(BASE, mode="decoupled", seed=1, eval_envs=2)
+    # one trainer after the other: single runs share torch's default generator
+    expected = _train(SHAC(cfg, device="cpu"), 2)[1]
+    a = SHAC(cfg, device="cpu")
+    _train(a, 1)
+    first = a.evaluate(video_steps=3)
+    again = a.evaluate()
+    stats = ("eval_return_mean", "eval_return_std", "eval_length_mean")
+    assert [first[k] for k in stats] == [again[k] for k in stats]  # the same seed, the same episodes
+    assert len(first["frames"]) == 3 and first["frames"][0].dtype.name == "uint8" and again["frames"] == []
+    assert 1 <= first["eval_length_mean"] <= cfg.episode_length
+    # evaluating changed nothing of the training run
+    assert _same(a.train_iteration(), expected)
+    # a population's member is evaluated as its run alone
+    population = SHAC([cfg, dataclasses.replace(cfg, seed=5)], device="cpu", batching="modules")
+    _train(population, 1)
+    member = next(m for m in population.members if m.cfg.seed == 1)
+    evaluated = population.evaluate()[member.index]
+    assert [evaluated[k] for k in stats] == [first[k] for k in stats]
