@@ -76,11 +76,11 @@ class LiveState:
 class Window:
     """What one window's forward and backward leave behind (a replay's static outputs, overwritten by the next).
 
-    loss: the actor loss (0-d; a population's: one per member); buffers: the rollout's (T, B, ...) buffers; probe_metrics: 0-d tensors of a
-    probe iteration (empty otherwise); saved_bytes: bytes autograd kept for backward; memory: the peak memory
-    of forward and backward (a capture is outside it); replayed: the window ran as a CUDA-graph replay;
-    critic_loss: the critic fit's loss where the fit ran alongside the backward (``overlapped``), else None
-    (the trainer fits the critic after the actor's step).
+    loss: the actor loss (0-d; a population's: one per member); buffers: the rollout's (T, B, ...) buffers;
+    probe_metrics: 0-d tensors of a probe iteration (empty otherwise); saved_bytes: bytes autograd kept for
+    backward; memory: the peak memory of forward and backward (a capture is outside it); replayed: the window
+    ran as a CUDA-graph replay; critic_loss: the critic fit's loss where the fit ran alongside the backward
+    (``overlapped``), else None (the trainer fits the critic after the actor's step).
     """
 
     loss: torch.Tensor
