@@ -39,6 +39,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import itertools
+import os
 import time
 from collections import deque
 from collections.abc import Callable, Collection, Sequence
@@ -61,7 +62,8 @@ from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_
 from gradlab.timing import RegionTimer
 from tasks.vision import FrameStack, TaskRenderer
 
-__all__ = ["COMPILE_PARTS", "EVAL_SEED", "MEMBER_FIELDS", "SHAC", "Member", "NonFiniteError", "check_population"]
+__all__ = ["COMPILE_PARTS", "EVAL_SEED", "MEMBER_FIELDS", "SHAC", "Member", "NonFiniteError", "check_population",
+           "window_bytes"]
 
 #: What ``--compile`` compiles (:meth:`SHAC.compile_table`), in parts that are each their own graphs and compile
 #: work, so that separate processes can compile them at the same time into one cache: the physics' own parts
@@ -108,6 +110,34 @@ def check_population(cfgs: Sequence[SHACConfig]) -> None:
             raise ValueError(f"member --mode {cfg.mode} --seed {cfg.seed} --raster-model {cfg.raster_model} "
                              f"--preset {cfg.preset} appears twice in the population")
         seen.add(key)
+
+
+def window_bytes(cfgs: Sequence[SHACConfig]) -> int:
+    """An estimate of what one window of these members keeps for its backward [bytes]: the bulk of a visual
+    run's memory, its frame stacks and encoder activations at every step (each convolution's output and its
+    ReLU's) and, for full members, the rasterizer's per-pixel state. State runs keep little."""
+    total = 0
+    for cfg in cfgs:
+        plan = ModePlan.of(cfg.mode)
+        if plan.actor_input == "state":
+            continue
+        h = w = cfg.image_size
+        per_step = cfg.num_envs * 3 * cfg.frames * h * w  # the frame stack the first convolution keeps
+        h, w = (h - 3) // 2 + 1, (w - 3) // 2 + 1
+        for _ in range(4):
+            per_step += 2 * cfg.num_envs * 32 * h * w
+            h, w = h - 2, w - 2
+        if plan.grad_through_images:
+            per_step += 2 * cfg.num_envs * cfg.image_size**2 * (7 + 3)  # blend state and image, two raster models
+        total += 4 * per_step * cfg.horizon
+    return total
+
+
+def _memory_of(device: torch.device) -> int:
+    """The device's memory [bytes]: a GPU's, or the machine's for the CPU."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[1]
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def _render_order(cfg: SHACConfig) -> tuple:
@@ -182,6 +212,12 @@ class SHAC:
         self.cfg = cfg = cfgs[0]  # the population's shared settings (a single run's config)
         self.plan = ModePlan.of(cfg.mode)
         self.device = device if isinstance(device, torch.device) else resolve_device(device)
+        if n > 1:
+            need, have = window_bytes(cfgs), _memory_of(self.device)
+            if need > have:
+                raise ValueError(f"a population of {n} members keeps about {need / 2**30:.1f} GiB for one window's "
+                                 f"backward (estimated), more than the {have / 2**30:.1f} GiB of {self.device}: "
+                                 "train fewer members per process (fewer --seed/--mode values, or --pack)")
         B = cfg.num_envs
         seed_everything(cfg.seed)
 

@@ -178,3 +178,30 @@ def test_evaluation_is_deterministic_and_leaves_training_untouched():
     member = next(m for m in population.members if m.cfg.seed == 1)
     evaluated = population.evaluate()[member.index]
     assert [evaluated[k] for k in stats] == [first[k] for k in stats]
+
+
+def test_a_population_too_large_for_the_devices_memory_is_refused(monkeypatch):
+    import gradlab.shac_new as shac
+
+    need = shac.window_bytes(MIXED)
+    assert need == sum(shac.window_bytes([c]) for c in MIXED)
+    full, decoupled = (shac.window_bytes([c]) for c in MIXED[1::-1])
+    assert full > decoupled  # a full member also keeps the rasterizer's state
+    monkeypatch.setattr(shac, "_memory_of", lambda device: need - 1)
+    with pytest.raises(ValueError, match="fewer --seed/--mode values"):
+        SHAC(MIXED, device="cpu")
+    monkeypatch.setattr(shac, "_memory_of", lambda device: need)
+    SHAC(MIXED, device="cpu")
+
+
+def test_the_window_estimate_is_the_bulk_of_what_a_window_keeps():
+    from gradlab.timing import SavedTensorMeter
+
+    cfg = dataclasses.replace(BASE, mode="full", image_size=32, num_envs=2)
+    trainer = SHAC(cfg, device="cpu")
+    trainer._start()
+    with SavedTensorMeter() as saved:
+        trainer._rollout(render_grad=[True])
+    from gradlab.shac_new import window_bytes
+
+    assert 0.5 * saved.bytes < window_bytes([trainer.cfg]) < 2.0 * saved.bytes
