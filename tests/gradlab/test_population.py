@@ -205,3 +205,17 @@ def test_the_window_estimate_is_the_bulk_of_what_a_window_keeps():
     from gradlab.shac_new import window_bytes
 
     assert 0.5 * saved.bytes < window_bytes([trainer.cfg]) < 2.0 * saved.bytes
+
+
+def test_blind_phase_options_scale_the_encoder_and_ramp_the_actors_learning_rate():
+    cfg = dataclasses.replace(BASE, mode="decoupled", encoder_lr_scale=0.1, lr_warmup_iters=4, lr_decay_iters=100)
+    trainer = SHAC(cfg, device="cpu")
+    encoder, head = trainer.actor_opt.param_groups
+    assert {id(p) for p in encoder["params"]} == {id(p) for p in trainer.actor.encoder.parameters()}
+    base = trainer.cfg.actor_lr
+    rows = _train(trainer, 4)
+    decay = [base + (1e-5 - base) * i / 100 for i in range(4)]
+    assert [r["actor_lr"] for r in rows] == pytest.approx([decay[i] * (i + 1) / 4 for i in range(4)])
+    assert encoder["lr"] == pytest.approx(0.1 * head["lr"])
+    plain = SHAC(dataclasses.replace(BASE, mode="decoupled"), device="cpu")
+    assert len(plain.actor_opt.param_groups) == 1  # the reference's single group (its checkpoints load as before)
