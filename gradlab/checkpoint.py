@@ -11,7 +11,7 @@ from __future__ import annotations
 import io
 import json
 import os
-import tempfile
+import secrets
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -22,11 +22,27 @@ __all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "save
            "LoadedCheckpoint", "NoReadableCheckpointError"]
 
 
+def _create_temporary(folder: Path, name: str) -> tuple[int, str]:
+    """A new file ``.<name>.<random>.tmp`` in folder, open for writing: (descriptor, path).
+
+    Created with mode 0666 less the umask, as ``open`` creates files (0644 under the usual umask 022), so that
+    collaborators on a shared machine can read results; ``tempfile.mkstemp`` would create it 0600.
+    """
+    for _ in range(100):
+        tmp = folder / f".{name}.{secrets.token_hex(4)}.tmp"
+        try:
+            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), str(tmp)
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name for {name} in {folder}")
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write to a temporary file in the same folder, fsync, then rename over ``path`` (atomic on POSIX)."""
+    """Write to a temporary file in the same folder, fsync, then rename over ``path`` (atomic on POSIX). The file
+    is readable as the umask allows (0644 under umask 022)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = _create_temporary(path.parent, path.name)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
