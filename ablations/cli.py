@@ -1,19 +1,97 @@
-"""Command-line entry points: ``ablate``, ``ablate-memory``, ``ablate-plot``, ``ablate-report``.
+"""Command-line entry points: ``ablate``, ``ablate-memory``, ``ablate-plot``, ``ablate-report``, and :func:`parse`,
+which every ``ablations`` command's options go through.
 
-Each takes a dataclass whose field docstrings are its ``--help`` (tyro). Bad input (unknown task or mode,
-non-positive sizes, an unwritable output folder) is reported in one line before any work starts.
+Each command takes a dataclass whose field docstrings are its ``--help`` (tyro). Bad input (unknown task or mode,
+non-positive sizes, an unwritable output folder) is reported in one line naming its flag before any work starts.
 """
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
+from typing import Annotated, Any, TypeVar
 
-__all__ = ["ablate_main", "memory_main", "plot_main", "report_main"]
+__all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "parse", "ABLATE_GROUPS"]
+
+T = TypeVar("T")
+
+#: ``ablate --help`` in panels, essentials first: panel -> the RunConfig fields it shows, in order. A field no
+#: panel names is shown in the last panel ("more").
+ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
+    "essentials": ("task", "mode", "seed", "iters", "num_envs", "device", "threads", "compile", "out", "name",
+                   "resume", "time_limit_min", "progress"),
+    "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every"),
+    "training": ("preset", "horizon", "gamma", "lam", "actor_lr", "critic_lr", "lr_decay_iters", "lr_warmup_iters",
+                 "encoder_lr_scale", "betas", "grad_clip", "abort_grad_norm", "critic_iterations", "critic_batches",
+                 "target_alpha", "obs_clip", "bootstrap_last_step", "episode_length"),
+    "networks": ("trunk_dim", "actor_hidden", "critic_hidden", "actor_init"),
+    "images": ("image_size", "frames", "renderer", "raster_model", "sigma", "render_gamma", "render_detail",
+               "extra_meshes", "extra_mesh_verts"),
+    "run-folder": ("checkpoint_every", "keep_checkpoints", "warmup_iters", "tensorboard"),
+    "compiling": ("overlap_critic", "compile_cache", "compile_helper"),
+}
 
 
 def _fail(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def _one_paragraph(helptext: Any) -> str | None:
+    """A field's help as one paragraph (blank lines kept): tyro breaks the help wherever a field docstring's
+    source line ends (a continuation line starts with indentation), and each piece then wraps on its own."""
+    text = helptext() if callable(helptext) else helptext
+    if not text:
+        return text
+    paragraphs = [" ".join(line.strip() for line in p.splitlines() if line.strip()) for p in text.split("\n\n")]
+    return "\n\n".join(p for p in paragraphs if p)
+
+
+def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[str, ...]] | None = None,
+          prog: str | None = None, default: T | None = None) -> T:
+    """``tyro.cli(cls)`` with readable ``--help``: each field's docstring is one paragraph, and with ``groups``
+    ({panel: field names}) the flags appear in panels in that order (the flags keep their names; fields that no
+    panel names go to a last panel, "more"). ``default``: an instance whose values are the defaults."""
+    import tyro
+    from tyro.constructors import MISSING_NONPROP, ConstructorRegistry, StructConstructorSpec, StructFieldSpec
+
+    registry = ConstructorRegistry()
+    panels: dict[type, list[StructFieldSpec]] = {}
+    inside: list[bool] = []
+
+    @registry.struct_rule
+    def readable(info):
+        if info.type in panels:  # one panel: its fields, gathered as keyword arguments of cls
+            return StructConstructorSpec(instantiate=dict, fields=tuple(panels[info.type]))
+        if info.type is not cls or inside:
+            return None
+        inside.append(True)
+        try:  # tyro's own reading of the dataclass: types, defaults, docstrings
+            spec = ConstructorRegistry.get_struct_spec(info)
+        finally:
+            inside.pop()
+        fields = [StructFieldSpec(name=f.name, type=f.type, default=f.default, helptext=_one_paragraph(f.helptext))
+                  for f in spec.fields]
+        if not groups:
+            return StructConstructorSpec(instantiate=spec.instantiate, fields=tuple(fields))
+        by_name = {f.name: f for f in fields}
+        placed = {n for names in groups.values() for n in names}
+        members = {**{g: [by_name[n] for n in names if n in by_name] for g, names in groups.items()},
+                   "more": [f for f in fields if f.name not in placed]}
+        panel_fields = []
+        for name, field_specs in members.items():
+            if field_specs:
+                panel = type(name, (), {})
+                panels[panel] = field_specs
+                panel_fields.append(StructFieldSpec(name=name, type=Annotated[panel, tyro.conf.OmitArgPrefixes],
+                                                    default=MISSING_NONPROP))
+
+        def instantiate(**by_panel: dict) -> T:
+            return spec.instantiate(**{k: v for values in by_panel.values() for k, v in values.items()})
+
+        return StructConstructorSpec(instantiate=instantiate, fields=tuple(panel_fields))
+
+    return tyro.cli(cls, args=argv, prog=prog, default=default, description=cls.__doc__, registry=registry)
 
 
 def ablate_main(argv: list[str] | None = None) -> None:
@@ -28,28 +106,31 @@ def ablate_main(argv: list[str] | None = None) -> None:
 
 
 def _ablate(argv: list[str] | None, startup) -> None:
-    import tyro
-
-    from ablations.runs import RunConfig, run
+    from ablations.run_folder import RunFolder
+    from ablations.runs import RunConfig, closing_lines, run
     from gradlab.probes import NonFiniteError
 
-    cfg = tyro.cli(RunConfig, args=argv, description=RunConfig.__doc__)
+    cfg = parse(RunConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
     try:
         run_dir = run(cfg, startup=startup)
     except ValueError as e:
         _fail(str(e))
     except NonFiniteError as e:
         _fail(f"{e} (the last good checkpoint is kept; see summary.json)")
-    print(run_dir)
+    except KeyboardInterrupt as e:
+        print(f"{e or 'interrupted'}: stopped before the run recorded its settings; nothing to resume",
+              file=sys.stderr)
+        raise SystemExit(130) from None
+    print("\n".join(closing_lines(run_dir)))
+    if (RunFolder(run_dir).read_summary() or {}).get("status") == "interrupted":
+        raise SystemExit(130)
 
 
 def memory_main(argv: list[str] | None = None) -> None:
     """``ablate-memory --task ant --meshes 0 4 16 --verts 64 256 ...``: the mesh-complexity sweep."""
-    import tyro
-
     from ablations.memory import MemoryConfig, sweep
 
-    cfg = tyro.cli(MemoryConfig, args=argv)
+    cfg = parse(MemoryConfig, argv, prog="ablate-memory")
     try:
         rows = sweep(cfg)
     except ValueError as e:
@@ -62,11 +143,9 @@ def memory_main(argv: list[str] | None = None) -> None:
 
 def plot_main(argv: list[str] | None = None) -> None:
     """``ablate-plot RUN_DIR... --out DIR``: training curves, mean +- std across seeds, as PNG files."""
-    import tyro
-
     from ablations.plot import PlotConfig, plot_runs
 
-    cfg = tyro.cli(PlotConfig, args=argv)
+    cfg = parse(PlotConfig, argv, prog="ablate-plot")
     try:
         res = plot_runs(cfg)
     except ValueError as e:
@@ -79,11 +158,9 @@ def plot_main(argv: list[str] | None = None) -> None:
 
 def report_main(argv: list[str] | None = None) -> None:
     """``ablate-report RUN_DIR... [--memory DIR...] [--benchmark FILE...] --out report.md``."""
-    import tyro
-
     from ablations.report import ReportConfig, build_report
 
-    cfg = tyro.cli(ReportConfig, args=argv)
+    cfg = parse(ReportConfig, argv, prog="ablate-report")
     try:
         print(build_report(cfg))
     except ValueError as e:

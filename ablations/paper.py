@@ -28,10 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import tyro
 
 from ablations.paper_numbers import PaperNumbers, format_value, load_paper_numbers
-from ablations.plot import Run, load_floors, load_run, make_plots
+from ablations.plot import load_floors, make_plots
 from ablations.report import (
     NOT_RUN,
     collect_bwd,
@@ -47,6 +46,7 @@ from ablations.report import (
     runs_table,
     table1_section,
 )
+from ablations.run_folder import Run, RunFolder, load_run
 
 __all__ = ["ARMS", "DEFAULT_ARMS", "PaperConfig", "sweep_config", "gpus_per_run", "build_paper_report", "main"]
 
@@ -188,7 +188,7 @@ def _sweep_runs(folder: Path) -> tuple[dict, list[Run], dict[str, str], list[str
     runs, arm_of, missing = [], {}, []
     for run_id, rec in manifest.get("runs", {}).items():
         path = folder / rec.get("folder", f"runs/{run_id}")
-        if not (path / "config.json").exists():
+        if not RunFolder(path).config_path.exists():
             missing.append(run_id)
             continue
         run = load_run(path)
@@ -381,7 +381,9 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
 
 def main(argv: list[str] | None = None) -> None:
     """``ablate-paper [--tasks hopper ant] [--seeds 0 1 2] [--time-limit-min 60] ...``; see --help."""
-    cfg = tyro.cli(PaperConfig, args=argv, description=PaperConfig.__doc__)
+    from ablations.cli import parse
+
+    cfg = parse(PaperConfig, argv, prog="ablate-paper")
     try:
         if cfg.report_only is not None:
             print(build_paper_report(cfg.report_only, out=cfg.report, benchmark=cfg.benchmark, memory=cfg.memory,

@@ -48,10 +48,12 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 import tyro
 
+from ablations.run_folder import Run, find_runs, is_number
+
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = ["PlotConfig", "Run", "load_run", "find_runs", "group_runs", "run_labels", "aggregate", "make_plots",
+__all__ = ["PlotConfig", "group_runs", "run_labels", "aggregate", "make_plots",
            "build_figures", "FigureSet", "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS",
            "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs"]
 
@@ -117,121 +119,6 @@ class PlotConfig:
     """Folder for the PNG files."""
     floors: Path | None = None
     """task-floors JSON with the zero- and random-action return floors; None: docs/floors.json of this checkout."""
-
-
-@dataclass
-class Run:
-    """One run folder, parsed."""
-
-    path: Path
-    config: dict
-    environment: dict
-    command: list | None
-    summary: dict | None
-    metrics: list[dict]
-    #: config.json's "preset" record (name, supplied, overridden), when the run has one.
-    preset: dict | None = None
-    #: config.json's "started_utc", when the run recorded it.
-    started_utc: str | None = None
-
-    @property
-    def task(self) -> str:
-        return str(self.config.get("task"))
-
-    @property
-    def mode(self) -> str:
-        return str(self.config.get("mode"))
-
-    @property
-    def seed(self):
-        return self.config.get("seed")
-
-    def setting(self, key: str):
-        """A config.json setting (``preset`` falls back to the name in the preset record); None when absent."""
-        value = self.config.get(key)
-        if value is None and key == "preset" and isinstance(self.preset, dict):
-            value = self.preset.get("name")
-        return value
-
-
-    def series(self, x: str, y: str, *, skip_probed: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """(x, y) of the iterations where both are finite numbers, sorted by x; ``skip_probed`` leaves out
-        probe iterations (they differentiate twice, so their times and memory are not the mode's)."""
-        pts = [(r[x], r[y]) for r in self.metrics if _num(r.get(x)) and _num(r.get(y))
-               and not (skip_probed and r.get("probed"))]
-        pts.sort()
-        return np.array([p[0] for p in pts], float), np.array([p[1] for p in pts], float)
-
-    def evaluations(self, x: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(x, mean, std) of the deterministic evaluations, sorted by x: ``eval_return_mean`` and
-        ``eval_return_std`` (over the evaluation's episodes), or ``eval_return`` with std NaN where a line has
-        only that (older runs)."""
-        pts = []
-        for r in self.metrics:
-            mean = r.get("eval_return_mean", r.get("eval_return"))
-            if _num(r.get(x)) and _num(mean):
-                std = r.get("eval_return_std")
-                pts.append((r[x], mean, std if _num(std) and "eval_return_mean" in r else math.nan))
-        pts.sort()
-        return tuple(np.array([p[i] for p in pts], float) for i in range(3))  # type: ignore[return-value]
-
-
-def _num(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def load_run(path: str | os.PathLike) -> Run:
-    """Parse a run folder (see ablations/runs.py); ValueError with the reason if it is not one."""
-    from ablations.runs import read_metrics
-
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"{path}: no such folder")
-    if not path.is_dir():
-        raise ValueError(f"{path} is a file, not a run folder (give the folder that holds config.json)")
-    cfg_path = path / "config.json"
-    if not cfg_path.exists():
-        raise ValueError(f"{path} is not a run folder: it has no config.json (expected config.json, "
-                         f"metrics.jsonl, summary.json as written by `ablate`)")
-    try:
-        data = json.loads(cfg_path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{cfg_path} is not valid JSON: {e}") from None
-    if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
-        raise ValueError(f"{cfg_path} has no 'config' object: not written by `ablate`")
-    config = data["config"]
-    for k in ("task", "mode"):
-        if k not in config:
-            raise ValueError(f"{cfg_path}: config has no {k!r}")
-    summary = None
-    if (path / "summary.json").exists():
-        try:
-            summary = json.loads((path / "summary.json").read_text())
-        except json.JSONDecodeError:
-            summary = None  # summary.json is written atomically: unreadable means a foreign file; ignore it
-    preset = data.get("preset") if isinstance(data.get("preset"), dict) else None
-    started = data.get("started_utc") if isinstance(data.get("started_utc"), str) else None
-    return Run(path=path, config=config, environment=data.get("environment") or {}, command=data.get("command"),
-               summary=summary, metrics=read_metrics(path), preset=preset, started_utc=started)
-
-
-def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
-    """Runs of the given folders; a folder that is not a run but holds run folders stands for all of them.
-
-    Raises ValueError when no path is given, or a path is neither a run nor a parent of runs.
-    """
-    if not paths:
-        raise ValueError("no run folders given (pass one or more folders written by `ablate`)")
-    runs: list[Run] = []
-    for p in paths:
-        p = Path(p)
-        if p.is_dir() and not (p / "config.json").exists():
-            children = sorted(c for c in p.iterdir() if c.is_dir() and (c / "config.json").exists())
-            if children:
-                runs.extend(load_run(c) for c in children)
-                continue
-        runs.append(load_run(p))
-    return runs
 
 
 def run_labels(runs: list[Run]) -> list[str]:
@@ -351,7 +238,7 @@ def load_floors(path: str | os.PathLike | None = None) -> Floors:
         raise ValueError(f"--floors {path}: expected a 'tasks' object as task-floors writes it")
     for task, entry in tasks.items():
         ok = isinstance(entry, dict) and any(k in entry for k in _FLOOR_LINES) and all(
-            isinstance(entry[k], dict) and _num(entry[k].get("mean")) for k in _FLOOR_LINES if k in entry)
+            isinstance(entry[k], dict) and is_number(entry[k].get("mean")) for k in _FLOOR_LINES if k in entry)
         if not ok:
             raise ValueError(f"--floors {path}: task {task!r} needs zero/random objects with a numeric 'mean'")
     return Floors(source=path, tasks=tasks)
@@ -608,7 +495,7 @@ class _Drawer:
         its edges."""
         from matplotlib.lines import Line2D
 
-        present = [k for k in keys if any(_num(m.get(k)) for r in self.runs for m in r.metrics)]
+        present = [k for k in keys if any(is_number(m.get(k)) for r in self.runs for m in r.metrics)]
         if not present:
             self.out.skipped[name] = why
             return
@@ -724,7 +611,7 @@ class _Drawer:
         self.cosine_hist()
         self.timing()
         # Memory: CUDA peak allocated where any run has it, else what autograd saved (the CPU-visible quantity).
-        has_alloc = any(_num(m.get("peak_alloc_mb")) for r in self.runs for m in r.metrics)
+        has_alloc = any(is_number(m.get("peak_alloc_mb")) for r in self.runs for m in r.metrics)
         key, ylabel = ("peak_alloc_mb", "peak allocated [MB] (CUDA)") if has_alloc else \
             ("saved_mb", "saved for backward [MB]")
         self.curves("memory.png", "iter", key, xlabel="iteration", ylabel=ylabel, skip_probed=True)

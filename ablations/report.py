@@ -48,7 +48,8 @@ from pathlib import Path
 import tyro
 
 from ablations.paper_numbers import load_paper_numbers
-from ablations.plot import FIGURES, Floors, PlotResult, Run, find_runs, group_runs, load_floors, make_plots
+from ablations.plot import FIGURES, Floors, PlotResult, group_runs, load_floors, make_plots
+from ablations.run_folder import Run, RunFolder, find_runs
 from gradlab.timing import median
 
 __all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms",
@@ -217,7 +218,7 @@ def _started(run: Run) -> str:
     """config.json's started_utc, else the file's modification time, marked as such."""
     if run.started_utc:
         return run.started_utc
-    return f"{_mtime(run.path / 'config.json')} (file time)"
+    return f"{_mtime(RunFolder(run.path).config_path)} (file time)"
 
 
 def _ended(run: Run) -> str:
@@ -225,7 +226,7 @@ def _ended(run: Run) -> str:
     ended = (run.summary or {}).get("ended_utc")
     if isinstance(ended, str) and ended:
         return ended
-    path = run.path / "summary.json"
+    path = RunFolder(run.path).summary_path
     return f"{_mtime(path)} (file time)" if path.exists() else "-"
 
 

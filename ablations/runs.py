@@ -1,53 +1,41 @@
-"""One training run as a folder a researcher can trust, resume and plot.
+"""One training run: ``ablate``'s settings (:class:`RunConfig`) and its loop (:func:`run`).
 
-A run folder holds:
-    config.json      the resolved configuration (every flag, preset values filled in), what the preset supplied
-                     and which flags overrode it, the start time (UTC) + versions
-    git.txt          commit, branch, dirty status and diff stat of the code that ran (git.diff: the full diff)
-    metrics.jsonl    one JSON object per iteration (``REQUIRED_KEYS``, plus ``PROBE_KEYS`` on probed iterations)
-    summary.json     written at the end (or when the run stops on an error): medians without warm-up, peaks,
-                     the seconds from process start to the end of its first iteration (``first_iter_s``) and,
-                     with --compile, what was compiled and how much came from the compile cache (``compile``)
-    checkpoints/     ckpt_<iter>.pt (the last ``keep_checkpoints``), written atomically; a resume starts from
-                     the newest one that loads and renames damaged newer ones to ckpt_<iter>.pt.damaged
-    videos/          iter_<iter>.mp4 evaluation rollouts of the deterministic policy
+A run trains in a run folder (``ablations.run_folder``: config.json, git.txt, metrics.jsonl, summary.json,
+checkpoints/, videos/) that a researcher can trust, resume and plot. Bad input is a ValueError naming its flag
+before the folder exists. SIGINT or SIGTERM lets the running iteration finish, checkpoints it and marks the
+summary ``interrupted`` (a second signal stops at once); ``ablate --resume`` then repeats nothing.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
-import json
+import math
 import os
-import platform
-import subprocess
+import signal
 import sys
-import tempfile
+import threading
 import time
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
+from ablations.run_folder import RunFolder, environment_info, evaluation_of
 from ablations.startup import Startup
-from gradlab.checkpoint import (
-    LoadedCheckpoint,
-    NoReadableCheckpointError,
-    atomic_write_json,
-    atomic_write_text,
-    checkpoint_path,
-    load_newest_readable,
-    prune_checkpoints,
-    save_checkpoint,
-)
+from gradlab.checkpoint import LoadedCheckpoint
 from gradlab.config import SHACConfig
+from gradlab.config_checks import check_integers, check_number
 from gradlab.presets import PRESET_FIELDS, PRESETS, preset_record
 from gradlab.probes import NonFiniteError
 from gradlab.seeding import resolve_device
 from gradlab.timing import median
 
-__all__ = ["RunConfig", "check_writable", "environment_info", "git_info", "read_metrics", "run", "write_video"]
+__all__ = ["RunConfig", "run", "prepare", "closing_lines", "default_threads", "use_threads", "shac_part",
+           "REQUIRED_KEYS", "PROBE_KEYS", "TIMING_KEYS", "RESUMABLE"]
 
 #: Keys every metrics line has.
 REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "critic_loss", "grad_norm",
@@ -56,6 +44,11 @@ REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "cr
 PROBE_KEYS = ("cos_full_decoupled", "grad_norm_full", "grad_norm_decoupled", "grad_norm_render_term")
 #: Keys that depend on the clock, not on the computation (excluded when comparing runs for determinism).
 TIMING_KEYS = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb")
+#: Settings a resume may change (where it runs, how long it goes on); config.json wins for every other one.
+RESUMABLE = ("device", "iters", "time_limit_min", "compile_cache", "threads")
+#: Most CPU threads a run takes by default: the simulator's and networks' tensors are small, so more threads add
+#: synchronisation more than speed.
+MAX_DEFAULT_THREADS = 8
 _IMPORTED = time.time()  # when no better process start time is known (_process_started)
 
 
@@ -65,16 +58,21 @@ class RunConfig(SHACConfig):
 
     device: str = "auto"
     """auto (CUDA when present, else CPU), cpu, or cuda[:N]."""
+    threads: int | None = None
+    """CPU threads of torch in this process (and OMP_NUM_THREADS / MKL_NUM_THREADS of the processes it starts);
+    recorded in config.json. None: $OMP_NUM_THREADS where set, else half the cores this process may use, at least
+    1 and at most 8, so that a run leaves room on a shared machine (two runs each taking every core are many
+    times slower than both with half). On the CPU the thread count changes the metrics' last bits."""
     out: Path = Path("runs")
     """Parent folder of the run folder."""
     name: str | None = None
     """Run folder name; None: <task>_<mode>_seed<seed>_<date>-<time>."""
     resume: Path | None = None
-    """Continue the run in this folder from its last checkpoint. Its config.json wins over other flags except
-    --device, --iters, --time-limit-min and --compile-cache, which a resume may change (e.g. to train the same
-    run longer)."""
+    """Continue the run in this folder from its last checkpoint (from its first iteration if it has none). Its
+    config.json wins over other flags except --device, --iters, --time-limit-min, --compile-cache and --threads,
+    which a resume may change (e.g. to train the same run longer)."""
     checkpoint_every: int = 50
-    """Iterations between checkpoints (and always at the end)."""
+    """Iterations between checkpoints (and always at the end, and when a signal stops the run)."""
     keep_checkpoints: int = 2
     """Checkpoints kept on disk (oldest deleted); more than one lets a resume survive a damaged newest one."""
     video_every: int = 100
@@ -90,7 +88,9 @@ class RunConfig(SHACConfig):
     tensorboard: bool = False
     """Also log the metrics to TensorBoard (needs the tensorboard package) in <run>/tb."""
     progress: bool = True
-    """Show a progress bar."""
+    """Show a progress bar: ret= the training return (mean of the last 100 finished training episodes of the
+    exploring policy; - before the first ends), eval= the last deterministic evaluation return, ms= the
+    iteration's wall-clock milliseconds, gn= the actor's gradient norm before clipping."""
     compile_cache: str | None = None
     """With --compile: the root folder of torch.compile's caches (a subfolder per torch/Triton/device version;
     delete it to start cold); None: $PIXELGRAD_COMPILE_CACHE, else ~/.cache/pixelgrad/compile; 'off': torch's
@@ -101,20 +101,15 @@ class RunConfig(SHACConfig):
     (ablations/startup/helpers.py); --no-compile-helper compiles everything in this process."""
 
     def validate(self) -> None:
-        """SHACConfig's checks plus the run options'."""
+        """SHACConfig's checks plus the run options'; every error names its flag."""
         super().validate()
-        for name in ("checkpoint_every", "keep_checkpoints"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v <= 0:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        if self.video_every < 0 or self.warmup_iters < 0:
-            raise ValueError("video_every and warmup_iters must be >= 0")
-        if self.video_steps is not None and self.video_steps <= 0:
-            raise ValueError(f"video_steps must be positive, got {self.video_steps}")
-        if self.time_limit_min is not None and self.time_limit_min <= 0:
-            raise ValueError(f"time_limit_min must be positive, got {self.time_limit_min}")
+        check_integers(self, ("checkpoint_every", "keep_checkpoints"), minimum=1)
+        check_integers(self, ("threads", "video_steps"), minimum=1, optional=True)
+        check_integers(self, ("video_every", "warmup_iters"), minimum=0)
+        if self.time_limit_min is not None:
+            check_number("time_limit_min", self.time_limit_min, "(0, inf)")
         if self.compile_cache is not None and not self.compile_cache.strip():
-            raise ValueError("compile_cache is empty: give a folder, or 'off' for torch's own cache locations")
+            raise ValueError("--compile-cache is empty: give a folder, or 'off' for torch's own cache locations")
 
 
 def shac_part(cfg: RunConfig) -> SHACConfig:
@@ -123,96 +118,296 @@ def shac_part(cfg: RunConfig) -> SHACConfig:
     return SHACConfig(**{k: v for k, v in dataclasses.asdict(cfg).items() if k in names})
 
 
-def git_info(repo: Path | None = None) -> tuple[str, str]:
-    """(git.txt text, full diff) of the source tree that runs; explains itself when git is unavailable."""
-    repo = repo or Path(__file__).resolve().parents[1]
-
-    def git(*args: str) -> str:
-        r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
-        if r.returncode != 0:
-            raise RuntimeError(r.stderr.strip())
-        return r.stdout
-
+# ---------------------------------------------------------------------------------------------- CPU threads
+def default_threads() -> int:
+    """$OMP_NUM_THREADS where it is a positive integer, else half the cores this process may use (its CPU
+    affinity), at least 1 and at most ``MAX_DEFAULT_THREADS``."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    if env.isdigit() and int(env) > 0:
+        return int(env)
     try:
-        commit = git("rev-parse", "HEAD").strip()
-        branch = git("rev-parse", "--abbrev-ref", "HEAD").strip()
-        status = git("status", "--porcelain")
-        stat = git("diff", "HEAD", "--stat")
-        diff = git("diff", "HEAD")
-    except (OSError, RuntimeError, subprocess.TimeoutExpired) as e:
-        return f"git information unavailable: {e}\n", ""
-    dirty = bool(status.strip())
-    status = status or "(clean)\n"
-    stat = stat or "(none)\n"
-    text = f"commit {commit}\nbranch {branch}\ndirty {dirty}\n\nstatus:\n{status}\ndiff --stat HEAD:\n{stat}"
-    return text, diff
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity outside Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(MAX_DEFAULT_THREADS, cores // 2))
 
 
-def environment_info(device: torch.device) -> dict:
-    info = {
-        "python": sys.version.split()[0],
-        "torch": torch.__version__,
-        "platform": platform.platform(),
-        "device": str(device),
-        "hostname": platform.node(),
-    }
-    if device.type == "cuda":
-        info["gpu"] = torch.cuda.get_device_name(device)
-        info["cuda"] = torch.version.cuda
-        # The precision the encoder's convolutions and the linear layers ran in: PyTorch lets cuDNN use TF32
-        # for float32 convolutions by default (matmuls stay full float32), which changes gradient bits.
-        info["cudnn_allow_tf32"] = torch.backends.cudnn.allow_tf32
-        info["float32_matmul_precision"] = torch.get_float32_matmul_precision()
-        info["cudnn_benchmark"] = torch.backends.cudnn.benchmark
+def use_threads(n: int) -> None:
+    """torch's intra-op threads of this process, and OMP_NUM_THREADS / MKL_NUM_THREADS of the processes it starts
+    (compile helpers and workers)."""
+    torch.set_num_threads(n)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(n)
+
+
+# ---------------------------------------------------------------------------------------------- preparing
+def _stored_config(folder: RunFolder, overrides: RunConfig) -> RunConfig:
+    """The RunConfig of a run folder's config.json with what a resume may change taken from ``overrides``; a
+    damaged or foreign file is named in a ValueError."""
     try:
-        import mujoco
-        import pytorch_kinematics
+        stored = folder.read_record()["config"]
+    except ValueError as e:
+        raise ValueError(f"--resume {folder.path}: {e}; it is the record of the run's settings, restore it (e.g. "
+                         f"from a copy) to resume") from None
+    fields = {f.name for f in dataclasses.fields(RunConfig)}
+    stored = {k: v for k, v in stored.items() if k in fields}
+    for k in ("actor_hidden", "critic_hidden", "betas"):
+        if stored.get(k) is not None:
+            stored[k] = tuple(stored[k])
+    if stored.get("preset") not in PRESETS and all(stored.get(k) is not None for k in PRESET_FIELDS):
+        # config.json holds every value a preset supplied, so a run whose preset has no table here (an older
+        # folder's) resumes with exactly its values, under the default preset's name
+        print(f"note: --resume {folder.path}: preset {stored.get('preset')!r} has no table here; the run resumes "
+              f"with the values its config.json records (as --preset {RunConfig.preset} with them set)",
+              file=sys.stderr)
+        stored["preset"] = RunConfig.preset
+    stored["out"] = Path(stored.get("out", folder.path.parent))
+    stored.update(resume=folder.path, progress=overrides.progress)
+    defaults = RunConfig()
+    for k in RESUMABLE:
+        if getattr(overrides, k) != getattr(defaults, k):
+            stored[k] = getattr(overrides, k)
+    try:
+        cfg = RunConfig(**stored)
+        cfg.validate()
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--resume {folder.path}: {folder.config_path}: {e}") from None
+    return cfg
 
-        info["mujoco"] = mujoco.__version__
-        info["pytorch_kinematics"] = getattr(pytorch_kinematics, "__version__", "unknown")
-    except ImportError:  # pragma: no cover - both are dependencies
-        pass
-    return info
 
+def prepare(cfg: RunConfig) -> tuple[RunConfig, RunFolder, torch.device, LoadedCheckpoint | None]:
+    """Validate everything, then create the run folder (or find the one to resume), before any expensive work.
 
-def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
-    """Parsed metrics.jsonl lines; a torn last line (a run killed mid-write) is ignored."""
-    path = Path(run_dir) / "metrics.jsonl"
-    rows = []
-    if not path.exists():
-        return rows
-    for line in path.read_text().splitlines():
+    Returns the config (a resume's as its folder records it; ``threads`` resolved), the run folder, the device
+    and, on ``--resume``, the checkpoint to start from (None: the folder has none, the run starts over in it).
+    """
+    if cfg.resume is not None:
         try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return rows
+            folder = RunFolder.existing(cfg.resume)
+        except ValueError as e:
+            raise ValueError(f"--resume {cfg.resume}: {e}") from None
+        cfg = _stored_config(folder, cfg)
+        device = resolve_device(cfg.device)
+        try:
+            resume_from = folder.load_checkpoint(device)
+        except ValueError as e:
+            raise ValueError(f"--resume {folder.path}: {e}") from None
+    else:
+        cfg.validate()
+        device = resolve_device(cfg.device)
+        name = cfg.name or f"{cfg.task}_{cfg.mode}_seed{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+        folder, resume_from = RunFolder.create(cfg.out, name), None
+    if cfg.threads is None:
+        cfg = dataclasses.replace(cfg, threads=default_threads())
+    return cfg, folder, device, resume_from
 
 
-def _truncate_metrics(run_dir: Path, upto_iter: int) -> None:
-    """Keep metrics lines with iter <= upto_iter (those after the checkpoint will be recomputed)."""
-    rows = [r for r in read_metrics(run_dir) if r["iter"] <= upto_iter]
-    atomic_write_text(run_dir / "metrics.jsonl", "".join(json.dumps(r) + "\n" for r in rows))
+# ---------------------------------------------------------------------------------------------- running
+def run(cfg: RunConfig, *, startup: Startup | None = None) -> Path:
+    """Train (or resume) a run; returns its folder, whose summary.json says how it ended (``interrupted``: by a
+    signal, after checkpointing its last finished iteration). Raises ValueError on bad input before any work, and
+    KeyboardInterrupt for a signal that came before the run recorded its settings (its folder is then removed).
+    ``startup``: this process's start-up (``Startup.before_torch``: the bytecode folder, compile helpers on
+    standby); None: one that started nothing before torch was imported."""
+    started = time.time()
+    startup = startup or Startup()
+    folder = None
+    with StopOnSignal() as stop, plain_warnings():
+        try:
+            cfg, folder, device, resume_from = prepare(cfg)
+            use_threads(cfg.threads)
+            cache_opened = time.time()
+            startup.open(cfg, shac_part(cfg), device, folder.path, resuming=resume_from is not None)
+            return _train(cfg, folder, device, resume_from, startup, stop, started=started,
+                          cache_opened=cache_opened)
+        except BaseException:
+            if folder is not None:
+                folder.remove_if_empty()  # stopped before it wrote its first record
+            raise
+        finally:
+            startup.close()  # on every way out, an error before the training loop included
 
 
-def write_video(path: Path, frames: list[np.ndarray], fps: int = 60) -> None:
-    """Frames (H, W, 3) uint8 RGB -> MP4 (mp4v), written to a temp name and renamed."""
-    import cv2
+def _train(cfg: RunConfig, folder: RunFolder, device: torch.device, resume_from: LoadedCheckpoint | None,
+           startup: Startup, stop: StopOnSignal, *, started: float, cache_opened: float) -> Path:
+    """The rest of :func:`run` once its folder and start-up are settled: build the trainer, record the run,
+    train, write the summary."""
+    from tqdm.auto import tqdm
 
-    if not frames:
-        return
-    h, w = frames[0].shape[:2]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.mp4")
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    if not writer.isOpened():
-        raise RuntimeError(f"OpenCV could not open an MP4 writer for {path}")
-    for f in frames:
-        writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
-    writer.release()
-    os.replace(tmp, path)
+    from gradlab.shac import SHAC
+
+    trainer_built = time.time()
+    trainer = SHAC(shac_part(cfg), device=device)
+    startup.trainer_built(trainer)
+    trainer_done = time.time()
+    # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py): parts
+    # that together make up first_iter_s; "run_folder" is the bookkeeping around the trainer (checking the
+    # config, the run folder, a checkpoint to resume, git and environment records, the progress bar)
+    startup_s = {"imports": started - _process_started(), "compile_cache": trainer_built - cache_opened,
+                 "trainer": trainer_done - trainer_built}
+    if resume_from is not None:
+        trainer.load_state_dict(resume_from.state)
+        del resume_from  # not kept alive for the whole run (optimizer states can be large)
+    if folder.config_path.exists():
+        folder.truncate_metrics(trainer.iteration)  # lines after the checkpoint are computed again
+    else:
+        shac_fields = dataclasses.fields(SHACConfig)
+        resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
+        folder.write_config({
+            "config": dataclasses.asdict(resolved),
+            # which values the preset supplied and which flags overrode it (flag and preset value side by side)
+            "preset": preset_record(shac_part(cfg), trainer.cfg),
+            "started_utc": _utc(started),
+            "environment": environment_info(device),
+            "command": sys.argv,
+        })
+        folder.write_git()
+
+    writer = None
+    if cfg.tensorboard:
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError as e:
+            raise ValueError("--tensorboard needs the tensorboard package: pip install tensorboard") from e
+        writer = SummaryWriter(str(folder.path / "tb"))
+
+    base = f"{cfg.task}/{cfg.mode}"
+    bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=base, unit="it",
+               dynamic_ncols=True)
+    first_iter_s = None
+    status, error = "running", None
+    eval_text = "-"
+    startup_s["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
+    try:
+        # The first iterations wait for the compiler: the bar says which part it compiles or captures, then its name.
+        ahead_s = startup.before_first_iteration(
+            lambda text: bar.set_description(base if text is None else f"{base}: {text}"))
+        if ahead_s is not None:
+            startup_s["compile_ahead"] = ahead_s
+            # compiling counts in the training wall-clock (--time-limit-min, the wall_s curves) wherever it happens:
+            # runs with and without helpers spend their budgets alike
+            trainer.wall_s += ahead_s
+        # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
+        # the same training time as one that ran through, so that return-against-time curves stay comparable.
+        budget_s = None if cfg.time_limit_min is None else 60.0 * cfg.time_limit_min
+        spent = budget_s is not None and trainer.wall_s >= budget_s  # a resumed run whose budget is used up
+        checkpointed = trainer.iteration
+        ended = spent
+        stop.defer_to_iteration_end()  # from here a first signal lets the iteration finish
+        while not ended and trainer.iteration < cfg.iters and not stop.requested:
+            m = trainer.train_iteration()
+            if first_iter_s is None:
+                first_iter_s = time.time() - _process_started()
+                # a resumed run starts from its checkpoint's state and frames: no reset and render
+                startup_s.update(first_reset_render=trainer.start_s or 0.0, first_iteration=m["iter_ms"] / 1e3)
+            startup.after_iteration()
+            it = m["iter"]
+            ended = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
+            if cfg.video_every and (it % cfg.video_every == 0 or ended):
+                steps = min(cfg.video_steps or trainer.task.episode_length, trainer.task.episode_length)
+                with startup.evaluating():
+                    eval_return, frames = trainer.evaluate(steps=steps, record=True)
+                m["eval_return"] = eval_return  # undiscounted, deterministic policy, over eval_steps steps
+                m["eval_steps"] = steps
+                folder.write_video(it, frames)
+            folder.append_metrics(m)
+            if writer is not None:
+                for k, v in m.items():
+                    if isinstance(v, (int, float)) and not isinstance(v, bool):
+                        writer.add_scalar(k, v, it)
+            if it % cfg.checkpoint_every == 0 or ended:
+                folder.save_checkpoint(it, trainer.state_dict(), keep=cfg.keep_checkpoints)
+                checkpointed = it
+            if (ev := evaluation_of(m)) is not None:
+                eval_text = f"{ev[0]:.1f}"
+            ret = m["return_mean"]
+            bar.set_postfix({"ret": "-" if ret is None else f"{ret:.1f}", "eval": eval_text,
+                             "ms": f"{m['iter_ms']:.0f}", "gn": f"{m['grad_norm']:.2g}"})
+            bar.update(1)
+        if stop.requested and not ended:
+            if checkpointed != trainer.iteration:
+                folder.save_checkpoint(trainer.iteration, trainer.state_dict(), keep=cfg.keep_checkpoints)
+            status, error = "interrupted", f"{stop.requested} after iteration {trainer.iteration}"
+        else:
+            status = "finished" if trainer.iteration >= cfg.iters else "time_limit"
+    except NonFiniteError as e:
+        status, error = "nonfinite", str(e)
+        raise
+    except KeyboardInterrupt as e:  # a second signal: stopped mid-iteration, the last checkpoint is the state
+        status, error = "interrupted", f"{e or 'KeyboardInterrupt'} during iteration {trainer.iteration + 1}"
+    except torch.OutOfMemoryError as e:
+        status, error = "oom", str(e).splitlines()[0]
+        raise
+    finally:
+        startup.close()
+        bar.close()
+        if writer is not None:
+            writer.close()
+        folder.write_summary(_summary(folder.read_metrics(), cfg, status, error, started, first_iter_s=first_iter_s,
+                                      compiled=startup.record(), startup_s=startup_s))
+    return folder.path
 
 
+class StopOnSignal:
+    """SIGINT and SIGTERM as a request to stop, inside ``with``.
+
+    Before :meth:`defer_to_iteration_end` (building the trainer, compiling ahead) a signal raises
+    KeyboardInterrupt at once; after it the first signal only sets :attr:`requested` (its name), so that the
+    training loop finishes the iteration it is in, checkpoints it and stops; a second one raises
+    KeyboardInterrupt. Outside the main thread (where Python delivers signals) it does nothing.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.requested: str | None = None
+        self._deferring = False
+        self._previous: dict = {}
+
+    def __enter__(self) -> StopOnSignal:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+    def defer_to_iteration_end(self) -> None:
+        self._deferring = True
+
+    def _handle(self, signum: int, frame) -> None:
+        name = signal.Signals(signum).name
+        if not self._deferring or self.requested is not None:
+            raise KeyboardInterrupt(name)
+        self.requested = name
+        from tqdm import tqdm
+
+        tqdm.write(f"{name}: stopping once this iteration has finished and is checkpointed (send it again to stop "
+                   f"at once, losing this iteration)", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def plain_warnings() -> Iterator[None]:
+    """Inside: every warning is one line ``warning: <message>`` on stderr, each message once, written through
+    tqdm so that it does not tear the progress bar (Python's own form adds the source line and repeats per place
+    it is raised). The warning filters stay as they are."""
+    from tqdm import tqdm
+
+    shown: set[tuple[type, str]] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        key = (category, str(message))
+        if key not in shown:
+            shown.add(key)
+            tqdm.write(f"warning: {message}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        yield
+
+
+# ---------------------------------------------------------------------------------------------- the summary
 def _utc(t: float) -> str:
     """Seconds since the epoch as an ISO-8601 UTC timestamp (what the report prints as started/ended)."""
     return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).isoformat(timespec="seconds")
@@ -250,6 +445,7 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
         return max(vals) if vals else None
 
     returns = [r["return_mean"] for r in rows if r.get("return_mean") is not None]
+    evals = [(r["iter"], *ev) for r in rows if (ev := evaluation_of(r)) is not None]
     cos = [r["cos_full_decoupled"] for r in rows if r.get("cos_full_decoupled") is not None]
     return {
         "status": status,
@@ -263,6 +459,13 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
         "wall_s": rows[-1]["wall_s"] if rows else 0.0,
         "final_return": returns[-1] if returns else None,
         "best_return": max(returns) if returns else None,
+        # the deterministic policy's return (metrics eval_return_mean, or eval_return on video iterations): the
+        # last evaluation's mean, its std over episodes (None where not logged) and iteration, and the best mean
+        "final_eval_return": evals[-1][1] if evals else None,
+        "final_eval_std": evals[-1][2] if evals and not math.isnan(evals[-1][2]) else None,
+        "final_eval_iter": evals[-1][0] if evals else None,
+        "best_eval_return": max(e[1] for e in evals) if evals else None,
+        "threads": cfg.threads,
         "median_fwd_ms": med("fwd_ms", plain),
         "median_bwd_ms": med("bwd_ms", plain),
         "median_critic_ms": med("critic_ms", plain),
@@ -286,228 +489,45 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
     }
 
 
-def check_writable(folder: Path) -> None:
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        # A unique name: several runs may start in the same folder at once.
-        fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-test.")
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        raise ValueError(f"output folder {folder} is not writable: {e}") from None
+def closing_lines(run_dir: str | os.PathLike, *, floors=None) -> list[str]:
+    """What ``ablate`` prints when a run ends: how it ended, its final training return and last deterministic
+    evaluation return beside the task's zero- and random-action floors (``floors``: an ``ablations.plot.Floors``;
+    default docs/floors.json of this checkout), the absolute run folder and the command that resumes it."""
+    from ablations.plot import load_floors
 
+    folder = RunFolder(Path(run_dir).resolve())
+    s = folder.read_summary() or {}
+    task = s.get("task", "?")
+    status = s.get("status", "no summary")
+    lines = [f"{task}/{s.get('mode', '?')} seed {s.get('seed', '?')}: {status} after {s.get('iterations', 0)} "
+             f"iterations ({s.get('env_steps', 0)} environment steps, {s.get('wall_s', 0.0):.0f} s of training)"
+             + (f"; {s['error']}" if s.get("error") else "")]
 
-def _stored_config(run_dir: Path, cfg_path: Path, overrides: RunConfig) -> RunConfig:
-    """The RunConfig of a run folder's config.json; a damaged or foreign file is named in a ValueError."""
-    try:
-        stored = json.loads(cfg_path.read_text())["config"]
-        if not isinstance(stored, dict):
-            raise TypeError(f"'config' is a {type(stored).__name__}, not an object")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"--resume {run_dir}: {cfg_path} cannot be read ({type(e).__name__}: {e}); it is the "
-                         f"record of the run's settings, restore it (e.g. from a copy) to resume") from None
-    except (KeyError, TypeError) as e:
-        raise ValueError(f"--resume {run_dir}: {cfg_path} has no 'config' object ({e}): not written by ablate") \
-            from None
-    fields = {f.name for f in dataclasses.fields(RunConfig)}
-    stored = {k: v for k, v in stored.items() if k in fields}
-    for k in ("actor_hidden", "critic_hidden", "betas"):
-        if stored.get(k) is not None:
-            stored[k] = tuple(stored[k])
-    if stored.get("preset") not in PRESETS and all(stored.get(k) is not None for k in PRESET_FIELDS):
-        # config.json holds every value a preset supplied, so a run whose preset has no table here (an older
-        # folder's) resumes with exactly its values, under the default preset's name
-        print(f"note: --resume {run_dir}: preset {stored.get('preset')!r} has no table here; the run resumes with "
-              f"the values its config.json records (as --preset {RunConfig.preset} with them set)", file=sys.stderr)
-        stored["preset"] = RunConfig.preset
-    stored["out"] = Path(stored.get("out", run_dir.parent))
-    stored.update(resume=run_dir, progress=overrides.progress)
-    # What a resume may change: where it runs, and how long it goes on (a longer run extends the same curve).
-    defaults = RunConfig()
-    for k in ("device", "iters", "time_limit_min", "compile_cache"):
-        if getattr(overrides, k) != getattr(defaults, k):
-            stored[k] = getattr(overrides, k)
-    try:
-        cfg = RunConfig(**stored)
-        cfg.validate()
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"--resume {run_dir}: {cfg_path}: {e}") from None
-    return cfg
+    def value(v) -> str:
+        return "-" if v is None else f"{v:.1f}"
 
-
-def _resume_point(run_dir: Path, device: torch.device) -> LoadedCheckpoint:
-    """The newest readable checkpoint; damaged newer ones are reported on stderr and renamed aside.
-
-    Renamed (``.damaged`` appended) rather than left in place so that they no longer count among the
-    ``keep_checkpoints`` newest files when the resumed run prunes old checkpoints, and kept for inspection.
-    """
-    try:
-        loaded = load_newest_readable(run_dir / "checkpoints", map_location=device)
-    except NoReadableCheckpointError as e:
-        raise ValueError(f"--resume {run_dir}: {e}") from None
-    for path, why in loaded.damaged:
-        aside = path.with_name(path.name + ".damaged")
-        os.replace(path, aside)
-        print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
-              f"{loaded.path.name}", file=sys.stderr)
-    return loaded
-
-
-def prepare(cfg: RunConfig) -> tuple[RunConfig, Path, torch.device, LoadedCheckpoint | None]:
-    """Validate everything and create/locate the run folder, before any expensive work.
-
-    Returns the (resolved) config, the run folder, the device and, on ``--resume``, the checkpoint to start from.
-    """
-    if cfg.resume is not None:
-        run_dir = Path(cfg.resume)
-        cfg_path = run_dir / "config.json"
-        if not cfg_path.exists():
-            raise ValueError(f"--resume {run_dir}: no config.json there (not a run folder)")
-        cfg = _stored_config(run_dir, cfg_path, cfg)
-        device = resolve_device(cfg.device)
-        check_writable(run_dir)
-        return cfg, run_dir, device, _resume_point(run_dir, device)
-    cfg.validate()
-    device = resolve_device(cfg.device)
-    name = cfg.name or f"{cfg.task}_{cfg.mode}_seed{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-    run_dir = Path(cfg.out) / name
-    check_writable(Path(cfg.out))
-    if run_dir.exists() and any(run_dir.iterdir()):
-        raise ValueError(f"run folder {run_dir} exists and is not empty: pass --resume {run_dir} or another --name")
-    check_writable(run_dir)
-    return cfg, run_dir, device, None
-
-
-def run(cfg: RunConfig, *, startup: Startup | None = None) -> Path:
-    """Train (or resume) a run; returns its folder. Raises ValueError on bad input before any work. ``startup``:
-    this process's start-up (``Startup.before_torch``: the bytecode folder, compile helpers on standby); None: one
-    that started nothing before torch was imported."""
-    started = time.time()
-    startup = startup or Startup()
-    try:
-        cfg, run_dir, device, resume_from = prepare(cfg)
-        cache_opened = time.time()
-        startup.open(cfg, shac_part(cfg), device, run_dir, resuming=resume_from is not None)
-        return _train(cfg, run_dir, device, resume_from, startup, started=started, cache_opened=cache_opened)
-    finally:
-        startup.close()  # on every way out, an error before the training loop included
-
-
-def _train(cfg: RunConfig, run_dir: Path, device: torch.device, resume_from: LoadedCheckpoint | None,
-           startup: Startup, *, started: float, cache_opened: float) -> Path:
-    """The rest of :func:`run` once its folder and start-up are settled: build the trainer, train, write the
-    summary."""
-    from gradlab.shac import SHAC
-
-    trainer_built = time.time()
-    trainer = SHAC(shac_part(cfg), device=device)
-    startup.trainer_built(trainer)
-    trainer_done = time.time()
-    # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py): parts
-    # that together make up first_iter_s; "run_folder" is the bookkeeping around the trainer (checking the
-    # config, the run folder, a checkpoint to resume, git and environment records, the progress bar)
-    startup_s = {"imports": started - _process_started(), "compile_cache": trainer_built - cache_opened,
-                 "trainer": trainer_done - trainer_built}
-    shac_fields = dataclasses.fields(SHACConfig)
-    resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
-    ckpt_dir = run_dir / "checkpoints"
-    if resume_from is not None:
-        trainer.load_state_dict(resume_from.state)
-        del resume_from  # not kept alive for the whole run (optimizer states can be large)
-        _truncate_metrics(run_dir, trainer.iteration)
+    lines.append(f"  training return    {value(s.get('final_return')):>9}  (mean of the last 100 finished training "
+                 f"episodes, exploring policy)")
+    ev, std = s.get("final_eval_return"), s.get("final_eval_std")
+    if ev is None:
+        lines.append("  evaluation return          -  (none yet: --eval-every or --video-every sets how often)")
     else:
-        atomic_write_json(run_dir / "config.json", {
-            "config": dataclasses.asdict(resolved),
-            # which values the preset supplied and which flags overrode it (flag and preset value side by side)
-            "preset": preset_record(shac_part(cfg), trainer.cfg),
-            "started_utc": _utc(started),
-            "environment": environment_info(device),
-            "command": sys.argv,
-        })
-        text, diff = git_info()
-        atomic_write_text(run_dir / "git.txt", text)
-        if diff:
-            atomic_write_text(run_dir / "git.diff", diff)
-
-    writer = None
-    if cfg.tensorboard:
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except ImportError as e:
-            raise ValueError("--tensorboard needs the tensorboard package: pip install tensorboard") from e
-        writer = SummaryWriter(str(run_dir / "tb"))
-
-    from tqdm.auto import tqdm
-
-    base = f"{cfg.task}/{cfg.mode}"
-    bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=base, unit="it",
-               dynamic_ncols=True)
-    first_iter_s = None
-    status, error = "running", None
-    metrics_path = run_dir / "metrics.jsonl"
-    startup_s["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
-    try:
-        # The first iterations wait for the compiler: the bar says which part it compiles or captures, then its name.
-        ahead_s = startup.before_first_iteration(
-            lambda text: bar.set_description(base if text is None else f"{base}: {text}"))
-        if ahead_s is not None:
-            startup_s["compile_ahead"] = ahead_s
-            # compiling counts in the training wall-clock (--time-limit-min, the wall_s curves) wherever it happens:
-            # runs with and without helpers spend their budgets alike
-            trainer.wall_s += ahead_s
-        # The budget is the trainer's own wall-clock, which a checkpoint carries: a run killed and resumed gets
-        # the same training time as one that ran through, so that return-against-time curves stay comparable.
-        budget_s = None if cfg.time_limit_min is None else 60.0 * cfg.time_limit_min
-        spent = budget_s is not None and trainer.wall_s >= budget_s  # a resumed run whose budget is used up
-        while trainer.iteration < cfg.iters and not spent:
-            m = trainer.train_iteration()
-            if first_iter_s is None:
-                first_iter_s = time.time() - _process_started()
-                # a resumed run starts from its checkpoint's state and frames: no reset and render
-                startup_s.update(first_reset_render=trainer.start_s or 0.0, first_iteration=m["iter_ms"] / 1e3)
-            startup.after_iteration()
-            it = m["iter"]
-            last = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
-            if cfg.video_every and (it % cfg.video_every == 0 or last):
-                steps = min(cfg.video_steps or trainer.task.episode_length, trainer.task.episode_length)
-                with startup.evaluating():
-                    eval_return, frames = trainer.evaluate(steps=steps, record=True)
-                m["eval_return"] = eval_return  # undiscounted, deterministic policy, over eval_steps steps
-                m["eval_steps"] = steps
-                write_video(run_dir / "videos" / f"iter_{it:06d}.mp4", frames)
-            with open(metrics_path, "a") as f:
-                f.write(json.dumps(m) + "\n")
-                f.flush()
-                os.fsync(f.fileno())
-            if writer is not None:
-                for k, v in m.items():
-                    if isinstance(v, (int, float)) and not isinstance(v, bool) and v is not None:
-                        writer.add_scalar(k, v, it)
-            if it % cfg.checkpoint_every == 0 or last:
-                save_checkpoint(checkpoint_path(ckpt_dir, it), trainer.state_dict())
-                prune_checkpoints(ckpt_dir, keep=cfg.keep_checkpoints)
-            ret = m["return_mean"]
-            bar.set_postfix(ret="-" if ret is None else f"{ret:.1f}", ms=f"{m['iter_ms']:.0f}",
-                            gn=f"{m['grad_norm']:.2g}")
-            bar.update(1)
-            if last:
-                break
-        status = "finished" if trainer.iteration >= cfg.iters else "time_limit"
-    except NonFiniteError as e:
-        status, error = "nonfinite", str(e)
-        raise
-    except KeyboardInterrupt:
-        status, error = "interrupted", "KeyboardInterrupt"
-        raise
-    except torch.OutOfMemoryError as e:
-        status, error = "oom", str(e).splitlines()[0]
-        raise
-    finally:
-        startup.close()
-        bar.close()
-        if writer is not None:
-            writer.close()
-        atomic_write_json(run_dir / "summary.json", _summary(read_metrics(run_dir), cfg, status, error, started,
-                                                             first_iter_s=first_iter_s, compiled=startup.record(),
-                                                             startup_s=startup_s))
-    return run_dir
+        spread = f" +- {std:.1f}" if std is not None else ""
+        lines.append(f"  evaluation return  {value(ev):>9}{spread}  (deterministic policy, at iteration "
+                     f"{s.get('final_eval_iter')})")
+    floors = floors or load_floors()
+    known = floors.of(task) or {}
+    if known:
+        parts = [f"{policy} action {known[policy]['mean']:.1f}" for policy in ("zero", "random") if policy in known]
+        lines.append(f"  floors             {', '.join(parts)}  ({floors.source})")
+        if ev is not None:
+            sides = [f"{'above' if ev > stats['mean'] else 'below'} the {policy}-action floor"
+                     for policy, stats in known.items()]
+            lines.append(f"  the evaluation return is {' and '.join(sides)}")
+    else:
+        lines.append(f"  floors             none for {task} ({floors.source or 'no floors file'}; "
+                     f"task-floors --tasks {task} measures them)")
+    lines.append(f"  run folder         {folder.path}")
+    more = "" if status == "interrupted" else " --iters N  (to train longer)"
+    lines.append(f"  resume             ablate --resume {folder.path}{more}")
+    return lines

@@ -30,8 +30,7 @@ precipice", 2021), called as its authors do:
   fraction of its first probe's, and the probe statistics over those only.
 
 Importing this module needs numpy, scipy and rliable only (no torch): it reads JSON. ``load_arms`` reads folders
-through ``ablations.plot.find_runs`` (which imports the run writer, and with it torch, when called);
-``curve_of`` takes an already loaded run.
+through ``ablations.run_folder.find_runs``, which imports no torch either; ``curve_of`` takes an already loaded run.
 """
 
 from __future__ import annotations
@@ -94,7 +93,7 @@ class Curve:
 
 def curve_of(run, arm: str) -> Curve:
     """The evaluation curve of a loaded run (anything with ``.config`` (config.json's "config" object),
-    ``.metrics`` (metrics.jsonl's lines) and ``.path``, e.g. ``ablations.plot.Run``), under arm name ``arm``.
+    ``.metrics`` (metrics.jsonl's lines) and ``.path``, e.g. ``ablations.run_folder.Run``), under arm name ``arm``.
 
     The key is the first of ``EVAL_KEYS`` any line carries; lines without a finite value of it are skipped.
     """
@@ -114,7 +113,7 @@ def curve_of(run, arm: str) -> Curve:
 def load_arms(arms: Mapping[str, Iterable[str | Path]]) -> list[Curve]:
     """Arm name -> run folders (a folder holding run folders stands for all of them) -> their curves, in the
     given order. Raises ValueError for a folder that is not a run, or two runs of one task, arm and seed."""
-    from ablations.plot import find_runs
+    from ablations.run_folder import find_runs
 
     curves = [curve_of(run, arm) for arm, paths in arms.items() for run in find_runs(list(paths))]
     _check_unique(curves)

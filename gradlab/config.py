@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from diffrender.settings import RASTER_MODELS
+from gradlab.config_checks import check_integers, check_number, flag
 from gradlab.presets import PRESET_FIELDS, PRESETS, preset_values
 from tasks import TASKS
 from tasks.vision import RENDERERS
@@ -203,57 +204,52 @@ class SHACConfig:
     the early blind phase; the reference: 0, none)."""
 
     def validate(self) -> None:
-        """Clear errors for bad values, before any work."""
+        """Clear errors for bad values, before any work: each names its flag as typed (``--num-envs``), NaN and
+        infinities included."""
         if self.task not in TASKS:
-            raise ValueError(f"unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
-        plan = ModePlan.of(self.mode)  # raises for an unknown mode, naming the valid ones
+            raise ValueError(f"--task: unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
+        try:
+            plan = ModePlan.of(self.mode)
+        except ValueError as e:
+            raise ValueError(f"--mode: {e}") from None
         if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset {self.preset!r}; valid presets: {', '.join(PRESETS)}")
+            raise ValueError(f"--preset: unknown preset {self.preset!r}; valid presets: {', '.join(PRESETS)}")
         if self.raster_model is not None and self.raster_model not in RASTER_MODELS:
-            raise ValueError(f"unknown raster_model {self.raster_model!r}; valid: {', '.join(RASTER_MODELS)}")
+            raise ValueError(f"--raster-model: unknown raster model {self.raster_model!r}; valid: "
+                             f"{', '.join(RASTER_MODELS)}")
         if self.renderer not in RENDERERS:
-            raise ValueError(f"unknown renderer {self.renderer!r}; valid renderers: {', '.join(RENDERERS)}")
+            raise ValueError(f"--renderer: unknown renderer {self.renderer!r}; valid renderers: "
+                             f"{', '.join(RENDERERS)}")
         if self.renderer == "warp" and plan.grad_through_images:
             raise ValueError(f"--renderer warp renders without gradient, but --mode {self.mode} backpropagates "
                              "through the images: use --renderer soft (the differentiable rasterizer)")
-        for name in ("iters", "horizon", "critic_iterations", "critic_batches", "image_size",
-                     "frames", "render_detail"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v <= 0:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        for name in ("num_envs", "lr_decay_iters"):
-            v = getattr(self, name)
-            if v is not None and (not isinstance(v, int) or v <= 0):
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        if self.obs_clip is not None and not self.obs_clip >= 0:
-            raise ValueError(f"obs_clip must be >= 0 (0 disables clipping), got {self.obs_clip}")
-        for name in ("extra_meshes", "cosine_every"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 0:
-                raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
-        if self.extra_meshes and self.extra_mesh_verts < 6:
-            # The renderer's extra meshes are spheres; the smallest closed one it builds has 6 vertices.
-            raise ValueError(f"extra_mesh_verts must be >= 6, got {self.extra_mesh_verts}")
-        if not 0 < self.gamma <= 1 or not 0 <= self.lam <= 1:
-            raise ValueError(f"gamma must be in (0, 1] and lam in [0, 1], got {self.gamma}, {self.lam}")
-        if any(v is not None and v <= 0 for v in (self.actor_lr, self.critic_lr)):
-            raise ValueError("learning rates must be positive")
-        if self.grad_clip <= 0:
-            raise ValueError(f"grad_clip must be positive, got {self.grad_clip}")
-        if self.num_envs is not None and self.critic_batches > self.num_envs * self.horizon:
-            raise ValueError("critic_batches cannot exceed num_envs * horizon")
-        if self.episode_length is not None and self.episode_length <= 0:
-            raise ValueError(f"episode_length must be positive, got {self.episode_length}")
-        for name in ("eval_every", "lr_warmup_iters"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 0:
-                raise ValueError(f"{name} must be a non-negative integer, got {v!r}")
-        if not isinstance(self.eval_envs, int) or self.eval_envs <= 0:
-            raise ValueError(f"eval_envs must be a positive integer, got {self.eval_envs!r}")
-        if not self.encoder_lr_scale > 0:
-            raise ValueError(f"encoder_lr_scale must be positive, got {self.encoder_lr_scale}")
+        check_integers(self, ("iters", "horizon", "critic_iterations", "critic_batches", "image_size", "frames",
+                              "render_detail", "eval_envs"), minimum=1)
+        check_integers(self, ("num_envs", "lr_decay_iters", "trunk_dim", "episode_length"), minimum=1,
+                       optional=True)
+        check_integers(self, ("extra_meshes", "cosine_every", "eval_every", "lr_warmup_iters"), minimum=0)
+        # The renderer's extra meshes are spheres; the smallest closed one it builds has 6 vertices.
+        check_integers(self, ("extra_mesh_verts",), minimum=6 if self.extra_meshes else 1)
         if self.image_size < 16:
-            raise ValueError(f"image_size must be >= 16 pixels for the encoder, got {self.image_size}")
+            raise ValueError(f"--image-size must be >= 16 pixels for the encoder, got {self.image_size}")
+        for name in ("actor_hidden", "critic_hidden"):
+            widths = getattr(self, name)
+            if widths is not None and (not widths or not all(isinstance(w, int) and w > 0 for w in widths)):
+                raise ValueError(f"{flag(name)} must be one or more positive layer widths, got {widths!r}")
+        check_number("gamma", self.gamma, "(0, 1]")
+        check_number("lam", self.lam, "[0, 1]")
+        for i, beta in enumerate(self.betas):
+            check_number("betas", beta, "[0, 1)", what=f"--betas (value {i + 1})")
+        for name, interval in (("actor_lr", "(0, inf)"), ("critic_lr", "(0, inf)"), ("target_alpha", "[0, 1]"),
+                               ("obs_clip", "[0, inf)"), ("sigma", "(0, inf)"), ("render_gamma", "(0, inf)")):
+            if getattr(self, name) is not None:
+                check_number(name, getattr(self, name), interval)
+        check_number("grad_clip", self.grad_clip, "(0, inf)")
+        check_number("encoder_lr_scale", self.encoder_lr_scale, "(0, inf)")
+        check_number("abort_grad_norm", self.abort_grad_norm, "(0, inf]")
+        if self.num_envs is not None and self.critic_batches > self.num_envs * self.horizon:
+            raise ValueError(f"--critic-batches {self.critic_batches} cannot exceed --num-envs x --horizon "
+                             f"({self.num_envs * self.horizon})")
 
 
 def resolve_config(cfg: SHACConfig) -> SHACConfig:

@@ -34,7 +34,7 @@ Modules, by role:
     grid      :func:`plan` (every run, checked by ablate's parser) and :func:`attempt_command` (the one place
               that turns a run into the command line its process runs)
     transfer  :func:`pack_run` / :func:`unpack_run`: run folders as tar archives between nodes
-    store     :class:`RunStore` (the driver-side actor) and every read of a run folder the sweep makes
+    store     :class:`RunStore` (the driver-side actor) and what the sweep decides from a run folder
     worker    the Ray task: one attempt of one run; ``child.py`` ties its process to the worker
     manifest  sweep.json
     table     the live table

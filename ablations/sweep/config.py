@@ -17,11 +17,11 @@ from tasks import TASKS
 
 __all__ = ["SweepConfig", "parse_args", "parse_set", "parse_vary", "norm_key", "flag_args", "slug", "RESERVED"]
 
-#: ``ablate`` flags the sweep sets itself (the grid's own axes, and where each run's folder goes).
+#: ``ablate`` flags the sweep sets itself (the grid's own axes, where each run's folder goes, its CPU threads).
 #: Each run compiles in its own process (--no-compile-helper): a sweep's concurrent runs already use the cores that
-#: a helper process would (ablations/compile_helper.py).
+#: a helper process would (ablations/startup/helpers.py).
 RESERVED = {"task": "--tasks", "mode": "--modes", "seed": "--seeds", "out": "--out", "name": None,
-            "resume": None, "progress": None, "compile_helper": None}
+            "resume": None, "progress": None, "compile_helper": None, "threads": "--cpus-per-run"}
 
 # --help shows the valid values of the two named axes (the lists every command shares).
 _TaskList = Annotated[tuple[str, ...], tyro.conf.arg(metavar="{" + ",".join(TASKS) + "} [...]")]
@@ -59,7 +59,7 @@ class SweepConfig:
     """GPUs of a local cluster started here (None: all detected); only without --address."""
     cpus_per_run: float = 1.0
     """CPUs each run gets: at most (a node's CPUs / this) runs train on a node at once; its torch CPU threads
-    (OMP_NUM_THREADS) are this, rounded down, at least 1."""
+    (ablate --threads) are this, rounded down, at least 1."""
     gpus_per_run: float = 0.0
     """GPUs Ray reserves for each run; fractions share a GPU (0.25: four runs per GPU; Ray does not divide its memory).
     0: the run sees no GPU (CUDA_VISIBLE_DEVICES is emptied) and trains on the CPU."""
@@ -221,18 +221,27 @@ def _load_toml(path: Path) -> tuple[dict, dict, dict]:
     return options, set_entries, vary_entries
 
 
+def _config_file(argv: list[str]) -> Path | None:
+    """The ``--config`` file the command line names (``--config FILE`` or ``--config=FILE``), read before the other
+    flags because its values are their defaults."""
+    for i, arg in enumerate(argv):
+        if arg == "--config" and i + 1 < len(argv):
+            return Path(argv[i + 1])
+        if arg.startswith("--config="):
+            return Path(arg.split("=", 1)[1])
+    return None
+
+
 def parse_args(argv: list[str] | None = None) -> tuple[SweepConfig, dict, dict]:
     """(config, set table, vary table) from the command line and the --config file it names."""
-    import argparse
+    from ablations.cli import parse
 
     argv = list(sys.argv[1:] if argv is None else argv)
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--config", type=Path, default=None)
-    known, _ = pre.parse_known_args(argv)
-    options, set_entries, vary_entries = ({}, {}, {}) if known.config is None else _load_toml(known.config)
+    config = _config_file(argv)
+    options, set_entries, vary_entries = ({}, {}, {}) if config is None else _load_toml(config)
     try:
         default = SweepConfig(**options)
     except TypeError as e:
-        raise ValueError(f"--config {known.config}: {e}") from None
-    cfg = tyro.cli(SweepConfig, args=argv, default=default, description=SweepConfig.__doc__)
+        raise ValueError(f"--config {config}: {e}") from None
+    cfg = parse(SweepConfig, argv, default=default, prog="ablate-sweep")
     return cfg, {**set_entries, **parse_set(cfg.set)}, {**vary_entries, **parse_vary(cfg.vary)}

@@ -11,11 +11,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ablations.runs import check_writable
+from ablations.run_folder import RunFolder, check_writable
 from ablations.sweep.config import SweepConfig, parse_args, parse_set, parse_vary
 from ablations.sweep.grid import plan
 from ablations.sweep.manifest import MANIFEST, load_manifest, prepare_manifest, write_manifest
-from ablations.sweep.store import RunStore, drop_checkpoints, run_folder, run_state
+from ablations.sweep.store import RunStore, run_path, run_state
 from ablations.sweep.table import LiveTable
 from ablations.sweep.worker import RunProcessDied, run_attempt
 
@@ -183,7 +183,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
                            updated=_now())
                 rec["attempts"] = max(rec.get("attempts", 0), result.get("attempt", 0))
                 if rec["status"] == "done" and not cfg.keep_checkpoints:
-                    drop_checkpoints(out / rec["folder"])
+                    RunFolder(out / rec["folder"]).drop_checkpoints()
                 changed = True
             if changed or time.monotonic() - last_write > 10 * DRIVER_POLL_S:
                 write_manifest(out, manifest)
@@ -214,7 +214,7 @@ def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | 
     manifest = load_manifest(out) or {"runs": {}}
     lines = []
     for spec in specs:
-        state = run_state(run_folder(out, spec.run_id), spec.iters)
+        state = run_state(run_path(out, spec.run_id), spec.iters)
         if state != "done" and manifest["runs"].get(spec.run_id, {}).get("status") == "failed" \
                 and not cfg.rerun_failed:
             state = "failed (left)"

@@ -43,17 +43,18 @@ class RunSpec:
     arm: str | None = None
 
 
-def attempt_command(args: Sequence[str], run_id: str, *, resume: bool,
+def attempt_command(args: Sequence[str], run_id: str, *, resume: bool, threads: int = 1,
                     program: Sequence[str] | None = None) -> list[str]:
     """The command line of one attempt of a run, started in the attempt's scratch folder.
 
     A fresh start writes the run folder ``./<run_id>``; a resume continues it (the folder unpacked there).
     Paths are relative so that the run's recorded command and config name no folder of the worker node.
+    ``threads``: the run's torch CPU threads (``--threads``; the sweep's --cpus-per-run, rounded down).
     ``program`` replaces ``python -m ablations ablate`` (a test seam: a stand-in that takes ablate's arguments).
     """
     program = [sys.executable, *ABLATE] if program is None else list(program)
     where = ["--resume", run_id] if resume else [*args, "--out", ".", "--name", run_id]
-    return [*program, *where, *RUN_ARGS]
+    return [*program, *where, *RUN_ARGS, "--threads", str(threads)]
 
 
 def _arm_table(arms: dict, set_table: dict, vary_table: dict) -> dict[str, tuple[str, dict]]:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from ablations.sweep.config import SweepConfig
 from ablations.sweep.grid import RunSpec
-from ablations.sweep.store import run_folder, run_state
+from ablations.sweep.store import run_path, run_state
 from gradlab.checkpoint import atomic_write_json
 
 __all__ = ["MANIFEST", "STATUSES", "load_manifest", "prepare_manifest", "write_manifest", "status_counts"]
@@ -33,7 +33,7 @@ def load_manifest(out: str | os.PathLike) -> dict | None:
 
 def _new_record(spec: RunSpec) -> dict:
     return {"task": spec.task, "mode": spec.mode, "arm": spec.arm, "seed": spec.seed, "flags": spec.flags,
-            "args": list(spec.args), "iters": spec.iters, "folder": run_folder(".", spec.run_id).as_posix(),
+            "args": list(spec.args), "iters": spec.iters, "folder": run_path(".", spec.run_id).as_posix(),
             "status": "queued", "error": None, "iteration": None, "latest_return": None, "attempts": 0,
             "resumed": False, "node": None, "host": None, "updated": None}
 
@@ -56,7 +56,7 @@ def prepare_manifest(cfg: SweepConfig, specs: list[RunSpec], set_table: dict, va
     todo = []
     for spec in specs:
         rec = runs.setdefault(spec.run_id, _new_record(spec))
-        state = run_state(run_folder(out, spec.run_id), spec.iters)
+        state = run_state(run_path(out, spec.run_id), spec.iters)
         if state == "done":
             rec.update(status="done", error=None)
         elif rec["status"] == "failed" and not cfg.rerun_failed:

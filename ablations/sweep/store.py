@@ -1,95 +1,41 @@
-"""The run store: the sweep folder's ``runs/`` and ``logs/``, and every read of a run folder the sweep makes.
+"""The run store: the sweep folder's ``runs/`` and ``logs/``, and what the sweep decides from a run folder.
 
 :class:`RunStore` lives on the driver's node (a Ray actor pinned there); workers send it run folders packed by
-:mod:`ablations.sweep.transfer`. The functions below are the sweep's only readers of the files ``ablate`` writes
-(summary.json, metrics.jsonl, checkpoints/, videos/), on the driver's copy and on a worker's scratch copy alike.
+:mod:`ablations.sweep.transfer`. Run folders are read and written through ``ablations.run_folder``, on the driver's
+copy and on a worker's scratch copy alike.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import time
 from pathlib import Path
 
+from ablations.run_folder import RunFolder
 from ablations.sweep.transfer import KEPT_CHECKPOINTS, pack_run, unpack_run
-from gradlab.checkpoint import atomic_write_bytes, latest_checkpoint
+from gradlab.checkpoint import atomic_write_bytes
 
-__all__ = ["RunStore", "FINISHED", "RESUME_FILES", "run_folder", "run_state", "read_summary", "newest_checkpoint",
-           "drop_checkpoints", "new_videos", "MetricsTail"]
+__all__ = ["RunStore", "FINISHED", "run_path", "run_state"]
 
 #: Summary statuses of a run that needs no more work (time_limit: it stopped on the budget it was given).
 FINISHED = ("finished", "time_limit")
-#: What ``ablate --resume`` needs besides the checkpoint (git.* keep the folder complete if the driver's is all).
-RESUME_FILES = ("config.json", "git.txt", "git.diff", "metrics.jsonl")
 
 
-def run_folder(sweep_dir: str | os.PathLike, run_id: str) -> Path:
+def run_path(sweep_dir: str | os.PathLike, run_id: str) -> Path:
     """Where the sweep folder keeps a run's folder."""
     return Path(sweep_dir) / "runs" / run_id
-
-
-def newest_checkpoint(run_dir: Path) -> Path | None:
-    """The run folder's newest checkpoint file, or None."""
-    return latest_checkpoint(Path(run_dir) / "checkpoints")
-
-
-def drop_checkpoints(run_dir: Path) -> None:
-    """Delete a run folder's checkpoints (a finished run under --no-keep-checkpoints)."""
-    shutil.rmtree(Path(run_dir) / "checkpoints", ignore_errors=True)
-
-
-def read_summary(run_dir: Path) -> dict:
-    """The run's summary.json, or {} when it has none (yet) or it does not parse."""
-    try:
-        return json.loads((Path(run_dir) / "summary.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
 
 
 def run_state(run_dir: Path, iters: int) -> str:
     """What a (re)run must do with a run of ``iters`` iterations: 'done' (its summary says so), 'resume' (it has
     a checkpoint) or 'start'."""
-    summary = read_summary(run_dir)
+    folder = RunFolder(run_dir)
+    summary = folder.read_summary() or {}
     if summary.get("status") in FINISHED and (summary.get("iterations", 0) >= iters
                                               or summary.get("status") == "time_limit"):
         return "done"
-    return "resume" if newest_checkpoint(run_dir) is not None else "start"
-
-
-def new_videos(run_dir: Path, sent: set[str]) -> list[str]:
-    """Evaluation videos not shipped yet (small: they ride along with the checkpoints)."""
-    return [n for n in (str(p.relative_to(run_dir)) for p in sorted((run_dir / "videos").glob("*.mp4")))
-            if n not in sent]
-
-
-class MetricsTail:
-    """The newest complete metrics line of a growing metrics.jsonl, reading only what was appended."""
-
-    def __init__(self, path: Path):
-        self.path, self.offset, self.last, self.inode = path, 0, None, None
-
-    def poll(self) -> dict | None:
-        try:
-            with open(self.path, "rb") as f:
-                st = os.fstat(f.fileno())
-                if st.st_ino != self.inode or st.st_size < self.offset:  # rewritten (a resume truncates it)
-                    self.inode, self.offset = st.st_ino, 0
-                f.seek(self.offset)
-                chunk = f.read()
-        except FileNotFoundError:
-            return self.last
-        end = chunk.rfind(b"\n")
-        if end >= 0:
-            self.offset += end + 1
-            for line in reversed(chunk[:end].splitlines()):
-                try:
-                    self.last = json.loads(line)
-                    break
-                except json.JSONDecodeError:
-                    continue
-        return self.last
+    return "resume" if folder.newest_checkpoint() is not None else "start"
 
 
 class RunStore:
@@ -106,7 +52,7 @@ class RunStore:
         self.progress: dict[str, dict] = {}
 
     def run_dir(self, run_id: str) -> Path:
-        return run_folder(self.root, run_id)
+        return run_path(self.root, run_id)
 
     def begin(self, run_id: str) -> tuple[int, bytes | None]:
         """A new attempt: (its number, the run folder packed for ``ablate --resume``, or None: start fresh)."""
@@ -114,7 +60,7 @@ class RunStore:
         self.attempts[run_id] = self.current[run_id] = attempt
         run_dir = self.run_dir(run_id)
         pack = None
-        if newest_checkpoint(run_dir) is not None:
+        if RunFolder(run_dir).newest_checkpoint() is not None:
             pack = pack_run(run_dir, checkpoints=KEPT_CHECKPOINTS,
                             only=[str(p.relative_to(run_dir)) for p in run_dir.rglob("*")
                                   if p.is_file() and not p.relative_to(run_dir).parts[0] == "videos"])

@@ -9,7 +9,8 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
-from gradlab.checkpoint import atomic_write_bytes, list_checkpoints, prune_checkpoints
+from ablations.run_folder import CHECKPOINTS, METRICS, RunFolder
+from gradlab.checkpoint import atomic_write_bytes
 
 __all__ = ["pack_run", "unpack_run", "archive_names", "KEPT_CHECKPOINTS"]
 
@@ -27,14 +28,14 @@ def pack_run(run_dir: str | os.PathLike, *, checkpoints: int = 1, only: Iterable
     run_dir = Path(run_dir)
     if checkpoints < 0:
         raise ValueError(f"checkpoints must be >= 0, got {checkpoints}")
-    kept = set(list_checkpoints(run_dir / "checkpoints")[:checkpoints])
+    kept = set(RunFolder(run_dir).checkpoints()[:checkpoints])
     names = sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()) if only is None \
         else sorted(set(only))
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w") as tar:
         for name in names:
             path = run_dir / name
-            if name.startswith("checkpoints/") and path not in kept:
+            if name.startswith(f"{CHECKPOINTS}/") and path not in kept:
                 continue
             if Path(name).name.startswith("."):  # a file being written atomically under a temporary name
                 continue
@@ -42,7 +43,7 @@ def pack_run(run_dir: str | os.PathLike, *, checkpoints: int = 1, only: Iterable
                 data = path.read_bytes()
             except FileNotFoundError:  # rotated away (an old checkpoint) or not written yet
                 continue
-            if name == "metrics.jsonl":
+            if name == METRICS:
                 data = data[:data.rfind(b"\n") + 1]
             info = tarfile.TarInfo(name)
             info.size = len(data)
@@ -68,12 +69,13 @@ def unpack_run(data: bytes, run_dir: str | os.PathLike) -> list[str]:
             src = tar.extractfile(member)
             atomic_write_bytes(run_dir / member.name, src.read() if src else b"")
             written.append(member.name)
-    folder = run_dir / "checkpoints"
-    shipped = [p for p in list_checkpoints(folder) if f"checkpoints/{p.name}" in written]
+    folder = RunFolder(run_dir)
+    checkpoints = folder.checkpoints()
+    shipped = [p for p in checkpoints if f"{CHECKPOINTS}/{p.name}" in written]
     if shipped:
-        for later in list_checkpoints(folder)[:list_checkpoints(folder).index(shipped[0])]:
+        for later in checkpoints[:checkpoints.index(shipped[0])]:
             later.unlink()
-        prune_checkpoints(folder, keep=KEPT_CHECKPOINTS)
+        folder.prune_checkpoints(KEPT_CHECKPOINTS)
     return written
 
 

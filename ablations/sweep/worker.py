@@ -19,15 +19,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from ablations.run_folder import RESUME_FILES, MetricsTail, RunFolder
 from ablations.sweep.grid import attempt_command
-from ablations.sweep.store import (
-    FINISHED,
-    RESUME_FILES,
-    MetricsTail,
-    new_videos,
-    newest_checkpoint,
-    read_summary,
-)
+from ablations.sweep.store import FINISHED
 from ablations.sweep.transfer import archive_names, pack_run, unpack_run
 
 __all__ = ["run_attempt", "RunProcessDied", "WORKER_POLL_S"]
@@ -76,11 +70,14 @@ def run_attempt(spec: dict, store, opts: dict) -> dict:
     scratch.mkdir(parents=True)
     if pack is not None:
         unpack_run(pack, run_dir)
-    command = attempt_command(spec["args"], run_id, resume=pack is not None, program=opts.get("program"))
+    # the run's torch threads are the CPUs Ray reserved for it (at least one)
+    command = attempt_command(spec["args"], run_id, resume=pack is not None, program=opts.get("program"),
+                              threads=max(1, int(opts["cpus_per_run"])))
+    folder = RunFolder(run_dir)
     # What the store already holds needs no second trip.
-    shipped = newest_checkpoint(run_dir)
+    shipped = folder.newest_checkpoint()
     sent_videos: set[str] = set()
-    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(opts["cpus_per_run"]))))
+    env = dict(os.environ)
     if not opts["gpus_per_run"]:
         env["CUDA_VISIBLE_DEVICES"] = ""
     log = scratch / "ablate.log"
@@ -91,7 +88,7 @@ def run_attempt(spec: dict, store, opts: dict) -> dict:
                                     stdout=log_f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         store.report.remote(run_id, attempt, {"status": "running", "node": node, "host": platform.node(),
                                               "resumed": pack is not None})
-        metrics = MetricsTail(run_dir / "metrics.jsonl")
+        metrics = MetricsTail(folder.metrics_path)
         reported = None
         while True:
             returncode = proc.poll()
@@ -100,11 +97,11 @@ def run_attempt(spec: dict, store, opts: dict) -> dict:
                 reported = last.get("iter")
                 store.report.remote(run_id, attempt, {"iteration": reported,
                                                       "latest_return": last.get("return_mean")})
-            ckpt = newest_checkpoint(run_dir)
+            ckpt = folder.newest_checkpoint()
             if returncode is None and ckpt is not None and ckpt != shipped:
                 # metrics.jsonl gets an iteration's line before its checkpoint: read after seeing the checkpoint,
                 # it covers every iteration the checkpoint does.
-                videos = new_videos(run_dir, sent_videos)
+                videos = [n for n in (str(v.relative_to(run_dir)) for v in folder.videos()) if n not in sent_videos]
                 data = pack_run(run_dir, only=[*RESUME_FILES, *videos, str(ckpt.relative_to(run_dir))])
                 if f"checkpoints/{ckpt.name}" in archive_names(data):
                     ray.get(store.save.remote(run_id, attempt, data))
@@ -121,13 +118,18 @@ def run_attempt(spec: dict, store, opts: dict) -> dict:
                 name = str(-returncode)
             raise RunProcessDied(f"ablate was killed by signal {name} on {platform.node()} "
                                  f"(attempt {attempt}); last output: {_tail(log, 3)}")
-        summary = read_summary(run_dir)
+        summary = folder.read_summary() or {}
         done = returncode == 0 and summary.get("status") in FINISHED
         rest = [str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()]
         # An unfinished run keeps its checkpoint whatever --keep-checkpoints says: a rerun resumes from it.
         data = pack_run(run_dir, only=[n for n in rest if n not in sent_videos],
                         checkpoints=1 if opts["keep_checkpoints"] or not done else 0)
         ray.get(store.save.remote(run_id, attempt, data))
+        if summary.get("status") == "interrupted":
+            # ablate stopped on SIGINT/SIGTERM (a node being drained, a job scheduler) after checkpointing: like a
+            # killed run, it is retried from that checkpoint
+            raise RunProcessDied(f"ablate stopped on a signal on {platform.node()} (attempt {attempt}): "
+                                 f"{summary.get('error')}")
         last = metrics.poll() or {}
         return {"status": "done" if done else "failed",
                 "error": None if done else _error_of(log, returncode),

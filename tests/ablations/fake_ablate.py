@@ -7,10 +7,15 @@
         that started it (as a node's out-of-memory killer would); the worker's death takes this process with it.
         A run with a note runs as ablate does: the retry, and any later sweep in the same folder.
 
+    python fake_ablate.py signal-once SWEEP_DIR RUN_ID[,RUN_ID...] -- ABLATE_ARGS...
+        The real ablate, except that a named run, right after its first checkpoint, sends itself SIGTERM (as a job
+        scheduler draining a node would) and notes the checkpoint in SWEEP_DIR/.signalled/<run_id>: ablate stops
+        as it does on a signal (summary "interrupted", exit status 130). A run with a note runs as ablate does.
+
     python fake_ablate.py record LOG SECONDS -- ABLATE_ARGS...
         No training: spends SECONDS writing --iters iterations (a metrics line and a small checkpoint each, which
         the worker ships to the driver as it does a real run's), then a summary, and appends {"run", "pid",
-        "start", "end"} (time.time() seconds) to LOG, to measure how many runs overlap.
+        "start", "end", "threads"} (time.time() seconds; its --threads) to LOG, to measure how many runs overlap.
 """
 
 from __future__ import annotations
@@ -36,31 +41,46 @@ def run_id_of(args: list[str]) -> str:
     return _value(args, "--name") or Path(_value(args, "--resume")).name
 
 
-def kill_worker_once(sweep: Path, victims: set[str], args: list[str]) -> None:
+def ablate_acting_once(sweep: Path, notes: str, victims: set[str], args: list[str], act) -> None:
+    """The real ablate; a named run without a note in ``sweep/notes/`` calls ``act(checkpoint, note, run_id)``
+    right after writing its first checkpoint."""
     run_id = run_id_of(args)
-    note = sweep / ".killed" / run_id
+    note = sweep / notes / run_id
     if run_id in victims and not note.exists():
-        # Patched before ablations is imported, so the run module binds this one.
+        # Patched before ablations is imported (the run folder module looks it up when it saves).
         import gradlab.checkpoint
 
         save = gradlab.checkpoint.save_checkpoint
 
-        def save_then_kill_worker(path, state):
+        def save_then_act(path, state):
             save(path, state)
-            shipped = sweep / "runs" / run_id / "checkpoints" / Path(path).name
-            deadline = time.monotonic() + WAIT_FOR_STORE_S
-            while not shipped.exists():
-                if time.monotonic() > deadline:
-                    return  # the test sees no kill and fails on the attempt count
-                time.sleep(0.05)
-            note.parent.mkdir(parents=True, exist_ok=True)
-            note.write_text(Path(path).name)
-            os.kill(os.getppid(), signal.SIGKILL)
-            signal.pause()  # until PR_SET_PDEATHSIG (ablations/sweep/child.py) ends this process
+            if not note.exists():
+                note.parent.mkdir(parents=True, exist_ok=True)
+                act(Path(path), note, run_id)
 
-        gradlab.checkpoint.save_checkpoint = save_then_kill_worker
+        gradlab.checkpoint.save_checkpoint = save_then_act
     sys.argv = [sys.argv[0], "ablate", *args]
     runpy.run_module("ablations", run_name="__main__", alter_sys=True)
+
+
+def kill_worker(sweep: Path):
+    def act(checkpoint: Path, note: Path, run_id: str) -> None:
+        shipped = sweep / "runs" / run_id / "checkpoints" / checkpoint.name
+        deadline = time.monotonic() + WAIT_FOR_STORE_S
+        while not shipped.exists():
+            if time.monotonic() > deadline:
+                return  # the test sees no kill and fails on the attempt count
+            time.sleep(0.05)
+        note.write_text(checkpoint.name)
+        os.kill(os.getppid(), signal.SIGKILL)
+        signal.pause()  # until PR_SET_PDEATHSIG (ablations/sweep/child.py) ends this process
+
+    return act
+
+
+def signal_self(checkpoint: Path, note: Path, run_id: str) -> None:
+    note.write_text(checkpoint.name)
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
 def record(log: Path, seconds: float, args: list[str]) -> None:
@@ -78,7 +98,8 @@ def record(log: Path, seconds: float, args: list[str]) -> None:
             (run / "checkpoints" / f"ckpt_{it:06d}.pt").write_bytes(b"fake state %d" % it)
     (run / "summary.json").write_text(json.dumps({"status": "finished", "iterations": iters,
                                                   "final_return": float(iters)}))
-    line = json.dumps({"run": run_id, "pid": os.getpid(), "start": start, "end": time.time()}) + "\n"
+    line = json.dumps({"run": run_id, "pid": os.getpid(), "start": start, "end": time.time(),
+                       "threads": _value(args, "--threads")}) + "\n"
     with open(log, "a") as f:  # one short append per run: lines of concurrent runs do not interleave
         f.write(line)
 
@@ -87,7 +108,9 @@ def main() -> None:
     split = sys.argv.index("--")
     own, args = sys.argv[1:split], sys.argv[split + 1:]
     if own[0] == "kill-worker-once":
-        kill_worker_once(Path(own[1]), set(own[2].split(",")), args)
+        ablate_acting_once(Path(own[1]), ".killed", set(own[2].split(",")), args, kill_worker(Path(own[1])))
+    elif own[0] == "signal-once":
+        ablate_acting_once(Path(own[1]), ".signalled", set(own[2].split(",")), args, signal_self)
     elif own[0] == "record":
         record(Path(own[1]), float(own[2]), args)
     else:

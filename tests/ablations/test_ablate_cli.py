@@ -13,8 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from ablations.cli import ablate_main
-from ablations.runs import PROBE_KEYS, REQUIRED_KEYS, TIMING_KEYS, RunConfig, prepare, read_metrics
+from ablations.cli import ABLATE_GROUPS, _one_paragraph, ablate_main
+from ablations.run_folder import read_metrics
+from ablations.runs import PROBE_KEYS, REQUIRED_KEYS, TIMING_KEYS, RunConfig, prepare
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, save_checkpoint
 
 TINY = ["--num-envs", "2", "--horizon", "3", "--image-size", "24", "--critic-iterations", "1",
@@ -35,7 +36,9 @@ def test_smoke_every_mode(tmp_path, task, mode, capsys):
     ablate("--task", task, "--mode", mode, "--iters", "2", "--cosine-every", "2", "--video-every", "2",
            "--video-steps", "3", "--out", str(tmp_path), "--name", "run", *TINY)
     run = tmp_path / "run"
-    assert capsys.readouterr().out.strip().endswith(str(run))
+    out = capsys.readouterr().out
+    # the closing lines: the absolute run folder and the command that continues it
+    assert f"run folder         {run.resolve()}\n" in out and f"ablate --resume {run.resolve()} --iters N" in out
     rows = read_metrics(run)
     assert [r["iter"] for r in rows] == [1, 2]
     for r in rows:
@@ -55,6 +58,10 @@ def test_smoke_every_mode(tmp_path, task, mode, capsys):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"] == "finished" and summary["iterations"] == 2
     assert summary["ended_utc"] >= cfg["started_utc"]
+    # the deterministic evaluation of the last video iteration, in the summary and the closing lines
+    assert summary["final_eval_return"] == rows[-1]["eval_return"] and summary["final_eval_iter"] == 2
+    assert summary["best_eval_return"] == max(r["eval_return"] for r in rows if "eval_return" in r)
+    assert f"evaluation return  {summary['final_eval_return']:>9.1f}  (deterministic policy, at iteration 2)" in out
     assert (run / "checkpoints" / "ckpt_000002.pt").exists()
     video = run / "videos" / "iter_000002.mp4"
     assert video.exists() and video.stat().st_size > 1000
@@ -178,19 +185,28 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize(("args", "message"), [
     (["--task", "cartpol"], "unknown task 'cartpol'; valid tasks: cartpole, cartpole-swingup, hopper, ant, humanoid"),
     (["--mode", "ful"], "full"),  # tyro lists the valid choices
-    (["--num-envs", "0"], "num_envs must be a positive integer"),
-    (["--horizon", "-2"], "horizon must be a positive integer"),
-    (["--iters", "0"], "iters must be a positive integer"),
+    (["--num-envs", "0"], "--num-envs must be a positive integer, got 0"),
+    (["--horizon", "-2"], "--horizon must be a positive integer"),
+    (["--iters", "0"], "--iters must be a positive integer"),
     (["--device", "tpu"], "unknown device 'tpu'"),
     (["--preset", "paper"], "--preset"),  # tyro names the flag and lists dva, shac-diffrender
     (["--raster-model", "blurry"], "--raster-model"),
     (["--mode", "full", "--renderer", "warp"], "--renderer warp renders without gradient, but --mode full"),
+    (["--actor-lr", "nan"], "--actor-lr must be in (0, inf), got nan"),
+    (["--critic-lr", "-1"], "--critic-lr must be in (0, inf), got -1.0"),
+    (["--sigma", "-1"], "--sigma must be in (0, inf), got -1.0"),
+    (["--render-gamma", "-1"], "--render-gamma must be in (0, inf), got -1.0"),
+    (["--gamma", "nan"], "--gamma must be in (0, 1], got nan"),
+    (["--threads", "0"], "--threads must be a positive integer, got 0"),
+    (["--time-limit-min", "nan"], "--time-limit-min must be in (0, inf), got nan"),
 ])
 def test_bad_input_is_one_clear_line_before_any_work(tmp_path, args, message):
+    """Every bad value is one line naming its flag as typed, and nothing is created: no output folder, no run
+    folder."""
     r = run_cli(*args, "--out", str(tmp_path / "o"), "--no-progress")
     assert r.returncode == 2
-    assert message in r.stderr
-    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+    assert message in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o").exists()
 
 
 def test_unwritable_output_folder(tmp_path):
@@ -205,13 +221,39 @@ def test_resume_of_a_non_run_folder(tmp_path):
     assert r.returncode == 2 and "no config.json" in r.stderr
 
 
-def test_help_documents_every_flag():
-    r = run_cli("--help")
-    assert r.returncode == 0
-    for flag in ("--mode", "--task", "--iters", "--num-envs", "--horizon", "--seed", "--device", "--out",
-                 "--cosine-every", "--resume", "--video-every", "--tensorboard"):
-        assert flag in r.stdout
-    assert "decoupled (D.Va)" in r.stdout.replace("\n", " ").replace("  ", " ") or "D.Va" in r.stdout
+def ablate_help(columns: int) -> str:
+    r = subprocess.run([sys.executable, "-m", "ablations", "ablate", "--help"], capture_output=True, text=True,
+                       env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]), COLUMNS=str(columns)),
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def test_help_is_grouped_essentials_first_and_each_flags_help_one_paragraph():
+    text = ablate_help(120)  # one panel under the other
+    # every flag once, in its panel; the essentials' panel first
+    for f in dataclasses.fields(RunConfig):
+        flag = "--" + f.name.replace("_", "-")
+        assert len(re.findall(rf"^│ {re.escape(flag)}[ ,]", text, re.M)) == 1, flag  # where its entry starts
+    panels = re.findall(r"╭─ ([\w-]+) options", text)
+    assert panels[0] == "essentials" and set(panels) <= set(ABLATE_GROUPS) | {"more"}
+    essentials = text[text.index("essentials options"):text.index("evaluation-and-probes options")]
+    for flag in ("--task", "--mode", "--seed", "--iters", "--device", "--threads", "--out", "--compile",
+                 "--resume"):
+        assert re.search(rf"^│ {flag}[ ,]", essentials, re.M), flag
+    # the progress bar's fields are explained
+    for field in ("ret=", "eval=", "ms=", "gn="):
+        assert field in essentials, field
+    # a docstring's source line breaks do not break its help (tyro would keep them: "hopper,\n ant"); wide enough,
+    # a flag's help is one line
+    wide = ablate_help(400)
+    assert "hopper, ant or humanoid" in wide and "blind: the decoupled visual actor" in wide
+
+
+def test_one_paragraph_joins_a_docstrings_lines_and_keeps_its_paragraphs():
+    assert _one_paragraph("first line,\n    continued (a, b)\n    - and more\n\n    second") == \
+        "first line, continued (a, b) - and more\n\nsecond"
+    assert _one_paragraph(lambda: "lazy\n  help") == "lazy help" and _one_paragraph(None) is None
 
 
 def test_time_limit_stops_cleanly(tmp_path):
@@ -255,3 +297,199 @@ def test_ablate_keeps_pythons_bytecode_in_its_folder_where_the_install_gets_none
     wanted = folder == "bytecode"
     assert kept(ablations.runs.__file__) is wanted and kept(torch.__file__) is wanted
     assert kept_in.exists() is wanted
+
+
+# ---------------------------------------------------------------------------------------------------------
+# CPU threads
+
+
+def test_the_thread_count_is_applied_and_recorded(tmp_path):
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        ablate("--task", "cartpole", "--mode", "state", "--iters", "1", "--video-every", "0", "--out", str(tmp_path),
+               "--name", "t", *TINY, "--threads", "2")
+        assert torch.get_num_threads() == 2 and os.environ["OMP_NUM_THREADS"] == "2"
+        record = json.loads((tmp_path / "t" / "config.json").read_text())
+        assert record["config"]["threads"] == 2 and record["environment"]["threads"] == 2
+        assert json.loads((tmp_path / "t" / "summary.json").read_text())["threads"] == 2
+        # a resume keeps the recorded count unless told another
+        ablate("--resume", str(tmp_path / "t"), "--iters", "2", "--no-progress")
+        assert torch.get_num_threads() == 2
+        ablate("--resume", str(tmp_path / "t"), "--iters", "3", "--no-progress", "--threads", "1")
+        assert torch.get_num_threads() == 1
+        assert json.loads((tmp_path / "t" / "summary.json").read_text())["threads"] == 1
+    finally:
+        torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(("cores", "omp", "expected"), [
+    (2, None, 1), (3, None, 1), (16, None, 8), (64, None, 8), (1, None, 1), (16, "3", 3), (2, "junk", 1)])
+def test_default_threads_is_half_the_usable_cores_capped_or_omp_num_threads(monkeypatch, cores, omp, expected):
+    from ablations.runs import default_threads
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)))
+    if omp is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    assert default_threads() == expected
+
+
+# ---------------------------------------------------------------------------------------------------------
+# How a run ends: closing lines, signals, warnings, file modes
+
+
+def test_the_summary_has_the_final_and_best_evaluation_return_in_either_form():
+    from ablations.runs import _summary
+
+    cfg = RunConfig(task="hopper", warmup_iters=0, threads=1)
+    rows = [{"iter": 1, "env_steps": 8, "wall_s": 1.0, "return_mean": None},
+            {"iter": 2, "env_steps": 16, "wall_s": 2.0, "return_mean": 5.0, "eval_return": 40.0},  # older lines
+            {"iter": 3, "env_steps": 24, "wall_s": 3.0, "return_mean": 6.0, "eval_return_mean": 30.0,
+             "eval_return_std": 2.5, "eval_length_mean": 1000.0}]
+    s = _summary(rows, cfg, "finished", None, 0.0)
+    assert (s["final_eval_return"], s["final_eval_std"], s["final_eval_iter"], s["best_eval_return"]) == \
+        (30.0, 2.5, 3, 40.0)
+    s = _summary(rows[:2], cfg, "finished", None, 0.0)
+    assert (s["final_eval_return"], s["final_eval_std"], s["best_eval_return"]) == (40.0, None, 40.0)
+    s = _summary(rows[:1], cfg, "finished", None, 0.0)
+    assert s["final_eval_return"] is None and s["best_eval_return"] is None
+
+
+def test_closing_lines_set_the_returns_against_the_floors(tmp_path):
+    from ablations.plot import load_floors
+    from ablations.runs import closing_lines
+    from tests.ablations.conftest import write_run
+
+    floors = tmp_path / "floors.json"
+    floors.write_text(json.dumps({"tasks": {"hopper": {"zero": {"mean": 50.0}, "random": {"mean": 20.0}}}}))
+    run = write_run(tmp_path / "runs", task="hopper", mode="decoupled", seed=0)
+    summary = json.loads((run / "summary.json").read_text())
+    summary.update(final_eval_return=30.0, final_eval_std=2.0, final_eval_iter=12, wall_s=61.0)
+    (run / "summary.json").write_text(json.dumps(summary))
+    lines = closing_lines(run, floors=load_floors(floors))
+    assert lines[0] == "hopper/decoupled seed 0: finished after 12 iterations (384 environment steps, 61 s of training)"
+    assert lines[1].startswith("  training return        120.0  (mean of the last 100 finished training episodes")
+    assert lines[2] == "  evaluation return       30.0 +- 2.0  (deterministic policy, at iteration 12)"
+    assert lines[3] == f"  floors             zero action 50.0, random action 20.0  ({floors})"
+    assert lines[4] == "  the evaluation return is below the zero-action floor and above the random-action floor"
+    assert lines[5:] == [f"  run folder         {run.resolve()}",
+                         f"  resume             ablate --resume {run.resolve()} --iters N  (to train longer)"]
+
+    summary.update(status="interrupted", error="SIGINT after iteration 12", final_eval_return=None)
+    (run / "summary.json").write_text(json.dumps(summary))
+    lines = closing_lines(run, floors=load_floors(tmp_path / "floors.json"))
+    assert lines[0].endswith("; SIGINT after iteration 12") and lines[-1].endswith(f"ablate --resume {run.resolve()}")
+    assert "none yet" in lines[2] and not any("the evaluation return is" in line for line in lines)
+    lines = closing_lines(write_run(tmp_path / "runs", task="ant", mode="state", seed=0), floors=load_floors(floors))
+    assert "none for ant" in lines[3] and "task-floors --tasks ant" in lines[3]
+
+
+def test_stop_on_signal_defers_the_first_signal_to_the_end_of_the_iteration(capsys):
+    """Real signals to this process: before the loop they stop at once; inside it, the first is a request and
+    the second stops at once. Outside ``with`` the previous handlers are back."""
+    import signal
+
+    from ablations.runs import StopOnSignal
+
+    before = signal.getsignal(signal.SIGTERM)
+    with StopOnSignal() as stop:
+        with pytest.raises(KeyboardInterrupt, match="SIGINT"):
+            os.kill(os.getpid(), signal.SIGINT)
+        stop.defer_to_iteration_end()
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.requested == "SIGTERM"
+        assert "SIGTERM: stopping once this iteration has finished" in capsys.readouterr().err
+        with pytest.raises(KeyboardInterrupt, match="SIGINT"):
+            os.kill(os.getpid(), signal.SIGINT)
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_warnings_are_one_plain_line_each_once(capsys):
+    import warnings
+
+    from ablations.runs import plain_warnings
+    from diffrender import BinCapacityWarning
+
+    with warnings.catch_warnings(), plain_warnings():
+        warnings.simplefilter("always")  # Python would show every one of them
+        for _ in range(3):
+            warnings.warn("bin capacity grown from 384 to 512", BinCapacityWarning, stacklevel=1)
+        warnings.warn("something else", UserWarning, stacklevel=1)
+        warnings.warn("bin capacity grown from 384 to 512", BinCapacityWarning, stacklevel=1)
+    assert capsys.readouterr().err == "warning: bin capacity grown from 384 to 512\nwarning: something else\n"
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o027])
+def test_run_files_are_readable_as_the_umask_allows(tmp_path, mask):
+    import stat
+
+    old = os.umask(mask)
+    try:
+        ablate("--task", "cartpole", "--mode", "decoupled", "--iters", "2", "--video-every", "2", "--video-steps",
+               "3", "--cosine-every", "0", "--out", str(tmp_path), "--name", "m", *TINY)
+        from ablations.plot import PlotConfig, plot_runs
+
+        pngs = list(plot_runs(PlotConfig(runs=(tmp_path / "m",), out=tmp_path / "plots")).files.values())
+    finally:
+        os.umask(old)
+    run = tmp_path / "m"
+    files = [run / "config.json", run / "summary.json", run / "metrics.jsonl", run / "git.txt",
+             run / "checkpoints" / "ckpt_000002.pt", run / "videos" / "iter_000002.mp4", *pngs]
+    assert pngs
+    for path in files:
+        assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask, path
+
+
+def test_a_folder_with_its_config_but_no_checkpoint_resumes_from_the_first_iteration(tmp_path):
+    """A run stopped during its first iteration (a second Ctrl-C) recorded its settings but no checkpoint: the
+    resume trains it from the start in the same folder."""
+    common = ["--task", "cartpole", "--mode", "decoupled", "--iters", "3", "--cosine-every", "2",
+              "--video-every", "0", "--out", str(tmp_path), *TINY]
+    ablate(*common, "--name", "whole")
+    ablate(*common, "--name", "cut")
+    cut = tmp_path / "cut"
+    for p in (cut / "checkpoints").iterdir():
+        p.unlink()
+    (cut / "metrics.jsonl").write_text(json.dumps(read_metrics(cut)[0]) + "\n")
+    ablate("--resume", str(cut), "--no-progress")
+    assert strip_timing(read_metrics(cut)) == strip_timing(read_metrics(tmp_path / "whole"))
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_signal_checkpoints_the_last_iteration_and_the_resume_repeats_nothing(tmp_path, sig):
+    """A real signal to a child ablate: it finishes its iteration, checkpoints it, marks the summary, prints the
+    resume command and exits 130 without a traceback; the resumed run's metrics have every iteration once and
+    equal an uninterrupted run's."""
+    import signal
+    import time
+
+    iters = 40
+    common = ["--task", "cartpole", "--mode", "decoupled", "--iters", str(iters), "--cosine-every", "3",
+              "--video-every", "0", "--checkpoint-every", "1000", "--out", str(tmp_path), *TINY, "--threads", "1"]
+    cut = tmp_path / "cut"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    proc = subprocess.Popen([sys.executable, "-m", "ablations", "ablate", *common, "--name", "cut"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while len(read_metrics(cut)) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(getattr(signal, sig))
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err and f"{sig}: stopping once this iteration has finished" in err
+    summary = json.loads((cut / "summary.json").read_text())
+    done = summary["iterations"]
+    assert summary["status"] == "interrupted" and summary["error"] == f"{sig} after iteration {done}"
+    assert 3 <= done < iters, "the run ended before the signal: give it more iterations"
+    assert [r["iter"] for r in read_metrics(cut)] == list(range(1, done + 1))
+    assert [p.name for p in (cut / "checkpoints").iterdir()] == [f"ckpt_{done:06d}.pt"]
+    assert f"ablate --resume {cut.resolve()}\n" in out and "interrupted after" in out
+
+    ablate("--resume", str(cut), "--no-progress")
+    ablate(*common, "--name", "whole")
+    rows = read_metrics(cut)
+    assert [r["iter"] for r in rows] == list(range(1, iters + 1))
+    assert strip_timing(rows) == strip_timing(read_metrics(tmp_path / "whole"))

@@ -328,7 +328,7 @@ def test_a_run_summary_has_its_time_to_the_first_iteration(tmp_path, monkeypatch
     assert all(v >= 0.0 for v in parts.values()) and parts["imports"] >= 100.0
     assert sum(parts.values()) == pytest.approx(summary["first_iter_s"], abs=0.02)
     assert summary["compile"] is None  # not a --compile run
-    with pytest.raises(ValueError, match="compile_cache is empty"):
+    with pytest.raises(ValueError, match="--compile-cache is empty"):
         runs.RunConfig(compile_cache=" ").validate()
 
 

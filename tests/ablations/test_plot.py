@@ -10,7 +10,8 @@ import pytest
 from matplotlib.colors import to_rgb
 
 from ablations import plot
-from ablations.plot import FIGURES, aggregate, build_figures, find_runs, group_runs, load_floors, load_run, make_plots
+from ablations.plot import FIGURES, aggregate, build_figures, group_runs, load_floors, make_plots
+from ablations.run_folder import find_runs, load_run
 from tests.ablations.conftest import write_run
 
 PNG = b"\x89PNG\r\n\x1a\n"

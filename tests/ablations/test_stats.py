@@ -235,7 +235,7 @@ def test_looking_probes_select_by_a_fraction_of_the_first_probe(tmp_path):
             _probe(40, 0.2, 0.1, 0.9),  # 0.3: does not
             _probe(50, 1.0, 1.0, 0.4)]  # 2.0: looks
     write_run(tmp_path, "run", evals=(), last_iter=50, extra={r["iter"]: r for r in rows})
-    from ablations.runs import read_metrics
+    from ablations.run_folder import read_metrics
 
     look = stats.looking_probes(read_metrics(tmp_path / "run"))
     assert look.probe_iters == (10, 20, 30, 40, 50) and look.n_probes == 5

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from ablations.runs import read_metrics
+from ablations.run_folder import read_metrics
 from ablations.sweep import (
     KEPT_CHECKPOINTS,
     RunStore,
@@ -124,7 +124,7 @@ def test_bad_arms_are_refused(arms, message):
     (dict(modes=("full", "blnd")), "--modes blnd: choose from full, decoupled, state, blind"),
     (dict(seeds=(1, 1)), "--seeds lists a value twice"),
     (dict(modes=()), "--modes needs at least one value"),
-    (dict(set=("num-envs=0",)), "run cartpole_full_seed0: num_envs must be a positive integer"),
+    (dict(set=("num-envs=0",)), "run cartpole_full_seed0: --num-envs must be a positive integer"),
     (dict(cpus_per_run=0), "--cpus-per-run must be positive"),
     (dict(gpus_per_run=1.5), "--gpus-per-run above 1 must be a whole number"),
     (dict(address="ray://head:10001"), "Ray Client is not supported"),
@@ -154,9 +154,12 @@ def test_attempt_command_names_no_folder_of_the_worker_node():
     (spec,) = plan(SweepConfig(modes=("state",), set=("iters=3",)))
     fresh = attempt_command(spec.args, spec.run_id, resume=False)
     assert fresh == [sys.executable, "-m", "ablations", "ablate", *spec.args, "--out", ".", "--name", spec.run_id,
-                     "--no-progress", "--no-compile-helper"]
-    assert attempt_command(spec.args, spec.run_id, resume=True, program=["fake"]) == [
-        "fake", "--resume", spec.run_id, "--no-progress", "--no-compile-helper"]
+                     "--no-progress", "--no-compile-helper", "--threads", "1"]
+    # the run's torch threads are the CPUs it was given, on a fresh start and a resume alike
+    assert attempt_command(spec.args, spec.run_id, resume=True, program=["fake"], threads=2) == [
+        "fake", "--resume", spec.run_id, "--no-progress", "--no-compile-helper", "--threads", "2"]
+    with pytest.raises(ValueError, match="the sweep sets --threads itself; use --cpus-per-run"):
+        plan(SweepConfig(modes=("state",), set=("threads=4",)))
 
 
 def test_tyro_rejection_names_the_run(capsys):
@@ -441,6 +444,22 @@ def test_sweep_trains_at_most_cpus_over_cpus_per_run_runs_at_once(ray_cluster, t
     spans = [json.loads(line) for line in log.read_text().splitlines()]
     assert sorted(s["run"] for s in spans) == sorted(manifest["runs"])
     assert max_overlap(spans) == 2
+    assert {s["threads"] for s in spans} == {"1"}  # ablate --threads: the run's --cpus-per-run
+
+
+def test_a_run_stopped_by_a_signal_is_retried_from_its_checkpoint(ray_cluster, tmp_path):
+    """ablate stops on SIGTERM after checkpointing (summary "interrupted", exit status 130): the worker ships that
+    checkpoint and Ray retries the run, which resumes from it and repeats no iteration."""
+    out = tmp_path / "sweep"
+    victim = "cartpole_state_seed0"
+    program = (sys.executable, str(FAKE_ABLATE), "signal-once", str(out), victim, "--")
+    manifest = run_sweep(tiny_sweep(out, modes=("state",)), program=program)
+    rec = manifest["runs"][victim]
+    assert rec["status"] == "done" and rec["attempts"] == 2 and rec["resumed"] is True, rec
+    assert (out / ".signalled" / victim).read_text() == "ckpt_000002.pt"
+    assert_complete_run(out / rec["folder"], 12)
+    first = (out / "logs" / f"{victim}.attempt1.log").read_text()
+    assert "SIGTERM: stopping once this iteration has finished" in first and "Traceback" not in first
 
 
 def test_run_slots_divide_each_node_by_what_a_run_takes(monkeypatch):

@@ -1,0 +1,485 @@
+"""The run folder: the files one training run writes, and the one module that writes, lists and reads them.
+
+A run folder holds:
+    config.json      the resolved configuration (every flag, preset values filled in), what the preset supplied
+                     and which flags overrode it, the start time (UTC), the command and the environment (device,
+                     versions, CPU threads)
+    git.txt          commit, branch, dirty status and diff stat of the code that ran (git.diff: the full diff)
+    metrics.jsonl    one JSON object per training iteration, appended as the run goes
+    summary.json     written at the end (or when the run stops on an error or a signal): its status, final and best
+                     training and evaluation returns, medians without warm-up, peaks, start-up seconds
+    checkpoints/     ckpt_<iter>.pt (the newest few), written atomically; a resume starts from the newest that loads
+                     and renames damaged newer ones to ckpt_<iter>.pt.damaged
+    videos/          iter_<iter>.mp4 evaluation rollouts of the deterministic policy
+
+:class:`RunFolder` is one folder: a run creates it (or finds it to resume), writes its records, appends metrics
+lines, saves and prunes checkpoints and writes videos through it; several runs of one process (a population)
+each hold their own. :class:`Run` is a folder's records parsed (:func:`load_run`, :func:`find_runs`) for plots,
+reports and statistics.
+
+Reading imports no torch (``ablations.stats`` reads run folders without it); checkpoints and the environment
+record import it when they are called.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+    from gradlab.checkpoint import LoadedCheckpoint
+
+__all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable",
+           "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES"]
+
+CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
+CHECKPOINTS, VIDEOS = "checkpoints", "videos"
+#: What ``ablate --resume`` needs besides a checkpoint (the git records keep a copied folder complete).
+RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS)
+#: Installed distributions whose versions config.json records (by distribution name, from their metadata).
+RECORDED_PACKAGES = ("torch", "numpy", "mujoco", "pytorch-kinematics", "triton", "warp-lang", "opencv-python",
+                     "opencv-python-headless")
+
+
+def check_writable(folder: str | os.PathLike) -> None:
+    """Create ``folder`` if needed and check that a file can be created in it; ValueError naming it if not."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        # A unique name: several runs may start in the same folder at once.
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-test.")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ValueError(f"output folder {folder} is not writable: {e}") from None
+
+
+def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
+    """The parsed lines of a run folder's metrics.jsonl ([] without one); a torn last line (a run killed
+    mid-write) is ignored."""
+    path = Path(run_dir) / METRICS
+    rows = []
+    if not path.exists():
+        return rows
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return rows
+
+
+def evaluation_of(row: dict) -> tuple[float, float] | None:
+    """(mean, std) of the deterministic evaluation return a metrics line holds, or None: ``eval_return_mean`` and
+    ``eval_return_std`` over the evaluation's episodes, or ``eval_return`` with std NaN (lines that have only
+    that, logged with the videos)."""
+    mean = row.get("eval_return_mean", row.get("eval_return"))
+    if not is_number(mean):
+        return None
+    std = row.get("eval_return_std")
+    return float(mean), float(std) if is_number(std) and "eval_return_mean" in row else math.nan
+
+
+def is_number(v) -> bool:
+    """A finite int or float (not a bool): a metrics value that can be plotted or compared."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+# ---------------------------------------------------------------------------------------------- the folder
+class RunFolder:
+    """One run folder (``path``): create or find it, write its records, metrics, checkpoints and videos, read
+    them back. Every file but metrics.jsonl is written atomically (a reader or a killed run sees the old file or
+    the new one), readable as the umask allows."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+
+    def __repr__(self) -> str:
+        return f"RunFolder({str(self.path)!r})"
+
+    # ------------------------------------------------------------------ create or find
+    @classmethod
+    def create(cls, parent: str | os.PathLike, name: str) -> RunFolder:
+        """A new run folder ``parent/name`` (created, writable); ValueError when it exists with files in it."""
+        folder = cls(Path(parent) / name)
+        check_writable(parent)
+        if folder.path.exists() and any(folder.path.iterdir()):
+            raise ValueError(f"run folder {folder.path} exists and is not empty: pass --resume {folder.path} or "
+                             f"another --name")
+        check_writable(folder.path)
+        return folder
+
+    @classmethod
+    def existing(cls, path: str | os.PathLike) -> RunFolder:
+        """The run folder at ``path`` (to resume or add to); ValueError when it has no config.json."""
+        folder = cls(path)
+        if not folder.config_path.exists():
+            raise ValueError(f"{folder.path}: no config.json there (not a run folder)")
+        check_writable(folder.path)
+        return folder
+
+    def remove_if_empty(self) -> None:
+        """Remove the folder when nothing was written into it (a run that stopped before its first record)."""
+        try:
+            self.path.rmdir()
+        except OSError:
+            pass
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def config_path(self) -> Path:
+        return self.path / CONFIG
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.path / METRICS
+
+    @property
+    def summary_path(self) -> Path:
+        return self.path / SUMMARY
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.path / CHECKPOINTS
+
+    @property
+    def video_dir(self) -> Path:
+        return self.path / VIDEOS
+
+    # ------------------------------------------------------------------ write
+    def write_config(self, record: dict) -> None:
+        """config.json: ``record`` holds "config" (every setting) and what else the run records about itself."""
+        _atomic_json(self.config_path, record)
+
+    def write_git(self, repo: Path | None = None) -> None:
+        """git.txt (and git.diff when the tree differs from its commit) of the source tree at ``repo`` (default:
+        this checkout)."""
+        from gradlab.checkpoint import atomic_write_text
+
+        text, diff = git_info(repo)
+        atomic_write_text(self.path / GIT, text)
+        if diff:
+            atomic_write_text(self.path / GIT_DIFF, diff)
+
+    def append_metrics(self, row: dict) -> None:
+        """One metrics line, flushed to the disk before this returns (a checkpoint written next covers it)."""
+        with open(self.metrics_path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def truncate_metrics(self, upto_iter: int) -> None:
+        """Keep the metrics lines of iterations <= ``upto_iter`` (a resume recomputes those after its checkpoint)."""
+        from gradlab.checkpoint import atomic_write_text
+
+        rows = [r for r in self.read_metrics() if r["iter"] <= upto_iter]
+        atomic_write_text(self.metrics_path, "".join(json.dumps(r) + "\n" for r in rows))
+
+    def write_summary(self, summary: dict) -> None:
+        _atomic_json(self.summary_path, summary)
+
+    def write_video(self, iteration: int, frames: list[np.ndarray], fps: int = 60) -> Path | None:
+        """videos/iter_<iteration>.mp4 of frames (H, W, 3) uint8 RGB (mp4v), written under a temporary name and
+        renamed; None (nothing written) without frames."""
+        import cv2
+
+        if not frames:
+            return None
+        path = self.video_dir / f"iter_{iteration:06d}.mp4"
+        h, w = frames[0].shape[:2]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.tmp.mp4")
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        if not writer.isOpened():
+            raise RuntimeError(f"OpenCV could not open an MP4 writer for {path}")
+        for f in frames:
+            writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+        writer.release()
+        os.replace(tmp, path)
+        return path
+
+    # ------------------------------------------------------------------ checkpoints
+    def save_checkpoint(self, iteration: int, state: dict, *, keep: int) -> Path:
+        """checkpoints/ckpt_<iteration>.pt, then all but the ``keep`` newest deleted; returns its path."""
+        from gradlab.checkpoint import checkpoint_path, prune_checkpoints, save_checkpoint
+
+        path = checkpoint_path(self.checkpoint_dir, iteration)
+        save_checkpoint(path, state)
+        prune_checkpoints(self.checkpoint_dir, keep=keep)
+        return path
+
+    def checkpoints(self) -> list[Path]:
+        """The checkpoint files, newest (highest iteration) first."""
+        from gradlab.checkpoint import list_checkpoints
+
+        return list_checkpoints(self.checkpoint_dir)
+
+    def newest_checkpoint(self) -> Path | None:
+        found = self.checkpoints()
+        return found[0] if found else None
+
+    def prune_checkpoints(self, keep: int) -> None:
+        from gradlab.checkpoint import prune_checkpoints
+
+        prune_checkpoints(self.checkpoint_dir, keep=keep)
+
+    def drop_checkpoints(self) -> None:
+        """Delete every checkpoint (a finished run that keeps none)."""
+        shutil.rmtree(self.checkpoint_dir, ignore_errors=True)
+
+    def load_checkpoint(self, device: torch.device | str = "cpu") -> LoadedCheckpoint | None:
+        """The newest checkpoint that loads (None: the folder has none at all, so a resume starts from the first
+        iteration). Damaged newer ones are reported on stderr and renamed aside (``.damaged`` appended), so that
+        they no longer count among the newest when the resumed run prunes, and stay for inspection. ValueError
+        when every checkpoint is damaged."""
+        from gradlab.checkpoint import NoReadableCheckpointError, load_newest_readable
+
+        if not self.checkpoints():
+            return None
+        try:
+            loaded = load_newest_readable(self.checkpoint_dir, map_location=device)
+        except NoReadableCheckpointError as e:
+            raise ValueError(str(e)) from None
+        for path, why in loaded.damaged:
+            aside = path.with_name(path.name + ".damaged")
+            os.replace(path, aside)
+            print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
+                  f"{loaded.path.name}", file=sys.stderr)
+        return loaded
+
+    # ------------------------------------------------------------------ read
+    def read_record(self) -> dict:
+        """config.json as a dict with a "config" object; ValueError naming the file when it is missing, does not
+        parse or was not written by ``ablate``."""
+        path = self.config_path
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ValueError(f"{self.path} is not a run folder: it has no config.json (expected config.json, "
+                             f"metrics.jsonl, summary.json as written by `ablate`)") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path} cannot be read ({type(e).__name__}: {e})") from None
+        if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
+            raise ValueError(f"{path} has no 'config' object: not written by `ablate`")
+        return data
+
+    def read_metrics(self) -> list[dict]:
+        return read_metrics(self.path)
+
+    def read_summary(self) -> dict | None:
+        """summary.json, or None when there is none (yet) or it does not parse (it is written atomically, so a
+        file that does not parse is not the run's)."""
+        try:
+            data = json.loads(self.summary_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            return None
+        return data if isinstance(data, dict) else None
+
+    def videos(self) -> list[Path]:
+        """The evaluation videos, oldest first."""
+        return sorted(self.video_dir.glob("iter_*.mp4"))
+
+
+def _atomic_json(path: Path, obj: Any) -> None:
+    from gradlab.checkpoint import atomic_write_json
+
+    atomic_write_json(path, obj)
+
+
+class MetricsTail:
+    """The newest complete line of a growing metrics.jsonl, reading only what was appended since the last look."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path, self.offset, self.last, self.inode = Path(path), 0, None, None
+
+    def poll(self) -> dict | None:
+        try:
+            with open(self.path, "rb") as f:
+                st = os.fstat(f.fileno())
+                if st.st_ino != self.inode or st.st_size < self.offset:  # rewritten (a resume truncates it)
+                    self.inode, self.offset = st.st_ino, 0
+                f.seek(self.offset)
+                chunk = f.read()
+        except FileNotFoundError:
+            return self.last
+        end = chunk.rfind(b"\n")
+        if end >= 0:
+            self.offset += end + 1
+            for line in reversed(chunk[:end].splitlines()):
+                try:
+                    self.last = json.loads(line)
+                    break
+                except json.JSONDecodeError:
+                    continue
+        return self.last
+
+
+# ---------------------------------------------------------------------------------------------- records
+def git_info(repo: Path | None = None) -> tuple[str, str]:
+    """(git.txt text, full diff) of the source tree that runs; explains itself when git is unavailable."""
+    repo = repo or Path(__file__).resolve().parents[1]
+
+    def git(*args: str) -> str:
+        r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
+        if r.returncode != 0:
+            raise RuntimeError(r.stderr.strip())
+        return r.stdout
+
+    try:
+        commit = git("rev-parse", "HEAD").strip()
+        branch = git("rev-parse", "--abbrev-ref", "HEAD").strip()
+        status = git("status", "--porcelain")
+        stat = git("diff", "HEAD", "--stat")
+        diff = git("diff", "HEAD")
+    except (OSError, RuntimeError, subprocess.TimeoutExpired) as e:
+        return f"git information unavailable: {e}\n", ""
+    dirty = bool(status.strip())
+    status = status or "(clean)\n"
+    stat = stat or "(none)\n"
+    text = f"commit {commit}\nbranch {branch}\ndirty {dirty}\n\nstatus:\n{status}\ndiff --stat HEAD:\n{stat}"
+    return text, diff
+
+
+def package_versions(names: tuple[str, ...] = RECORDED_PACKAGES) -> dict[str, str]:
+    """{distribution name: version} of those installed, read from their metadata (a module's ``__version__`` is
+    not always there: pytorch_kinematics has none)."""
+    out = {}
+    for name in names:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return out
+
+
+def environment_info(device: torch.device) -> dict:
+    """config.json's "environment": Python, torch and the other packages' versions, platform, host, device (and
+    on CUDA the GPU and the precision settings that change gradient bits), torch's CPU threads."""
+    import torch
+
+    info = {
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "platform": platform.platform(),
+        "device": str(device),
+        "hostname": platform.node(),
+        "threads": torch.get_num_threads(),
+    }
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+        info["cuda"] = torch.version.cuda
+        # The precision the encoder's convolutions and the linear layers ran in: PyTorch lets cuDNN use TF32
+        # for float32 convolutions by default (matmuls stay full float32), which changes gradient bits.
+        info["cudnn_allow_tf32"] = torch.backends.cudnn.allow_tf32
+        info["float32_matmul_precision"] = torch.get_float32_matmul_precision()
+        info["cudnn_benchmark"] = torch.backends.cudnn.benchmark
+    versions = package_versions()
+    # the keys reports read (ablations.report: "mujoco", "pytorch_kinematics"), then every package by its name
+    info["mujoco"] = versions.get("mujoco", "not installed")
+    info["pytorch_kinematics"] = versions.get("pytorch-kinematics", "not installed")
+    info["packages"] = versions
+    return info
+
+
+# ---------------------------------------------------------------------------------------------- reading
+@dataclass
+class Run:
+    """One run folder's records, parsed (:func:`load_run`)."""
+
+    path: Path
+    config: dict
+    environment: dict
+    command: list | None
+    summary: dict | None
+    metrics: list[dict]
+    #: config.json's "preset" record (name, supplied, overridden), when the run has one.
+    preset: dict | None = None
+    #: config.json's "started_utc", when the run recorded it.
+    started_utc: str | None = None
+
+    @property
+    def task(self) -> str:
+        return str(self.config.get("task"))
+
+    @property
+    def mode(self) -> str:
+        return str(self.config.get("mode"))
+
+    @property
+    def seed(self):
+        return self.config.get("seed")
+
+    def setting(self, key: str):
+        """A config.json setting (``preset`` falls back to the name in the preset record); None when absent."""
+        value = self.config.get(key)
+        if value is None and key == "preset" and isinstance(self.preset, dict):
+            value = self.preset.get("name")
+        return value
+
+    def series(self, x: str, y: str, *, skip_probed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(x, y) of the iterations where both are finite numbers, sorted by x; ``skip_probed`` leaves out
+        probe iterations (they differentiate twice, so their times and memory are not the mode's)."""
+        pts = [(r[x], r[y]) for r in self.metrics if is_number(r.get(x)) and is_number(r.get(y))
+               and not (skip_probed and r.get("probed"))]
+        pts.sort()
+        return np.array([p[0] for p in pts], float), np.array([p[1] for p in pts], float)
+
+    def evaluations(self, x: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, mean, std) of the deterministic evaluations (:func:`evaluation_of`), sorted by x; std is NaN where a
+        line has no spread over episodes."""
+        pts = sorted((r[x], *ev) for r in self.metrics if is_number(r.get(x)) and (ev := evaluation_of(r)) is not None)
+        return tuple(np.array([p[i] for p in pts], float) for i in range(3))  # type: ignore[return-value]
+
+
+def load_run(path: str | os.PathLike) -> Run:
+    """Parse a run folder; ValueError with the reason if it is not one."""
+    folder = RunFolder(path)
+    if not folder.path.exists():
+        raise ValueError(f"{folder.path}: no such folder")
+    if not folder.path.is_dir():
+        raise ValueError(f"{folder.path} is a file, not a run folder (give the folder that holds config.json)")
+    data = folder.read_record()
+    config = data["config"]
+    for k in ("task", "mode"):
+        if k not in config:
+            raise ValueError(f"{folder.config_path}: config has no {k!r}")
+    preset = data.get("preset") if isinstance(data.get("preset"), dict) else None
+    started = data.get("started_utc") if isinstance(data.get("started_utc"), str) else None
+    return Run(path=folder.path, config=config, environment=data.get("environment") or {},
+               command=data.get("command"), summary=folder.read_summary(), metrics=folder.read_metrics(),
+               preset=preset, started_utc=started)
+
+
+def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
+    """Runs of the given folders; a folder that is not a run but holds run folders stands for all of them.
+
+    Raises ValueError when no path is given, or a path is neither a run nor a parent of runs.
+    """
+    if not paths:
+        raise ValueError("no run folders given (pass one or more folders written by `ablate`)")
+    runs: list[Run] = []
+    for p in paths:
+        p = Path(p)
+        if p.is_dir() and not (p / CONFIG).exists():
+            children = sorted(c for c in p.iterdir() if c.is_dir() and (c / CONFIG).exists())
+            if children:
+                runs.extend(load_run(c) for c in children)
+                continue
+        runs.append(load_run(p))
+    return runs
+

@@ -1,0 +1,150 @@
+"""The run folder: one module writes, lists and reads it; reading imports no torch."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ablations.run_folder import (
+    MetricsTail,
+    RunFolder,
+    environment_info,
+    evaluation_of,
+    find_runs,
+    load_run,
+    read_metrics,
+)
+from tests.ablations.conftest import write_run
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_reading_run_folders_and_their_statistics_imports_no_torch(tmp_path):
+    """ablations.stats reads run folders through this module and must stay usable without torch."""
+    for seed in (0, 1):
+        write_run(tmp_path, task="hopper", mode="decoupled", seed=seed)
+    code = ("import sys\nfrom ablations.run_folder import find_runs\nimport ablations.stats as stats\n"
+            f"runs = find_runs([{str(tmp_path)!r}])\n"
+            f"curves = stats.load_arms({{'decoupled': [{str(tmp_path)!r}]}})\n"
+            "assert len(runs) == 2 and len(curves) == 2\n"
+            "print(sorted(m for m in ('torch', 'gradlab') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]"
+
+
+def test_create_refuses_a_folder_with_files_and_existing_needs_a_config(tmp_path):
+    folder = RunFolder.create(tmp_path / "runs", "a")
+    assert folder.path.is_dir()
+    RunFolder.create(tmp_path / "runs", "a")  # empty: still fine
+    folder.write_config({"config": {"task": "cartpole", "mode": "state"}})
+    with pytest.raises(ValueError, match="exists and is not empty: pass --resume"):
+        RunFolder.create(tmp_path / "runs", "a")
+    assert RunFolder.existing(folder.path).path == folder.path
+    with pytest.raises(ValueError, match=r"no config\.json there"):
+        RunFolder.existing(tmp_path)
+    empty = RunFolder.create(tmp_path / "runs", "b")
+    empty.remove_if_empty()
+    folder.remove_if_empty()
+    assert not empty.path.exists() and folder.path.exists()
+
+
+def test_metrics_lines_append_truncate_and_a_torn_line_is_ignored(tmp_path):
+    folder = RunFolder.create(tmp_path, "r")
+    for it in (1, 2, 3):
+        folder.append_metrics({"iter": it, "return_mean": float(it)})
+    with open(folder.metrics_path, "a") as f:
+        f.write('{"iter": 4, "ret')  # a run killed mid-write
+    assert [r["iter"] for r in read_metrics(folder.path)] == [1, 2, 3]
+    folder.truncate_metrics(2)
+    assert folder.metrics_path.read_text() == '{"iter": 1, "return_mean": 1.0}\n{"iter": 2, "return_mean": 2.0}\n'
+    assert RunFolder(tmp_path / "none").read_metrics() == []
+
+
+def test_checkpoints_are_pruned_listed_and_a_damaged_newest_is_set_aside(tmp_path, capsys):
+    folder = RunFolder.create(tmp_path, "r")
+    assert folder.load_checkpoint() is None  # none at all: a resume starts from the first iteration
+    for it in (2, 4, 6):
+        folder.save_checkpoint(it, {"iteration": it}, keep=2)
+    assert [p.name for p in folder.checkpoints()] == ["ckpt_000006.pt", "ckpt_000004.pt"]
+    folder.newest_checkpoint().write_bytes(b"not a checkpoint")
+    loaded = folder.load_checkpoint()
+    assert loaded.state == {"iteration": 4}
+    assert "ckpt_000006.pt is damaged" in capsys.readouterr().err
+    assert sorted(p.name for p in folder.checkpoint_dir.iterdir()) == ["ckpt_000004.pt", "ckpt_000006.pt.damaged"]
+    folder.newest_checkpoint().write_bytes(b"")
+    with pytest.raises(ValueError, match="no readable checkpoint"):
+        folder.load_checkpoint()
+    folder.drop_checkpoints()
+    assert folder.newest_checkpoint() is None
+
+
+def test_summary_and_videos(tmp_path):
+    folder = RunFolder.create(tmp_path, "r")
+    assert folder.read_summary() is None
+    folder.summary_path.write_text("{torn")
+    assert folder.read_summary() is None
+    folder.write_summary({"status": "finished"})
+    assert folder.read_summary() == {"status": "finished"}
+    frames = [np.full((16, 16, 3), i * 40, np.uint8) for i in range(4)]
+    assert folder.write_video(3, []) is None
+    path = folder.write_video(3, frames)
+    assert path == folder.video_dir / "iter_000003.mp4" and path.stat().st_size > 0
+    assert folder.videos() == [path] and not list(folder.video_dir.glob(".*"))
+
+
+def test_the_evaluation_return_of_a_line_in_either_form():
+    assert evaluation_of({"eval_return_mean": 5.0, "eval_return_std": 1.5, "eval_return": 9.0}) == (5.0, 1.5)
+    mean, std = evaluation_of({"eval_return": 7.0, "eval_return_std": 2.0})  # older lines: no spread
+    assert mean == 7.0 and math.isnan(std)
+    assert evaluation_of({"return_mean": 3.0}) is None and evaluation_of({"eval_return_mean": None}) is None
+    assert evaluation_of({"eval_return_mean": float("nan")}) is None
+
+
+def test_load_run_parses_a_folder_and_find_runs_takes_parents(tmp_path):
+    run = write_run(tmp_path / "runs", task="ant", mode="full", seed=3, settings={"raster_model": "alpha"})
+    loaded = load_run(run)
+    assert (loaded.task, loaded.mode, loaded.seed, loaded.setting("raster_model")) == ("ant", "full", 3, "alpha")
+    assert loaded.summary["status"] == "finished" and len(loaded.metrics) == 12
+    x, y = loaded.series("iter", "return_mean")
+    assert list(x) == list(range(3, 13)) and list(y) == [10.0 * i + 3 for i in range(3, 13)]
+    assert [r.path for r in find_runs([tmp_path / "runs"])] == [run]
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "config.json").write_text("[1]")
+    with pytest.raises(ValueError, match="has no 'config' object"):
+        load_run(tmp_path / "bad")
+
+
+def test_metrics_tail_reads_only_what_was_appended(tmp_path):
+    folder = RunFolder.create(tmp_path, "r")
+    tail = MetricsTail(folder.metrics_path)
+    assert tail.poll() is None
+    folder.append_metrics({"iter": 1})
+    with open(folder.metrics_path, "a") as f:
+        f.write('{"iter": 2')
+    assert tail.poll() == {"iter": 1}
+    with open(folder.metrics_path, "a") as f:
+        f.write("}\n")
+    assert tail.poll() == {"iter": 2}
+    folder.truncate_metrics(1)  # a resume rewrites the file
+    assert tail.poll() == {"iter": 1}
+
+
+def test_environment_records_package_versions_from_their_metadata():
+    """pytorch_kinematics has no __version__; its installed distribution has one."""
+    import torch
+
+    env = environment_info(torch.device("cpu"))
+    assert env["pytorch_kinematics"] == metadata.version("pytorch-kinematics") != "unknown"
+    assert env["mujoco"] == metadata.version("mujoco")
+    assert env["packages"]["torch"] == metadata.version("torch") and env["threads"] == torch.get_num_threads()
+    json.dumps(env)  # it goes into config.json
