@@ -51,6 +51,7 @@ import torch
 from _common import Scene, commit, graphed, median_ms, sync, write_json
 
 import diffrender as dr
+from tasks.device import resolve_device
 
 FACES = (0, 20_000, 100_000)  # 0: the plain ant (1,856 faces); extra spheres up to about the rest
 TARGET_MS = {0: 0.25, 100_000: 1.0}  # per 64-image frame, graph-replayed (H100)
@@ -170,7 +171,7 @@ def table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--device", choices=["cpu", "cuda"], default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
     p.add_argument("--faces", type=int, nargs="*", default=None,
                    help="face-count targets per robot (0: the plain ant); default 0 20000 100000")
     p.add_argument("--variants", nargs="*", choices=list(VARIANTS), default=None,
@@ -183,15 +184,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tiny", action="store_true", help="a smoke test: 2 ant environments at 20 x 20, few variants")
     p.add_argument("--out", type=Path, default=Path("raytrace.json"), help="JSON output")
     args = p.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        p.error("--device cuda but CUDA is not available")
+    try:
+        device = resolve_device(args.device)
+    except ValueError as e:
+        p.error(str(e))
+    args.device = str(device)
     args.batch = args.batch or (2 if args.tiny else 64)
     args.res = args.res or (20 if args.tiny else 84)
     args.warmup = args.warmup if args.warmup is not None else (1 if args.tiny else 5)
     args.repeats = args.repeats or (3 if args.tiny else 30)
     faces_list = args.faces if args.faces is not None else ([0] if args.tiny else list(FACES))
     started = time.time()
-    meta = dict(device=torch.cuda.get_device_name() if args.device == "cuda" else f"cpu ({platform.processor()})",
+    meta = dict(device=torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({platform.processor()})",
                 torch=torch.__version__, python=platform.python_version(),
                 date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), commit=commit(),
                 command="python benchmarks/raytrace.py " + " ".join(argv if argv is not None else sys.argv[1:]),

@@ -39,6 +39,7 @@ from diffrender.profiling import SavedTensorMeter
 from diffrender.raster import count_pairs, tiled_static
 from diffrender.raster.fused import tuning
 from diffrender.settings import RASTER_MODELS
+from tasks.device import resolve_device
 
 #: the fused kernels' shape by default: tile, face block, backward tile, backward sub-block, backward warps
 DEFAULT_FUSED = (tuning.TILE, tuning.FACE_BLOCK, tuning.BWD_TILE, tuning.BWD_SUB_BLOCK, tuning.BWD_WARPS)
@@ -341,7 +342,7 @@ def anchor_comparison(args) -> int:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--device", choices=["cpu", "cuda"], default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
     p.add_argument("--quick", action="store_true", help="the target point, batch/resolution/face sweeps (<4 min)")
     p.add_argument("--tiny", action="store_true", help="a few tiny points (CPU smoke test)")
     p.add_argument("--backends", nargs="*", choices=["fused", "tiled", "dense"],
@@ -383,6 +384,11 @@ def main(argv=None) -> int:
     p.add_argument("--poses", type=int, default=4, help="--silhouette-share: random ant poses")
     p.add_argument("--fd-step", type=float, default=1e-3, help="--silhouette-share: joint step h [rad]")
     args = p.parse_args(argv)
+    try:
+        device = resolve_device(args.device)
+    except ValueError as e:
+        p.error(str(e))
+    args.device = str(device)
     if args.anchor:
         return anchor_comparison(args)
     if args.silhouette_share:
@@ -393,8 +399,6 @@ def main(argv=None) -> int:
             print(f"{r['raster_model']:7}  {r['cull']!s:5}  {r['sigma']:5}  {r['silhouette_share']:16.3f}  "
                   f"{r['image_share']:11.3f}  {r['silhouette_part_of_change']:25.3f}  {r['backend']}")
         return 0
-    if args.device == "cuda" and not torch.cuda.is_available():
-        p.error("--device cuda but CUDA is not available")
     args.warmup = args.warmup if args.warmup is not None else (3 if args.compile else 2)
     args.repeats = args.repeats if args.repeats is not None else (3 if args.tiny else 7 if args.quick else 15)
     torch.manual_seed(0)
@@ -409,7 +413,7 @@ def main(argv=None) -> int:
         print(json.dumps(rec), flush=True)
         write_json(args.out, dict(partial=True, records=records), indent=2)  # survives a kill
     info = dict(torch=torch.__version__, python=platform.python_version(), device=args.device,
-                device_name=torch.cuda.get_device_name() if args.device == "cuda" else platform.processor(),
+                device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
                 threads=torch.get_num_threads(), compile=args.compile, dtype="float64" if args.float64 else "float32",
                 sigma=args.sigma, raster_model=args.raster_model, cull=not args.no_cull, chunk_elems=args.chunk_elems,
                 wall_s=time.perf_counter() - start, targets=TARGET)

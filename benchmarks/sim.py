@@ -41,6 +41,7 @@ import torch
 from _common import sync, time_ms, write_json
 
 import tasks
+from tasks.device import resolve_device
 
 MODES = ("eager", "compiled", "graph")
 QUICK = [("ant", 64), ("humanoid", 64), ("ant", 4096)]
@@ -128,7 +129,7 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
             sync(device)
         row["warmup_s"] = round(time.perf_counter() - t0, 2)
         if mode != "eager":  # what compiling cost, graph by graph (cumulative over the process's rows)
-            from gradlab.compiling import compiled_graphs
+            from ablations.startup import compiled_graphs
 
             row["compiled_graphs"] = compiled_graphs()
         if device.type == "cuda":
@@ -258,7 +259,7 @@ def table(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
     p.add_argument("--tasks", nargs="+", default=list(tasks.TASKS), choices=tasks.TASKS)
     p.add_argument("--num-envs", nargs="+", type=int, default=[64, 1024, 4096])
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
@@ -300,15 +301,18 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = p.parse_args(argv)
     args.inductor = dict(_setting(kv, p) for kv in args.inductor)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        p.error("--device cuda but no CUDA device is available")
+    try:
+        device = resolve_device(args.device)
+    except ValueError as e:
+        p.error(str(e))
+    args.device = str(device)
     if args.iters is None:
         args.iters = 3 if args.quick else 5
-    if args.threads or args.device == "cpu":
+    if args.threads or device.type == "cpu":
         torch.set_num_threads(args.threads or 1)
     configs = QUICK if args.quick else [(t, n) for t in args.tasks for n in args.num_envs]
     meta = {
-        "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.processor() or "cpu",
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or "cpu",
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),

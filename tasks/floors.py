@@ -26,6 +26,7 @@ from typing import Any, Literal, NoReturn
 import torch
 from tqdm import tqdm
 
+from .device import resolve_device
 from .registry import TASKS, make
 from .task import Task
 
@@ -33,18 +34,6 @@ __all__ = ["POLICIES", "FloorsConfig", "action_floors", "main", "rollout_returns
 
 #: the action policies whose returns are measured
 POLICIES: tuple[str, ...] = ("zero", "random")
-
-
-def _resolve_device(device: str | torch.device) -> torch.device:
-    if str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        d = torch.device(device)
-    except RuntimeError:
-        raise ValueError(f"unknown device {str(device)!r} (use 'auto', 'cpu' or 'cuda')") from None
-    if d.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {str(device)!r} was asked for, but CUDA is not available (use 'cpu' or 'auto')")
-    return d
 
 
 @torch.no_grad()
@@ -117,7 +106,8 @@ def action_floors(
 
     episodes: at least this many episodes per policy; each of the ``num_envs`` environments runs
     ``ceil(episodes / num_envs)`` of them. seed: the task's reset seed and the random actions' seed.
-    device: "auto", "cpu", "cuda" or a torch.device. overrides: task config fields (:func:`tasks.make`).
+    device: "auto", "cpu", "cuda[:N]" or a torch.device (:func:`tasks.device.resolve_device`).
+    overrides: task config fields (:func:`tasks.make`).
     progress: show a tqdm bar per policy on stderr.
     Returns ``{"task", "episode_length", "episodes", "num_envs", "seed", "device", "overrides", "zero",
     "random"}``; each policy entry holds ``mean``, ``std`` (population), ``min``, ``max`` of the return,
@@ -127,7 +117,7 @@ def action_floors(
         raise ValueError(f"episodes must be a positive int, got {episodes!r}")
     if not (isinstance(num_envs, int) and num_envs >= 1):
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
-    dev = _resolve_device(device)
+    dev = resolve_device(device)
     per_env = math.ceil(episodes / num_envs)
     out: dict[str, Any] = {
         "task": task,
@@ -209,7 +199,7 @@ class FloorsConfig:
     seed: int = 0
     """Reset seed and random-action seed."""
     device: str = "auto"
-    """Where to simulate: auto (CUDA when available, else CPU), cpu or cuda."""
+    """Where to simulate: auto (CUDA when available, else CPU), cpu or cuda[:N]."""
     out: Path = Path("docs/floors.json")
     """JSON file to write; it keeps the entries of tasks not measured in this run (unless --fresh)."""
     fresh: bool = False
@@ -230,9 +220,10 @@ class FloorsConfig:
         if self.out.is_dir():
             raise ValueError(f"--out {self.out} is a folder; give the JSON file to write")
         try:
-            return _resolve_device(self.device)
+            return resolve_device(self.device)
         except ValueError as e:
-            raise ValueError(f"--device: {e}") from None
+            message = str(e)
+            raise ValueError(message if message.startswith("--device") else f"--device: {message}") from None
 
 
 def _fail(msg: str) -> NoReturn:
