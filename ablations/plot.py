@@ -97,7 +97,6 @@ _MARK_ALL = 30
 _MARKS = 12
 #: 1 - cos below float64's resolution near 1 (rounding can even make it negative) is drawn at this value.
 _COS_FLOOR = float(np.finfo(np.float64).eps)
-_TASK_ORDER = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid")
 #: config.json settings that tell runs of one mode apart in labels, when the given runs differ in them.
 VARIANT_KEYS = ("preset", "raster_model", "renderer")
 #: The actor's parameter groups of the render-term probe (metrics keys grad_norm_render_term_<group>).
@@ -140,10 +139,12 @@ def run_labels(runs: list[Run]) -> list[str]:
 
 
 def group_runs(runs: list[Run], *, label: Callable[[Run], str] | None = None) -> dict[tuple[str, str], list[Run]]:
-    """{(task, label): runs}, tasks in the paper's order, then modes full, decoupled, state, blind.
+    """{(task, label): runs}, tasks in the order of ``tasks.TASKS``, then modes full, decoupled, state, blind.
 
     ``label``: a run's group label; default :func:`run_labels` (the mode, with its variant where runs differ).
     """
+    from tasks import TASKS  # here, not at the top: reading run folders for statistics needs no torch
+
     labels = [label(r) for r in runs] if label is not None else run_labels(runs)
     groups: dict[tuple[str, str], list[Run]] = {}
     for r, lab in zip(runs, labels):
@@ -152,7 +153,7 @@ def group_runs(runs: list[Run], *, label: Callable[[Run], str] | None = None) ->
     def order(k: tuple[str, str]) -> tuple:
         t, lab = k
         m = groups[k][0].mode
-        return (_TASK_ORDER.index(t) if t in _TASK_ORDER else 99, t,
+        return (TASKS.index(t) if t in TASKS else 99, t,
                 list(MODE_COLORS).index(m) if m in MODE_COLORS else 99, m, lab)
 
     return {k: sorted(groups[k], key=lambda r: (str(r.seed), str(r.path))) for k in sorted(groups, key=order)}
