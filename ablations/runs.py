@@ -303,12 +303,14 @@ def _train(cfg: RunConfig, folder: RunFolder, device: torch.device, resume_from:
             startup.after_iteration()
             it = m["iter"]
             ended = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
-            if cfg.video_every and (it % cfg.video_every == 0 or ended):
-                steps = min(cfg.video_steps or trainer.task.episode_length, trainer.task.episode_length)
+            video = bool(cfg.video_every) and (it % cfg.video_every == 0 or ended)
+            if video or (cfg.eval_every and (it % cfg.eval_every == 0 or ended)):
+                # the deterministic policy from the fixed evaluation seed (SHAC.evaluate), filmed on video iterations
                 with startup.evaluating():
-                    eval_return, frames = trainer.evaluate(steps=steps, record=True)
-                m["eval_return"] = eval_return  # undiscounted, deterministic policy, over eval_steps steps
-                m["eval_steps"] = steps
+                    evaluated = trainer.evaluate(video_steps=(cfg.video_steps or trainer.task.episode_length)
+                                                 if video else 0)
+                frames = evaluated.pop("frames")
+                m.update(evaluated)
                 folder.write_video(it, frames)
             folder.append_metrics(m)
             if writer is not None:

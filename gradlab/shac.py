@@ -10,30 +10,41 @@ One iteration, top to bottom (docs/design.md, "A SHAC window"):
 3. Backward: the mode decides what the actor sees and whether its gradient runs through the images
    (``ModePlan``, decided once from the config: docs/design.md, "Where the mode acts"). On probe iterations
    (every ``cosine_every``) the images are rendered WITH grad behind an ``ImageGate`` and the loss is
-   differentiated twice over the same graph, gate open and closed: the full and the decoupled gradient of the
-   SAME rollout; the training mode's gradient is the one applied. The probe also splits their difference by
-   the actor's parameter groups and measures the policy's sensitivity to each frame of its stack.
+   differentiated over the same graph with the gate open and closed: the full and the decoupled gradient of the
+   SAME rollout (and, for full runs, the full gradient through the other raster model's image of the same
+   states); the training mode's gradient is the one applied. The probe also splits the render term by the
+   actor's parameter groups and measures the policy's sensitivity to each frame of its stack.
 4. Clip, Adam step with a linear LR decay.
 5. Critic fit on TD(lambda) targets of the window; Polyak-update the target critic. The fit is independent of
    the actor's gradient, so with CUDA graphs it runs alongside the backward of step 3 (``overlap_critic``).
+
+A **population** (``SHAC([cfg, ...])``) trains several runs in one process as one batched simulation
+(docs/design.md, "Populations"): member ``m`` owns environments ``m * B .. (m + 1) * B`` of one task, and its own
+actor, critic, target critic, optimisers, observation statistics, action-noise generator, learning-rate schedule,
+gradient clipping and abort guard; the members' networks run as batched kernels (``MemberStack``), their losses
+are summed (no member's loss reaches another member's parameters) and each member's metrics are its own. One
+config is a single run, exactly as a population of one.
 
 With ``--compile`` the parts in :meth:`SHAC.compile_table` run through ``torch.compile``, and on a CUDA device the
 window (steps 1-3) and the critic fit are CUDA graphs replayed every iteration; ``gradlab.graphs`` holds that
 machinery, and this module calls it the same way either way.
 
 Every iteration reports CUDA-synchronised forward / backward / critic times, peak allocated and reserved memory
-(CUDA), bytes saved for backward, pre- and post-clip gradient norms; a NaN/inf anywhere stops the run with the
-iteration, the horizon step and the tensor named.
+(CUDA), bytes saved for backward, pre- and post-clip gradient norms; a NaN/inf anywhere stops the run (a
+population: the member) with the iteration, the horizon step and the tensor named.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
+import os
 import time
 from collections import deque
-from collections.abc import Callable, Collection
-from typing import ClassVar
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -43,29 +54,149 @@ import tasks
 from gradlab.config import ModePlan, SHACConfig, resolve_config
 from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
 from gradlab.graphs import WARMUP_ITERS, GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
-from gradlab.networks import Critic, StateActor, VisualActor
+from gradlab.networks import Critic, MemberStack, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
+from gradlab.presets import SILHOUETTE_RASTER_MODEL
 from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad, group_norms, image_sensitivity
 from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_state
 from gradlab.timing import RegionTimer
 from tasks.vision import FrameStack, TaskRenderer
 
-__all__ = ["COMPILE_PARTS", "SHAC", "NonFiniteError"]
+__all__ = ["COMPILE_PARTS", "EVAL_SEED", "MEMBER_FIELDS", "SHAC", "Member", "NonFiniteError", "check_population",
+           "population_order", "window_bytes"]
 
 #: What ``--compile`` compiles (:meth:`SHAC.compile_table`), in parts that are each their own graphs and compile
 #: work, so that separate processes can compile them at the same time into one cache: the physics' own parts
 #: (tasks.PHYSICS_PARTS), the renderer's PyTorch work, and the actor with the critic.
 COMPILE_PARTS = (*tasks.PHYSICS_PARTS, "renderer", "networks")
 
+#: The reset seed of every evaluation: each evaluation of every run starts its episodes from the same states.
+EVAL_SEED = 1_000_003
+
+#: Settings the members of one population may differ in: what they train with and how (mode, seed, image
+#: model, preset and the learning-rate schedule, initialisation and update settings the preset fills). Every
+#: other setting is the population's: one task, batch, horizon, image and network shape, one probe schedule.
+MEMBER_FIELDS = ("mode", "seed", "raster_model", "preset", "actor_lr", "critic_lr", "lr_decay_iters",
+                 "target_alpha", "actor_init", "betas", "grad_clip", "critic_iterations", "critic_batches",
+                 "abort_grad_norm", "encoder_lr_scale", "lr_warmup_iters")
+
 _FLAG_NAMES = ["state_obs", "reward", "terminal_value", "image", "action", "qpos", "qvel"]
 
 
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def check_population(cfgs: Sequence[SHACConfig]) -> None:
+    """Raise ValueError, naming the flag, unless the resolved configs can train as one population: the same value
+    of every setting outside :data:`MEMBER_FIELDS`, all of them on the state vector or none (a state actor has
+    no encoder to batch with a visual one), and no member twice."""
+    if not cfgs:
+        raise ValueError("a population needs at least one member")
+    first = dataclasses.asdict(cfgs[0])
+    for cfg in cfgs[1:]:
+        for name, value in dataclasses.asdict(cfg).items():
+            if name not in MEMBER_FIELDS and value != first[name]:
+                raise ValueError(f"the members of one population share {_flag(name)}, got {first[name]!r} and "
+                                 f"{value!r}")
+    on_state = {ModePlan.of(c.mode).actor_input == "state" for c in cfgs}
+    if len(on_state) > 1:
+        raise ValueError("--mode state trains on the state vector and cannot share a population with the pixel "
+                         "modes (full, decoupled, blind): train it as a population of its own")
+    seen = set()
+    for cfg in cfgs:
+        key = tuple(getattr(cfg, name) for name in MEMBER_FIELDS)
+        if key in seen:
+            raise ValueError(f"member --mode {cfg.mode} --seed {cfg.seed} --raster-model {cfg.raster_model} "
+                             f"--preset {cfg.preset} appears twice in the population")
+        seen.add(key)
+
+
+def window_bytes(cfgs: Sequence[SHACConfig]) -> int:
+    """An estimate of what one window of these members keeps for its backward [bytes]: the bulk of a visual
+    run's memory, its frame stacks and encoder activations at every step (each convolution's output and its
+    ReLU's) and, for full members, the rasterizer's per-pixel state. State runs keep little."""
+    total = 0
+    for cfg in cfgs:
+        plan = ModePlan.of(cfg.mode)
+        if plan.actor_input == "state":
+            continue
+        h = w = cfg.image_size
+        per_step = cfg.num_envs * 3 * cfg.frames * h * w  # the frame stack the first convolution keeps
+        h, w = (h - 3) // 2 + 1, (w - 3) // 2 + 1
+        for _ in range(4):
+            per_step += 2 * cfg.num_envs * 32 * h * w
+            h, w = h - 2, w - 2
+        if plan.grad_through_images:
+            per_step += 2 * cfg.num_envs * cfg.image_size**2 * (7 + 3)  # blend state and image, two raster models
+        total += 4 * per_step * cfg.horizon
+    return total
+
+
+def _memory_of(device: torch.device) -> int:
+    """The device's memory [bytes]: a GPU's, or the machine's for the CPU."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[1]
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def _render_order(cfg: SHACConfig) -> tuple:
+    """Members sorted by this key render in as few calls as possible: one per raster model (and gradient)."""
+    plan = ModePlan.of(cfg.mode)
+    return plan.actor_input == "blank", cfg.raster_model or "", not plan.grad_through_images
+
+
+def population_order(cfgs: Sequence[SHACConfig]) -> list[int]:
+    """The order of :attr:`SHAC.members` for these configs: indices into ``cfgs`` (resolved or not)."""
+    resolved = [resolve_config(c) for c in cfgs]
+    return sorted(range(len(cfgs)), key=lambda i: _render_order(resolved[i]))
+
+
+def _alt_raster(raster_model: str) -> str:
+    """The other image model whose gradient a full run's probe also takes: the hard one for a soft model (the
+    paper's baseline estimator), the default soft one for the hard model."""
+    return SILHOUETTE_RASTER_MODEL if raster_model == "hard" else "hard"
+
+
+@dataclass(eq=False)
+class Member:
+    """One run of a (population) trainer: what it owns alone. ``rows``: its environments in the batch;
+    ``generator``: its action noise (None: torch's default generator, a run alone); ``failed``: why it stopped,
+    where it did (it then trains no more and its environments only keep the batch's shape)."""
+
+    index: int
+    cfg: SHACConfig
+    plan: ModePlan
+    rows: slice
+    actor: nn.Module
+    critic: Critic
+    target_critic: Critic
+    actor_opt: torch.optim.Optimizer
+    critic_opt: torch.optim.Optimizer
+    obs_rms: RunningMeanStd
+    generator: torch.Generator | None
+    recent_returns: deque = field(default_factory=lambda: deque(maxlen=100))
+    recent_lengths: deque = field(default_factory=lambda: deque(maxlen=100))
+    failed: str | None = None
+
+    @property
+    def params(self) -> list[nn.Parameter]:
+        return list(self.actor.parameters())
+
+
 class SHAC:
-    """The SHAC / D.Va trainer.
+    """The SHAC / D.Va trainer, for one run or a population of runs.
 
     Args:
-        cfg: the configuration; None fields are resolved to the task's reference values.
+        cfg: the configuration (None fields are resolved to the task's reference values), or one per member of a
+            population (:func:`check_population` says which settings they share). With one config the trainer
+            is a single run: :meth:`train_iteration`, :meth:`evaluate`, :meth:`state_dict` take and give one
+            run's values; with a list, one per member in the order of :attr:`members` (sorted so that members of
+            one image model render together; ``member.cfg`` tells which is which).
         device: "auto" | "cpu" | "cuda[:N]".
+        batching: how a population's networks run as one batch (``MemberStack``): ``"grouped"`` (batched kernels),
+            ``"loop"`` (one convolution per member), ``"modules"`` (each member's own modules, a run alone's exact
+            arithmetic).
 
     With ``cfg.compile`` the trainer compiles every part of :meth:`compile_table` at its first iteration, unless
     :meth:`compile` named the parts before (a process that compiles only some of them).
@@ -77,75 +208,123 @@ class SHAC:
         "physics step": "task.step", "renderer": "_render", "actor": "_actor_mean", "critic": "_target_value",
         "backward pass": "window.backward"}
 
-    def __init__(self, cfg: SHACConfig, *, device: str | torch.device = "auto"):
-        self.cfg = resolve_config(cfg)
-        cfg = self.cfg
+    def __init__(self, cfg: SHACConfig | Sequence[SHACConfig], *, device: str | torch.device = "auto",
+                 batching: str = "grouped"):
+        self.single = isinstance(cfg, SHACConfig)
+        cfgs = [resolve_config(c) for c in ([cfg] if self.single else cfg)]
+        check_population(cfgs)
+        cfgs.sort(key=_render_order)
+        self.n = n = len(cfgs)
+        self.cfg = cfg = cfgs[0]  # the population's shared settings (a single run's config)
         self.plan = ModePlan.of(cfg.mode)
         self.device = device if isinstance(device, torch.device) else resolve_device(device)
+        if n > 1:
+            need, have = window_bytes(cfgs), _memory_of(self.device)
+            if need > have:
+                raise ValueError(f"a population of {n} members keeps about {need / 2**30:.1f} GiB for one window's "
+                                 f"backward (estimated), more than the {have / 2**30:.1f} GiB of {self.device}: "
+                                 "train fewer members per process (fewer --seed/--mode values, or --pack)")
+        B = cfg.num_envs
         seed_everything(cfg.seed)
 
         overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
-        self.task = tasks.make(cfg.task, cfg.num_envs, device=self.device, seed=cfg.seed, **overrides)
-        self.renderer = None
-        if self.plan.renders:
-            self.renderer = TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
-                                         **self._render_options())
-        if self.plan.actor_input == "state":
-            self.actor = StateActor(self.task.num_obs, self.task.num_act, cfg.actor_hidden, init=cfg.actor_init)
-        else:
-            self.actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, self.task.num_act,
-                                     cfg.trunk_dim, cfg.actor_hidden, init=cfg.actor_init)
-        self.critic = Critic(self.task.num_obs, cfg.critic_hidden)
-        self.actor.to(self.device)
-        self.critic.to(self.device)
-        self.target_critic = copy.deepcopy(self.critic)
-        for p in self.target_critic.parameters():
-            p.requires_grad_(False)
+        seeds = cfg.seed if n == 1 else [c.seed for c in cfgs]
+        self.task = tasks.make(cfg.task, n * B, device=self.device, seed=seeds, **overrides)
+        # one renderer per image model a member trains on or probes with (the population renders each in one call)
+        plans = [ModePlan.of(c.mode) for c in cfgs]
+        rasters = [c.raster_model for c, p in zip(cfgs, plans) if p.renders]
+        rasters += [_alt_raster(c.raster_model) for c, p in zip(cfgs, plans) if p.grad_through_images]
+        self.renderers = {r: TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
+                                          **self._render_options(r))
+                          for r in dict.fromkeys(rasters)}
+        self.renderer = self.renderers.get(cfg.raster_model) if self.plan.renders else None
+
+        self.graphs = cfg.compile and self.device.type == "cuda"
+        self.members = [self._member(i, c, p, slice(i * B, (i + 1) * B)) for i, (c, p) in enumerate(zip(cfgs, plans))]
+        m0 = self.members[0]
+        # a single run's parts by their old names
+        self.actor, self.critic, self.target_critic = m0.actor, m0.critic, m0.target_critic
+        self.actor_opt, self.critic_opt, self.obs_rms = m0.actor_opt, m0.critic_opt, m0.obs_rms
+        self.actors = MemberStack([m.actor for m in self.members], batching=batching)
+        self.target_critics = MemberStack([m.target_critic for m in self.members], batching=batching)
         # What the rollout calls every step (both differentiated through); compiled in place (compile_table).
-        self._actor_mean, self._target_value = self.actor.mean, self.target_critic
+        self._actor_mean, self._target_value = self.actors.mean, self.target_critics.value
         self.compiled: tuple[str, ...] | None = None  # the parts of COMPILE_PARTS compiled (compile)
         # Told a short text before an iteration spends seconds capturing CUDA graphs (a progress display).
         self.on_status: Callable[[str], None] | None = None
-        # CUDA graphs (compile on a CUDA device) capture the critic fit too, so its Adam must be capturable
-        # and read its learning rate from a tensor that the decay updates in place.
-        self.graphs = cfg.compile and self.device.type == "cuda"
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=cfg.betas)
-        critic_lr = torch.tensor(cfg.critic_lr, device=self.device) if self.graphs else cfg.critic_lr
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=critic_lr, betas=cfg.betas,
-                                           capturable=self.graphs)
-        self.obs_rms = RunningMeanStd(self.task.num_obs, device=self.device)
+        self.alive = torch.ones(n, dtype=torch.bool, device=self.device)  # members still training (graphs read it)
 
+        self.sees = any(p.renders for p in plans)  # some member's actor sees rendered images
+        self.on_state = plans[0].actor_input == "state"
         self.frames = FrameStack(cfg.frames)
         # A blind actor's input: one fixed tensor (a captured window reads it at a fixed address).
-        self.blank_images = self._blank_images(cfg.num_envs) if self.plan.actor_input == "blank" else None
-        self.gate = ImageGate()
-        self.flags = FiniteFlags(cfg.horizon, _FLAG_NAMES, self.device)
+        self.blank_images = None if self.sees or self.on_state else self._blank_images(n * B)
+        self.gate = ImageGate(members=n, rows=B, device=self.device)
+        self._routes = self._probe_routes()
+        for route in self._routes.values():  # each route's masks now, outside any CUDA graph capture
+            self.gate.set_route(route)
+        self.flags = FiniteFlags(cfg.horizon, _FLAG_NAMES, self.device, members=n)
         self.timer = RegionTimer(self.device)
 
         self.iteration = 0
         self.wall_s = 0.0
-        self.episode_return = torch.zeros(cfg.num_envs, device=self.device)
-        self.episode_length = torch.zeros(cfg.num_envs, device=self.device, dtype=torch.long)
-        self.recent_returns: deque[float] = deque(maxlen=100)
-        self.recent_lengths: deque[int] = deque(maxlen=100)
+        self.episode_return = torch.zeros(n * B, device=self.device)
+        self.episode_length = torch.zeros(n * B, device=self.device, dtype=torch.long)
         self._started = False
         self.start_s: float | None = None  # seconds of the first reset and render (the first render compiles)
         self.live = LiveState()
-        self.critic_fit = (GraphedCriticPhase(self._fit_critic, self.critic, self.device) if self.graphs
+        critics = m0.critic if n == 1 else nn.ModuleList([m.critic for m in self.members])
+        self.critic_fit = (GraphedCriticPhase(self._fit_critic, critics, self.device) if self.graphs
                            else self._fit_critic)
         self.window = WindowGraphs(forward=self._window_forward, backward=self._backward, commit=self._commit_state,
-                                   params=list(self.actor.parameters()), timer=self.timer, device=self.device,
-                                   capture=self.graphs,
-                                   critic=self.critic_fit if self.graphs and cfg.overlap_critic else None)
+                                   params=[p for m in self.members for p in m.params], timer=self.timer,
+                                   device=self.device, capture=self.graphs,
+                                   critic=self.critic_fit if self.graphs and cfg.overlap_critic else None,
+                                   generators=[m.generator for m in self.members if m.generator is not None])
 
-    def _render_options(self) -> dict:
+    def _member(self, index: int, cfg: SHACConfig, plan: ModePlan, rows: slice) -> Member:
+        """A member's own parts, built as a run of its own builds them: its seed, then its networks (whose
+        initialisation draws from torch's generator), then its noise generator from where that left off."""
+        seed_everything(cfg.seed)
+        task = self.task
+        if plan.actor_input == "state":
+            actor = StateActor(task.num_obs, task.num_act, cfg.actor_hidden, init=cfg.actor_init)
+        else:
+            actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, task.num_act, cfg.trunk_dim,
+                                cfg.actor_hidden, init=cfg.actor_init)
+        critic = Critic(task.num_obs, cfg.critic_hidden)
+        actor.to(self.device)
+        critic.to(self.device)
+        target_critic = copy.deepcopy(critic)
+        for p in target_critic.parameters():
+            p.requires_grad_(False)
+        generator = None
+        if self.n > 1:
+            generator = torch.Generator(device=self.device)
+            generator.set_state(torch.cuda.get_rng_state(self.device) if self.device.type == "cuda"
+                                else torch.get_rng_state())
+        if cfg.encoder_lr_scale != 1.0 and isinstance(actor, VisualActor):
+            encoder = list(actor.encoder.parameters())
+            rest = [p for p in actor.parameters() if all(p is not q for q in encoder)]
+            groups = [{"params": encoder, "lr_scale": cfg.encoder_lr_scale}, {"params": rest, "lr_scale": 1.0}]
+        else:
+            groups = [{"params": list(actor.parameters()), "lr_scale": 1.0}]
+        actor_opt = torch.optim.Adam(groups, lr=cfg.actor_lr, betas=cfg.betas)
+        # CUDA graphs (compile on a CUDA device) capture the critic fit too, so its Adam must be capturable and
+        # read its learning rate from a tensor that the decay updates in place.
+        critic_lr = torch.tensor(cfg.critic_lr, device=self.device) if self.graphs else cfg.critic_lr
+        critic_opt = torch.optim.Adam(critic.parameters(), lr=critic_lr, betas=cfg.betas, capturable=self.graphs)
+        return Member(index, cfg, plan, rows, actor, critic, target_critic, actor_opt, critic_opt,
+                      RunningMeanStd(task.num_obs, device=self.device), generator)
+
+    def _render_options(self, raster_model: str) -> dict:
         cfg = self.cfg
         # save_blend_state: a full-mode window keeps 7 numbers per pixel per frame (flat in faces) so that each
         # render backward skips a second forward pass (fused backend)
         options = dict(detail=cfg.render_detail, extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts,
-                       sigma=cfg.sigma, gamma=cfg.render_gamma, raster_model=cfg.raster_model,
+                       sigma=cfg.sigma, gamma=cfg.render_gamma, raster_model=raster_model,
                        renderer=cfg.renderer, save_blend_state=True)
-        if cfg.raster_model == "alpha":
+        if raster_model == "alpha":
             options["cull_backfaces"] = False  # alpha coverage sums over all faces, hidden ones included
         return options
 
@@ -154,21 +333,34 @@ class SHAC:
         cfg = self.cfg
         return torch.zeros(n, 3 * cfg.frames, cfg.image_size, cfg.image_size, device=self.device)
 
+    def _probe_routes(self) -> dict[str, tuple[str | None, ...]]:
+        """Where each backward pass sends each member's image gradient (``ImageGate.set_route``): ``train``, the
+        gradient every member trains with (last, so it stays in ``.grad``); on probe iterations first ``other``,
+        the estimator it does not train with, and, where a member trains full, ``alt``, its full gradient through
+        the other raster model's image of the same states."""
+        full = [m.plan.grad_through_images for m in self.members]
+        sees = [m.plan.renders for m in self.members]
+        routes = {"train": tuple("image" if f else None for f in full),
+                  "other": tuple("image" if s and not f else None for s, f in zip(sees, full))}
+        if any(full):
+            routes["alt"] = tuple("alt" if f else None for f in full)
+        return routes
+
     # ------------------------------------------------------------------ compiling
     def compile_table(self) -> dict[str, tuple]:
         """What ``--compile`` compiles, by part (:data:`COMPILE_PARTS`), each entry something with a ``compile()``:
         the task's physics parts (``Task.compile_table``: the callable, where the step calls it, torch.compile's
-        options); the renderer (``TaskRenderer.compile``: forward kinematics, vertices, camera and the fused
+        options); the renderers (``TaskRenderer.compile``: forward kinematics, vertices, camera and the fused
         rasterizer's per-face setup, hundreds of small kernels per frame eagerly, in forward and again in
-        backward; nothing where the trainer does not render); and the actor's mean and the target critic, which
+        backward; nothing where the trainer does not render); and the actors' mean and the target critics, which
         the rollout calls every step: compiled, their small layers (bias, ReLU, LayerNorm, ELU and their backward)
         fuse, while the convolutions and GEMMs stay cuDNN/cuBLAS calls and the action noise stays eager (same
         draws)."""
         physics = self.task.compile_table()
         return {**{part: (physics[part],) for part in tasks.PHYSICS_PARTS},
-                "renderer": () if self.renderer is None else (self.renderer,),
-                "networks": (tasks.CompiledCall(self, "_actor_mean", self.actor.mean),
-                             tasks.CompiledCall(self, "_target_value", self.target_critic))}
+                "renderer": tuple(self.renderers.values()),
+                "networks": (tasks.CompiledCall(self, "_actor_mean", self.actors.mean),
+                             tasks.CompiledCall(self, "_target_value", self.target_critics.value))}
 
     def compile(self, parts: Collection[str] = COMPILE_PARTS) -> None:
         """Compile ``parts`` (of :data:`COMPILE_PARTS`) where the trainer calls them, each at its first call; the
@@ -189,35 +381,61 @@ class SHAC:
         self.compiled = tuple(parts)
 
     # ------------------------------------------------------------------ state the windows hand on
-    def _render(self, *, grad: bool) -> torch.Tensor:
-        """Images of the task's current state: (B, 3, H, W) in [0, 1]; differentiable in qpos if ``grad``
-        (always the rasterizer: the ray tracer of ``--renderer warp`` has no gradient)."""
-        if grad:
-            return self.renderer.soft(self.task.qpos)
-        with torch.no_grad():
-            return self.renderer(self.task.qpos)
+    def _render(self, grad: Sequence[bool], *, alt: bool = False) -> torch.Tensor:
+        """Images of every member's environments, (N * B, 3, H, W) in [0, 1]: member m's from its raster model
+        (``alt``: the other one of a full member's probe; the others' rows are then zeros), differentiable in its
+        qpos where ``grad[m]`` (always through the rasterizer: the ray tracer of ``--renderer warp`` has no
+        gradient); a blind member's rows are zeros (its actor sees no image)."""
+        qpos = self.task.qpos
+        if self.n == 1 and not alt:
+            if grad[0]:
+                return self.renderer.soft(qpos)
+            with torch.no_grad():
+                return self.renderer(qpos)
+        blocks = []
+        for (raster, g), group in itertools.groupby(self.members, key=lambda m: self._render_key(m, grad, alt)):
+            group = list(group)
+            rows = slice(group[0].rows.start, group[-1].rows.stop)
+            if raster is None:
+                blocks.append(torch.zeros(rows.stop - rows.start, 3, self.cfg.image_size, self.cfg.image_size,
+                                          device=self.device))
+            elif g:
+                blocks.append(self.renderers[raster].soft(qpos[rows]))
+            else:
+                with torch.no_grad():
+                    blocks.append(self.renderers[raster](qpos[rows]))
+        return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
+
+    @staticmethod
+    def _render_key(member: Member, grad: Sequence[bool], alt: bool) -> tuple[str | None, bool]:
+        if alt:
+            return (_alt_raster(member.cfg.raster_model), True) if member.plan.grad_through_images else (None, False)
+        return (member.cfg.raster_model, grad[member.index]) if member.plan.renders else (None, False)
 
     def _start(self) -> None:
         """First reset: state, frame stack tiled with the first image, running stats seeded."""
         obs = self.task.reset()
-        self.obs_rms.update(obs)
-        if self.plan.renders:
+        for m in self.members:
+            m.obs_rms.update(obs[m.rows])
+        if self.sees:
             if self.graphs:
                 # A captured render cannot measure or grow its bins (no host sync): fix a generous capacity
                 # now, before the warm-up iterations compile the kernels for it.
-                self.renderer.freeze_capacity(self.task.qpos, headroom=2.0)
-            self.frames.reset(self._render(grad=False))
+                for renderer in self.renderers.values():
+                    renderer.freeze_capacity(self.task.qpos, headroom=2.0)
+            self.frames.reset(self._render([False] * self.n))
         self._started = True
         self._commit_state()
 
     def _commit_state(self) -> None:
         """The window's end state into the fixed tensors the next window starts from (``LiveState``)."""
-        self.live.commit(self.task, self.frames if self.plan.renders else None)
+        self.live.commit(self.task, self.frames if self.sees else None)
 
     # ------------------------------------------------------------------ rollout window and actor loss
     def _window_forward(self, probe: bool) -> tuple[torch.Tensor, dict]:
         # A probe renders with grad whatever the mode: both gradients need the render graph.
-        return self._rollout(render_grad=self.plan.grad_through_images or probe)
+        return self._rollout(render_grad=[m.plan.grad_through_images or probe for m in self.members],
+                             alt=probe and "alt" in self._routes)
 
     def _ends_without_value(self, info: dict) -> torch.Tensor:
         """(B,) bool: the step ended the episode with a zero terminal value. An early termination does; with
@@ -227,16 +445,48 @@ class SHAC:
             return info["invalid"] | (info["terminated"] & ~info["time_limit"])
         return info["terminated"]
 
-    def _rollout(self, *, render_grad: bool) -> tuple[torch.Tensor, dict]:
-        """One SHAC window. Returns the actor loss (0-d, differentiable) and the window's (T, B) buffers."""
+    def _window_stats(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The observation statistics every step of a window normalises with: (mean, std) of shape (obs,) for
+        one run, (N * B, obs) with each member's own on its rows for a population."""
+        if self.n == 1:
+            return self.obs_rms.snapshot()
+        stats = [m.obs_rms.snapshot() for m in self.members]
+        B = self.cfg.num_envs
+        return tuple(torch.stack(s).repeat_interleave(B, 0) for s in zip(*stats))
+
+    def _member_sum(self, x: torch.Tensor) -> torch.Tensor:
+        """(N * B,) -> each member's sum: 0-d for one run (as a run alone sums), (N,) for a population."""
+        return x.sum() if self.n == 1 else x.view(self.n, -1).sum(1)
+
+    def _sample(self, mu: torch.Tensor) -> torch.Tensor:
+        """mu (N * B, act) -> ``tanh(mu + std * eps)``, each member's noise from its own generator and std."""
+        if self.n == 1:
+            return self.actor.sample(mu)
+        B = self.cfg.num_envs
+        eps = torch.cat([torch.randn(B, mu.shape[1], device=mu.device, dtype=mu.dtype, generator=m.generator)
+                         for m in self.members])
+        std = torch.stack([m.actor.log_std for m in self.members]).exp().repeat_interleave(B, 0)
+        return torch.tanh(mu + std * eps)
+
+    def _rollout(self, *, render_grad: Sequence[bool], alt: bool = False) -> tuple[torch.Tensor, dict]:
+        """One SHAC window. Returns the actor loss (0-d, differentiable; a population's: (N,), one per member) and
+        the window's (T, N * B) buffers."""
         cfg, task = self.cfg, self.task
-        T, B = cfg.horizon, cfg.num_envs
-        stats = self.obs_rms.snapshot()
+        T, B = cfg.horizon, self.n * cfg.num_envs
+        stats = self._window_stats()
         # SHAC's truncation. Compiled, the cut state requires grad (a leaf): the window's first step then shares
         # the later steps' compiled graphs instead of compiling its own (Task.detach).
         task.detach(requires_grad=cfg.compile)
         self.frames.detach()
+        alt_frames = None
+        if alt:  # a full member's probe: the same states through the other raster model, behind the same gate
+            alt_frames = FrameStack(cfg.frames)
+            alt_frames.frames = list(self.frames.frames)
         obs = task.state_obs().detach()
+        actor_params = self.actors.stack()
+        with torch.no_grad():
+            target_params = self.target_critics.stack()
+        render_any_grad = any(render_grad)
 
         critic_obs = torch.empty(T, B, task.num_obs, device=self.device)
         raw_obs = torch.empty(T, B, task.num_obs, device=self.device)
@@ -249,21 +499,21 @@ class SHAC:
 
         rew_acc = torch.zeros(B, device=self.device)
         discount = torch.ones(B, device=self.device)
-        loss = torch.zeros((), device=self.device)
+        loss = torch.zeros(() if self.n == 1 else (self.n,), device=self.device)
         self.flags.reset()
         for t in range(T):
             with torch.no_grad():
                 critic_obs[t] = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
-            if self.plan.actor_input == "images":
+            if self.sees:
                 actor_in = self.frames.stacked()
-                if render_grad:
-                    actor_in = self.gate(actor_in)
+                if render_any_grad:
+                    actor_in = self.gate(actor_in, None if alt_frames is None else alt_frames.stacked())
                     self.flags.watch_grad(t, "image", actor_in)
-            elif self.plan.actor_input == "blank":
-                actor_in = self.blank_images
-            else:
+            elif self.on_state:
                 actor_in = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
-            action = self.actor.sample(self._actor_mean(actor_in))
+            else:
+                actor_in = self.blank_images
+            action = self._sample(self._actor_mean(actor_params, actor_in))
             self.flags.watch_grad(t, "action", action)
 
             obs, reward, done, info = task.step(action)
@@ -273,18 +523,22 @@ class SHAC:
             self.flags.check(t, "reward", reward)
 
             # Value of the state reached by this step (before any reset); zero after an early termination.
-            v_next = self._target_value(RunningMeanStd.apply(info["obs_before_reset"], stats, cfg.obs_clip))
+            v_next = self._target_value(target_params,
+                                        RunningMeanStd.apply(info["obs_before_reset"], stats, cfg.obs_clip))
             v_next = torch.where(self._ends_without_value(info), torch.zeros_like(v_next), v_next)
             self.flags.check(t, "terminal_value", v_next)
 
             rew_acc = rew_acc + discount * reward
             ends = done if t < T - 1 else torch.ones_like(done)
-            loss = loss - torch.where(ends, rew_acc + cfg.gamma * discount * v_next, torch.zeros_like(v_next)).sum()
+            loss = loss - self._member_sum(
+                torch.where(ends, rew_acc + cfg.gamma * discount * v_next, torch.zeros_like(v_next)))
             discount = torch.where(done, torch.ones_like(discount), discount * cfg.gamma)
             rew_acc = torch.where(done, torch.zeros_like(rew_acc), rew_acc)
 
-            if self.plan.renders:
-                self.frames.push(self._render(grad=render_grad), reset=done)
+            if self.sees:
+                self.frames.push(self._render(render_grad), reset=done)
+                if alt_frames is not None:
+                    alt_frames.push(self._render(render_grad, alt=True), reset=done)
 
             with torch.no_grad():
                 raw_obs[t] = obs
@@ -298,7 +552,7 @@ class SHAC:
                 ep_lengths[t] = self.episode_length
                 self.episode_return.masked_fill_(done, 0.0)
                 self.episode_length.masked_fill_(done, 0)
-        loss = loss / (T * B)
+        loss = loss / (T * cfg.num_envs)
         buffers = dict(critic_obs=critic_obs, raw_obs=raw_obs, rewards=rewards, next_values=next_values,
                        dones=dones, episode_ends=episode_ends, ep_returns=ep_returns, ep_lengths=ep_lengths)
         return loss, buffers
@@ -307,33 +561,55 @@ class SHAC:
     def _backward(self, loss: torch.Tensor, probe: bool) -> dict:
         """Actor gradients into ``.grad`` for the training mode; on probes, both estimators of one rollout.
 
-        Returns the probe's metrics as 0-d tensors (empty on plain iterations; keys in ``SHACConfig.cosine_every``):
-        computed here, they are part of a captured backward graph and rewritten by every replay.
+        Returns the probe's metrics as 0-d tensors (empty on plain iterations; keys in ``SHACConfig.cosine_every``;
+        a population's keyed ``(member index, key)``): computed here, they are part of a captured backward graph
+        and rewritten by every replay.
         """
-        params = list(self.actor.parameters())
+        params = self.window.params
         zero_grads_(params)
-        train_open = self.plan.grad_through_images
+        # a stopped member's loss takes no part (its gradient, possibly non-finite, is never read)
+        total = loss if self.n == 1 else torch.where(self.alive, loss, torch.zeros_like(loss)).sum()
         if not probe:
-            self.gate.open = train_open
-            loss.backward()
+            self.gate.set_route(self._routes["train"])
+            total.backward()
             return {}
-        # The estimator we do NOT train with goes first (graph retained); the training mode's gradient is
+        # The estimators we do NOT train with go first (graph retained); the training mode's gradient is
         # computed last, so it is what stays in .grad.
-        self.gate.open = not train_open
-        loss.backward(retain_graph=True)
-        g_other = flat_grad(params)
-        zero_grads_(params)
-        self.gate.open = train_open
-        loss.backward()
-        g_train = flat_grad(params)
-        g_full, g_dec = (g_train, g_other) if train_open else (g_other, g_train)
+        grads: dict[str, list[torch.Tensor]] = {}
+        for name in ("other", "alt", "train"):
+            if name not in self._routes:
+                continue
+            self.gate.set_route(self._routes[name])
+            total.backward(retain_graph=name != "train")
+            grads[name] = [flat_grad(m.params) for m in self.members]
+            if name != "train":
+                zero_grads_(params)
+        metrics = {}
+        for m in self.members:
+            if not m.plan.probes:
+                continue
+            g_train, g_other = grads["train"][m.index], grads["other"][m.index]
+            full = m.plan.grad_through_images
+            g_full, g_dec = (g_train, g_other) if full else (g_other, g_train)
+            out = self._probe_metrics(m, g_full, g_dec)
+            if full:
+                # the same rollout's full gradient through the other image model: hard against soft
+                g_alt = grads["alt"][m.index]
+                hard, soft = (g_full, g_alt) if m.cfg.raster_model == "hard" else (g_alt, g_full)
+                out.update(grad_norm_full_hard=hard.norm(), grad_norm_full_soft=soft.norm(),
+                           cos_hard_soft=cosine(hard, soft), cos_hard_decoupled=cosine(hard, g_dec),
+                           cos_soft_decoupled=cosine(soft, g_dec))
+            metrics.update(out if self.n == 1 else {(m.index, k): v for k, v in out.items()})
+        return metrics
+
+    def _probe_metrics(self, member: Member, g_full: torch.Tensor, g_dec: torch.Tensor) -> dict:
         # The image path's contribution alone (the control-regularisation term of D.Va's eq. 5), in total and
         # by the part of the actor it reaches.
         render_term = g_full - g_dec
-        by_group = group_norms(render_term, params, self.actor.param_groups())
+        by_group = group_norms(render_term, member.params, member.actor.param_groups())
         # The policy's own sensitivity to each frame, on the stack the window ended in (the parameters are
         # still those of the rollout).
-        sensitivity = image_sensitivity(self.actor.mean, self.frames.stacked(), frames=self.cfg.frames)
+        sensitivity = image_sensitivity(member.actor.mean, self.frames.stacked()[member.rows], frames=self.cfg.frames)
         return {
             "grad_norm_full": g_full.norm(),
             "grad_norm_decoupled": g_dec.norm(),
@@ -345,31 +621,41 @@ class SHAC:
 
     # ------------------------------------------------------------------ critic fit
     def _fit_critic(self, buf: dict) -> torch.Tensor:
-        """TD(lambda) targets of the window and the critic fit on them; returns the critic loss. It reads only
-        the window's buffers and writes only the critic and its optimiser, so it may run alongside the actor's
-        backward (``SHACConfig.overlap_critic``); the target critic's update waits for both. Overlapped, a window
-        whose actor step then aborts (non-finite or runaway gradient) has fitted the critic already; the run
-        stops there either way and keeps no checkpoint of it."""
-        cfg = self.cfg
-        targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma, lam=cfg.lam)
-        return fit_critic(self.critic, self.critic_opt, buf["critic_obs"].flatten(0, 1), targets.flatten(),
-                          iterations=cfg.critic_iterations, batches=cfg.critic_batches, grad_clip=cfg.grad_clip)
+        """TD(lambda) targets of the window and each member's critic fit on its own rows; returns the critic loss
+        (0-d; a population's (N,)). It reads only the window's buffers and writes only the critics and their
+        optimisers, so it may run alongside the actor's backward (``SHACConfig.overlap_critic``); the target
+        critics' update waits for both. Overlapped, a window whose actor step then aborts (non-finite or runaway
+        gradient) has fitted the critic already; the run stops there either way and keeps no checkpoint of it."""
+        losses = []
+        for m in self.members:
+            c, rows = m.cfg, m.rows
+            targets = td_lambda_targets(buf["rewards"][:, rows], buf["next_values"][:, rows], buf["dones"][:, rows],
+                                        gamma=c.gamma, lam=c.lam)
+            losses.append(fit_critic(m.critic, m.critic_opt, buf["critic_obs"][:, rows].flatten(0, 1),
+                                     targets.flatten(), iterations=c.critic_iterations, batches=c.critic_batches,
+                                     grad_clip=c.grad_clip))
+        return losses[0] if self.n == 1 else torch.stack(losses)
 
     # ------------------------------------------------------------------ one training iteration
-    def _lr(self, base: float) -> float:
+    def _lr(self, cfg: SHACConfig, base: float) -> float:
         """Linear decay from ``base`` to 1e-5 over ``lr_decay_iters`` (the reference's schedule over its
         ``max_epochs``), held at 1e-5 after."""
-        frac = min(self.iteration / self.cfg.lr_decay_iters, 1.0)
+        frac = min(self.iteration / cfg.lr_decay_iters, 1.0)
         return base + (1e-5 - base) * frac
 
     def _set_learning_rates(self) -> None:
-        for group in self.actor_opt.param_groups:
-            group["lr"] = self._lr(self.cfg.actor_lr)
-        for group in self.critic_opt.param_groups:
-            if isinstance(group["lr"], torch.Tensor):
-                group["lr"].fill_(self._lr(self.cfg.critic_lr))  # in place: the captured Adam reads it
-            else:
-                group["lr"] = self._lr(self.cfg.critic_lr)
+        for m in self.members:
+            cfg = m.cfg
+            actor_lr = self._lr(cfg, cfg.actor_lr)
+            if cfg.lr_warmup_iters:
+                actor_lr *= min(1.0, (self.iteration + 1) / cfg.lr_warmup_iters)
+            for group in m.actor_opt.param_groups:
+                group["lr"] = actor_lr * group.get("lr_scale", 1.0)
+            for group in m.critic_opt.param_groups:
+                if isinstance(group["lr"], torch.Tensor):
+                    group["lr"].fill_(self._lr(cfg, cfg.critic_lr))  # in place: the captured Adam reads it
+                else:
+                    group["lr"] = self._lr(cfg, cfg.critic_lr)
 
     def _announce_capture(self, probe: bool) -> None:
         """Say so when this iteration's window will be captured as CUDA graphs (a first capture takes seconds).
@@ -378,16 +664,21 @@ class SHAC:
         iteration is a probe and the second a plain one whenever both kinds occur."""
         if not self.graphs or self.iteration < WARMUP_ITERS or probe in self.window.captured:
             return
-        probing = self.plan.probes and self.cfg.cosine_every > 0
+        probing = self._probing and self.cfg.cosine_every > 0
         kinds = 2 if probing and self.cfg.cosine_every > 1 else 1
         self._status(f"capturing CUDA graphs (window {len(self.window.captured) + 1}/{kinds})")
+
+    @property
+    def _probing(self) -> bool:
+        return any(m.plan.probes for m in self.members)
 
     def _status(self, text: str) -> None:
         if self.on_status is not None:
             self.on_status(text)
 
-    def train_iteration(self) -> dict:
-        """Run one iteration; returns its metrics (Python scalars)."""
+    def train_iteration(self) -> dict | list[dict | None]:
+        """Run one iteration; returns its metrics (Python scalars): a single run's dict, or one per member of a
+        population (None for a member that has stopped; ``member.failed`` says why)."""
         cfg = self.cfg
         if cfg.compile and self.compiled is None:
             self.compile()
@@ -396,7 +687,7 @@ class SHAC:
             self._start()
             self.start_s = time.perf_counter() - t_start
         t_wall = time.perf_counter()
-        probe = self.plan.probes and cfg.cosine_every > 0 and self.iteration % cfg.cosine_every == 0
+        probe = self._probing and cfg.cosine_every > 0 and self.iteration % cfg.cosine_every == 0
         self.timer.reset()
         self._set_learning_rates()
 
@@ -407,16 +698,31 @@ class SHAC:
             self._status("capturing CUDA graph (critic fit)")
         window = self.window.run(iteration=self.iteration, probe=probe)
         loss, buf = window.loss, window.buffers
-        params = list(self.actor.parameters())
-        gn = nn.utils.clip_grad_norm_(params, cfg.grad_clip)
-        gn_clipped = flat_grad(params).norm()
-        self.flags.raise_if_bad(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": gn})
-        gn_value = float(gn)
-        if gn_value > cfg.abort_grad_norm:
-            raise NonFiniteError(
-                f"iteration {self.iteration}: actor gradient norm {gn_value:.3g} exceeds abort_grad_norm "
-                f"{cfg.abort_grad_norm:.3g} (the reference stops here too)")
-        self.actor_opt.step()
+        live = [m for m in self.members if m.failed is None]
+        norms = {m.index: nn.utils.clip_grad_norm_(m.params, m.cfg.grad_clip) for m in live}
+        clipped = {m.index: flat_grad(m.params).norm() for m in live}
+        if self.n == 1:
+            self.flags.raise_if_bad(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": norms[0]})
+        else:
+            gn = torch.stack([norms.get(i, torch.zeros((), device=self.device)) for i in range(self.n)])
+            failures = self.flags.failures(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": gn})
+            for m in live:
+                if m.index in failures:
+                    self._stop(m, failures[m.index])
+        values = {i: float(v) for i, v in norms.items() if self.members[i].failed is None}
+        for m in live:
+            if m.failed is None and values[m.index] > m.cfg.abort_grad_norm:
+                why = (f"iteration {self.iteration}: actor gradient norm {values[m.index]:.3g} exceeds "
+                       f"abort_grad_norm {m.cfg.abort_grad_norm:.3g} (the reference stops here too)")
+                if self.n == 1:
+                    raise NonFiniteError(why)
+                self._stop(m, why)
+        live = [m for m in live if m.failed is None]
+        if not live:
+            raise NonFiniteError("every member of the population stopped: " +
+                                 "; ".join(f"member {m.index}: {m.failed}" for m in self.members))
+        for m in live:
+            m.actor_opt.step()
 
         # Critic on TD(lambda) targets of the window (unless it ran alongside the backward), then the target
         # network (after the backward, which differentiated through it).
@@ -425,30 +731,24 @@ class SHAC:
         else:
             with self.timer("critic"):
                 critic_loss = self.critic_fit(buf)
-        polyak_update(self.target_critic, self.critic, cfg.target_alpha)
-        self.obs_rms.update(buf["raw_obs"])
+        for m in live:
+            polyak_update(m.target_critic, m.critic, m.cfg.target_alpha)
+            m.obs_rms.update(buf["raw_obs"][:, m.rows])
 
         # Episode statistics: one host transfer per iteration.
         ends = buf["episode_ends"].cpu().numpy()
         if ends.any():
-            self.recent_returns.extend(buf["ep_returns"].cpu().numpy()[ends].tolist())
-            self.recent_lengths.extend(buf["ep_lengths"].cpu().numpy()[ends].tolist())
+            ep_returns, ep_lengths = buf["ep_returns"].cpu().numpy(), buf["ep_lengths"].cpu().numpy()
+            for m in live:
+                mine = ends[:, m.rows]
+                m.recent_returns.extend(ep_returns[:, m.rows][mine].tolist())
+                m.recent_lengths.extend(ep_lengths[:, m.rows][mine].tolist())
 
         self.iteration += 1
         iter_wall = time.perf_counter() - t_wall
         self.wall_s += iter_wall
         ms = self.timer.ms
-        metrics = {
-            "iter": self.iteration,
-            "env_steps": self.iteration * cfg.horizon * cfg.num_envs,
-            "wall_s": self.wall_s,
-            "return_mean": float(np.mean(self.recent_returns)) if self.recent_returns else None,
-            "episode_length_mean": float(np.mean(self.recent_lengths)) if self.recent_lengths else None,
-            "episodes": len(self.recent_returns),
-            "actor_loss": float(loss.detach()),
-            "critic_loss": float(critic_loss),
-            "grad_norm": gn_value,
-            "grad_norm_clipped": float(gn_clipped),
+        shared = {
             "fwd_ms": ms["fwd"],
             "bwd_ms": ms["bwd"],
             "critic_ms": ms["critic"],
@@ -457,101 +757,216 @@ class SHAC:
             "peak_alloc_mb": window.memory.peak_alloc_mb,
             "peak_reserved_mb": window.memory.peak_reserved_mb,
             "saved_mb": window.saved_bytes / 2**20,
-            "actor_lr": self.actor_opt.param_groups[0]["lr"],
-            "probed": probe,
-            "graph": window.replayed,
         }
-        metrics.update({k: float(v) for k, v in window.probe_metrics.items()})
-        return metrics
+        losses = [loss] if self.n == 1 else loss.detach().cpu().unbind(0)
+        critic_losses = [critic_loss] if self.n == 1 else critic_loss.detach().cpu().unbind(0)
+        out: list[dict | None] = []
+        for m in self.members:
+            if m.failed is not None:
+                out.append(None)
+                continue
+            metrics = {
+                "iter": self.iteration,
+                "env_steps": self.iteration * cfg.horizon * cfg.num_envs,
+                "wall_s": self.wall_s,
+                "return_mean": float(np.mean(m.recent_returns)) if m.recent_returns else None,
+                "episode_length_mean": float(np.mean(m.recent_lengths)) if m.recent_lengths else None,
+                "episodes": len(m.recent_returns),
+                "actor_loss": float(losses[m.index].detach()),
+                "critic_loss": float(critic_losses[m.index]),
+                "grad_norm": values[m.index],
+                "grad_norm_clipped": float(clipped[m.index]),
+                **shared,
+                "actor_lr": m.actor_opt.param_groups[-1]["lr"],
+                # the exploration noise: where it has collapsed, the policy's gradient has little to act on
+                "action_std": float(m.actor.log_std.detach().exp().mean()),
+                "probed": probe and m.plan.probes,
+                "graph": window.replayed,
+            }
+            if self.n == 1:
+                metrics.update({k: float(v) for k, v in window.probe_metrics.items()})
+            else:
+                metrics.update({k: float(v) for (i, k), v in window.probe_metrics.items() if i == m.index})
+            out.append(metrics)
+        return out[0] if self.single else out
+
+    def _stop(self, member: Member, why: str) -> None:
+        """A population member stops training (the others go on): no more optimiser steps, its loss out of the
+        backward; its environments keep the batch's shape (CUDA graphs replay fixed shapes)."""
+        member.failed = why
+        self.alive[member.index] = False
 
     # ------------------------------------------------------------------ evaluation and video
     @torch.no_grad()
-    def evaluate(self, *, steps: int | None = None, num_envs: int = 4, video_size: int = 256,
-                 record: bool = False) -> tuple[float, list[np.ndarray]]:
-        """Deterministic policy on a separate task instance (the training state and RNG are untouched).
+    def evaluate(self, *, video_steps: int = 0, video_size: int = 256) -> dict | list[dict | None]:
+        """The deterministic policy (``tanh`` of its mean action) of every member, on a separate task of
+        ``eval_envs`` environments per member started from the fixed seed :data:`EVAL_SEED` (the same initial
+        states at every evaluation, for every run), each for one whole episode; the training state and random
+        streams are untouched.
 
-        Returns the mean undiscounted return over ``num_envs`` episodes of up to ``steps`` steps, and, if
-        ``record``, RGB uint8 frames (H, W, 3) of env 0 from the task camera at ``video_size`` pixels.
+        Returns per member (a single run: one dict) ``eval_return_mean``, ``eval_return_std`` (undiscounted
+        return over the episodes), ``eval_length_mean`` (steps) and ``frames``: with ``video_steps``, RGB uint8
+        frames (H, W, 3) of the member's first environment from the task camera at ``video_size`` pixels, for its
+        first ``video_steps`` steps (else empty). None for a member that has stopped.
         """
-        cfg = self.cfg
-        steps = steps or self.task.episode_length
+        cfg, n, E = self.cfg, self.n, self.cfg.eval_envs
         overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
-        task = tasks.make(cfg.task, num_envs, device=self.device, seed=cfg.seed + 10_007, **overrides)
+        task = tasks.make(cfg.task, n * E, device=self.device, seed=EVAL_SEED if n == 1 else [EVAL_SEED] * n,
+                          **overrides)
         if cfg.compile:
             task.compile()  # an eager episode is episode_length x substeps unfused substeps
         obs = task.reset()
-        stats = self.obs_rms.snapshot()
-        renderer = video = None
-        frames = FrameStack(cfg.frames)
-        blank = self._blank_images(num_envs) if self.plan.actor_input == "blank" else None
-        if self.plan.renders:
-            renderer = TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options())
-            frames.reset(renderer(task.qpos))
-        if record:
+        stats = [m.obs_rms.snapshot() for m in self.members]
+        stats = stats[0] if n == 1 else tuple(torch.stack(s).repeat_interleave(E, 0) for s in zip(*stats))
+        params = self.actors.stack()
+        renderers, frames = {}, FrameStack(cfg.frames)
+        if self.sees:
+            renderers = {r: TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options(r))
+                         for r in dict.fromkeys(m.cfg.raster_model for m in self.members if m.plan.renders)}
+            frames.reset(self._eval_images(task, renderers, E))
+        video = None
+        if video_steps:
             video = TaskRenderer(task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2),
                                  sigma=None, gamma=None, renderer=cfg.renderer)
-        total = torch.zeros(num_envs, device=self.device)
-        alive = torch.ones(num_envs, device=self.device, dtype=torch.bool)
-        out_frames: list[np.ndarray] = []
-        for _ in range(steps):
-            if record:
-                img = video(task.qpos[:1])[0].clamp(0, 1).mul(255).byte().permute(1, 2, 0).cpu().numpy()
-                out_frames.append(img)
-            if self.plan.actor_input == "images":
+        blank = self._blank_images(n * E) if not (self.sees or self.on_state) else None
+        total = torch.zeros(n * E, device=self.device)
+        length = torch.zeros(n * E, device=self.device)
+        alive = torch.ones(n * E, device=self.device, dtype=torch.bool)
+        recorded: list[list[np.ndarray]] = [[] for _ in range(n)]
+        for step in range(task.episode_length):
+            if video is not None and step < video_steps:
+                first = torch.arange(n, device=self.device) * E
+                shots = video(task.qpos[first]).clamp(0, 1).mul(255).byte().permute(0, 2, 3, 1).cpu().numpy()
+                for i in range(n):
+                    recorded[i].append(shots[i])
+            if self.sees:
                 actor_in = frames.stacked()
-            elif self.plan.actor_input == "blank":
-                actor_in = blank
-            else:
+            elif self.on_state:
                 actor_in = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
-            action = self.actor(actor_in, deterministic=True)
+            else:
+                actor_in = blank
+            action = torch.tanh(self.actors.mean(params, actor_in))
             obs, reward, done, _ = task.step(action)
             total += reward * alive
+            length += alive
             alive &= ~done
-            if self.plan.renders:
-                frames.push(renderer(task.qpos), reset=done)
-            if not bool(alive.any()):
+            if self.sees:
+                frames.push(self._eval_images(task, renderers, E), reset=done)
+            # one host sync every few steps: the episodes' ends (and videos') are read in batches
+            if step % 16 == 15 and not bool(alive.any()) and (video is None or step + 1 >= video_steps):
                 break
-        return float(total.mean()), out_frames
+        out: list[dict | None] = []
+        for m in self.members:
+            if m.failed is not None:
+                out.append(None)
+                continue
+            rows = slice(m.index * E, (m.index + 1) * E)
+            returns = total[rows].double()
+            out.append({"eval_return_mean": float(returns.mean()),
+                        "eval_return_std": float(returns.std(unbiased=False)),
+                        "eval_length_mean": float(length[rows].mean()),
+                        "frames": recorded[m.index]})
+        return out[0] if self.single else out
+
+    def _eval_images(self, task, renderers: dict[str, TaskRenderer], per_member: int) -> torch.Tensor:
+        """An evaluation task's images, (N * E, 3, H, W): each seeing member's from its raster model, blind
+        members' zeros."""
+        blocks = []
+        for m in self.members:
+            rows = slice(m.index * per_member, (m.index + 1) * per_member)
+            if m.plan.renders:
+                blocks.append(renderers[m.cfg.raster_model](task.qpos[rows]))
+            else:
+                blocks.append(torch.zeros(per_member, 3, self.cfg.image_size, self.cfg.image_size,
+                                          device=self.device))
+        return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict:
-        """Everything that determines the future of the run (resume == uninterrupted on the CPU)."""
-        return {
-            "config": dataclasses.asdict(self.cfg),
+    def state_dict(self) -> dict | list[dict]:
+        """Everything that determines the future of the run (resume == uninterrupted on the CPU): a single run's
+        dict, or one per member of a population, each in a single run's format with the member's rows of the
+        task state and frames and its own noise generator (``generator``)."""
+        states = [self._member_state(m) for m in self.members]
+        return states[0] if self.single else states
+
+    def _member_state(self, m: Member) -> dict:
+        task = self.task.get_state()
+        seeds, counter = task["rng"][:-1], task["rng"][-1:]
+        task = {k: v[m.rows] for k, v in task.items() if k != "rng"}
+        task["rng"] = torch.cat([seeds[m.index:m.index + 1], counter])
+        frames = self.frames.state_dict()
+        frames["frames"] = [f[m.rows] for f in frames["frames"]]
+        state = {
+            "config": dataclasses.asdict(m.cfg),
             "iteration": self.iteration,
             "wall_s": self.wall_s,
             "started": self._started,
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "target_critic": self.target_critic.state_dict(),
-            "actor_opt": self.actor_opt.state_dict(),
-            "critic_opt": self.critic_opt.state_dict(),
-            "obs_rms": self.obs_rms.state_dict(),
-            "task": self.task.get_state(),
-            "frames": self.frames.state_dict(),
-            "episode_return": self.episode_return.clone(),
-            "episode_length": self.episode_length.clone(),
-            "recent_returns": list(self.recent_returns),
-            "recent_lengths": list(self.recent_lengths),
+            "actor": m.actor.state_dict(),
+            "critic": m.critic.state_dict(),
+            "target_critic": m.target_critic.state_dict(),
+            "actor_opt": m.actor_opt.state_dict(),
+            "critic_opt": m.critic_opt.state_dict(),
+            "obs_rms": m.obs_rms.state_dict(),
+            "task": task,
+            "frames": frames,
+            "episode_return": self.episode_return[m.rows].clone(),
+            "episode_length": self.episode_length[m.rows].clone(),
+            "recent_returns": list(m.recent_returns),
+            "recent_lengths": list(m.recent_lengths),
             "rng": rng_state(),
         }
+        if m.generator is not None:
+            state["generator"] = m.generator.get_state()
+        if m.failed is not None:
+            state["failed"] = m.failed
+        return state
 
-    def load_state_dict(self, state: dict) -> None:
-        self.iteration = state["iteration"]
-        self.wall_s = state["wall_s"]
-        self._started = state["started"]
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.target_critic.load_state_dict(state["target_critic"])
-        self.actor_opt.load_state_dict(state["actor_opt"])
-        self.critic_opt.load_state_dict(state["critic_opt"])
-        self.obs_rms.load_state_dict(state["obs_rms"])
-        self.task.set_state(state["task"])
-        self.frames.load_state_dict(state["frames"], device=self.device)
-        self.episode_return.copy_(state["episode_return"])  # in place: graphs read these tensors
-        self.episode_length.copy_(state["episode_length"])
-        self.recent_returns = deque(state["recent_returns"], maxlen=100)
-        self.recent_lengths = deque(state["recent_lengths"], maxlen=100)
-        set_rng_state(state["rng"])
+    def load_state_dict(self, state: dict | Sequence[dict]) -> None:
+        """Restore :meth:`state_dict` (a population: one dict per member, in any order, matched by config)."""
+        states = [state] if self.single else list(state)
+        if len(states) != self.n:
+            raise ValueError(f"{len(states)} member states for a population of {self.n}")
+        if self.single:
+            ordered = states
+        else:
+            by_config = {self._config_key(s["config"]): s for s in states}
+            ordered = [by_config.get(self._config_key(dataclasses.asdict(m.cfg))) for m in self.members]
+            if any(s is None for s in ordered):
+                raise ValueError("the checkpoints are of other members than this population's")
+        iterations = {s["iteration"] for s in ordered}
+        if len(iterations) != 1:
+            raise ValueError(f"the members' checkpoints are of different iterations: {sorted(iterations)}")
+        first = ordered[0]
+        self.iteration, self.wall_s, self._started = first["iteration"], first["wall_s"], first["started"]
+        for m, s in zip(self.members, ordered):
+            m.actor.load_state_dict(s["actor"])
+            m.critic.load_state_dict(s["critic"])
+            m.target_critic.load_state_dict(s["target_critic"])
+            m.actor_opt.load_state_dict(s["actor_opt"])
+            m.critic_opt.load_state_dict(s["critic_opt"])
+            m.obs_rms.load_state_dict(s["obs_rms"])
+            m.recent_returns = deque(s["recent_returns"], maxlen=100)
+            m.recent_lengths = deque(s["recent_lengths"], maxlen=100)
+            if m.generator is not None:
+                m.generator.set_state(s["generator"])
+            if s.get("failed"):
+                self._stop(m, s["failed"])
+        task = {k: torch.cat([s["task"][k] for s in ordered]) for k in ("qpos", "qvel", "progress", "prev_actions")}
+        counters = {int(s["task"]["rng"][-1]) for s in ordered}
+        if len(counters) != 1:
+            raise ValueError("the members' checkpoints are of different reset counters")
+        task["rng"] = torch.cat([s["task"]["rng"][:-1] for s in ordered] + [ordered[0]["task"]["rng"][-1:]])
+        self.task.set_state(task)
+        frames = dict(first["frames"])
+        frames["frames"] = [torch.cat(fs) for fs in zip(*(s["frames"]["frames"] for s in ordered))]
+        self.frames.load_state_dict(frames, device=self.device)
+        # in place: graphs read these tensors
+        self.episode_return.copy_(torch.cat([s["episode_return"] for s in ordered]))
+        self.episode_length.copy_(torch.cat([s["episode_length"] for s in ordered]))
+        set_rng_state(first["rng"])
         if self._started:
             self._commit_state()
+
+    @staticmethod
+    def _config_key(config: dict[str, Any]) -> tuple:
+        return tuple(repr(config.get(name)) for name in MEMBER_FIELDS)

@@ -59,9 +59,12 @@ def test_smoke_every_mode(tmp_path, task, mode, capsys):
     assert summary["status"] == "finished" and summary["iterations"] == 2
     assert summary["ended_utc"] >= cfg["started_utc"]
     # the deterministic evaluation of the last video iteration, in the summary and the closing lines
-    assert summary["final_eval_return"] == rows[-1]["eval_return"] and summary["final_eval_iter"] == 2
-    assert summary["best_eval_return"] == max(r["eval_return"] for r in rows if "eval_return" in r)
-    assert f"evaluation return  {summary['final_eval_return']:>9.1f}  (deterministic policy, at iteration 2)" in out
+    assert summary["final_eval_return"] == rows[-1]["eval_return_mean"] and summary["final_eval_iter"] == 2
+    assert summary["final_eval_std"] == rows[-1]["eval_return_std"]
+    assert summary["best_eval_return"] == max(r["eval_return_mean"] for r in rows if "eval_return_mean" in r)
+    assert 1 <= rows[-1]["eval_length_mean"] <= 1000
+    assert (f"evaluation return  {summary['final_eval_return']:>9.1f} +- {summary['final_eval_std']:.1f}  "
+            f"(deterministic policy, at iteration 2)") in out
     assert (run / "checkpoints" / "ckpt_000002.pt").exists()
     video = run / "videos" / "iter_000002.mp4"
     assert video.exists() and video.stat().st_size > 1000

@@ -14,7 +14,7 @@ import torch
 
 from gradlab.config import SHACConfig
 from gradlab.probes import NonFiniteError
-from gradlab.shac_new import SHAC, check_population
+from gradlab.shac import SHAC, check_population
 
 # Keys whose values depend on the clock or the process, not on the run's arithmetic.
 _UNCOMPARED = {"wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb"}
@@ -181,7 +181,7 @@ def test_evaluation_is_deterministic_and_leaves_training_untouched():
 
 
 def test_a_population_too_large_for_the_devices_memory_is_refused(monkeypatch):
-    import gradlab.shac_new as shac
+    import gradlab.shac as shac
 
     need = shac.window_bytes(MIXED)
     assert need == sum(shac.window_bytes([c]) for c in MIXED)
@@ -202,7 +202,7 @@ def test_the_window_estimate_is_the_bulk_of_what_a_window_keeps():
     trainer._start()
     with SavedTensorMeter() as saved:
         trainer._rollout(render_grad=[True])
-    from gradlab.shac_new import window_bytes
+    from gradlab.shac import window_bytes
 
     assert 0.5 * saved.bytes < window_bytes([trainer.cfg]) < 2.0 * saved.bytes
 

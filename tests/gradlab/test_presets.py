@@ -98,10 +98,10 @@ def test_presets_are_the_references_and_every_other_choice_is_a_flag():
 
 @pytest.mark.parametrize(("field", "value", "message"), [
     ("preset", "paper", "unknown preset 'paper'; valid presets: dva, shac-diffrender"),
-    ("raster_model", "blurry", "unknown raster_model 'blurry'"),
+    ("raster_model", "blurry", "--raster-model: unknown raster model 'blurry'"),
     ("renderer", "opengl", "unknown renderer 'opengl'"),
-    ("lr_decay_iters", 0, "lr_decay_iters must be a positive integer"),
-    ("obs_clip", -1.0, "obs_clip must be >= 0"),
+    ("lr_decay_iters", 0, "--lr-decay-iters must be a positive integer"),
+    ("obs_clip", -1.0, r"--obs-clip must be in \[0, inf\)"),
 ])
 def test_bad_values_are_named(field, value, message):
     with pytest.raises(ValueError, match=message):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -22,7 +24,7 @@ def tiny(task="cartpole", mode="decoupled", **kw) -> SHACConfig:
 
 def actor_grad(trainer: SHAC, *, render_grad: bool, gate_open: bool) -> torch.Tensor:
     trainer._start()
-    loss, _ = trainer._rollout(render_grad=render_grad)
+    loss, _ = trainer._rollout(render_grad=[render_grad])
     trainer.actor.zero_grad(set_to_none=True)
     trainer.gate.open = gate_open
     loss.backward()
@@ -116,10 +118,10 @@ def test_nan_guard_names_iteration_step_and_tensor(monkeypatch):
 
 
 def test_evaluate_and_video_frames():
-    trainer = SHAC(tiny(mode="decoupled"), device="cpu")
-    ret, frames = trainer.evaluate(steps=3, num_envs=2, video_size=32, record=True)
-    assert isinstance(ret, float) and len(frames) == 3
-    assert frames[0].shape == (32, 32, 3) and frames[0].dtype.name == "uint8"
+    trainer = SHAC(dataclasses.replace(tiny(mode="decoupled"), eval_envs=2), device="cpu")
+    evaluated = trainer.evaluate(video_steps=3, video_size=32)
+    assert isinstance(evaluated["eval_return_mean"], float) and len(evaluated["frames"]) == 3
+    assert evaluated["frames"][0].shape == (32, 32, 3) and evaluated["frames"][0].dtype.name == "uint8"
 
 
 def test_config_errors_are_clear():
@@ -127,7 +129,7 @@ def test_config_errors_are_clear():
         SHAC(tiny(task="cartpol"), device="cpu")
     with pytest.raises(ValueError, match="unknown mode 'ful'; valid modes: full, decoupled, state"):
         SHAC(tiny(mode="ful"), device="cpu")
-    with pytest.raises(ValueError, match="num_envs must be a positive integer"):
+    with pytest.raises(ValueError, match="--num-envs must be a positive integer"):
         SHAC(tiny(num_envs=0), device="cpu")
     with pytest.raises(ValueError, match="horizon must be a positive integer"):
         SHAC(tiny(horizon=-1), device="cpu")
@@ -239,7 +241,8 @@ def test_blind_actor_sees_one_constant_image_and_renders_nothing(monkeypatch):
     assert trainer.renderer is None and isinstance(trainer.actor, VisualActor)  # decoupled's actor
     seen = []
     real_mean = trainer._actor_mean
-    monkeypatch.setattr(trainer, "_actor_mean", lambda x: (seen.append((x, real_mean(x))), seen[-1][1])[1])
+    monkeypatch.setattr(trainer, "_actor_mean",
+                        lambda params, x: (seen.append((x, real_mean(params, x))), seen[-1][1])[1])
     m = trainer.train_iteration()
     assert m["grad_norm"] > 0 and len(seen) == 4
     for x, mu in seen:
@@ -252,10 +255,12 @@ def test_blind_actor_sees_one_constant_image_and_renders_nothing(monkeypatch):
 
     # evaluate() feeds the same constant image.
     inputs = []
-    real_forward = trainer.actor.forward
-    monkeypatch.setattr(trainer.actor, "forward", lambda x, **kw: (inputs.append(x), real_forward(x, **kw))[1])
-    ret, _ = trainer.evaluate(steps=3, num_envs=2)
-    assert isinstance(ret, float) and len(inputs) == 3
+    real_mean = trainer.actor.mean
+    monkeypatch.setattr(trainer.actor, "mean", lambda x: (inputs.append(x), real_mean(x))[1])
+    trainer.cfg.eval_envs = 2
+    evaluated = trainer.evaluate()
+    # (episodes' ends are read every 16 steps, so a few steps may follow the last end)
+    assert isinstance(evaluated["eval_return_mean"], float) and len(inputs) >= evaluated["eval_length_mean"]
     assert all(x.shape == (2, 9, 24, 24) and not x.any() for x in inputs)
 
 
