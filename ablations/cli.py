@@ -7,6 +7,7 @@ non-positive sizes, an unwritable output folder) is reported in one line naming 
 
 from __future__ import annotations
 
+import inspect
 import sys
 from collections.abc import Sequence
 from typing import Annotated, Any, TypeVar
@@ -19,7 +20,7 @@ T = TypeVar("T")
 #: panel names is shown in the last panel ("more").
 ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
     "essentials": ("task", "mode", "seed", "iters", "num_envs", "device", "threads", "compile", "out", "name",
-                   "resume", "time_limit_min", "progress"),
+                   "resume", "time_limit_min", "progress", "member"),
     "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every"),
     "training": ("preset", "horizon", "gamma", "lam", "actor_lr", "critic_lr", "lr_decay_iters", "lr_warmup_iters",
                  "encoder_lr_scale", "betas", "grad_clip", "abort_grad_norm", "critic_iterations", "critic_batches",
@@ -91,7 +92,8 @@ def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[s
 
         return StructConstructorSpec(instantiate=instantiate, fields=tuple(panel_fields))
 
-    return tyro.cli(cls, args=argv, prog=prog, default=default, description=cls.__doc__, registry=registry)
+    return tyro.cli(cls, args=argv, prog=prog, default=default, description=inspect.cleandoc(cls.__doc__ or ""),
+                    registry=registry)
 
 
 def ablate_main(argv: list[str] | None = None) -> None:
@@ -106,13 +108,15 @@ def ablate_main(argv: list[str] | None = None) -> None:
 
 
 def _ablate(argv: list[str] | None, startup) -> None:
+    from ablations import population
     from ablations.run_folder import RunFolder
-    from ablations.runs import RunConfig, closing_lines, run
+    from ablations.runs import closing_lines, run
     from gradlab.probes import NonFiniteError
 
-    cfg = parse(RunConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
+    cfg = parse(population.AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
     try:
-        run_dir = run(cfg, startup=startup)
+        members = cfg.members()
+        run_dir = run(members[0] if len(members) == 1 else members, startup=startup)
     except ValueError as e:
         _fail(str(e))
     except NonFiniteError as e:
@@ -121,8 +125,13 @@ def _ablate(argv: list[str] | None, startup) -> None:
         print(f"{e or 'interrupted'}: stopped before the run recorded its settings; nothing to resume",
               file=sys.stderr)
         raise SystemExit(130) from None
-    print("\n".join(closing_lines(run_dir)))
-    if (RunFolder(run_dir).read_summary() or {}).get("status") == "interrupted":
+    if population.is_population(run_dir):
+        print("\n".join(population.closing_lines(run_dir)))
+        statuses = {(f.read_summary() or {}).get("status") for f in population.PopulationFolder(run_dir).members()}
+    else:
+        print("\n".join(closing_lines(run_dir)))
+        statuses = {(RunFolder(run_dir).read_summary() or {}).get("status")}
+    if "interrupted" in statuses:
         raise SystemExit(130)
 
 

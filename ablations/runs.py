@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -203,41 +203,55 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, RunFolder, torch.device, LoadedC
 
 
 # ---------------------------------------------------------------------------------------------- running
-def run(cfg: RunConfig, *, startup: Startup | None = None) -> Path:
-    """Train (or resume) a run; returns its folder, whose summary.json says how it ended (``interrupted``: by a
-    signal, after checkpointing its last finished iteration). Raises ValueError on bad input before any work, and
-    KeyboardInterrupt for a signal that came before the run recorded its settings (its folder is then removed).
-    ``startup``: this process's start-up (``Startup.before_torch``: the bytecode folder, compile helpers on
-    standby); None: one that started nothing before torch was imported."""
+def run(cfg: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None) -> Path:
+    """Train (or resume) a run, or a population (several configs: the members, trained in one process); returns
+    its folder (a population's: the folder that holds its members' run folders), whose summary.json (each
+    member's) says how it ended (``interrupted``: by a signal, after checkpointing its last finished iteration).
+    Raises ValueError on bad input before any work, and KeyboardInterrupt for a signal that came before the run
+    recorded its settings (its folder is then removed). ``startup``: this process's start-up
+    (``Startup.before_torch``: the bytecode folder, compile helpers on standby); None: one that started nothing
+    before torch was imported."""
+    from ablations import population
+
     started = time.time()
     startup = startup or Startup()
-    folder = None
+    folders: list[RunFolder] = []
     with StopOnSignal() as stop, plain_warnings():
         try:
-            cfg, folder, device, resume_from = prepare(cfg)
-            use_threads(cfg.threads)
+            single = isinstance(cfg, RunConfig) and not (cfg.resume is not None and population.is_member(cfg.resume))
+            if single:
+                one, folder, device, resume_from = prepare(cfg)
+                cfgs, folders, states, home = [one], [folder], resume_from and resume_from.state, None
+            else:
+                cfgs, folders, device, states, home = population.prepare(cfg)
+            use_threads(cfgs[0].threads)
             cache_opened = time.time()
-            startup.open(cfg, shac_part(cfg), device, folder.path, resuming=resume_from is not None)
-            return _train(cfg, folder, device, resume_from, startup, stop, started=started,
-                          cache_opened=cache_opened)
+            startup.open(cfgs[0], shac_part(cfgs[0]) if single else [shac_part(c) for c in cfgs], device,
+                         folders[0].path if single else home.path, resuming=states is not None)
+            return _train(cfgs, folders, device, states, startup, stop, started=started, cache_opened=cache_opened,
+                          population=home)
         except BaseException:
-            if folder is not None:
+            for folder in folders:
                 folder.remove_if_empty()  # stopped before it wrote its first record
             raise
         finally:
             startup.close()  # on every way out, an error before the training loop included
 
 
-def _train(cfg: RunConfig, folder: RunFolder, device: torch.device, resume_from: LoadedCheckpoint | None,
-           startup: Startup, stop: StopOnSignal, *, started: float, cache_opened: float) -> Path:
-    """The rest of :func:`run` once its folder and start-up are settled: build the trainer, record the run,
-    train, write the summary."""
+def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device, states, startup: Startup,
+           stop: StopOnSignal, *, started: float, cache_opened: float, population=None) -> Path:
+    """The rest of :func:`run` once its folders and start-up are settled: build the trainer, record the runs,
+    train, write the summaries. ``cfgs`` and ``folders``: one per member in the trainer's member order (a single
+    run: one); ``states``: the checkpoint state(s) to resume from (None: a fresh start); ``population``: the
+    population's folder (None: a single run)."""
     from tqdm.auto import tqdm
 
     from gradlab.shac import SHAC
 
+    single = population is None
+    cfg = cfgs[0]  # the settings members share
     trainer_built = time.time()
-    trainer = SHAC(shac_part(cfg), device=device)
+    trainer = SHAC(shac_part(cfg) if single else [shac_part(c) for c in cfgs], device=device)
     startup.trainer_built(trainer)
     trainer_done = time.time()
     # where the seconds before the first iteration go (summary.json "startup_s"; benchmarks/startup.py): parts
@@ -245,22 +259,28 @@ def _train(cfg: RunConfig, folder: RunFolder, device: torch.device, resume_from:
     # config, the run folder, a checkpoint to resume, git and environment records, the progress bar)
     startup_s = {"imports": started - _process_started(), "compile_cache": trainer_built - cache_opened,
                  "trainer": trainer_done - trainer_built}
-    if resume_from is not None:
-        trainer.load_state_dict(resume_from.state)
-        del resume_from  # not kept alive for the whole run (optimizer states can be large)
-    if folder.config_path.exists():
-        folder.truncate_metrics(trainer.iteration)  # lines after the checkpoint are computed again
-    else:
+    if states is not None:
+        trainer.load_state_dict(states)
+        del states  # not kept alive for the whole run (optimizer states can be large)
+    members = [trainer.members[i] for i in range(len(cfgs))]
+    for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
+        if folder.config_path.exists():
+            folder.truncate_metrics(trainer.iteration)  # lines after the checkpoint are computed again
+            continue
         shac_fields = dataclasses.fields(SHACConfig)
-        resolved = dataclasses.replace(cfg, **{f.name: getattr(trainer.cfg, f.name) for f in shac_fields})
-        folder.write_config({
+        resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name) for f in shac_fields})
+        record = {
             "config": dataclasses.asdict(resolved),
             # which values the preset supplied and which flags overrode it (flag and preset value side by side)
-            "preset": preset_record(shac_part(cfg), trainer.cfg),
+            "preset": preset_record(shac_part(member_cfg), members[i].cfg),
             "started_utc": _utc(started),
             "environment": environment_info(device),
             "command": sys.argv,
-        })
+        }
+        if not single:  # the process it trained in: one of these members, in this folder
+            record["population"] = {"folder": population.path.name, "members": [f.path.name for f in folders],
+                                    "index": i}
+        folder.write_config(record)
         folder.write_git()
 
     writer = None
@@ -269,13 +289,14 @@ def _train(cfg: RunConfig, folder: RunFolder, device: torch.device, resume_from:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError as e:
             raise ValueError("--tensorboard needs the tensorboard package: pip install tensorboard") from e
-        writer = SummaryWriter(str(folder.path / "tb"))
+        writer = SummaryWriter(str(folders[0].path / "tb"))
 
-    base = f"{cfg.task}/{cfg.mode}"
+    base = f"{cfg.task}/{cfg.mode}" if single else f"{cfg.task}/{len(cfgs)} members"
     bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=base, unit="it",
                dynamic_ncols=True)
     first_iter_s = None
-    status, error = "running", None
+    statuses: list[tuple[str, str | None]] = [("running", None)] * len(cfgs)
+    stopped = [m.failed is not None for m in members]  # a resumed population's failed members stay stopped
     eval_text = "-"
     startup_s["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
     try:
@@ -295,13 +316,15 @@ def _train(cfg: RunConfig, folder: RunFolder, device: torch.device, resume_from:
         ended = spent
         stop.defer_to_iteration_end()  # from here a first signal lets the iteration finish
         while not ended and trainer.iteration < cfg.iters and not stop.requested:
-            m = trainer.train_iteration()
+            out = trainer.train_iteration()
+            rows = [out] if single else out
+            live = [r for r in rows if r is not None]
             if first_iter_s is None:
                 first_iter_s = time.time() - _process_started()
                 # a resumed run starts from its checkpoint's state and frames: no reset and render
-                startup_s.update(first_reset_render=trainer.start_s or 0.0, first_iteration=m["iter_ms"] / 1e3)
+                startup_s.update(first_reset_render=trainer.start_s or 0.0, first_iteration=live[0]["iter_ms"] / 1e3)
             startup.after_iteration()
-            it = m["iter"]
+            it = trainer.iteration
             ended = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
             video = bool(cfg.video_every) and (it % cfg.video_every == 0 or ended)
             if video or (cfg.eval_every and (it % cfg.eval_every == 0 or ended)):
@@ -309,45 +332,67 @@ def _train(cfg: RunConfig, folder: RunFolder, device: torch.device, resume_from:
                 with startup.evaluating():
                     evaluated = trainer.evaluate(video_steps=(cfg.video_steps or trainer.task.episode_length)
                                                  if video else 0)
-                frames = evaluated.pop("frames")
-                m.update(evaluated)
-                folder.write_video(it, frames)
-            folder.append_metrics(m)
+                for row, folder, ev in zip(rows, folders, [evaluated] if single else evaluated):
+                    if row is not None:
+                        frames = ev.pop("frames")
+                        row.update(ev)
+                        folder.write_video(it, frames)
+            for i, (row, folder) in enumerate(zip(rows, folders)):
+                if row is not None:
+                    folder.append_metrics(row)
+                elif not stopped[i]:  # a member that stopped this iteration: its record says why, the others go on
+                    stopped[i] = True
+                    statuses[i] = ("nonfinite", members[i].failed)
+                    folder.write_summary(_summary(folder.read_metrics(), cfgs[i], *statuses[i], started))
             if writer is not None:
-                for k, v in m.items():
+                for k, v in live[0].items():
                     if isinstance(v, (int, float)) and not isinstance(v, bool):
                         writer.add_scalar(k, v, it)
             if it % cfg.checkpoint_every == 0 or ended:
-                folder.save_checkpoint(it, trainer.state_dict(), keep=cfg.keep_checkpoints)
+                _checkpoint(trainer, folders, it, cfg.keep_checkpoints)
                 checkpointed = it
-            if (ev := evaluation_of(m)) is not None:
-                eval_text = f"{ev[0]:.1f}"
-            ret = m["return_mean"]
-            bar.set_postfix({"ret": "-" if ret is None else f"{ret:.1f}", "eval": eval_text,
-                             "ms": f"{m['iter_ms']:.0f}", "gn": f"{m['grad_norm']:.2g}"})
+            evals = [ev for r in live if (ev := evaluation_of(r)) is not None]
+            if evals:
+                eval_text = f"{sum(e[0] for e in evals) / len(evals):.1f}"
+            returns = [r["return_mean"] for r in live if r["return_mean"] is not None]
+            bar.set_postfix({"ret": f"{sum(returns) / len(returns):.1f}" if returns else "-", "eval": eval_text,
+                             "ms": f"{live[0]['iter_ms']:.0f}", "gn": f"{max(r['grad_norm'] for r in live):.2g}"})
             bar.update(1)
         if stop.requested and not ended:
             if checkpointed != trainer.iteration:
-                folder.save_checkpoint(trainer.iteration, trainer.state_dict(), keep=cfg.keep_checkpoints)
+                _checkpoint(trainer, folders, trainer.iteration, cfg.keep_checkpoints)
             status, error = "interrupted", f"{stop.requested} after iteration {trainer.iteration}"
         else:
-            status = "finished" if trainer.iteration >= cfg.iters else "time_limit"
+            status, error = ("finished" if trainer.iteration >= cfg.iters else "time_limit"), None
+        statuses = [s if stopped[i] else (status, error) for i, s in enumerate(statuses)]
     except NonFiniteError as e:
-        status, error = "nonfinite", str(e)
+        statuses = [s if stopped[i] else ("nonfinite", str(e)) for i, s in enumerate(statuses)]
         raise
     except KeyboardInterrupt as e:  # a second signal: stopped mid-iteration, the last checkpoint is the state
-        status, error = "interrupted", f"{e or 'KeyboardInterrupt'} during iteration {trainer.iteration + 1}"
+        why = f"{e or 'KeyboardInterrupt'} during iteration {trainer.iteration + 1}"
+        statuses = [s if stopped[i] else ("interrupted", why) for i, s in enumerate(statuses)]
     except torch.OutOfMemoryError as e:
-        status, error = "oom", str(e).splitlines()[0]
+        statuses = [s if stopped[i] else ("oom", str(e).splitlines()[0]) for i, s in enumerate(statuses)]
         raise
     finally:
         startup.close()
         bar.close()
         if writer is not None:
             writer.close()
-        folder.write_summary(_summary(folder.read_metrics(), cfg, status, error, started, first_iter_s=first_iter_s,
-                                      compiled=startup.record(), startup_s=startup_s))
-    return folder.path
+        for i, folder in enumerate(folders):
+            if not (stopped[i] and folder.summary_path.exists()):
+                folder.write_summary(_summary(folder.read_metrics(), cfgs[i], *statuses[i], started,
+                                              first_iter_s=first_iter_s, compiled=startup.record(),
+                                              startup_s=startup_s))
+    return folders[0].path if single else population.path
+
+
+def _checkpoint(trainer, folders: list[RunFolder], iteration: int, keep: int) -> None:
+    """Every member's checkpoint of ``iteration`` into its folder (a stopped member's too, recording why it
+    stopped: a population resumes from an iteration every member has)."""
+    states = trainer.state_dict()
+    for folder, state in zip(folders, [states] if len(folders) == 1 and isinstance(states, dict) else states):
+        folder.save_checkpoint(iteration, state, keep=keep)
 
 
 class StopOnSignal:

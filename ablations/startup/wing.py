@@ -82,7 +82,9 @@ class Startup:
     # ------------------------------------------------------------------ 2. run folder and device known
     def open(self, cfg: Any, trainer_cfg: Any, device: Any, run_dir: Path, *, resuming: bool) -> None:
         """Once the run folder and the device are known. ``cfg``: the RunConfig (``compile``, ``compile_cache``,
-        ``compile_helper``); ``trainer_cfg``: its trainer settings (a SHACConfig); ``resuming``: a resumed run.
+        ``compile_helper``); ``trainer_cfg``: its trainer settings (a SHACConfig; a population's: one per member,
+        whose artifact file is the population's own and which compiles without helpers, as they would compile a
+        single run's shapes); ``resuming``: a resumed run.
 
         With --compile: the cache folder is checked (one unusable is a warning, and torch's own caches are used);
         where the run wants helpers (:func:`wants_helpers`) this process takes its CUDA context first (on a GPU in
@@ -100,10 +102,14 @@ class Startup:
                 from gradlab.config import resolve_config
 
                 _show_cache_warnings_plainly()
-                resolved = resolve_config(trainer_cfg)
-                self.label = f"{resolved.task}_{resolved.mode}_{resolved.num_envs}envs_{resolved.image_size}px"
+                members = [trainer_cfg] if not isinstance(trainer_cfg, (list, tuple)) else list(trainer_cfg)
+                resolved = resolve_config(members[0])
+                kind = resolved.mode if len(members) == 1 else "population-" + "-".join(sorted(
+                    {f"{c.mode}{'' if c.raster_model is None else '.' + c.raster_model}" for c in members}))
+                count = len(members) if len(members) > 1 else ""
+                self.label = f"{resolved.task}_{kind}{count}_{resolved.num_envs}envs_{resolved.image_size}px"
                 cache = _open_cache(cfg.compile_cache, device)
-                if wants_helpers(cfg, device, cache, self.label, resuming=resuming):
+                if len(members) == 1 and wants_helpers(cfg, device, cache, self.label, resuming=resuming):
                     torch.empty(1, device=device)
                     self.helpers, standby = (standby or CompileHelpers.spawn()), None
                     self.helpers.assign(resolved, device, cache.folder.parent, run_dir)
