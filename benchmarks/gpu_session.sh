@@ -4,7 +4,7 @@
 #   bash benchmarks/gpu_session.sh STAGE[:SECONDS] ...
 # Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
 # in ~95 s (H100) before a stage prints its first row.
-# Stages: env, nvdiffrast, anchor, cuda-tests, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay,
+# Stages: env, nvdiffrast, anchor, cuda-tests, population, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay,
 # profile, render, render-fused, raytrace, iter, iter-compiled, iter-warp, startup, learn, paper, sweep (see each
 # case below).
 set -u
@@ -32,7 +32,10 @@ for spec in "$@"; do
        NVDR_SRC=$PWD/.shared/nvdiffrast source .shared/nvdiffrast-build.sh;;
     anchor) # ours (each raster model), the Warp ray tracer and nvdiffrast on one scene; silhouette IoU
        run "$secs" python3 benchmarks/anchor.py ${ANCHOR_ARGS:-} --out "$OUT/anchor.json";;
-    cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/diffrender -q -x -m "cuda" -p no:cacheprovider;;
+    cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/test_cuda_population.py tests/diffrender -q -x \
+           -m "cuda" -p no:cacheprovider;;
+    population) # populations against separate processes (benchmarks/population.py); POP_ARGS: its options
+       run "$secs" python3 benchmarks/population.py ${POP_ARGS:-} --out "$OUT/population.json";;
     sim) run "$secs" python3 benchmarks/sim.py --device cuda --quick --modes ${SIM_MODES:-eager compiled graph} \
            --out "$OUT/sim_quick.json";;
     profile) # kernels of the captured forward / backward graphs by category, and the encoder alone

@@ -113,7 +113,9 @@ def run_wave(jobs: list[dict], args, *, timed_alone: bool) -> list[dict]:
         for job in jobs:
             spec = {**job, "barrier": str(barrier), "wave": len(jobs), "lock": lock}
             cmd = [sys.executable, __file__, "--child", json.dumps(spec), *args.passthrough]
-            env = {**os.environ, "TORCHINDUCTOR_COMPILE_THREADS": str(args.compile_threads)}
+            # the wave's processes compile at once: they share the machine's cores
+            threads = max(1, min(args.compile_threads, (os.cpu_count() or 1) // len(jobs)))
+            env = {**os.environ, "TORCHINDUCTOR_COMPILE_THREADS": str(threads)}
             procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env))
         rows = []
         for job, p in zip(jobs, procs):
@@ -181,15 +183,34 @@ def main() -> None:
         doc["gpu"] = torch.cuda.get_device_name()
         doc["torch"] = torch.__version__
     write_json(args.out, doc)
-    print(f"\npopulations ({args.num_envs} envs per member, horizon {args.horizon}, {args.image_size} px)")
-    print(f"{'task':8} {'kind':10} {'N':>3} {'batching':9} {'iter ms':>9} {'env steps/s':>12} {'reserved MB':>12}")
+    print_table(rows, args)
+
+
+def print_table(rows: list[dict], args) -> None:
+    """Per task and N: the population's iteration and throughput, against its single run (N = 1) and against N
+    separate processes at once (their median iteration, their summed throughput)."""
+    print(f"\npopulations ({args.num_envs} envs per member, horizon {args.horizon}, {args.image_size} px; "
+          f"members cycle {', '.join(m + ('-' + r if r else '') for m, r in ARMS)})")
+    print(f"{'task':8} {'N':>3} {'batching':9} {'iter ms':>9} {'x single':>9} {'steps/s':>9} {'reserved MB':>12} "
+          f"{'sep. iter ms':>13} {'sep. steps/s':>13} {'gain':>6}")
+    ok = [r for r in rows if r["status"] == "ok"]
     for r in rows:
-        if r["status"] != "ok":
-            print(f"{r['task']:8} {r['kind']:10} {r['members']:>3} {r['status']}: {r.get('error', '')[:80]}")
+        if r["kind"] != "population":
             continue
-        n = r.get("processes", r["members"])
-        print(f"{r['task']:8} {r['kind']:10} {n:>3} {r['batching']:9} {r['iter_ms']:>9.1f} "
-              f"{r['env_steps_per_s']:>12} {r.get('max_reserved_mb', r['peak_reserved_mb']):>12}")
+        if r["status"] != "ok":
+            print(f"{r['task']:8} {r['members']:>3} {r['batching']:9} {r['status']}: {r.get('error', '')[:70]}")
+            continue
+        single = next((x for x in ok if x["kind"] == "population" and x["task"] == r["task"] and x["members"] == 1),
+                      None)
+        apart = [x for x in ok if x["kind"] == "separate" and x["task"] == r["task"]
+                 and x["processes"] == r["members"]]
+        ratio = f"{r['iter_ms'] / single['iter_ms']:.2f}" if single else "-"
+        sep_ms = f"{statistics.median(x['iter_ms'] for x in apart):.1f}" if apart else "-"
+        sep_rate = sum(x["env_steps_per_s"] for x in apart)
+        gain = f"{r['env_steps_per_s'] / sep_rate:.2f}" if apart else "-"
+        print(f"{r['task']:8} {r['members']:>3} {r['batching']:9} {r['iter_ms']:>9.1f} {ratio:>9} "
+              f"{r['env_steps_per_s']:>9} {r.get('max_reserved_mb', r['peak_reserved_mb']):>12} {sep_ms:>13} "
+              f"{sep_rate if apart else '-':>13} {gain:>6}")
 
 
 if __name__ == "__main__":
