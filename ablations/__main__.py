@@ -1,19 +1,26 @@
-"""``python -m ablations {ablate,memory,plot,report} ...``: the console scripts without installing them."""
+"""``python -m ablations {ablate,memory,plot,report,sweep,paper} ...``: the console scripts without installing them.
+
+Each command's module is imported when it is called: ``ablate`` must start before torch is imported
+(``ablations.startup``).
+"""
 
 from __future__ import annotations
 
+import importlib
 import sys
 
-from ablations.cli import ablate_main, memory_main, plot_main, report_main
-
-COMMANDS = {"ablate": ablate_main, "memory": memory_main, "plot": plot_main, "report": report_main}
+#: command -> "module:function", as pyproject.toml's [project.scripts] names them (ablate-<command>).
+COMMANDS = {"ablate": "ablations.cli:ablate_main", "memory": "ablations.cli:memory_main",
+            "plot": "ablations.cli:plot_main", "report": "ablations.cli:report_main",
+            "sweep": "ablations.sweep:main", "paper": "ablations.paper:main"}
 
 
 def main() -> None:
     if len(sys.argv) < 2 or sys.argv[1] not in COMMANDS:
         print(f"usage: python -m ablations {{{','.join(COMMANDS)}}} [--help | args...]", file=sys.stderr)
         raise SystemExit(2)
-    COMMANDS[sys.argv[1]](sys.argv[2:])
+    module, function = COMMANDS[sys.argv[1]].split(":")
+    getattr(importlib.import_module(module), function)(sys.argv[2:])
 
 
 if __name__ == "__main__":

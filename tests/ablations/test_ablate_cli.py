@@ -496,3 +496,19 @@ def test_a_signal_checkpoints_the_last_iteration_and_the_resume_repeats_nothing(
     rows = read_metrics(cut)
     assert [r["iter"] for r in rows] == list(range(1, iters + 1))
     assert strip_timing(rows) == strip_timing(read_metrics(tmp_path / "whole"))
+
+
+def test_python_m_ablations_runs_every_ablations_console_script(tmp_path):
+    """``python -m ablations X`` is the console script ``ablate-X`` (``ablate`` for ablate), same function."""
+    import tomllib
+
+    from ablations.__main__ import COMMANDS
+
+    scripts = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())["project"]["scripts"]
+    ours = {name.removeprefix("ablate-") if name != "ablate" else name: target for name, target in scripts.items()
+            if target.startswith("ablations.")}
+    assert COMMANDS == ours
+    r = subprocess.run([sys.executable, "-m", "ablations", "sweep", "--dry-run", "--modes", "state", "--set",
+                        "iters=2", "--out", str(tmp_path / "sweep")], capture_output=True, text=True, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2])))
+    assert r.returncode == 0 and "start    cartpole_state_seed0: ablate" in r.stdout, r.stderr[-2000:]
