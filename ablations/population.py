@@ -110,13 +110,16 @@ def _typed(raw: str, default):
 
 
 def member_name(cfg: RunConfig, members: list[RunConfig]) -> str:
-    """A member's run folder name: task, mode, the member settings that differ between members, seed."""
+    """A member's run folder name: task, mode, the member settings that differ between members and that it sets
+    (a raster model or preset by its name, another setting as name-value), seed; e.g. ``hopper_full_hard_seed0``
+    beside ``hopper_full_seed0``."""
     from gradlab.shac import MEMBER_FIELDS
 
     varying = [k for k in MEMBER_FIELDS if k not in ("mode", "seed")
-               and len({repr(getattr(c, k)) for c in members}) > 1]
-    parts = [cfg.task, cfg.mode, *(f"{k.replace('_', '-')}-{getattr(cfg, k)}" for k in varying), f"seed{cfg.seed}"]
-    return "_".join(str(p) for p in parts)
+               and len({repr(getattr(c, k)) for c in members}) > 1 and getattr(cfg, k) is not None]
+    labels = [str(getattr(cfg, k)) if k in ("raster_model", "preset") else f"{k.replace('_', '-')}{getattr(cfg, k)}"
+              for k in varying]
+    return "_".join([cfg.task, cfg.mode, *labels, f"seed{cfg.seed}"])
 
 
 def is_population(path: str | Path) -> bool:

@@ -37,7 +37,10 @@ def test_a_captured_population_follows_the_eager_one():
         probes = key[0] != "blind"
         assert [r["probed"] for r in rows] == [probes, False, False, probes, False, False]
         for i, (a, b) in enumerate(zip(eager[key], rows)):
-            tol = 3e-3 * (1 + i)  # compiled kernels round differently, and Adam carries the differences forward
+            # compiled kernels round differently, and Adam carries the differences forward; the hard raster model's
+            # image is piecewise constant in the state, so a rounding that moves a pixel to another face moves its
+            # gradient by a step (seen: 3.7 % on the fifth iteration of an H100)
+            tol = (1e-2 if key[1] == "hard" else 3e-3) * (1 + i)
             for k in ("actor_loss", "grad_norm", "critic_loss"):
                 assert b[k] == pytest.approx(a[k], rel=tol, abs=1e-5), (key, i, k)
         if key[0] == "full":
