@@ -43,7 +43,7 @@ if TYPE_CHECKING:
 
     from gradlab.checkpoint import LoadedCheckpoint
 
-__all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable",
+__all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
            "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES"]
 
@@ -483,3 +483,25 @@ def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
         runs.append(load_run(p))
     return runs
 
+
+
+def thin_copy(src: str | os.PathLike, dst: str | os.PathLike, *, every: int) -> RunFolder:
+    """A copy of the run folder ``src`` at ``dst`` small enough to keep in a repository: its records (config.json,
+    git.txt, summary.json), videos, and the metrics lines of every ``every``-th iteration, every probe and every
+    evaluation (what plots, reports and statistics read); no checkpoints, no git.diff. Returns the copy."""
+    if every < 1:
+        raise ValueError(f"every must be a positive integer, got {every}")
+    source, copy = RunFolder.existing(src), RunFolder(dst)
+    copy.path.mkdir(parents=True, exist_ok=True)
+    for name in (CONFIG, GIT, SUMMARY):
+        if (source.path / name).exists():
+            shutil.copy2(source.path / name, copy.path / name)
+    for video in source.videos():
+        copy.video_dir.mkdir(exist_ok=True)
+        shutil.copy2(video, copy.video_dir / video.name)
+    kept = [r for r in source.read_metrics()
+            if r["iter"] % every == 0 or r.get("probed") or evaluation_of(r) is not None]
+    from gradlab.checkpoint import atomic_write_text
+
+    atomic_write_text(copy.metrics_path, "".join(json.dumps(r) + "\n" for r in kept))
+    return copy

@@ -272,6 +272,8 @@ class SHAC:
         self.episode_length = torch.zeros(n * B, device=self.device, dtype=torch.long)
         self._started = False
         self.start_s: float | None = None  # seconds of the first reset and render (the first render compiles)
+        self._evaluator: tuple[tasks.Task, dict] | None = None  # built at the first evaluation
+        self._eval_rng: torch.Tensor | None = None
         self.live = LiveState()
         critics = m0.critic if n == 1 else nn.ModuleList([m.critic for m in self.members])
         self.critic_fit = (GraphedCriticPhase(self._fit_critic, critics, self.device) if self.graphs
@@ -810,24 +812,22 @@ class SHAC:
         first ``video_steps`` steps (else empty). None for a member that has stopped.
         """
         cfg, n, E = self.cfg, self.n, self.cfg.eval_envs
-        overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
-        task = tasks.make(cfg.task, n * E, device=self.device, seed=EVAL_SEED if n == 1 else [EVAL_SEED] * n,
-                          **overrides)
-        if cfg.compile:
-            task.compile()  # an eager episode is episode_length x substeps unfused substeps
+        task, renderers = self._evaluation_task()
+        task.rng.set_state(self._eval_rng)  # every evaluation from the same initial states
         obs = task.reset()
         stats = [m.obs_rms.snapshot() for m in self.members]
         stats = stats[0] if n == 1 else tuple(torch.stack(s).repeat_interleave(E, 0) for s in zip(*stats))
         params = self.actors.stack()
-        renderers, frames = {}, FrameStack(cfg.frames)
+        frames = FrameStack(cfg.frames)
         if self.sees:
-            renderers = {r: TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options(r))
-                         for r in dict.fromkeys(m.cfg.raster_model for m in self.members if m.plan.renders)}
             frames.reset(self._eval_images(task, renderers, E))
         video = None
         if video_steps:
-            video = TaskRenderer(task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2),
-                                 sigma=None, gamma=None, renderer=cfg.renderer)
+            video = renderers.get(("video", video_size))
+            if video is None:
+                video = renderers[("video", video_size)] = TaskRenderer(
+                    task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2), sigma=None,
+                    gamma=None, renderer=cfg.renderer)
         blank = self._blank_images(n * E) if not (self.sees or self.on_state) else None
         total = torch.zeros(n * E, device=self.device)
         length = torch.zeros(n * E, device=self.device)
@@ -867,6 +867,21 @@ class SHAC:
                         "eval_length_mean": float(length[rows].mean()),
                         "frames": recorded[m.index]})
         return out[0] if self.single else out
+
+    def _evaluation_task(self) -> tuple[tasks.Task, dict]:
+        """The evaluation task (``eval_envs`` environments per member, reset seed :data:`EVAL_SEED`) and its
+        renderers by raster model, built once: kept between evaluations, a compiled one compiles once."""
+        if self._evaluator is None:
+            cfg, n = self.cfg, self.n
+            overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
+            task = tasks.make(cfg.task, n * cfg.eval_envs, device=self.device,
+                              seed=EVAL_SEED if n == 1 else [EVAL_SEED] * n, **overrides)
+            if cfg.compile:
+                task.compile()  # an eager episode is episode_length x substeps unfused substeps
+            renderers = {r: TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options(r))
+                         for r in dict.fromkeys(m.cfg.raster_model for m in self.members if m.plan.renders)}
+            self._evaluator, self._eval_rng = (task, renderers), task.rng.get_state()
+        return self._evaluator
 
     def _eval_images(self, task, renderers: dict[str, TaskRenderer], per_member: int) -> torch.Tensor:
         """An evaluation task's images, (N * E, 3, H, W): each seeing member's from its raster model, blind

@@ -148,3 +148,19 @@ def test_environment_records_package_versions_from_their_metadata():
     assert env["mujoco"] == metadata.version("mujoco")
     assert env["packages"]["torch"] == metadata.version("torch") and env["threads"] == torch.get_num_threads()
     json.dumps(env)  # it goes into config.json
+
+
+def test_a_thin_copy_keeps_the_records_every_kth_iteration_probes_and_evaluations(tmp_path):
+    from ablations.run_folder import RunFolder, load_run, thin_copy
+
+    src = RunFolder.create(tmp_path, "run")
+    src.write_config({"config": {"task": "hopper", "mode": "full", "seed": 1}})
+    for it in range(1, 31):
+        row = {"iter": it, "probed": it % 7 == 0}
+        if it == 25:
+            row.update(eval_return_mean=100.0, eval_return_std=1.0)
+        src.append_metrics(row)
+    src.save_checkpoint(30, {"x": 1}, keep=1)
+    thin = thin_copy(src.path, tmp_path / "thin" / "run", every=10)
+    assert [r["iter"] for r in thin.read_metrics()] == [7, 10, 14, 20, 21, 25, 28, 30]
+    assert not thin.checkpoint_dir.exists() and load_run(thin.path).config["mode"] == "full"
