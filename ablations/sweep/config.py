@@ -15,7 +15,8 @@ import tyro
 from gradlab.config import MODES
 from tasks import TASKS
 
-__all__ = ["SweepConfig", "parse_args", "parse_set", "parse_vary", "norm_key", "flag_args", "slug", "RESERVED"]
+__all__ = ["SweepConfig", "parse_args", "parse_set", "parse_vary", "norm_key", "flag_args", "slug", "RESERVED",
+           "AUTO_PACK_GPU"]
 
 #: ``ablate`` flags the sweep sets itself (the grid's own axes, where each run's folder goes, its CPU threads).
 #: Each run compiles in its own process (--no-compile-helper): a sweep's concurrent runs already use the cores that
@@ -26,6 +27,10 @@ RESERVED = {"task": "--tasks", "mode": "--modes", "seed": "--seeds", "out": "--o
 # --help shows the valid values of the two named axes (the lists every command shares).
 _TaskList = Annotated[tuple[str, ...], tyro.conf.arg(metavar="{" + ",".join(TASKS) + "} [...]")]
 _ModeList = Annotated[tuple[str, ...], tyro.conf.arg(metavar="{" + ",".join(MODES) + "} [...]")]
+_Pack = Annotated[str, tyro.conf.arg(metavar="{auto,N}")]
+
+#: Members per population of ``--pack auto`` on a GPU (why: --pack's help, from BENCHMARKS.md section 7).
+AUTO_PACK_GPU = 12
 
 
 @dataclass
@@ -63,6 +68,14 @@ class SweepConfig:
     gpus_per_run: float = 0.0
     """GPUs Ray reserves for each run; fractions share a GPU (0.25: four runs per GPU; Ray does not divide its memory).
     0: the run sees no GPU (CUDA_VISIBLE_DEVICES is emptied) and trains on the CPU."""
+    pack: _Pack = "1"
+    """Grid cells that can share a process (the same task and every setting but a member's own: mode, seed,
+    raster model, preset and the other gradlab.shac.MEMBER_FIELDS) train as populations of at most N members,
+    each one `ablate --member ...` process and one Ray task with the resources of one run (--cpus-per-run,
+    --gpus-per-run); the members' run folders are runs/<population>/<member>. 1: one run per process. auto: 12
+    on GPU runs (--gpus-per-run > 0; the population benchmark, BENCHMARKS.md section 7, trained 12 ant members
+    in 34 GB at 1.6x the throughput of 12 separate processes on an H100), 1 on the CPU. State runs form
+    populations of their own. A population too large for its device's memory fails naming its size: lower N."""
     max_retries: int = 3
     """Retries of a run whose worker process died or whose ablate process was killed by a signal.
     Each retry resumes from the last checkpoint the sweep folder holds.
@@ -97,12 +110,22 @@ class SweepConfig:
             raise ValueError(f"--gpus-per-run above 1 must be a whole number, got {self.gpus_per_run}")
         if self.max_retries < 0:
             raise ValueError(f"--max-retries must be >= 0, got {self.max_retries}")
+        self.pack_size()
         if self.address is not None and self.address.startswith("ray://"):
             raise ValueError(f"--address {self.address}: Ray Client is not supported; run ablate-sweep on a node "
                              "of the cluster (e.g. through `ray job submit`) with --address auto")
         if self.address is not None and (self.num_cpus is not None or self.num_gpus is not None):
             raise ValueError("--num-cpus/--num-gpus size a local cluster started here; they cannot be used with "
                              "--address")
+
+    def pack_size(self) -> int:
+        """Most members per population that --pack gives (1: one run per process); ValueError naming the flag."""
+        text = str(self.pack).strip().lower()
+        if text == "auto":
+            return AUTO_PACK_GPU if self.gpus_per_run > 0 else 1
+        if not text.isdigit() or int(text) < 1:
+            raise ValueError(f"--pack must be auto or a positive whole number, got {self.pack!r}")
+        return int(text)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -218,6 +241,8 @@ def _load_toml(path: Path) -> tuple[dict, dict, dict]:
             raise ValueError(f"--config {path}: unknown key {key!r} (known: {', '.join(sorted(fields))}, set, vary)")
     if "out" in options:
         options["out"] = Path(options["out"])
+    if "pack" in options:  # pack = 12 or pack = "auto"
+        options["pack"] = str(options["pack"])
     return options, set_entries, vary_entries
 
 

@@ -14,8 +14,8 @@ from typing import Any
 from ablations.run_folder import RunFolder, check_writable
 from ablations.sweep.config import SweepConfig, parse_args, parse_set, parse_vary
 from ablations.sweep.grid import plan
-from ablations.sweep.manifest import MANIFEST, load_manifest, prepare_manifest, write_manifest
-from ablations.sweep.store import RunStore, run_path, run_state
+from ablations.sweep.manifest import MANIFEST, load_manifest, plan_jobs, prepare_manifest, write_manifest
+from ablations.sweep.store import RunStore, job_state, run_path
 from ablations.sweep.table import LiveTable
 from ablations.sweep.worker import RunProcessDied, run_attempt
 
@@ -75,10 +75,10 @@ def _check_resources(cfg: SweepConfig) -> None:
 
 
 def run_slots(cfg: SweepConfig) -> int:
-    """How many runs the cluster trains at once: per live node, its CPUs / --cpus-per-run (and GPUs /
-    --gpus-per-run), rounded down, summed; at least 1.
+    """How many runs (or populations: a process each) the cluster trains at once: per live node, its CPUs /
+    --cpus-per-run (and GPUs / --gpus-per-run), rounded down, summed; at least 1.
 
-    The driver keeps no more runs than this in flight. Ray's reservations alone do not hold the line: a task
+    The driver keeps no more processes than this in flight. Ray's reservations alone do not hold the line: a task
     blocked in ``ray.get`` (a worker waiting for the run store) hands its CPU back, and Ray starts another run on it.
     """
     import ray
@@ -141,61 +141,70 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
         store = ray.remote(RunStore).options(
             num_cpus=0, max_concurrency=1,
             scheduling_strategy=NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False),
-        ).remote(str(out), {k: r.get("attempts", 0) for k, r in runs.items()})
+        ).remote(str(out), {job.job_id: max(runs[r].get("attempts", 0) for r in job.run_ids) for job in todo})
+        # A population is one Ray task with the resources of one run.
         task = ray.remote(run_attempt).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
                                                max_retries=cfg.max_retries, retry_exceptions=[RunProcessDied])
         opts = {"sweep_id": manifest["id"], "gpus_per_run": cfg.gpus_per_run, "cpus_per_run": cfg.cpus_per_run,
                 "keep_checkpoints": cfg.keep_checkpoints, "program": None if program is None else list(program)}
         queue = list(todo)
+        jobs = {job.job_id: job for job in todo}
         table = LiveTable(manifest, todo, enabled=cfg.progress)
         last_write = time.monotonic()
         while queue or pending:
             if queue:
                 free = max(0, run_slots(cfg) - len(pending))
-                for spec in queue[:free]:
-                    pending[task.remote(dataclasses.asdict(spec), store, opts)] = spec.run_id
+                for job in queue[:free]:
+                    pending[task.remote(dataclasses.asdict(job), store, opts)] = job
                 del queue[:free]
             ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=DRIVER_POLL_S)
             changed = False
-            for run_id, info in ray.get(store.snapshot.remote()).items():
-                rec = runs[run_id]
-                if rec["status"] in ("done", "failed") and info.get("attempts", 0) <= rec.get("attempts", 0):
-                    continue
-                new = {k: info[k] for k in ("iteration", "latest_return", "node", "host", "attempts", "resumed")
-                       if k in info}
-                if info.get("status") == "running" and rec["status"] == "queued":
-                    new["status"] = "running"
-                if any(rec.get(k) != v for k, v in new.items()):
-                    rec.update(new, updated=_now())
-                    changed = changed or "status" in new
+            for job_id, info in ray.get(store.snapshot.remote()).items():
+                for run_id in jobs[job_id].run_ids:
+                    rec = runs[run_id]
+                    if rec["status"] in ("done", "failed") and info.get("attempts", 0) <= rec.get("attempts", 0):
+                        continue
+                    new = {k: info[k] for k in ("node", "host", "attempts", "resumed") if k in info}
+                    new.update({k: v for k, v in (info.get("runs") or {}).get(run_id, {}).items()
+                                if k in ("iteration", "latest_return")})
+                    if info.get("status") == "running" and rec["status"] == "queued":
+                        new["status"] = "running"
+                    if any(rec.get(k) != v for k, v in new.items()):
+                        rec.update(new, updated=_now())
+                        changed = changed or "status" in new
             for ref in ready:
-                run_id = pending.pop(ref)
-                rec = runs[run_id]
+                job = pending.pop(ref)
                 try:
                     result = ray.get(ref)
                 except ray.exceptions.RayError as e:
                     # Retries are spent (a worker death, a killed ablate) or the task itself broke.
-                    tries = max(rec.get("attempts") or 0, 1)
-                    result = {"status": "failed", "error": f"{_describe_failure(e)} (attempt {tries}, "
-                                                           f"--max-retries {cfg.max_retries})"}
-                rec.update({k: v for k, v in result.items() if k in ("status", "error", "iteration", "latest_return",
-                                                                     "node", "host", "summary_status")},
-                           updated=_now())
-                rec["attempts"] = max(rec.get("attempts", 0), result.get("attempt", 0))
-                if rec["status"] == "done" and not cfg.keep_checkpoints:
-                    RunFolder(out / rec["folder"]).drop_checkpoints()
+                    tries = max(max(runs[r].get("attempts") or 0 for r in job.run_ids), 1)
+                    error = f"{_describe_failure(e)} (attempt {tries}, --max-retries {cfg.max_retries})"
+                    result = {"runs": {r: {"status": "failed", "error": error} for r in job.run_ids}}
+                where = {k: result[k] for k in ("node", "host") if k in result}
+                for run_id, outcome in result["runs"].items():
+                    rec = runs[run_id]
+                    rec.update({k: v for k, v in {**outcome, **where}.items()
+                                if k in ("status", "error", "iteration", "latest_return", "node", "host",
+                                         "summary_status")}, updated=_now())
+                    rec["attempts"] = max(rec.get("attempts", 0), result.get("attempt", 0))
+                if not cfg.keep_checkpoints and all(runs[r]["status"] == "done" for r in job.run_ids):
+                    for r in job.run_ids:
+                        RunFolder(out / runs[r]["folder"]).drop_checkpoints()
                 changed = True
             if changed or time.monotonic() - last_write > 10 * DRIVER_POLL_S:
                 write_manifest(out, manifest)
                 last_write = time.monotonic()
             table.update()
         snap = ray.get(store.snapshot.remote())
-        for run_id, info in snap.items():
-            runs[run_id]["attempts"] = max(runs[run_id].get("attempts", 0), info.get("attempts", 0))
+        for job_id, info in snap.items():
+            for run_id in jobs[job_id].run_ids:
+                runs[run_id]["attempts"] = max(runs[run_id].get("attempts", 0), info.get("attempts", 0))
     except KeyboardInterrupt:
         # Unfinished runs go back to queued: a rerun resumes them from the checkpoints the folder holds.
-        for run_id in pending.values():
-            manifest["runs"][run_id]["status"] = "queued"
+        for job in pending.values():
+            for run_id in job.run_ids:
+                manifest["runs"][run_id]["status"] = "queued"
         raise
     finally:
         if table is not None:
@@ -208,18 +217,28 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
 
 def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
             arms: dict | None = None) -> list[str]:
-    """Print (and return) one line per run, with what a (re)run would do with it; starts nothing."""
+    """Print (and return) one line per job (a run, or a population followed by a line per member), with what a
+    (re)run would do with it; starts nothing."""
     specs = plan(cfg, set_table, vary_table, arms=arms)
     out = Path(cfg.out)
     manifest = load_manifest(out) or {"runs": {}}
+    jobs = plan_jobs(cfg, specs, manifest)
     lines = []
-    for spec in specs:
-        state = run_state(run_path(out, spec.run_id), spec.iters)
-        if state != "done" and manifest["runs"].get(spec.run_id, {}).get("status") == "failed" \
-                and not cfg.rerun_failed:
+    for job in jobs:
+        state = job_state(run_path(out, job.job_id), job.members, job.iters)
+        if state != "done" and not cfg.rerun_failed and all(
+                manifest["runs"].get(r, {}).get("status") == "failed" for r in job.run_ids):
             state = "failed (left)"
-        lines.append(f"{state:8s} {spec.run_id}: ablate {' '.join(spec.args)}")
-    lines.append(f"{len(specs)} runs; {cfg.cpus_per_run} CPU and {cfg.gpus_per_run} GPU each")
+        lines.append(f"{state:8s} {job.job_id}: ablate {' '.join(job.args)}")
+        if job.population:
+            lines += [f"{'':8s}   {run_id} in {job.folder(i)}" for i, run_id in enumerate(job.run_ids)]
+    populations = sum(job.population for job in jobs)
+    if populations:
+        lines.append(f"{len(specs)} runs in {len(jobs)} processes ({populations} populations of at most "
+                     f"{cfg.pack_size()}, --pack {cfg.pack}); {cfg.cpus_per_run} CPU and {cfg.gpus_per_run} GPU "
+                     f"each process")
+    else:
+        lines.append(f"{len(specs)} runs; {cfg.cpus_per_run} CPU and {cfg.gpus_per_run} GPU each")
     for line in lines:
         print(line)
     return lines

@@ -41,6 +41,14 @@ class RunSpec:
     iters: int = 0
     #: The arm this run belongs to (see :func:`plan`), or None in a tasks x modes grid.
     arm: str | None = None
+    #: The settings of this run that are a population member's own (gradlab.shac.MEMBER_FIELDS: mode, seed and
+    #: those its arm or --vary sets), by ablate field name: its ``--member`` entry in a population.
+    own: dict = field(default_factory=dict)
+    #: ``args`` without the member's own settings: what the members of its population share.
+    shared: tuple[str, ...] = ()
+    #: Runs with the same group can train in one process: the same value of every other setting, all on the state
+    #: vector or none (gradlab.shac.check_population).
+    group: str = ""
 
 
 def attempt_command(args: Sequence[str], run_id: str, *, resume: bool, threads: int = 1,
@@ -88,6 +96,8 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     --vary, run ids ``<task>_<arm>_seed<seed>...``, each run with its arm's mode and flags (after --set).
     """
     from ablations.runs import RunConfig
+    from gradlab.config import ModePlan
+    from gradlab.shac import MEMBER_FIELDS
 
     cfg.validate()
     set_table = parse_set(cfg.set) if set_table is None else {norm_key(k, where=f"set {k}"): v
@@ -110,9 +120,14 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
             flags = {name: value for (name, _), value in zip(axes, combo)}
             run_id = f"{task}_{arm or mode}_seed{seed}" + "".join(
                 f"_{name.replace('_', '-')}{slug(value)}" for name, value in flags.items())
+            own = {"mode": str(mode), "seed": int(seed),
+                   **{k: v for k, v in {**arm_flags, **flags}.items() if k in MEMBER_FIELDS}}
             args = ["--task", str(task), "--mode", str(mode), "--seed", str(seed), *shared,
                     *(a for name, value in arm_flags.items() for a in flag_args(name, value)),
                     *(a for name, value in flags.items() for a in flag_args(name, value))]
+            population = ["--task", str(task), *shared,
+                          *(a for name, value in {**arm_flags, **flags}.items() if name not in MEMBER_FIELDS
+                            for a in flag_args(name, value))]
             try:
                 run_cfg = tyro.cli(RunConfig, args=[*args, *RUN_ARGS])
             except SystemExit:
@@ -125,6 +140,10 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
             if run_id in seen:
                 raise ValueError(f"runs {seen[run_id]} and {flags} share the folder name {run_id}")
             seen[run_id] = flags
+            on_state = ModePlan.of(run_cfg.mode).actor_input == "state"
+            group = repr(sorted((k, v) for k, v in vars(run_cfg).items() if k not in MEMBER_FIELDS)) + \
+                (" on the state vector" if on_state else "")
             specs.append(RunSpec(run_id=run_id, task=str(task), mode=str(mode), seed=int(seed), flags=flags,
-                                 args=tuple(args), iters=run_cfg.iters, arm=arm))
+                                 args=tuple(args), iters=run_cfg.iters, arm=arm, own=own, shared=tuple(population),
+                                 group=group))
     return specs

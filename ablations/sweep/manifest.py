@@ -1,4 +1,5 @@
-"""sweep.json: the grid, the command that made it, and per run its status, error, folder and progress."""
+"""sweep.json: the grid, the command that made it, per run its status, error, folder, job and progress, and the
+jobs (``jobs``: each Ray task's runs, their folders in its folder, and the ablate arguments it starts with)."""
 
 from __future__ import annotations
 
@@ -11,10 +12,12 @@ from pathlib import Path
 
 from ablations.sweep.config import SweepConfig
 from ablations.sweep.grid import RunSpec
-from ablations.sweep.store import run_path, run_state
+from ablations.sweep.packing import Job, assign_jobs
+from ablations.sweep.store import job_state, run_path, run_state
 from gradlab.checkpoint import atomic_write_json
 
-__all__ = ["MANIFEST", "STATUSES", "load_manifest", "prepare_manifest", "write_manifest", "status_counts"]
+__all__ = ["MANIFEST", "STATUSES", "load_manifest", "prepare_manifest", "plan_jobs", "write_manifest",
+           "status_counts"]
 
 MANIFEST = "sweep.json"
 STATUSES = ("queued", "running", "done", "failed")
@@ -38,9 +41,14 @@ def _new_record(spec: RunSpec) -> dict:
             "resumed": False, "node": None, "host": None, "updated": None}
 
 
+def plan_jobs(cfg: SweepConfig, specs: list[RunSpec], manifest: dict | None) -> list[Job]:
+    """The jobs of the grid in the sweep folder as it is (:func:`~ablations.sweep.packing.assign_jobs`)."""
+    return assign_jobs(specs, cfg.pack_size(), manifest or {}, cfg.out)
+
+
 def prepare_manifest(cfg: SweepConfig, specs: list[RunSpec], set_table: dict, vary_table: dict,
-                     command: list[str] | None, arms: dict | None = None) -> tuple[dict, list[RunSpec]]:
-    """The manifest to start from (existing runs checked against the grid) and the runs to launch.
+                     command: list[str] | None, arms: dict | None = None) -> tuple[dict, list[Job]]:
+    """The manifest to start from (existing runs checked against the grid) and the jobs to launch.
 
     ``command``: the command line to record (None: ``ablate-sweep`` and this process's arguments).
     """
@@ -53,21 +61,34 @@ def prepare_manifest(cfg: SweepConfig, specs: list[RunSpec], set_table: dict, va
         if old is not None and old.get("args") != list(spec.args):
             raise ValueError(f"{out / MANIFEST}: run {spec.run_id} was made with the flags {' '.join(old['args'])}, "
                              f"this sweep gives it {' '.join(spec.args)}; use another --out for a different sweep")
-    todo = []
+    jobs = plan_jobs(cfg, specs, manifest)
     for spec in specs:
-        rec = runs.setdefault(spec.run_id, _new_record(spec))
-        state = run_state(run_path(out, spec.run_id), spec.iters)
-        if state == "done":
-            rec.update(status="done", error=None)
-        elif rec["status"] == "failed" and not cfg.rerun_failed:
+        runs.setdefault(spec.run_id, _new_record(spec))
+    old = manifest.get("jobs") or {}
+    table = manifest["jobs"] = {job.job_id: job.record() for job in jobs}
+    todo = []
+    for job in jobs:
+        open_runs = []
+        for i, run_id in enumerate(job.run_ids):
+            rec = runs[run_id]
+            rec.update(job=job.job_id, folder=job.folder(i))
+            if run_state(out / job.folder(i), job.iters) == "done":
+                rec.update(status="done", error=None)
+            else:
+                open_runs.append(rec)
+        if not open_runs or (not cfg.rerun_failed and all(r["status"] == "failed" for r in open_runs)):
             continue
-        else:
-            rec.update(status="queued", resumed=state == "resume")
-            todo.append(spec)
+        resumed = job_state(run_path(out, job.job_id), job.members, job.iters) == "resume"
+        for rec in open_runs:
+            rec.update(status="queued", resumed=resumed)
+        todo.append(job)
+    for job_id, rec in old.items():  # jobs of runs that this grid leaves out stay on record
+        if job_id not in table and any(runs.get(r, {}).get("job") == job_id for r in rec.get("runs", [])):
+            table[job_id] = rec
     manifest["sweep"] = {"tasks": list(cfg.tasks), "modes": list(cfg.modes), "seeds": list(cfg.seeds),
                          "set": {k: v for k, v in set_table.items()}, "vary": {k: v for k, v in vary_table.items()},
                          "cpus_per_run": cfg.cpus_per_run, "gpus_per_run": cfg.gpus_per_run,
-                         "max_retries": cfg.max_retries}
+                         "max_retries": cfg.max_retries, "pack": str(cfg.pack), "pack_size": cfg.pack_size()}
     if arms is not None:
         manifest["sweep"]["arms"] = arms
     manifest["command"] = list(command) if command is not None else ["ablate-sweep", *sys.argv[1:]]

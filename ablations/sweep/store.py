@@ -1,8 +1,9 @@
 """The run store: the sweep folder's ``runs/`` and ``logs/``, and what the sweep decides from a run folder.
 
-:class:`RunStore` lives on the driver's node (a Ray actor pinned there); workers send it run folders packed by
-:mod:`ablations.sweep.transfer`. Run folders are read and written through ``ablations.run_folder``, on the driver's
-copy and on a worker's scratch copy alike.
+:class:`RunStore` lives on the driver's node (a Ray actor pinned there); workers send it job folders (a run
+folder, or a population folder with its members' run folders) packed by :mod:`ablations.sweep.transfer`. Run
+folders are read and written through ``ablations.run_folder``, on the driver's copy and on a worker's scratch copy
+alike.
 """
 
 from __future__ import annotations
@@ -12,11 +13,12 @@ import shutil
 import time
 from pathlib import Path
 
-from ablations.run_folder import RunFolder
+from ablations.run_folder import VIDEOS, RunFolder
+from ablations.sweep.packing import POPULATION_RECORD
 from ablations.sweep.transfer import KEPT_CHECKPOINTS, pack_run, unpack_run
 from gradlab.checkpoint import atomic_write_bytes
 
-__all__ = ["RunStore", "FINISHED", "run_path", "run_state"]
+__all__ = ["RunStore", "FINISHED", "run_path", "run_state", "job_state", "resumable", "common_checkpoint"]
 
 #: Summary statuses of a run that needs no more work (time_limit: it stopped on the budget it was given).
 FINISHED = ("finished", "time_limit")
@@ -38,10 +40,35 @@ def run_state(run_dir: Path, iters: int) -> str:
     return "resume" if folder.newest_checkpoint() is not None else "start"
 
 
-class RunStore:
-    """Receives run folders from the workers and writes them under ``<sweep>/runs``; hands out resume state.
+def common_checkpoint(folders: list[RunFolder]) -> int | None:
+    """The newest iteration of which every run folder has a checkpoint (a population resumes from it); None if
+    there is none."""
+    have = [{int(p.stem.split("_", 1)[1]) for p in f.checkpoints()} for f in folders]
+    common = set.intersection(*have) if have else set()
+    return max(common) if common else None
 
-    Every attempt of a run gets a number from :meth:`begin`; writes of an older attempt (a worker that died
+
+def job_state(job_dir: Path, members: list[str] | tuple[str, ...], iters: int) -> str:
+    """What a (re)run must do with a job (its folder and its runs' folders in it, ``("",)`` for a run alone):
+    'done' (every run's summary says so), 'resume' (``ablate --resume`` finds a checkpoint of one iteration in
+    every run folder, and a population its record) or 'start'."""
+    if all(run_state(job_dir / m, iters) == "done" for m in members):
+        return "done"
+    return "resume" if resumable(job_dir, members) else "start"
+
+
+def resumable(job_dir: Path, members: list[str] | tuple[str, ...]) -> bool:
+    """Whether ``ablate --resume`` can continue the job in ``job_dir``: a checkpoint of one iteration in every run
+    folder, and a population's record."""
+    population = tuple(members) != ("",)
+    folders = [RunFolder(job_dir / m) for m in members]
+    return common_checkpoint(folders) is not None and (not population or (job_dir / POPULATION_RECORD).is_file())
+
+
+class RunStore:
+    """Receives job folders from the workers and writes them under ``<sweep>/runs``; hands out resume state.
+
+    Every attempt of a job gets a number from :meth:`begin`; writes of an older attempt (a worker that died
     while its message was in flight) are refused, so a retry never sees its folder go back in time.
     """
 
@@ -54,16 +81,17 @@ class RunStore:
     def run_dir(self, run_id: str) -> Path:
         return run_path(self.root, run_id)
 
-    def begin(self, run_id: str) -> tuple[int, bytes | None]:
-        """A new attempt: (its number, the run folder packed for ``ablate --resume``, or None: start fresh)."""
+    def begin(self, run_id: str, members: tuple[str, ...] | list[str] = ("",)) -> tuple[int, bytes | None]:
+        """A new attempt of a job (``run_id``: its folder name; ``members``: its runs' folders in it, ``("",)``
+        for a run alone): (its number, the job folder packed for ``ablate --resume``, or None: start fresh)."""
         attempt = self.attempts.get(run_id, 0) + 1
         self.attempts[run_id] = self.current[run_id] = attempt
         run_dir = self.run_dir(run_id)
         pack = None
-        if RunFolder(run_dir).newest_checkpoint() is not None:
+        if resumable(run_dir, members):
             pack = pack_run(run_dir, checkpoints=KEPT_CHECKPOINTS,
                             only=[str(p.relative_to(run_dir)) for p in run_dir.rglob("*")
-                                  if p.is_file() and not p.relative_to(run_dir).parts[0] == "videos"])
+                                  if p.is_file() and VIDEOS not in p.relative_to(run_dir).parts[:-1]])
         elif run_dir.exists() and any(run_dir.iterdir()):
             # ablate starts only in an empty folder; keep what the earlier attempt left.
             dest = self.root / "discarded" / f"{run_id}.attempt{attempt - 1}.{time.strftime('%Y%m%d-%H%M%S')}"
@@ -84,8 +112,13 @@ class RunStore:
         atomic_write_bytes(path, text.encode(errors="replace"))
 
     def report(self, run_id: str, attempt: int, info: dict) -> None:
+        """Progress of a job's attempt: its status, node, and ``runs`` ({run id: iteration, latest return})."""
         if self.current.get(run_id) == attempt:
-            self.progress.setdefault(run_id, {}).update(info)
+            progress = self.progress.setdefault(run_id, {})
+            runs = progress.setdefault("runs", {})
+            for rid, row in (info.get("runs") or {}).items():
+                runs.setdefault(rid, {}).update(row)
+            progress.update({k: v for k, v in info.items() if k != "runs"})
 
     def snapshot(self) -> dict[str, dict]:
         return {k: {**v, "attempts": self.attempts.get(k, 0)} for k, v in self.progress.items()}

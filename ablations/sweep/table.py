@@ -1,11 +1,12 @@
-"""The live table: a tqdm bar of finished runs and one bar per running run; a line per change of status."""
+"""The live table: a tqdm bar of finished runs and one bar per running job (a run, or a population of runs in one
+process); a line per run's change of status."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from ablations.sweep.grid import RunSpec
 from ablations.sweep.manifest import status_counts
+from ablations.sweep.packing import Job
 
 __all__ = ["LiveTable"]
 
@@ -15,15 +16,16 @@ def _fmt_return(value: Any) -> str:
 
 
 class LiveTable:
-    """A tqdm bar of finished runs (counts by status in its postfix) and one bar per running run.
+    """A tqdm bar of finished runs (counts by status in its postfix) and one bar per running job: a run's
+    iteration and latest return, or a population's (its members' lowest iteration and mean latest return).
 
     Without ``enabled`` there are no bars; the status lines are printed either way.
     """
 
-    def __init__(self, manifest: dict, todo: list[RunSpec], *, enabled: bool):
+    def __init__(self, manifest: dict, todo: list[Job], *, enabled: bool):
         self.enabled = enabled
         self.manifest = manifest
-        self.iters = {s.run_id: s.iters for s in todo}
+        self.jobs = {job.job_id: job for job in todo}
         self.bars: dict[str, Any] = {}
         self.free: list[int] = []
         self.last_status: dict[str, str] = {}
@@ -53,23 +55,25 @@ class LiveTable:
                     it = f"{rec.get('iteration') or 0}/{rec.get('iters')}"
                     self._print(f"{status:8s} {run_id}  it {it}  return {_fmt_return(rec.get('latest_return'))}"
                                 f"  attempts {rec.get('attempts')}{extra}")
-            if not self.enabled:
-                continue
-            bar = self.bars.get(run_id)
-            if status == "running":
+        for job_id, job in self.jobs.items() if self.enabled else ():
+            recs = [runs[r] for r in job.run_ids]
+            bar = self.bars.get(job_id)
+            if any(rec["status"] == "running" for rec in recs):
                 if bar is None:
                     pos = self.free.pop(0) if self.free else len(self.bars) + 1
-                    bar = self.bars[run_id] = self.tqdm(total=self.iters.get(run_id, rec.get("iters")), desc=run_id,
-                                                        unit="it", position=pos, leave=False, dynamic_ncols=True)
+                    desc = f"{job_id} ({len(recs)} runs)" if job.population else job_id
+                    bar = self.bars[job_id] = self.tqdm(total=job.iters, desc=desc, unit="it", position=pos,
+                                                        leave=False, dynamic_ncols=True)
                     bar.pos_ = pos
-                bar.n = rec.get("iteration") or 0
-                bar.set_postfix(ret=_fmt_return(rec.get("latest_return")), refresh=False)
+                bar.n = min(rec.get("iteration") or 0 for rec in recs)
+                returns = [r["latest_return"] for r in recs if r.get("latest_return") is not None]
+                bar.set_postfix(ret=_fmt_return(sum(returns) / len(returns) if returns else None), refresh=False)
                 bar.refresh()
             elif bar is not None:
                 self.free.append(bar.pos_)
                 self.free.sort()
                 bar.close()
-                del self.bars[run_id]
+                del self.bars[job_id]
         if self.main is not None:
             c = status_counts(self.manifest)
             self.main.n = c["done"] + c["failed"]

@@ -1,9 +1,11 @@
-"""The Ray task: one attempt of one run on whichever node Ray picked.
+"""The Ray task: one attempt of one job (a run, or a population of runs in one process) on whichever node Ray
+picked.
 
 The attempt runs :func:`~ablations.sweep.grid.attempt_command` as a child process (through ``child.py``, which
-ties it to this worker) in a scratch folder of the node, watches the run folder it writes, and sends every new
-checkpoint (with the metrics and videos so far) to the driver's :class:`~ablations.sweep.store.RunStore`, and
-the whole folder and its log at the end.
+ties it to this worker) in a scratch folder of the node, watches the folder it writes (a run folder, or a
+population folder and its members' run folders), and sends every new checkpoint (of every member, once all have
+it, with the metrics and videos so far) to the driver's :class:`~ablations.sweep.store.RunStore`, and the whole
+folder and its log at the end.
 """
 
 from __future__ import annotations
@@ -21,8 +23,10 @@ from pathlib import Path
 
 from ablations.run_folder import RESUME_FILES, MetricsTail, RunFolder
 from ablations.sweep.grid import attempt_command
-from ablations.sweep.store import FINISHED
+from ablations.sweep.packing import POPULATION_RECORD
+from ablations.sweep.store import FINISHED, common_checkpoint
 from ablations.sweep.transfer import archive_names, pack_run, unpack_run
+from gradlab.checkpoint import checkpoint_path
 
 __all__ = ["run_attempt", "RunProcessDied", "WORKER_POLL_S"]
 
@@ -52,30 +56,31 @@ def _error_of(log: Path, returncode: int) -> str:
     return (exc[-1] if exc else " | ".join(lines[-3:]) or "no output") + f" (exit code {returncode})"
 
 
-def run_attempt(spec: dict, store, opts: dict) -> dict:
-    """Body of the Ray task: one attempt of one run (fresh or resumed); returns its result for the manifest.
+def run_attempt(job: dict, store, opts: dict) -> dict:
+    """Body of the Ray task: one attempt of one job (a run, or a population of runs; fresh or resumed); returns
+    each run's result for the manifest: {"runs": {run_id: {status, error, ...}}, "attempt", "node", "host"}.
 
-    ``spec``: a :class:`~ablations.sweep.grid.RunSpec` as a dict; ``store``: the RunStore actor; ``opts``:
-    sweep_id, cpus_per_run, gpus_per_run, keep_checkpoints and program (None: ablate).
+    ``job``: a :class:`~ablations.sweep.packing.Job` as a dict; ``store``: the RunStore actor; ``opts``: sweep_id,
+    cpus_per_run, gpus_per_run, keep_checkpoints and program (None: ablate).
     """
     import ray
 
-    run_id = spec["run_id"]
-    attempt, pack = ray.get(store.begin.remote(run_id))
+    job_id, run_ids = job["job_id"], list(job["run_ids"])
+    attempt, pack = ray.get(store.begin.remote(job_id, list(job["members"])))
     base = Path(tempfile.gettempdir()) / "ablate-sweep" / opts["sweep_id"]
-    for stale in base.glob(f"{run_id}.attempt*"):  # left by an earlier attempt on this node that was killed
+    for stale in base.glob(f"{job_id}.attempt*"):  # left by an earlier attempt on this node that was killed
         shutil.rmtree(stale, ignore_errors=True)
-    scratch = base / f"{run_id}.attempt{attempt}"
-    run_dir = scratch / run_id
+    scratch = base / f"{job_id}.attempt{attempt}"
+    job_dir = scratch / job_id
     scratch.mkdir(parents=True)
     if pack is not None:
-        unpack_run(pack, run_dir)
+        unpack_run(pack, job_dir)
     # the run's torch threads are the CPUs Ray reserved for it (at least one)
-    command = attempt_command(spec["args"], run_id, resume=pack is not None, program=opts.get("program"),
+    command = attempt_command(job["args"], job_id, resume=pack is not None, program=opts.get("program"),
                               threads=max(1, int(opts["cpus_per_run"])))
-    folder = RunFolder(run_dir)
+    folders = [RunFolder(job_dir / m) for m in job["members"]]
     # What the store already holds needs no second trip.
-    shipped = folder.newest_checkpoint()
+    shipped = common_checkpoint(folders)
     sent_videos: set[str] = set()
     env = dict(os.environ)
     if not opts["gpus_per_run"]:
@@ -86,31 +91,33 @@ def run_attempt(spec: dict, store, opts: dict) -> dict:
         with open(log, "wb") as log_f:
             proc = subprocess.Popen([sys.executable, str(_CHILD), str(os.getpid()), *command], cwd=scratch,
                                     stdout=log_f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
-        store.report.remote(run_id, attempt, {"status": "running", "node": node, "host": platform.node(),
+        store.report.remote(job_id, attempt, {"status": "running", "node": node, "host": platform.node(),
                                               "resumed": pack is not None})
-        metrics = MetricsTail(folder.metrics_path)
-        reported = None
+        tails = [MetricsTail(f.metrics_path) for f in folders]
+        reported: dict[str, object] = {}
         while True:
             returncode = proc.poll()
-            last = metrics.poll()
-            if last is not None and last.get("iter") != reported:
-                reported = last.get("iter")
-                store.report.remote(run_id, attempt, {"iteration": reported,
-                                                      "latest_return": last.get("return_mean")})
-            ckpt = folder.newest_checkpoint()
-            if returncode is None and ckpt is not None and ckpt != shipped:
-                # metrics.jsonl gets an iteration's line before its checkpoint: read after seeing the checkpoint,
-                # it covers every iteration the checkpoint does.
-                videos = [n for n in (str(v.relative_to(run_dir)) for v in folder.videos()) if n not in sent_videos]
-                data = pack_run(run_dir, only=[*RESUME_FILES, *videos, str(ckpt.relative_to(run_dir))])
-                if f"checkpoints/{ckpt.name}" in archive_names(data):
-                    ray.get(store.save.remote(run_id, attempt, data))
-                    shipped = ckpt
+            rows = {}
+            for run_id, tail in zip(run_ids, tails):
+                last = tail.poll()
+                if last is not None and last.get("iter") != reported.get(run_id):
+                    reported[run_id] = last.get("iter")
+                    rows[run_id] = {"iteration": last.get("iter"), "latest_return": last.get("return_mean")}
+            if rows:
+                store.report.remote(job_id, attempt, {"runs": rows})
+            common = common_checkpoint(folders)
+            if returncode is None and common is not None and common != shipped:
+                # metrics.jsonl gets an iteration's line before its checkpoint (every member's, in a population):
+                # read after seeing the checkpoint, it covers every iteration the checkpoint does.
+                data, videos = _checkpoint_archive(job_dir, folders, common, sent_videos)
+                if data is not None:
+                    ray.get(store.save.remote(job_id, attempt, data))
+                    shipped = common
                     sent_videos.update(videos)
             if returncode is not None:
                 break
             time.sleep(WORKER_POLL_S)
-        ray.get(store.save_log.remote(run_id, attempt, log.read_text(errors="replace")))
+        ray.get(store.save_log.remote(job_id, attempt, log.read_text(errors="replace")))
         if returncode < 0:
             try:
                 name = signal.Signals(-returncode).name
@@ -118,24 +125,50 @@ def run_attempt(spec: dict, store, opts: dict) -> dict:
                 name = str(-returncode)
             raise RunProcessDied(f"ablate was killed by signal {name} on {platform.node()} "
                                  f"(attempt {attempt}); last output: {_tail(log, 3)}")
-        summary = folder.read_summary() or {}
-        done = returncode == 0 and summary.get("status") in FINISHED
-        rest = [str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()]
-        # An unfinished run keeps its checkpoint whatever --keep-checkpoints says: a rerun resumes from it.
-        data = pack_run(run_dir, only=[n for n in rest if n not in sent_videos],
-                        checkpoints=1 if opts["keep_checkpoints"] or not done else 0)
-        ray.get(store.save.remote(run_id, attempt, data))
-        if summary.get("status") == "interrupted":
+        summaries = [f.read_summary() or {} for f in folders]
+        done = [returncode == 0 and s.get("status") in FINISHED for s in summaries]
+        rest = [str(p.relative_to(job_dir)) for p in job_dir.rglob("*") if p.is_file()]
+        # An unfinished job keeps its checkpoints whatever --keep-checkpoints says: a rerun resumes from them (a
+        # population from an iteration every member has, a finished member's included).
+        data = pack_run(job_dir, only=[n for n in rest if n not in sent_videos],
+                        checkpoints=1 if opts["keep_checkpoints"] or not all(done) else 0)
+        ray.get(store.save.remote(job_id, attempt, data))
+        stopped = [s for s in summaries if s.get("status") == "interrupted"]
+        if stopped:
             # ablate stopped on SIGINT/SIGTERM (a node being drained, a job scheduler) after checkpointing: like a
             # killed run, it is retried from that checkpoint
             raise RunProcessDied(f"ablate stopped on a signal on {platform.node()} (attempt {attempt}): "
-                                 f"{summary.get('error')}")
-        last = metrics.poll() or {}
-        return {"status": "done" if done else "failed",
-                "error": None if done else _error_of(log, returncode),
-                "summary_status": summary.get("status"),
-                "iteration": summary.get("iterations", last.get("iter")),
-                "latest_return": summary.get("final_return", last.get("return_mean")),
-                "attempt": attempt, "node": node, "host": platform.node()}
+                                 f"{stopped[0].get('error')}")
+        results = {}
+        for run_id, folder, summary, ok, tail in zip(run_ids, folders, summaries, done, tails):
+            last = tail.poll() or {}
+            results[run_id] = {"status": "done" if ok else "failed",
+                               "error": None if ok else _run_error(log, returncode, folder, summary),
+                               "summary_status": summary.get("status"),
+                               "iteration": summary.get("iterations", last.get("iter")),
+                               "latest_return": summary.get("final_return", last.get("return_mean"))}
+        return {"runs": results, "attempt": attempt, "node": node, "host": platform.node()}
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _checkpoint_archive(job_dir: Path, folders: list[RunFolder], iteration: int,
+                        sent_videos: set[str]) -> tuple[bytes | None, list[str]]:
+    """(archive of what a resume from ``iteration`` needs: every run folder's records, metrics and checkpoint of
+    that iteration, the population's record and the videos not sent yet; the new videos). The archive is None
+    when a checkpoint was rotated away before it was read (the next look sends a newer one)."""
+    videos = [n for f in folders for n in (str(v.relative_to(job_dir)) for v in f.videos()) if n not in sent_videos]
+    checkpoints = [str(checkpoint_path(f.checkpoint_dir, iteration).relative_to(job_dir)) for f in folders]
+    records = [str((f.path / name).relative_to(job_dir)) for f in folders for name in RESUME_FILES]
+    population = [POPULATION_RECORD] if (job_dir / POPULATION_RECORD).is_file() else []
+    data = pack_run(job_dir, only=[*population, *records, *videos, *checkpoints])
+    names = set(archive_names(data))
+    return (data if all(Path(c).as_posix() in names for c in checkpoints) else None), videos
+
+
+def _run_error(log: Path, returncode: int, folder: RunFolder, summary: dict) -> str:
+    """Why a run did not finish: the process's error, or (a population member that stopped alone while the
+    others went on) its summary's status and error."""
+    if returncode != 0 or not summary:
+        return _error_of(log, returncode) if returncode != 0 else f"no summary.json in {folder.path.name}"
+    return f"{summary.get('status')}: {summary.get('error')}"
