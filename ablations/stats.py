@@ -27,7 +27,9 @@ precipice", 2021), called as its authors do:
 * **performance profiles** (``performance_profiles``): the fraction of an arm's runs whose final return exceeds
   each threshold, with CIs, as data, and ``plot_performance_profiles`` to draw them;
 * **looking probes** (``looking_probes``): the probe iterations where the policy's image sensitivity is above a
-  fraction of its first probe's, and the probe statistics over those only.
+  fraction (``LOOKING_FRACTION``) of its first probe's, and the probe statistics over those only;
+* **the verdict** (``verdict``): an arm is read against the reference (decoupled) only where the reference beats
+  the control that cannot see (blind) with a confidence interval that excludes zero (issue 36).
 
 Importing this module needs numpy, scipy and rliable only (no torch): it reads JSON. ``load_arms`` reads folders
 through ``ablations.run_folder.find_runs``, which imports no torch either; ``curve_of`` takes an already loaded run.
@@ -52,7 +54,7 @@ __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", 
            "LookingProbes", "curve_of", "load_arms", "final_return", "auc", "collapse_rate", "iqm_estimate",
            "mean_estimate", "compare", "common_iteration", "truncate_at_iteration", "common_wall_s",
            "truncate_at_wall_s", "task_statistics", "performance_profiles", "plot_performance_profiles",
-           "looking_probes"]
+           "looking_probes", "LOOKING_FRACTION", "Verdict", "Gate", "verdict"]
 
 #: Bootstrap resamples per confidence interval (see the module docstring for why this many).
 DEFAULT_REPS = 2000
@@ -63,6 +65,9 @@ FINAL_EVALS = 3
 #: Metrics keys of the deterministic evaluation return, in order of preference: the mean over the evaluation
 #: environments, else the older single-rollout return logged on video iterations.
 EVAL_KEYS = ("eval_return_mean", "eval_return")
+#: A probe counts as looking when its image sensitivity exceeds this fraction of the run's first probe's (the
+#: untrained policy's): the blind phase (issue 36) drops it by orders of magnitude, so the bar needs no precision.
+LOOKING_FRACTION = 0.1
 _SENSITIVITY_KEY = re.compile(r"image_sensitivity_f(\d+)$")
 
 
@@ -496,9 +501,11 @@ def performance_profiles(curves: Sequence[Curve], *, thresholds: Sequence[float]
     return out
 
 
-def plot_performance_profiles(profile: PerformanceProfile, path: str | Path) -> Path:
+def plot_performance_profiles(profile: PerformanceProfile, path: str | Path, *,
+                              styles: Mapping | None = None) -> Path:
     """Draw one task's profiles (fraction of runs above each threshold, the CI shaded) to a PNG, written
-    atomically; the legend sits outside the axes."""
+    atomically; the legend sits outside the axes. ``styles``: arm -> ``ablations.plot.ArmStyle`` (the arm's colour
+    and line style in every other figure); arms it does not name take matplotlib's next colour."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -508,7 +515,9 @@ def plot_performance_profiles(profile: PerformanceProfile, path: str | Path) -> 
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     for arm, p in profile.arms.items():
-        (line,) = ax.plot(profile.thresholds, p.fraction, label=f"{arm} (n={p.n})")
+        style = (styles or {}).get(arm)
+        look = {"color": style.color, "ls": style.linestyle} if style is not None else {}
+        (line,) = ax.plot(profile.thresholds, p.fraction, label=f"{arm} (n={p.n})", lw=1.6, **look)
         ax.fill_between(profile.thresholds, p.ci_low, p.ci_high, color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_xlabel(f"final evaluation return (mean of the last {profile.final_evals})")
     ax.set_ylabel("fraction of runs above")
@@ -530,7 +539,8 @@ class LookingProbes:
     ``probe_iters`` / ``sensitivity`` (P,): every probe (a metrics line with ``image_sensitivity_f<i>``) and its
     image sensitivity (the sum or mean over frames, ``reduce``, of |d mean action / d frame|); ``initial``: the
     first probe's; ``looking_iters``: the probes with sensitivity > ``fraction`` x ``initial``. ``medians``:
-    probe key -> median over the looking probes that carry it (None when none does), ``counts``: how many did.
+    probe key -> median over the looking probes that carry it (None when none does), ``counts``: how many did,
+    ``values``: probe key -> those values in iteration order (to pool the probes of several seeds).
     """
 
     fraction: float
@@ -541,6 +551,7 @@ class LookingProbes:
     looking_iters: tuple[int, ...]
     medians: dict[str, float | None]
     counts: dict[str, int]
+    values: dict[str, tuple[float, ...]] = field(default_factory=dict)
 
     @property
     def n_probes(self) -> int:
@@ -556,7 +567,7 @@ def _is_probe_statistic(key: str) -> bool:
     return key.startswith("cos_") or (key.startswith("grad_norm_") and key != "grad_norm_clipped")
 
 
-def looking_probes(metrics: Sequence[Mapping], *, fraction: float = 0.1, reduce: str = "sum",
+def looking_probes(metrics: Sequence[Mapping], *, fraction: float = LOOKING_FRACTION, reduce: str = "sum",
                    keys: Sequence[str] | None = None) -> LookingProbes:
     """Where a run's policy looks at its image, and its probe statistics there.
 
@@ -579,12 +590,97 @@ def looking_probes(metrics: Sequence[Mapping], *, fraction: float = 0.1, reduce:
     looking = [row for row, s in probes if s > fraction * initial] if probes else []
     if keys is None:
         keys = sorted({k for row in looking for k in row if _is_probe_statistic(k)})
-    medians, counts = {}, {}
+    medians, counts, values = {}, {}, {}
     for k in keys:
-        vals = [row[k] for row in looking if _number(row.get(k))]
+        vals = [float(row[k]) for row in looking if _number(row.get(k))]
         medians[k] = float(np.median(vals)) if vals else None
         counts[k] = len(vals)
+        values[k] = tuple(vals)
     return LookingProbes(fraction=float(fraction), reduce=reduce, initial=initial,
                          probe_iters=tuple(int(r["iter"]) for r, _ in probes),
                          sensitivity=tuple(s for _, s in probes),
-                         looking_iters=tuple(int(r["iter"]) for r in looking), medians=medians, counts=counts)
+                         looking_iters=tuple(int(r["iter"]) for r in looking), medians=medians, counts=counts,
+                         values=values)
+
+
+# ------------------------------------------------------------------------------------------------ verdict
+@dataclass(frozen=True)
+class Gate:
+    """Whether the reference arm beats the control (decoupled against blind) on one task: ``passed`` when the
+    paired difference reference minus control has a CI above zero, or the reference's IQM CI lies wholly above
+    the control's; ``by`` names which (``"paired difference"``, ``"IQMs"``), None when neither. ``paired``:
+    reference minus control final return over the paired seeds (None without any); ``why``: one sentence."""
+
+    passed: bool
+    by: str | None
+    paired: Estimate | None
+    reference_iqm: Estimate | None
+    control_iqm: Estimate | None
+    why: str
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """How one task's arms may be read against the reference. ``ranks``: whether they may; ``reason``: why (or
+    why not), one sentence; ``gate``: the reference against the control (None when the task does not rank arms
+    or an arm is missing); ``readings``: arm -> ``"better"``, ``"worse"`` (the paired difference's CI excludes
+    zero on that side), ``"not resolved"`` (it covers zero) or ``"no paired seeds"``; empty unless ``ranks``."""
+
+    task: str
+    reference: str
+    control: str
+    ranks: bool
+    reason: str
+    gate: Gate | None
+    readings: dict[str, str]
+
+
+def _negated(e: Estimate) -> Estimate:
+    """The estimate of minus the statistic: a percentile bootstrap of a mean flips exactly under negation."""
+    return replace(e, value=-e.value, ci_low=-e.ci_high, ci_high=-e.ci_low)
+
+
+def _ci(e: Estimate) -> str:
+    return f"{e.value:.4g} [{e.ci_low:.4g}, {e.ci_high:.4g}]"
+
+
+def verdict(cmp: Comparison, *, control: str = "blind", not_ranking: str | None = None) -> Verdict:
+    """The rule of issue 36: the arms of ``cmp`` are read against its reference (decoupled) only where the
+    reference beats ``control`` (blind: the same pixels, never looked at) with a CI that excludes zero, of the
+    paired difference or of the IQMs (see ``Gate``); otherwise pixels have not yet been shown to help on this
+    task and the arms cannot be ranked. ``not_ranking``: a reason the task ranks no arms whatever the numbers
+    (a task that doing nothing solves)."""
+    ref = cmp.reference or "reference"
+    if not_ranking is not None:
+        return Verdict(cmp.task, ref, control, False, not_ranking, None, {})
+    missing = [a for a in (ref, control) if a not in cmp.arms or cmp.arms[a].final_iqm is None]
+    if missing:
+        return Verdict(cmp.task, ref, control, False, f"the arms cannot be ranked: no {' and no '.join(missing)} "
+                       "run with an evaluation to hold them against", None, {})
+    r, c = cmp.arms[ref].final_iqm, cmp.arms[control].final_iqm
+    d = cmp.differences[control].mean
+    paired = _negated(d) if d is not None else None
+    if paired is not None and paired.ci_low > 0:
+        by = "paired difference"
+        why = (f"{ref} beats {control}: {ref} minus {control}, mean over {paired.n} paired seeds "
+               f"{_ci(paired)}, CI above zero")
+    elif r.ci_low > c.ci_high:
+        by = "IQMs"
+        why = f"{ref} beats {control}: IQM {_ci(r)} (n={r.n}) wholly above {_ci(c)} (n={c.n})"
+    else:
+        by = None
+        why = (f"{ref} does not beat {control} with a CI that excludes zero: "
+               + (f"{ref} minus {control} {_ci(paired)} over {paired.n} paired seeds; " if paired else "")
+               + f"IQMs {_ci(r)} (n={r.n}) and {_ci(c)} (n={c.n})")
+    gate = Gate(by is not None, by, paired, r, c, why)
+    if not gate.passed:
+        return Verdict(cmp.task, ref, control, False, f"{why}; the pixel arms cannot be ranked on this task yet",
+                       gate, {})
+    readings = {}
+    for arm, diff in cmp.differences.items():
+        if arm == control:
+            continue
+        m = diff.mean
+        readings[arm] = ("no paired seeds" if m is None else "better" if m.ci_low > 0 else "worse" if m.ci_high < 0
+                         else "not resolved")
+    return Verdict(cmp.task, ref, control, True, why, gate, readings)

@@ -242,6 +242,7 @@ def test_looking_probes_select_by_a_fraction_of_the_first_probe(tmp_path):
     assert look.initial == 4.0 and look.sensitivity[2] == pytest.approx(0.6)
     assert look.looking_iters == (10, 30, 50) and look.n_looking == 3
     assert look.medians["cos_full_decoupled"] == 0.4 and look.counts["cos_full_decoupled"] == 3
+    assert look.values["cos_full_decoupled"] == (1.0, 0.2, 0.4)  # the looking probes' own, in iteration order
     assert look.medians["grad_norm_full"] == pytest.approx(4.0)
     assert look.medians["grad_norm_render_term"] == 5.0 and look.counts["grad_norm_render_term"] == 1
     assert "grad_norm_clipped" not in look.medians and "grad_norm" not in look.medians
@@ -254,3 +255,67 @@ def test_looking_probes_select_by_a_fraction_of_the_first_probe(tmp_path):
     assert none.n_probes == 0 and none.initial is None and none.medians == {}
     with pytest.raises(ValueError, match="reduce"):
         stats.looking_probes(rows, reduce="max")
+
+
+# ------------------------------------------------------------------------------------------------ verdict
+def test_arms_are_read_against_decoupled_where_decoupled_beats_blind():
+    dec = [100.0, 200.0, 150.0, 120.0, 180.0]
+    noise = [1.0, -2.0, 0.5, 2.0, -1.5]
+    curves = (_arm("decoupled", dec) + _arm("blind", [d - 90.0 + e for d, e in zip(dec, noise)])
+              + _arm("full-soft", [d + 40.0 + e for d, e in zip(dec, noise)])
+              + _arm("full-hard", [d - 30.0 - e for d, e in zip(dec, noise)])
+              + _arm("full-alpha", [d + 10.0 * (-1) ** i for i, d in enumerate(dec)]))
+    v = stats.verdict(stats.compare(curves, reps=REPS))
+    assert v.ranks and v.gate.passed and v.gate.by == "paired difference"
+    assert v.gate.paired.value == pytest.approx(90.0) and v.gate.paired.ci_low > 0  # decoupled minus blind
+    assert v.readings == {"full-soft": "better", "full-hard": "worse", "full-alpha": "not resolved"}
+    assert "decoupled beats blind" in v.reason
+
+
+def test_no_arm_is_ranked_where_decoupled_does_not_beat_blind():
+    dec = [100.0, 200.0, 150.0]
+    curves = (_arm("decoupled", dec) + _arm("blind", [d + e for d, e in zip(dec, [-40.0, 30.0, 5.0])])
+              + _arm("full-soft", [d + 500.0 for d in dec]))  # far better than decoupled: still not read
+    v = stats.verdict(stats.compare(curves, reps=REPS))
+    assert not v.ranks and not v.gate.passed and v.gate.by is None and v.readings == {}
+    assert v.gate.paired.ci_low < 0 < v.gate.paired.ci_high
+    assert "cannot be ranked on this task yet" in v.reason
+
+
+def test_the_gate_holds_by_the_iqms_when_no_seed_is_paired():
+    # decoupled's seeds 0-2 and blind's 3-5 share none; their intervals lie far apart
+    curves = _arm("decoupled", [500.0, 510.0, 520.0]) + _arm("blind", [10.0, 20.0, 30.0], seeds=[3, 4, 5])
+    v = stats.verdict(stats.compare(curves, reps=REPS))
+    assert v.ranks and v.gate.by == "IQMs" and v.gate.paired is None
+    flipped = _arm("decoupled", [10.0, 20.0, 30.0]) + _arm("blind", [500.0, 510.0, 520.0], seeds=[3, 4, 5])
+    assert not stats.verdict(stats.compare(flipped, reps=REPS)).ranks
+
+
+def test_a_task_without_blind_or_that_ranks_no_arms_is_not_read():
+    curves = _arm("decoupled", [1.0, 2.0, 3.0]) + _arm("full-soft", [9.0, 9.5, 9.9])
+    v = stats.verdict(stats.compare(curves, reps=FEW))
+    assert not v.ranks and v.gate is None and "no blind run" in v.reason
+    curves += _arm("blind", [-50.0, -40.0, -45.0])
+    v = stats.verdict(stats.compare(curves, reps=FEW), not_ranking="doing nothing scores high")
+    assert not v.ranks and v.reason == "doing nothing scores high" and v.readings == {}
+
+
+def test_profiles_take_the_arms_styles(tmp_path, monkeypatch):
+    from matplotlib.axes import Axes
+    from matplotlib.colors import to_rgb
+
+    from ablations.plot import ArmStyle
+
+    prof = stats.performance_profiles(_arm("decoupled", [1.0, 2.0]) + _arm("blind", [0.0, 0.5]), reps=FEW)["hopper"]
+    seen = {}
+    real = Axes.plot
+
+    def spy(ax, *args, **kw):
+        seen[kw.get("label")] = (kw.get("color"), kw.get("ls"))
+        return real(ax, *args, **kw)
+
+    monkeypatch.setattr(Axes, "plot", spy)
+    styles = {"decoupled": ArmStyle((0.1, 0.2, 0.7), (0, (5, 2)), "o")}
+    stats.plot_performance_profiles(prof, tmp_path / "p.png", styles=styles)
+    assert to_rgb(seen["decoupled (n=2)"][0]) == (0.1, 0.2, 0.7) and seen["decoupled (n=2)"][1] == (0, (5, 2))
+    assert seen["blind (n=2)"] == (None, None)  # not named: matplotlib's next colour
