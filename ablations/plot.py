@@ -27,6 +27,9 @@ Files (PNG, written atomically; a figure without data is skipped and the reason 
     cosine_vs_iter.png  probe_grad_norms.png (full, decoupled and render-term norms of the same rollout)
     render_term_groups.png (the render term by the actor's parameter groups)
     image_sensitivity.png (the policy's sensitivity to each frame of its stack)
+    eval_return_vs_iter.png (the deterministic evaluation return, every seed and the mean)
+    exploration_noise.png (mean exp(log_std))  looking.png (image sensitivity relative to the first probe, with
+    the bar above which the policy counts as looking: ``ablations.stats.LOOKING_FRACTION``)
     timing.png (forward and backward ms per iteration)  memory.png (peak allocated MB; CPU: saved for backward)
 
 :func:`build_figures` returns the matplotlib Figures without writing them (to inspect or restyle them);
@@ -81,6 +84,15 @@ FIGURES = {
                   "seeds; probe iterations, which compute both gradients, left out).",
     "memory.png": "Peak memory per iteration (CUDA: peak allocated; CPU: bytes saved for backward; probe "
                   "iterations left out).",
+    "eval_return_vs_iter.png": "Deterministic evaluation return (the policy's mean action from the fixed "
+                               "evaluation seed) against training iterations: thin lines each seed, the thick "
+                               "line the mean across seeds (+- one standard deviation shaded).",
+    "exploration_noise.png": "Exploration noise: the policy's mean standard deviation exp(log_std) per "
+                             "iteration (mean +- one standard deviation across seeds).",
+    "looking.png": "Image sensitivity (summed over the frames) relative to the run's first probe, on probe "
+                   "iterations (log scale; geometric mean x/÷ geometric std across seeds). Below the dashed "
+                   "line the policy does not look at its image (the blind phase); probe statistics marked "
+                   "'looking' count only the probes above it.",
 }
 MODE_COLORS = {"full": "tab:red", "decoupled": "tab:blue", "state": "tab:green", "blind": "tab:gray"}
 #: Colours of modes MODE_COLORS does not name, in the order they appear.
@@ -318,6 +330,16 @@ def _frame_keys(runs: list[Run]) -> list[str]:
     return sorted(keys, key=lambda k: int(k.rsplit("f", 1)[1]) if k.rsplit("f", 1)[1].isdigit() else 99)
 
 
+def _relative_sensitivity(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """(probe iterations, image sensitivity summed over the frames / the first probe's) of a run."""
+    from ablations.stats import looking_probes
+
+    look = looking_probes(run.metrics, keys=())
+    if not look.n_probes or not look.initial:
+        return np.array([]), np.array([])
+    return np.array(look.probe_iters, float), np.array(look.sensitivity) / look.initial
+
+
 def _markevery(points: int, arm: int, arms: int):
     """Every point of a sparse series; about ``_MARKS`` of a dense one, shifted per arm so that the markers of
     lines lying on each other fall on different points."""
@@ -457,8 +479,13 @@ class _Drawer:
     # ------------------------------------------------------------------------------------------ figures
     def curves(self, name: str, x: str, y: str, *, xlabel: str, ylabel: str, log: bool = False,
                modes: tuple[str, ...] | None = None, skip_probed: bool = False, returns: bool = False,
-               transform: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
-        """One line per arm and panel per task; ``returns``: with every run's evaluations and the floors."""
+               transform: Callable[[np.ndarray], np.ndarray] | None = None,
+               series_of: Callable[[Run], tuple[np.ndarray, np.ndarray]] | None = None, each_run: bool = False,
+               floors: bool | None = None, hline: tuple[float, str] | None = None) -> None:
+        """One line per arm and panel per task; ``returns``: with every run's evaluations and the floors.
+        ``series_of``: a run's (x, y) instead of its metrics ``x`` and ``y``; ``each_run``: every run's own curve
+        too, thin, under the arm's; ``floors``: the return floors (default: with ``returns``); ``hline``: a
+        dashed reference line (y, its legend text)."""
         from matplotlib.lines import Line2D
 
         fig, axes = self.panels()
@@ -467,16 +494,24 @@ class _Drawer:
         for col, task in enumerate(self.tasks):
             ax = axes[0][col]
             for lab, rs in self.arms_of(task, modes):
-                series = [r.series(x, y, skip_probed=skip_probed) for r in rs]
-                agg = aggregate([(sx, transform(sy)) for sx, sy in series] if transform else series, log=log)
+                series = [series_of(r) if series_of else r.series(x, y, skip_probed=skip_probed) for r in rs]
+                series = [(sx, transform(sy)) for sx, sy in series] if transform else series
+                agg = aggregate(series, log=log)
                 if agg is not None:
-                    self.band(ax, agg, rs, lab)
+                    if each_run:
+                        for sx, sy in series:
+                            ax.plot(sx, sy, color=self.styles[lab].color, lw=0.8, alpha=0.45, marker=".", ms=3,
+                                    label=f"_run {lab}", gid="run")
+                    self.band(ax, agg, rs, lab, lw=2.2 if each_run else 1.5)
                     drawn.setdefault(lab, {})[task] = len(rs)
             if returns:
                 for lab, n in self.evaluations(ax, task, x).items():
                     drawn.setdefault(lab, {}).setdefault(task, n)
                     evaluated = True
+            if returns if floors is None else floors:
                 self.floor_lines(ax, task)
+            if hline is not None:
+                ax.axhline(hline[0], color="0.15", ls="--", lw=1.0, zorder=1.5, gid="reference")
             self.finish(ax, task, xlabel, log=log)
         axes[0][0].set_ylabel(ylabel)
         labs = [lab for lab in self.styles if lab in drawn]
@@ -486,6 +521,12 @@ class _Drawer:
             handles += [Line2D([], [], color="0.35", lw=1.5),
                         Line2D([], [], ls="none", marker=_EVAL_MARKER, ms=11, color="0.6", mec="k", mew=0.6)]
             labels += ["line: training return (last 100 episodes)", "star: deterministic evaluation (each run)"]
+        if each_run:
+            handles.append(Line2D([], [], color="0.35", lw=0.8, alpha=0.45, marker=".", ms=3))
+            labels.append("thin: each seed")
+        if hline is not None:
+            handles.append(Line2D([], [], color="0.15", ls="--", lw=1.0))
+            labels.append(hline[1])
         if drawn:
             self.legend(fig, handles, labels)
         self.keep(name, fig, bool(drawn), f"no run has both {x} and {y}")
@@ -609,6 +650,16 @@ class _Drawer:
                                                               " (newest)" if i == n - 1 and n > 1 else "")
                          for i, k in enumerate(frame_keys)},
                         ylabel="|d mean action / d frame|", why="no run has image_sensitivity_f<i>")
+        self.curves("eval_return_vs_iter.png", "iter", "eval_return", xlabel="iteration",
+                    ylabel="evaluation return\n(deterministic policy)", series_of=lambda r: r.evaluations("iter")[:2],
+                    each_run=True, floors=True)
+        self.curves("exploration_noise.png", "iter", "action_std", xlabel="iteration",
+                    ylabel="exploration noise\n(mean exp(log_std))")
+        from ablations.stats import LOOKING_FRACTION
+
+        self.curves("looking.png", "iter", "image_sensitivity", xlabel="iteration",
+                    ylabel="image sensitivity /\nits first probe's", log=True, series_of=_relative_sensitivity,
+                    hline=(LOOKING_FRACTION, f"looking bar: {LOOKING_FRACTION:g} x the first probe's"))
         self.cosine_hist()
         self.timing()
         # Memory: CUDA peak allocated where any run has it, else what autograd saved (the CPU-visible quantity).

@@ -25,6 +25,14 @@ def runs_dir(tmp_path):
         write_run(parent, task="cartpole", mode="decoupled", seed=seed)
     write_run(parent, task="hopper", mode="decoupled", seed=0, gpu="NVIDIA H100")
     write_run(parent, task="hopper", mode="state", seed=0, probe_every=0)
+
+    def noise_and_evaluations(m):
+        m["action_std"] = 0.4 - 0.01 * m["iter"]
+        if m["iter"] % 5 == 0:
+            m.update(eval_return_mean=10.0 * m["iter"], eval_return_std=1.0, eval_length_mean=100.0)
+
+    for run in parent.iterdir():
+        _rewrite_metrics(run, noise_and_evaluations)
     return parent
 
 
@@ -90,6 +98,8 @@ def test_make_plots_skips_figures_without_data(tmp_path):
     assert "cosine_hist.png" in res.skipped and "cosine_vs_iter.png" in res.skipped
     assert not (tmp_path / "plots" / "cosine_hist.png").exists()
     assert "return_vs_env_steps.png" in res.files
+    # no evaluation, no exploration noise logged, no probe: those figures are skipped too
+    assert {"eval_return_vs_iter.png", "exploration_noise.png", "looking.png"} <= set(res.skipped)
 
 
 def test_bad_input_is_a_clear_error(tmp_path, capsys):
@@ -176,7 +186,7 @@ def test_floors_are_drawn_beside_every_return_curve(runs_dir, tmp_path):
         for name, fig in figs.figures.items():
             cartpole, hopper = fig.axes[:2]
             drawn = {ln.get_gid(): ln.get_ydata()[0] for ln in cartpole.lines if str(ln.get_gid()).startswith("floor")}
-            if name.startswith("return_"):
+            if name.startswith(("return_", "eval_return_")):
                 assert drawn == {"floor:zero": 5.0, "floor:random": 7.0}, name
                 # named on the figure beside the line, the higher floor above the lower
                 texts = {t.get_text(): t.get_va() for t in cartpole.texts}
@@ -411,5 +421,34 @@ def test_runs_differing_per_panel_say_so(tmp_path):
         assert [t.get_text() for t in figs.figures["grad_norm.png"].legends[0].get_texts()] == ["decoupled (n=2/1)"]
         hist = [t.get_text() for t in figs.figures["cosine_hist.png"].legends[0].get_texts()]
         assert hist == ["decoupled (n=2/1, 8/4 probes)"]
+    finally:
+        figs.close()
+
+
+def test_evaluations_noise_and_looking_over_iterations(runs_dir):
+    # seed 1 of cartpole full stops looking at iteration 4: its sensitivity falls to a hundredth of the first
+    _rewrite_metrics(runs_dir / "cartpole_full_seed1", lambda m: m.update(
+        image_sensitivity_f0=0.001, image_sensitivity_f1=0.002, image_sensitivity_f2=0.004) if m["iter"] == 4 else None)
+    figs = build_figures(find_runs([runs_dir]), floors=load_floors())
+    try:
+        cartpole = figs.figures["eval_return_vs_iter.png"].axes[0]
+        assert len([ln for ln in cartpole.lines if ln.get_gid() == "run"]) == 4  # every seed of both arms, thin
+        full = next(ln for ln in _arm_lines(cartpole) if ln.get_label() == "full")
+        np.testing.assert_array_equal(full.get_xdata(), [5, 10])
+        np.testing.assert_array_equal(full.get_ydata(), [50.0, 100.0])  # the mean over the seeds' evaluations
+        legend = [t.get_text() for t in figs.figures["eval_return_vs_iter.png"].legends[0].get_texts()]
+        assert "thin: each seed" in legend
+        noise = next(ln for ln in _arm_lines(figs.figures["exploration_noise.png"].axes[0]) if ln.get_label() == "full")
+        np.testing.assert_allclose(noise.get_ydata(), 0.4 - 0.01 * noise.get_xdata())
+        fig = figs.figures["looking.png"]
+        ax = fig.axes[0]
+        assert ax.get_yscale() == "log"
+        bar = [ln for ln in ax.lines if ln.get_gid() == "reference"]
+        assert len(bar) == 1 and bar[0].get_ydata()[0] == 0.1
+        full = next(ln for ln in _arm_lines(ax) if ln.get_label() == "full")
+        # probes at 1, 4, 7, 10 relative to each run's first; at 4 the geometric mean of 1 and 0.01
+        np.testing.assert_array_equal(full.get_xdata(), [1, 4, 7, 10])
+        np.testing.assert_allclose(full.get_ydata(), [1.0, 0.1, 1.0, 1.0])
+        assert "looking bar: 0.1 x the first probe's" in [t.get_text() for t in fig.legends[0].get_texts()]
     finally:
         figs.close()
