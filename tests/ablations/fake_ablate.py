@@ -2,10 +2,11 @@
 ``ablations.sweep.run_sweep``). Run by path, with ablate's arguments after the stand-in's own::
 
     python fake_ablate.py kill-worker-once SWEEP_DIR RUN_ID[,RUN_ID...] -- ABLATE_ARGS...
-        The real ablate, except that a named run, the first time it writes a checkpoint, waits until that
-        checkpoint has reached the sweep folder, notes it in SWEEP_DIR/.killed/<run_id> and SIGKILLs the Ray worker
-        that started it (as a node's out-of-memory killer would); the worker's death takes this process with it.
-        A run with a note runs as ablate does: the retry, and any later sweep in the same folder.
+        The real ablate, except that a named run (or population: its job id), the first time it writes a checkpoint
+        (every member has, in a population), waits until that checkpoint has reached the sweep folder, notes it in
+        SWEEP_DIR/.killed/<run_id> and SIGKILLs the Ray worker that started it (as a node's out-of-memory killer
+        would); the worker's death takes this process with it. A run with a note runs as ablate does: the retry,
+        and any later sweep in the same folder.
 
     python fake_ablate.py signal-once SWEEP_DIR RUN_ID[,RUN_ID...] -- ABLATE_ARGS...
         The real ablate, except that a named run, right after its first checkpoint, sends itself SIGTERM (as a job
@@ -15,7 +16,10 @@
     python fake_ablate.py record LOG SECONDS -- ABLATE_ARGS...
         No training: spends SECONDS writing --iters iterations (a metrics line and a small checkpoint each, which
         the worker ships to the driver as it does a real run's), then a summary, and appends {"run", "pid",
-        "start", "end", "threads"} (time.time() seconds; its --threads) to LOG, to measure how many runs overlap.
+        "start", "end", "threads", "members"} (time.time() seconds; its --threads; its --member values) to LOG, to
+        measure how many runs overlap. With --member: a population folder (population.json) holding a run folder
+        per member, named as ablate names them; --resume continues from the newest checkpoint every run folder has
+        (its metrics cut there), so an attempt that repeats or skips an iteration shows in the metrics.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from pathlib import Path
 
 #: Seconds a run waits for the sweep folder to receive its checkpoint before it gives up killing its worker.
 WAIT_FOR_STORE_S = 120.0
+#: A population folder's record (ablations.population.POPULATION).
+POPULATION = "population.json"
 
 
 def _value(args: list[str], flag: str) -> str | None:
@@ -54,7 +60,7 @@ def ablate_acting_once(sweep: Path, notes: str, victims: set[str], args: list[st
 
         def save_then_act(path, state):
             save(path, state)
-            if not note.exists():
+            if not note.exists() and every_member_has(Path(path)):
                 note.parent.mkdir(parents=True, exist_ok=True)
                 act(Path(path), note, run_id)
 
@@ -63,9 +69,20 @@ def ablate_acting_once(sweep: Path, notes: str, victims: set[str], args: list[st
     runpy.run_module("ablations", run_name="__main__", alter_sys=True)
 
 
+def every_member_has(checkpoint: Path) -> bool:
+    """Whether every member of the population whose run folder holds ``checkpoint`` has one of its iteration (a
+    population checkpoints its members one after the other); True for a run alone."""
+    home = checkpoint.parent.parent.parent
+    if not (home / POPULATION).is_file():
+        return True
+    names = json.loads((home / POPULATION).read_text())["members"]
+    return all((home / name / "checkpoints" / checkpoint.name).exists() for name in names)
+
+
 def kill_worker(sweep: Path):
     def act(checkpoint: Path, note: Path, run_id: str) -> None:
-        shipped = sweep / "runs" / run_id / "checkpoints" / checkpoint.name
+        # the attempt runs in its scratch folder, where the job's folder is the one the sweep keeps under runs/
+        shipped = sweep / "runs" / os.path.relpath(checkpoint)
         deadline = time.monotonic() + WAIT_FOR_STORE_S
         while not shipped.exists():
             if time.monotonic() > deadline:
@@ -83,23 +100,57 @@ def signal_self(checkpoint: Path, note: Path, run_id: str) -> None:
     os.kill(os.getpid(), signal.SIGTERM)
 
 
+def member_folders(args: list[str]) -> list[str]:
+    """The run folders ablate makes of an ablate command line with --member (its own parser and names)."""
+    from ablations.cli import parse
+    from ablations.population import AblateConfig, member_name
+
+    members = parse(AblateConfig, args).members()
+    return [member_name(m, members) for m in members]
+
+
 def record(log: Path, seconds: float, args: list[str]) -> None:
     start = time.time()
     run_id = run_id_of(args)
     iters = int(_value(args, "--iters") or 1)
-    run = Path(_value(args, "--out") or ".") / run_id
-    (run / "checkpoints").mkdir(parents=True)
-    (run / "config.json").write_text(json.dumps({"config": {"iters": iters}, "command": ["fake_ablate.py", *args]}))
-    with open(run / "metrics.jsonl", "a") as metrics:
-        for it in range(1, iters + 1):
-            time.sleep(seconds / iters)
-            metrics.write(json.dumps({"iter": it, "return_mean": float(it)}) + "\n")
-            metrics.flush()
+    home = Path(_value(args, "--out") or ".") / run_id
+    resume = _value(args, "--resume")
+    if resume is not None:
+        home = Path(resume)
+        population = json.loads((home / POPULATION).read_text()) if (home / POPULATION).is_file() else None
+        names = population["members"] if population else [""]
+        iters = json.loads((home / names[0] / "config.json").read_text())["config"]["iters"]
+    else:
+        names = member_folders(args) if "--member" in args else [""]
+        home.mkdir(parents=True)
+        if names != [""]:
+            (home / POPULATION).write_text(json.dumps({"members": names, "command": ["fake_ablate.py", *args]}))
+    runs = [home / name for name in names]
+    done = 0
+    for run in runs:
+        (run / "checkpoints").mkdir(parents=True, exist_ok=True)
+        if resume is None:
+            (run / "config.json").write_text(json.dumps({"config": {"iters": iters},
+                                                         "command": ["fake_ablate.py", *args]}))
+    if resume is not None:  # from the newest iteration every run folder has a checkpoint of, its metrics cut there
+        have = [{int(p.stem.split("_")[1]) for p in (run / "checkpoints").glob("ckpt_*.pt")} for run in runs]
+        done = max(set.intersection(*have), default=0)
+        for run in runs:
+            lines = (run / "metrics.jsonl").read_text().splitlines()
+            kept = [line for line in lines if json.loads(line)["iter"] <= done]
+            (run / "metrics.jsonl").write_text("".join(line + "\n" for line in kept))
+    for it in range(done + 1, iters + 1):
+        time.sleep(seconds / iters)
+        for run in runs:
+            with open(run / "metrics.jsonl", "a") as metrics:
+                metrics.write(json.dumps({"iter": it, "return_mean": float(it), "pid": os.getpid()}) + "\n")
+        for run in runs:
             (run / "checkpoints" / f"ckpt_{it:06d}.pt").write_bytes(b"fake state %d" % it)
-    (run / "summary.json").write_text(json.dumps({"status": "finished", "iterations": iters,
-                                                  "final_return": float(iters)}))
+    for run in runs:
+        (run / "summary.json").write_text(json.dumps({"status": "finished", "iterations": iters,
+                                                      "final_return": float(iters)}))
     line = json.dumps({"run": run_id, "pid": os.getpid(), "start": start, "end": time.time(),
-                       "threads": _value(args, "--threads")}) + "\n"
+                       "threads": _value(args, "--threads"), "members": names, "resumed_from": done}) + "\n"
     with open(log, "a") as f:  # one short append per run: lines of concurrent runs do not interleave
         f.write(line)
 
