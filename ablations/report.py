@@ -7,15 +7,25 @@ Sections:
        mode without a measurement says "not run"; nothing is estimated. Runs of one mode that differ in
        preset, raster model or renderer are told apart (``full (hard)``), one row per full variant.
     2. Training curves: the ``ablate-plot`` figures of the given runs (return curves with the zero- and
-       random-action floors), the floors table, and a table of the runs.
-    3. Memory sweeps: the ``ablate-memory`` table(s) and plots.
-    4. Provenance: device, versions, dates and the command behind every input, and this report's command.
+       random-action floors), the floors table, and a table of the runs. Runs are grouped by arm
+       (:func:`ablations.seeds.arm_label`: ``decoupled``, ``full-soft``, ``full-hard-dva``, ...).
+    3. Seed statistics (:func:`ablations.seeds.seed_section`): per task and arm the IQM of the final evaluation
+       return with 95 % CIs, paired differences against decoupled with the probability of improvement, AUC and
+       collapse rate, at equal iterations and (from iteration times measured alone) at equal wall-clock; the
+       verdict of issue 36 (arms are ranked only where decoupled beats blind); performance profiles and the
+       evaluation curves. Runs without deterministic evaluations are said to have none.
+    4. Gradient probes where the policy looks (:func:`ablations.seeds.probe_section`): medians of the cosines
+       and norms over the probes whose image sensitivity shows the policy looking, how many counted, and the
+       exploration-noise and image-sensitivity figures.
+    5. Memory sweeps: the ``ablate-memory`` table(s) and plots.
+    6. Provenance: device, versions, dates and the command behind every input, and this report's command.
        A run's start and end are config.json's ``started_utc`` and summary.json's ``ended_utc``; runs that
        did not record them show the files' modification times, marked "(file time)" (a copy or a checkout
        changes those).
 
 The sections are functions (``table1_section``, ``curves_section`` = ``figure_lines`` + ``floors_section`` +
-``runs_table``, ``memory_section``, ``provenance_section``) that ``ablate-paper`` composes into its report.
+``runs_table``, ``ablations.seeds.seed_section``, ``ablations.seeds.probe_section``, ``memory_section``,
+``provenance_section``) that ``ablate-paper`` composes into its report.
 
 Where our backward times come from, in order of precedence per (task, mode):
     a benchmark JSON (``--benchmark``), then the runs' summary.json ``median_bwd_ms`` (warm-up and probe
@@ -29,7 +39,9 @@ Benchmark JSON (a dedicated timing measurement; the format this module reads)::
                   "num_envs": 64, "horizon": 32, "image_size": 84}, ...]}
 
 A bare list of result objects is accepted too; ``median_bwd_ms`` is accepted for ``bwd_ms``. Results whose
-``status`` is not ``ok`` (``benchmarks/iteration.py`` records oom and error points) are left out.
+``status`` is not ``ok`` (``benchmarks/iteration.py`` records oom and error points) are left out. The same files'
+``iter_ms`` give the seed statistics' equal-wall-clock view, as do ``benchmarks/population.py`` files (a "rows"
+list), which hold no Table 1 rows.
 The figures are (re)drawn into ``<report folder>/figures/`` so the report folder is self-contained. Every path
 the report names (inputs, figures, the floors file) is relative to the report's folder, and recorded commands show
 their program by name: a report holds no absolute path of the machine that wrote it.
@@ -50,9 +62,10 @@ import tyro
 
 from ablations.paper_numbers import load_paper_numbers
 from ablations.plot import FIGURES, Floors, PlotResult, group_runs, load_floors, make_plots
-from ablations.run_folder import Run, RunFolder, find_runs
+from ablations.run_folder import Run, RunFolder, find_runs, is_number
 
-__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms",
+__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms", "run_median_ms",
+           "run_device",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
            "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN",
            "figure_lines", "runs_table", "report_path", "command_text"]
@@ -83,21 +96,28 @@ class ReportConfig:
     """task-floors JSON with the zero- and random-action return floors; None: docs/floors.json of this checkout."""
     title: str = "Policy gradients through pixels: full vs decoupled"
     """Title of the report."""
+    reps: int = 2000
+    """Bootstrap resamples per confidence interval of the seed statistics (ablations.stats.DEFAULT_REPS)."""
 
 
 # ---------------------------------------------------------------------------------------------- inputs
-def run_bwd_ms(run: Run) -> float | None:
-    """A run's median backward ms per iteration: summary.json's, else recomputed from metrics.jsonl.
+def run_median_ms(run: Run, key: str) -> float | None:
+    """A run's median ``key`` (``bwd_ms``, ``iter_ms``, ...) per iteration: summary.json's ``median_<key>``, else
+    recomputed from metrics.jsonl.
 
     The recomputation matches ``ablations.runs``: iterations after ``warmup_iters``, probe iterations (which
     differentiate twice) excluded.
     """
-    if run.summary and isinstance(run.summary.get("median_bwd_ms"), (int, float)):
-        return float(run.summary["median_bwd_ms"])
+    if run.summary and is_number(run.summary.get(f"median_{key}")):
+        return float(run.summary[f"median_{key}"])
     warm = run.config.get("warmup_iters", 2) or 0
-    vals = [m["bwd_ms"] for m in run.metrics
-            if isinstance(m.get("bwd_ms"), (int, float)) and m.get("iter", 0) > warm and not m.get("probed")]
+    vals = [m[key] for m in run.metrics if is_number(m.get(key)) and m.get("iter", 0) > warm and not m.get("probed")]
     return median(vals) if vals else None
+
+
+def run_bwd_ms(run: Run) -> float | None:
+    """A run's median backward ms per iteration (:func:`run_median_ms`)."""
+    return run_median_ms(run, "bwd_ms")
 
 
 def load_benchmark(path: str | os.PathLike) -> tuple[dict, list[dict]]:
@@ -111,6 +131,9 @@ def load_benchmark(path: str | os.PathLike) -> tuple[dict, list[dict]]:
         raise ValueError(f"--benchmark {path}: not valid JSON ({e})") from None
     meta, results = ({}, data) if isinstance(data, list) else (data, data.get("results") if isinstance(data, dict)
                                                                else None)
+    if isinstance(data, dict) and results is None and isinstance(data.get("rows"), list):
+        # benchmarks/population.py: iteration times of populations (ablations.seeds reads them); no Table 1 rows
+        return {k: v for k, v in meta.items() if k != "rows"}, []
     if not isinstance(results, list):
         raise ValueError(f"--benchmark {path}: expected a 'results' list of {{task, mode, bwd_ms}} objects")
     out = []
@@ -133,7 +156,8 @@ def _setting(d: dict) -> str:
     return " ".join(parts) or "?"
 
 
-def _run_device(run: Run) -> str:
+def run_device(run: Run) -> str:
+    """The device a run trained on, as config.json records it (the GPU's name on CUDA)."""
     env = run.environment
     return env.get("gpu") or env.get("device") or run.config.get("device") or "?"
 
@@ -180,7 +204,7 @@ def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]]
         if not vals:
             continue
         settings = sorted({_setting(r.config) for _, r in vals})
-        devices = sorted({_run_device(r) for _, r in vals})
+        devices = sorted({run_device(r) for _, r in vals})
         cells[(task, lab)] = Cell(ms=median([v for v, _ in vals]), n=len(vals), source="runs",
                                   setting=" / ".join(settings), device=" / ".join(devices), mode=rs[0].mode)
     return cells
@@ -377,16 +401,19 @@ def runs_table(runs: list[Run], *, label=None) -> list[str]:
 
 
 def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors,
-                   heading: str = "## 2. Training curves") -> list[str]:
-    """The ablate-plot figures (drawn into ``fig_dir``, linked relative to ``base``), the floors and a runs table."""
+                   heading: str = "## 2. Training curves", plots: PlotResult | None = None, label=None,
+                   leave_out: tuple[str, ...] = ()) -> list[str]:
+    """The ablate-plot figures (drawn into ``fig_dir`` unless ``plots`` holds them already; linked relative to
+    ``base``) but those named in ``leave_out`` (shown by another section), the floors and a runs table;
+    ``label``: a run's group (:func:`ablations.plot.group_runs`)."""
     out = [heading, ""]
     if not runs:
         return [*out, "No training runs were given.", ""]
-    res = make_plots(runs, fig_dir, floors=floors)
+    res = plots if plots is not None else make_plots(runs, fig_dir, floors=floors, label=label)
     out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends).", ""]
-    out += figure_lines(res, FIGURES, base)
+    out += figure_lines(res, [f for f in FIGURES if f not in leave_out], base)
     out += floors_section(runs, floors, base=base)
-    return [*out, "### Runs", "", *runs_table(runs)]
+    return [*out, "### Runs", "", *runs_table(runs, label=label)]
 
 
 def memory_section(sweeps: list[Path], fig_dir: Path, base: Path, *, heading: str = "## 3. Memory sweep"
@@ -434,7 +461,7 @@ def provenance_section(runs: list[Run], sweeps: list[Path], benchmarks: list[tup
             env = r.environment
             versions = ", ".join(f"{k} {env[k]}" for k in ("python", "torch", "cuda", "mujoco",
                                                              "pytorch_kinematics") if env.get(k))
-            rows.append([report_path(r.path, base), _run_device(r), versions, _commit(r), _started(r), _ended(r),
+            rows.append([report_path(r.path, base), run_device(r), versions, _commit(r), _started(r), _ended(r),
                          f"`{command_text(r.command)}`"])
         out += markdown_table(["run", "device", "versions", "commit", "started (config.json started_utc)",
                                "ended (summary.json ended_utc)", "command"], rows)
@@ -477,6 +504,8 @@ def build_report(cfg: ReportConfig) -> Path:
     """Write the report (and its figures) and return its path; ValueError on bad or missing input."""
     if not cfg.runs and not cfg.memory and not cfg.benchmark:
         raise ValueError("nothing to report: give run folders, --memory SWEEP_DIR and/or --benchmark FILE.json")
+    if cfg.reps < 1:
+        raise ValueError(f"--reps must be a positive number of bootstrap resamples, got {cfg.reps}")
     runs = find_runs(list(cfg.runs)) if cfg.runs else []
     sweeps = load_memory_sweeps(cfg.memory)
     benchmarks = [(Path(b), *load_benchmark(b)) for b in cfg.benchmark]
@@ -501,10 +530,18 @@ def build_report(cfg: ReportConfig) -> Path:
     if benchmarks:
         inputs.append(f"{len(benchmarks)} benchmark file(s)")
     lines += [f"Built from {', '.join(inputs)}. Sections without inputs say so; no number here is estimated.", ""]
+    from ablations.seeds import PROBE_FIGURES, SEED_FIGURES, arm_label, probe_section, seed_section
+
+    label = arm_label(runs) if runs else None
+    plots = make_plots(runs, fig_dir, floors=floors, label=label) if runs else None
     lines += table1_section(collect_bwd(runs, benchmarks))
-    lines += curves_section(runs, fig_dir, base, floors=floors)
-    lines += memory_section(sweeps, fig_dir, base)
-    lines += provenance_section(runs, sweeps, benchmarks, base=base)
+    lines += curves_section(runs, fig_dir, base, floors=floors, plots=plots, label=label,
+                            leave_out=(*SEED_FIGURES, *PROBE_FIGURES))
+    lines += seed_section(runs, fig_dir, base, label=label, benchmarks=cfg.benchmark, floors=floors, plots=plots,
+                          reps=cfg.reps)
+    lines += probe_section(runs, base, label=label, plots=plots)
+    lines += memory_section(sweeps, fig_dir, base, heading="## 5. Memory sweep")
+    lines += provenance_section(runs, sweeps, benchmarks, base=base, heading="## 6. Provenance")
 
     from gradlab.checkpoint import atomic_write_text
 

@@ -79,6 +79,13 @@ def test_report_has_our_table_the_papers_and_not_run(inputs, tmp_path):
     for link in links:
         assert not Path(link).is_absolute() and (out.parent / link).read_bytes()[:4] == b"\x89PNG"
 
+    # Seed statistics: these runs predate deterministic evaluation, and say so; their probes all look (the
+    # image sensitivity stays at its first value).
+    assert "## 3. Seed statistics" in text and "No run logged a deterministic evaluation" in text
+    assert "## 4. Gradient probes where the policy looks" in text
+    assert "| cartpole | decoupled | 8/8 (s0: 4/4, s1: 4/4) |" in text
+    assert "## 5. Memory sweep" in text and "## 6. Provenance" in text
+
     # Memory sweep table and provenance.
     assert "| full | 8 | 64 |" in text and "oom: OutOfMemoryError" in text
     assert "`ablate-memory --task cartpole`" in text
@@ -136,6 +143,8 @@ def test_bad_input_errors(tmp_path, capsys):
     run = write_run(tmp_path / "runs", task="ant", mode="full", seed=0)
     with pytest.raises(ValueError, match=r"ending in \.md"):
         build_report(ReportConfig(runs=(run,), out=tmp_path / "report.txt"))
+    with pytest.raises(ValueError, match="--reps must be a positive number"):
+        build_report(ReportConfig(runs=(run,), reps=0, out=tmp_path / "r.md"))
     assert not (tmp_path / "r.md").exists()
 
     with pytest.raises(SystemExit) as e:
@@ -242,3 +251,34 @@ def test_report_names_no_absolute_path(inputs, tmp_path, monkeypatch):
     text = build_report(ReportConfig(runs=(runs,), out=tmp_path / "rep2" / "report.md")).read_text()
     assert absolute_paths(text) == [] and "floors.json`" in text
     assert absolute_paths("a `/home/x` b\n/tmp/y | /z |") == ["/home/x", "/tmp/y", "/z"]
+
+
+def test_report_of_evaluated_seeds_and_a_population_benchmark(tmp_path):
+    """Runs with deterministic evaluations: the seed statistics per arm, the evaluation and profile figures, and
+    a benchmarks/population.py file read for iteration times (not for Table 1)."""
+    runs = tmp_path / "runs"
+    for seed in (0, 1, 2):
+        for mode, base in (("decoupled", 500.0), ("blind", 100.0)):
+            run = write_run(runs, task="hopper", mode=mode, seed=seed, settings={"preset": "dva",
+                                                                               "raster_model": "softmax"})
+            lines = [json.loads(ln) for ln in (run / "metrics.jsonl").read_text().splitlines()]
+            for m in lines:
+                if m["iter"] % 4 == 0:
+                    m.update(eval_return_mean=base + 10.0 * seed + m["iter"], eval_return_std=1.0)
+            (run / "metrics.jsonl").write_text("".join(json.dumps(m) + "\n" for m in lines))
+    bench = tmp_path / "population.json"
+    bench.write_text(json.dumps({"device": "cuda", "gpu": "NVIDIA H100", "command": "population.py --num-envs 4",
+                                 "rows": [{"kind": "population", "task": "hopper", "members": 1, "status": "ok",
+                                           "iter_ms": 93.0, "bwd_ms": 45.0}]}))
+    text = build_report(ReportConfig(runs=(runs,), benchmark=(bench,), reps=20, out=tmp_path / "r" / "r.md")
+                        ).read_text()
+    assert table_row(text, "hopper")[1:3] == ["10.0", "not run"]  # Table 1: the runs' own, not the population's
+    assert "**Verdict (equal iterations, 12):** decoupled beats blind" in text
+    # decoupled minus blind is 400 on every seed; the final return is the mean of the evaluations at 4, 8, 12
+    assert "| decoupled | 3 | 12 | 3 (final: last 3) | 518 [" in text and "| s0: 508, s1: 518, s2: 528 |" in text
+    assert "| blind | 3 | 12 | 3 (final: last 3) |" in text and "| -400 [-400, -400] (n=3) |" in text
+    # the benchmark times decoupled alone but not blind: both arms' times come from their single runs instead
+    assert "**Verdict (equal wall-clock, 0.24 s):**" in text and "(decoupled 20 ms, blind 20 ms per" in text
+    assert "iteration times measured alone from runs on cpu" in text
+    for png in ("performance_profile_hopper.png", "eval_return_vs_iter.png"):
+        assert f"](figures/{png})" in text and (tmp_path / "r" / "figures" / png).exists()

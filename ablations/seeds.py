@@ -1,0 +1,581 @@
+"""Seed statistics of run folders as report sections: which arm trains better, with confidence intervals, and
+what the gradient probes say while the policy looks at its image (issue 36).
+
+``ablate-report`` writes these sections; ``ablate-paper`` can call the same functions:
+
+* :func:`arm_names` / :func:`arm_label`: each run's arm. Runs are grouped by mode, raster model, preset and any
+  other setting that differs between the given runs and changes what is trained (a population member's
+  ``encoder_lr_scale``, a flag that overrides the preset); an arm whose mode, raster model and preset are one of
+  ablate-paper's is named like it (:data:`PAPER_ARMS`), others by their mode and what sets them apart.
+* :func:`iteration_times`: per task, each arm's iteration time measured alone, for the equal-wall-clock view:
+  ``--benchmark`` files (``benchmarks/iteration.py`` rows of (task, mode, raster model, iter_ms);
+  ``benchmarks/population.py`` single runs, a population of one) when they hold every arm of the task, else
+  the runs' own median ``iter_ms`` when no run of the task was a population member (a member's iterations
+  are its whole population's); otherwise the view is not available, and the section says why.
+* :func:`seed_statistics`: per task, :func:`ablations.stats.task_statistics` at equal iterations and equal
+  wall-clock, the performance profile, and the verdict of issue 36 (:func:`ablations.stats.verdict`): full
+  against decoupled is read only where decoupled beats blind with a CI that excludes zero.
+* :func:`seed_section` and :func:`probe_section`: the markdown (figures from :func:`ablations.plot.make_plots`
+  and the performance profiles, linked relative to the report's folder).
+
+Everything here reads JSON (no torch).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from statistics import median
+
+from ablations import stats
+from ablations.plot import Floors, PlotResult, arm_styles, group_runs
+from ablations.report import figure_lines, markdown_table, report_path, run_device, run_median_ms
+from ablations.run_folder import Run, RunFolder, is_number
+
+__all__ = ["PAPER_ARMS", "REFERENCE_ARM", "CONTROL_ARM", "IMAGELESS_MODES", "NOT_RANKING", "NOT_ARM_SETTINGS",
+           "MEMBER_DEFAULTS",
+           "SEED_FIGURES", "PROBE_FIGURES", "PROBE_KEYS", "arm_names", "arm_label", "in_arm_order", "ArmTime",
+           "IterationTimes", "benchmark_iteration_rows", "iteration_times", "TaskSeeds", "seed_statistics",
+           "seed_section", "ArmProbes", "arm_probes", "probe_section"]
+
+#: (mode, raster model, preset) -> the ablate-paper arm of that name, in the order tables list arms (other
+#: arms follow by mode: decoupled, full, state, blind); modes that train without rendering take None for the
+#: raster model.
+PAPER_ARMS = {
+    ("decoupled", "softmax", "dva"): "decoupled",
+    ("full", "softmax", "dva"): "full-soft",
+    ("full", "hard", "shac-diffrender"): "full-hard",
+    ("full", "hard", "dva"): "full-hard-dva",
+    ("full", "alpha", "dva"): "full-alpha",
+    ("state", None, "dva"): "state",
+    ("blind", None, "dva"): "blind",
+}
+#: The arm every other is held against (D.Va), and the control it must beat before any arm is ranked: the
+#: visual actor fed a constant black image.
+REFERENCE_ARM, CONTROL_ARM = "decoupled", "blind"
+#: Modes that render nothing while training: their raster model names no difference.
+IMAGELESS_MODES = ("state", "blind")
+#: Tasks whose returns rank no arms, and why (the zero-action floor from the floors file is quoted beside it).
+NOT_RANKING = {"cartpole": "D.Va's cartpole (with springs) ranks no arms: doing nothing already scores high"}
+#: config.json settings that do not change what a run trains (where it writes, how often it measures, how long
+#: it may run, how it is compiled and on what), besides those an arm is named by (mode, raster_model, preset)
+#: and the seed: runs that differ only in these are one arm.
+NOT_ARM_SETTINGS = frozenset({
+    "task", "seed", "mode", "raster_model", "preset", "name", "out", "resume", "progress", "tensorboard",
+    "checkpoint_every", "keep_checkpoints", "video_every", "video_steps", "compile", "compile_cache",
+    "compile_helper", "threads", "device", "time_limit_min", "iters", "cosine_every", "eval_every", "eval_envs",
+    "warmup_iters", "overlap_critic"})
+#: The trainer's defaults (gradlab.SHACConfig's, which imports torch) of the settings a population member may set
+#: (gradlab.shac.MEMBER_FIELDS) that no preset supplies: a run at its default is named without it.
+MEMBER_DEFAULTS = {"betas": [0.7, 0.95], "grad_clip": 1.0, "critic_iterations": 16, "critic_batches": 4,
+                   "abort_grad_norm": 1e8, "encoder_lr_scale": 1.0, "lr_warmup_iters": 0}
+_DEFAULT = "<default>"
+#: make_plots figures shown by the seed section and by the probe section (the other sections leave them out).
+SEED_FIGURES = ("eval_return_vs_iter.png",)
+PROBE_FIGURES = ("looking.png", "exploration_noise.png", "image_sensitivity.png")
+#: Probe statistics of the probe section: metrics key (or a ratio of two) -> column name.
+PROBE_KEYS = {
+    "cos_full_decoupled": "cos(full, decoupled)",
+    "grad_norm_render_term": "render-term norm",
+    "cos_hard_soft": "cos(hard, soft)",
+    "cos_hard_decoupled": "cos(hard, decoupled)",
+    "cos_soft_decoupled": "cos(soft, decoupled)",
+    "grad_norm_full_hard/grad_norm_full_soft": "norm hard / norm soft",
+}
+#: benchmarks/population.py's members, in its order (its ARMS): (mode, raster model; None: the preset's).
+_POPULATION_BENCHMARK_ARMS = (("decoupled", None), ("full", None), ("full", "hard"), ("blind", None))
+#: The raster model of the dva preset (gradlab.presets.SILHOUETTE_RASTER_MODEL; imported there with torch).
+_PRESET_RASTER = "softmax"
+#: Settings a benchmark row and the runs must agree on for the row's time to stand for the arm's.
+_TIMED_SETTINGS = ("num_envs", "horizon", "image_size", "compile")
+
+
+# ---------------------------------------------------------------------------------------------------- arms
+def _value_text(v) -> str:
+    return "/".join(map(str, v)) if isinstance(v, (list, tuple)) else str(v)
+
+
+def _own_settings(run: Run) -> dict[str, str]:
+    """The settings of a run that can set it apart from another of its arm (config values but NOT_ARM_SETTINGS),
+    as JSON text; DEFAULT for one its preset supplied (or a flag set to the preset's own value) or at its
+    MEMBER_DEFAULTS value."""
+    record = run.preset or {}
+    from_preset = set(record.get("supplied") or {})
+    from_preset |= {k for k, o in (record.get("overridden") or {}).items()
+                    if isinstance(o, dict) and o.get("flag") == o.get("preset")}
+    own = {}
+    for k, v in run.config.items():
+        if k in NOT_ARM_SETTINGS:
+            continue
+        text = json.dumps(v, sort_keys=True)
+        default = k in from_preset or (k in MEMBER_DEFAULTS and text == json.dumps(MEMBER_DEFAULTS[k]))
+        own[k] = _DEFAULT if default else text
+    return own
+
+
+def arm_names(runs: Sequence[Run]) -> dict[Path, str]:
+    """Run folder -> arm name. The arm is (mode, raster model (None for IMAGELESS_MODES), preset) named by
+    PAPER_ARMS where listed, else ``mode (raster model[, preset])`` (the preset where it is not dva); then, in
+    brackets, every other setting whose value differs between the runs that record it, as ``key=value``, on the
+    runs where it is not the default (the preset's, or MEMBER_DEFAULTS'; a setting with neither is named on
+    every run): ``decoupled (encoder_lr_scale=0.1)`` beside ``decoupled``."""
+    own = [_own_settings(r) for r in runs]
+    keys = sorted({k for o in own for k in o})
+    differing = [k for k in keys if len({o[k] for o in own if k in o}) > 1]
+    names = {}
+    for r, o in zip(runs, own):
+        raster = None if r.mode in IMAGELESS_MODES else r.config.get("raster_model")
+        preset = r.setting("preset")
+        head = PAPER_ARMS.get((r.mode, raster, preset))
+        parts = []
+        if head is None:
+            head = r.mode
+            parts = [str(raster)] if raster is not None else []
+            parts += [str(preset)] if preset not in (None, "dva") else []
+        parts += [f"{k}={_value_text(r.config[k])}" for k in differing if o.get(k, _DEFAULT) != _DEFAULT]
+        names[r.path] = f"{head} ({', '.join(parts)})" if parts else head
+    return names
+
+
+def _arm_order(arm: str, mode: str) -> tuple:
+    known = list(PAPER_ARMS.values())
+    modes = ("decoupled", "full", "state", "blind")
+    return (known.index(arm) if arm in known else len(known), modes.index(mode) if mode in modes else len(modes),
+            arm)
+
+
+def in_arm_order(runs: Sequence[Run], label: Callable[[Run], str]) -> list[Run]:
+    """The runs sorted by arm (PAPER_ARMS' order, then the other arms by mode and name), then seed."""
+    return sorted(runs, key=lambda r: (*_arm_order(label(r), r.mode), str(r.seed), str(r.path)))
+
+
+def arm_label(runs: Sequence[Run]) -> Callable[[Run], str]:
+    """A run's arm (:func:`arm_names` over ``runs``), as the ``label`` of ``make_plots``, ``collect_bwd`` and
+    ``runs_table``."""
+    names = arm_names(runs)
+    return lambda r: names[r.path]
+
+
+# ---------------------------------------------------------------------------------------- iteration times
+@dataclass(frozen=True)
+class ArmTime:
+    """An arm's iteration time measured alone: ``ms`` per training iteration (plain iterations: no probe, no
+    evaluation), where it came from (``source``: a benchmark file's name, or ``runs``), the ``device`` it was
+    measured on, and ``n`` (benchmark rows or runs it is the median of)."""
+
+    ms: float
+    source: str
+    device: str
+    n: int
+
+
+@dataclass(frozen=True)
+class IterationTimes:
+    """One task's iteration times for the equal-wall-clock view: ``ms`` arm -> milliseconds when every arm has
+    one from one kind of source on one device, else None; ``found``: arm -> the time found, where one was;
+    ``why``: where the times come from, or why the view is not available (one sentence)."""
+
+    task: str
+    ms: dict[str, float] | None
+    found: dict[str, ArmTime]
+    why: str
+
+
+def benchmark_iteration_rows(path: str | os.PathLike) -> tuple[str, list[dict]]:
+    """(device, rows) of a ``--benchmark`` file's iteration times measured alone: ``benchmarks/iteration.py``
+    results (``status`` ok, numeric ``iter_ms``), and ``benchmarks/population.py`` populations of one member
+    (its separate runs ran at the same time as each other, so they are not alone; their sizes are read from its
+    recorded command where given there). Each row: task, mode, raster_model (None where not recorded), iter_ms,
+    and the ``_TIMED_SETTINGS`` it records. ValueError naming the file when it is no benchmark JSON."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"--benchmark {path}: no such file") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--benchmark {path}: not valid JSON ({e})") from None
+    meta = data if isinstance(data, dict) else {}
+    device = str(meta.get("gpu") or meta.get("device") or "?")
+    rows = []
+    if isinstance(meta.get("rows"), list):  # benchmarks/population.py
+        # its rows do not record the sizes; its command does where they were given
+        argv = shlex.split(str(meta.get("command") or ""))
+        sizes = {k.replace("-", "_"): int(argv[i + 1]) for i, a in enumerate(argv[:-1])
+                 if (k := a.removeprefix("--")) in ("num-envs", "horizon", "image-size") and argv[i + 1].isdigit()}
+        for r in meta["rows"]:
+            if not (isinstance(r, dict) and r.get("kind") == "population" and r.get("members") == 1
+                    and r.get("status", "ok") == "ok" and is_number(r.get("iter_ms"))):
+                continue
+            mode, raster = _POPULATION_BENCHMARK_ARMS[int(r.get("arm", 0)) % len(_POPULATION_BENCHMARK_ARMS)]
+            rows.append({"task": r.get("task"), "mode": mode, "raster_model": raster or _PRESET_RASTER,
+                         "iter_ms": float(r["iter_ms"]), "compile": meta.get("device") != "cpu", **sizes})
+        return device, rows
+    results = data if isinstance(data, list) else meta.get("results")
+    for r in results if isinstance(results, list) else []:
+        if isinstance(r, dict) and r.get("status", "ok") == "ok" and is_number(r.get("iter_ms")) and "mode" in r:
+            rows.append({"task": r.get("task"), "mode": r["mode"], "raster_model": r.get("raster_model"),
+                         "iter_ms": float(r["iter_ms"]), **{k: r[k] for k in _TIMED_SETTINGS if k in r}})
+    return device, rows
+
+
+def _matches(row: dict, task: str, runs: list[Run]) -> bool:
+    first = runs[0]
+    if row["task"] != task or row["mode"] != first.mode:
+        return False
+    if first.mode not in IMAGELESS_MODES and row["raster_model"] != first.config.get("raster_model"):
+        return False
+    return all(row[k] == first.config[k] for k in _TIMED_SETTINGS if k in row and k in first.config)
+
+
+def _is_member(run: Run) -> bool:
+    """Whether the run trained in a population of several members (config.json's "population" record)."""
+    pop = RunFolder(run.path).read_record().get("population")
+    return isinstance(pop, dict) and len(pop.get("members") or ()) > 1
+
+
+def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
+                    benchmarks: Sequence[str | os.PathLike] = ()) -> dict[str, IterationTimes]:
+    """Task -> :class:`IterationTimes` of its arms (``label``: a run's arm). Per arm, the first benchmark file
+    with a matching row (same task, mode, raster model where the mode renders, and the settings both record;
+    the median of its matching rows); else the median of its runs' median ``iter_ms`` when none of them is a
+    population member. The times are used when every arm of the task has a benchmark time, all on one device,
+    or else every arm has a time from its runs, all on one device."""
+    loaded = [(Path(b), *benchmark_iteration_rows(b)) for b in benchmarks]
+    groups: dict[str, dict[str, list[Run]]] = {}
+    for r in runs:
+        groups.setdefault(r.task, {}).setdefault(label(r), []).append(r)
+    out = {}
+    for task, arms in groups.items():
+        bench, own, why_not = {}, {}, {}
+        for arm, rs in arms.items():
+            for path, device, rows in loaded:
+                hits = [row["iter_ms"] for row in rows if _matches(row, task, rs)]
+                if hits:
+                    bench[arm] = ArmTime(median(hits), f"benchmark {path.name}", device, len(hits))
+                    break
+            alone = [r for r in rs if not _is_member(r)]
+            times = [(t, r) for r in alone if (t := run_median_ms(r, "iter_ms")) is not None]
+            if times:
+                own[arm] = ArmTime(median(t for t, _ in times), "runs", " / ".join(sorted({run_device(r) for _, r in
+                                                                                           times})), len(times))
+            elif arm not in bench:
+                why_not[arm] = ("trained as population members (a member's iter_ms is its whole population's)"
+                                if len(alone) < len(rs) else "no iter_ms logged")
+        found = {**own, **bench}
+        ms, why = None, ""
+        for kind, times in (("benchmark", bench), ("runs", own)):
+            if len(times) < len(arms):
+                continue
+            devices = {t.device for t in times.values()}
+            if len(devices) > 1:
+                why = f"the arms' {kind} times were measured on different devices ({', '.join(sorted(devices))})"
+                continue
+            ms = {a: t.ms for a, t in times.items()}
+            sources = sorted({t.source for t in times.values()})
+            why = (f"iteration times measured alone from {', '.join(sources)} on {devices.pop()}"
+                   + ("" if kind == "benchmark" else " (each run's median iter_ms without warm-up and probe "
+                      "iterations; alone only if nothing else shared its device, which a run folder does not "
+                      "record)"))
+            break
+        if ms is None and not why:
+            reasons: dict[str, list[str]] = {}
+            for a in arms:
+                if a in why_not:
+                    reasons.setdefault(why_not[a], []).append(a)
+            parts = [f"{', '.join(a)}: {why}" for why, a in reasons.items()] or [
+                "the arms' times come from different kinds of source (" + ", ".join(
+                    f"{a}: {found[a].source}" for a in arms) + ")"]
+            why = ("no iteration time measured alone for every arm: " + "; ".join(parts)
+                   + " (give --benchmark files of benchmarks/iteration.py or benchmarks/population.py)")
+        out[task] = IterationTimes(task, ms, found, why)
+    return out
+
+
+# ------------------------------------------------------------------------------------------- statistics
+@dataclass(frozen=True)
+class TaskSeeds:
+    """One task's seed statistics: ``stats`` (whole, equal iterations, equal wall-clock when ``times.ms``),
+    ``times``, ``verdicts`` (view name -> :class:`ablations.stats.Verdict`: "equal iterations", and "equal
+    wall-clock" where available), ``profile`` (None without evaluations), ``eval_keys`` (the metrics keys the
+    evaluations came from), ``error`` (why nothing could be computed, e.g. two runs of one arm and seed)."""
+
+    task: str
+    stats: stats.TaskStatistics | None
+    times: IterationTimes
+    verdicts: dict[str, stats.Verdict]
+    profile: stats.PerformanceProfile | None
+    eval_keys: tuple[str, ...]
+    error: str | None = None
+
+
+def _not_ranking(task: str, floors: Floors | None) -> str | None:
+    reason = NOT_RANKING.get(task)
+    if reason is None:
+        return None
+    zero = (floors.of(task) or {}).get("zero") if floors is not None else None
+    return reason + (f" (zero action {zero['mean']:.0f}, {floors.source.name})" if zero and floors.source else "")
+
+
+def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None = None,
+                    benchmarks: Sequence[str | os.PathLike] = (), floors: Floors | None = None,
+                    reps: int = stats.DEFAULT_REPS, seed: int = stats.DEFAULT_SEED) -> dict[str, TaskSeeds]:
+    """Task -> :class:`TaskSeeds` of the runs (arms by ``label``, default :func:`arm_label`), tasks in the order
+    of ``tasks.TASKS``. ``floors``: quoted where a task ranks no arms (NOT_RANKING)."""
+    label = label or arm_label(runs)
+    runs = in_arm_order(runs, label)
+    times = iteration_times(runs, label, benchmarks)
+    out = {}
+    for task in dict.fromkeys(t for t, _ in group_runs(runs, label=label)):  # tasks.TASKS' order
+        curves = [stats.curve_of(r, label(r)) for r in runs if r.task == task]
+        keys = tuple(sorted({c.key for c in curves if c.key}))
+        t = times[task]
+        try:
+            ts = stats.task_statistics(curves, iter_ms_alone=t.ms, reps=reps, seed=seed)[task]
+        except ValueError as e:
+            out[task] = TaskSeeds(task, None, t, {}, None, keys, error=str(e))
+            continue
+        reason = _not_ranking(task, floors)
+        verdicts = {"equal iterations": stats.verdict(ts.equal_iters, control=CONTROL_ARM, not_ranking=reason)}
+        if ts.equal_wall is not None:
+            verdicts["equal wall-clock"] = stats.verdict(ts.equal_wall, control=CONTROL_ARM, not_ranking=reason)
+        profile = stats.performance_profiles(stats.truncate_at_iteration(curves, ts.iteration), reps=reps,
+                                             seed=seed).get(task) if keys else None
+        out[task] = TaskSeeds(task, ts, t, verdicts, profile, keys)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- markdown
+def _est(e: stats.Estimate | None, digits: str = ".4g") -> str:
+    if e is None:
+        return "-"
+    return f"{e.value:{digits}} [{e.ci_low:{digits}}, {e.ci_high:{digits}}]"
+
+
+def _per_seed(values: dict[int, float]) -> str:
+    return ", ".join(f"s{s}: {v:.4g}" for s, v in values.items()) or "-"
+
+
+def _span(values) -> str:
+    vals = sorted(set(values))
+    return "-" if not vals else str(vals[0]) if len(vals) == 1 else f"{vals[0]}-{vals[-1]}"
+
+
+_READING = {"better": "better than decoupled", "worse": "worse than decoupled",
+            "not resolved": "not resolved (CI covers 0)", "no paired seeds": "no paired seeds"}
+
+
+def _view_table(cmp: stats.Comparison, v: stats.Verdict, iters: dict[str, int]) -> list[str]:
+    rows = []
+    for arm, a in cmp.arms.items():
+        d = cmp.differences.get(arm)
+        if arm == cmp.reference:
+            diff, prob, reading = "reference", "-", "reference"
+        else:
+            diff = f"{_est(d.mean)} (n={d.mean.n})" if d and d.mean else "no paired seeds"
+            prob = _est(d.improvement, ".2f") if d and d.improvement else "-"
+            reading = ("control" if arm == v.control else _READING[v.readings[arm]] if arm in v.readings
+                       else "cannot be ranked yet" if v.gate is not None else "not ranked")
+        collapse = a.collapse_mean
+        rows.append([arm, len(a.final), iters.get(arm, "-"),
+                     _span(a.evals.values()) + f" (final: last {min([cmp.final_evals, *a.evals.values()])})"
+                     if a.evals else "0",
+                     _est(a.final_iqm), _per_seed(a.final), _est(a.auc_iqm),
+                     f"{_est(collapse, '.2f')} (n={collapse.n})" if collapse else "-", diff, prob, reading])
+        if a.without_evals:
+            rows[-1][3] += f"; seeds without an evaluation: {', '.join(map(str, a.without_evals))}"
+    return markdown_table(["arm", "seeds", "iterations", "evaluations per run", "final return: IQM [95 % CI]",
+                           "final return per seed", "AUC: IQM [95 % CI]", "collapse rate: mean [95 % CI]",
+                           "minus decoupled: mean [95 % CI] (paired seeds)", "P(arm > decoupled) [95 % CI]",
+                           "reading"], rows)
+
+
+def _verdict_line(view: str, v: stats.Verdict) -> str:
+    if not v.ranks:
+        return f"**Verdict ({view}):** {v.reason}."
+    readings = "; ".join(f"{arm}: {_READING[r]}" for arm, r in v.readings.items()) or "no other arm"
+    return f"**Verdict ({view}):** {v.reason}, so the other arms are read against {v.reference}: {readings}."
+
+
+def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Callable[[Run], str] | None = None,
+                 benchmarks: Sequence[str | os.PathLike] = (), floors: Floors | None = None,
+                 plots: PlotResult | None = None, reps: int = stats.DEFAULT_REPS, seed: int = stats.DEFAULT_SEED,
+                 computed: dict[str, TaskSeeds] | None = None,
+                 heading: str = "## 3. Seed statistics: which arm trains better") -> list[str]:
+    """The seed-statistics section: the arms, per task the verdict and the tables at equal iterations and equal
+    wall-clock, the performance profiles (drawn into ``fig_dir``) and ``plots``' SEED_FIGURES (links relative to
+    ``base``, the report's folder). ``computed``: :func:`seed_statistics` of these runs and arguments, when the
+    caller has it already."""
+    out = [heading, ""]
+    if not runs:
+        return [*out, "No training runs were given.", ""]
+    label = label or arm_label(runs)
+    seeds = computed if computed is not None else seed_statistics(runs, label=label, benchmarks=benchmarks,
+                                                                  floors=floors, reps=reps, seed=seed)
+    if not any(s.eval_keys for s in seeds.values()):
+        return [*out, "No run logged a deterministic evaluation (metrics `eval_return_mean`, every `--eval-every` "
+                "iterations): these runs cannot be compared over seeds. Train with `--eval-every K` for this "
+                "section.", ""]
+    out += [f"A run's **final return** is the mean of its last {stats.FINAL_EVALS} deterministic evaluations (the "
+            "policy's mean action from the fixed evaluation seed; fewer where it has fewer: the tables say how "
+            "many). Over seeds: the **interquartile mean** (IQM; with 3 seeds the plain mean, with 5 the mean of "
+            "the middle 3) with a 95 % percentile stratified-bootstrap CI (rliable, "
+            f"{reps} resamples, seeded); with 3-5 seeds such an interval is narrower than a true 95 % one. "
+            "Against decoupled: each seed's difference (the same seed in both arms), their mean with a bootstrap "
+            "CI, and rliable's probability of improvement P(arm > decoupled) on the paired seeds. **AUC**: the "
+            "mean height of the evaluation curve (trapezoid over its span). **Collapse rate**: the fraction of "
+            "evaluations, after the first positive best, below half the best so far (defined for runs with such "
+            "evaluations; n says how many). **Equal iterations**: every run cut at the fewest iterations any run "
+            "of the task reached. **Equal wall-clock**: every run cut at the training time the slowest reached, "
+            "modelled as iterations x its arm's iteration time measured alone (compilation, evaluations and the "
+            "probes' extra backward left out).", "",
+            f"**Reading rule** (issue 36): an arm is read against {REFERENCE_ARM} only where {REFERENCE_ARM} "
+            f"beats {CONTROL_ARM} (the same pixels, never looked at) with a CI that excludes zero: of the paired "
+            f"difference {REFERENCE_ARM} minus {CONTROL_ARM}, or of the IQMs ({REFERENCE_ARM}'s interval wholly "
+            f"above {CONTROL_ARM}'s). Otherwise the pixel arms cannot be ranked on that task yet.", ""]
+    out += _arms_table(runs, label)
+    styles = arm_styles(group_runs(list(runs), label=label))
+    for task, s in seeds.items():
+        out += [f"### {task}", ""]
+        if s.error:
+            out += [f"Not computed: {s.error}.", ""]
+            continue
+        if not s.eval_keys:
+            out += ["No run of this task logged a deterministic evaluation (`eval_return_mean`).", ""]
+            continue
+        if s.eval_keys == ("eval_return",):
+            out += ["These runs logged the evaluation return only on their video iterations (`eval_return`, one "
+                    "episode): read with care.", ""]
+        ts = s.stats
+        n = ts.iteration
+        out += [_verdict_line(f"equal iterations, {n}", s.verdicts["equal iterations"]), "",
+                f"Equal iterations: every run cut at iteration {n}.", ""]
+        out += _view_table(ts.equal_iters, s.verdicts["equal iterations"], dict.fromkeys(ts.equal_iters.arms, n))
+        out.append("")
+        missing = {arm: d.missing for arm, d in ts.equal_iters.differences.items() if d.missing}
+        if missing:
+            out += ["Seeds without a partner (left out of the paired differences): " + "; ".join(
+                f"{arm} against {REFERENCE_ARM}: " + ", ".join(f"{a} {list(v)}" for a, v in m.items())
+                for arm, m in missing.items()) + ".", ""]
+        if ts.equal_wall is None:
+            out += [f"Equal wall-clock: not available: {s.times.why}.", ""]
+        else:
+            times = ", ".join(f"{a} {ms:.4g} ms" for a, ms in ts.iter_ms_alone.items())
+            out += [_verdict_line(f"equal wall-clock, {ts.wall_s:.4g} s", s.verdicts["equal wall-clock"]), "",
+                    f"Equal wall-clock: every run cut at {ts.wall_s:.4g} s of modelled training time ({times} per "
+                    f"iteration; {s.times.why}).", ""]
+            out += _view_table(ts.equal_wall, s.verdicts["equal wall-clock"], ts.iters_at_wall or {})
+            out.append("")
+        if s.profile is not None:
+            png = stats.plot_performance_profiles(s.profile, fig_dir / f"performance_profile_{task}.png",
+                                                  styles=styles)
+            out += [f"![{task}: performance profile]({report_path(png, base)})", "",
+                    f"*{task}: the fraction of each arm's runs whose final return (at equal iterations, {n}) "
+                    f"exceeds each return (shaded: 95 % CI, {reps} bootstrap resamples).*", ""]
+    if plots is not None:
+        out += figure_lines(plots, SEED_FIGURES, base)
+    return out
+
+
+def _arms_table(runs: Sequence[Run], label: Callable[[Run], str]) -> list[str]:
+    by: dict[str, list[Run]] = {}
+    for r in in_arm_order(runs, label):
+        by.setdefault(label(r), []).append(r)
+    rows = []
+    for arm, rs in by.items():
+        r0 = rs[0]
+        raster = "-" if r0.mode in IMAGELESS_MODES else r0.config.get("raster_model")
+        tasks = {}
+        for r in rs:
+            tasks.setdefault(r.task, []).append(r)
+        runs_text = "; ".join(f"{t}: seeds {', '.join(str(r.seed) for r in sorted(x, key=lambda r: str(r.seed)))}, "
+                              f"{_span(r.metrics[-1]['iter'] for r in x if r.metrics)} iterations"
+                              for t, x in tasks.items())
+        rows.append([arm, r0.mode, raster, r0.setting("preset") or "-", runs_text])
+    return [*markdown_table(["arm", "mode", "raster model", "preset", "runs"], rows), ""]
+
+
+# ----------------------------------------------------------------------------------------------- probes
+@dataclass(frozen=True)
+class ArmProbes:
+    """One arm's probe statistics on one task over the probes where its policy looks: ``looking`` / ``probes``
+    per seed, ``medians`` PROBE_KEYS key -> median pooled over every seed's looking probes (None without any),
+    ``counts`` how many probes that pooled, ``all_cos``: the median cos(full, decoupled) over every probe (to
+    set beside the looking one)."""
+
+    task: str
+    arm: str
+    looking: dict[int, int]
+    probes: dict[int, int]
+    medians: dict[str, float | None]
+    counts: dict[str, int]
+    all_cos: float | None
+
+
+def _with_ratios(rows: list[dict]) -> list[dict]:
+    """Metrics lines with the PROBE_KEYS ratios ``a/b`` added where both are positive numbers."""
+    ratios = [k for k in PROBE_KEYS if "/" in k]
+    out = []
+    for row in rows:
+        extra = {}
+        for k in ratios:
+            a, b = (row.get(x) for x in k.split("/"))
+            if is_number(a) and is_number(b) and b > 0:
+                extra[k] = a / b
+        out.append({**row, **extra} if extra else row)
+    return out
+
+
+def arm_probes(runs: Sequence[Run], *, label: Callable[[Run], str] | None = None,
+               fraction: float = stats.LOOKING_FRACTION) -> list[ArmProbes]:
+    """Per (task, arm) with probes, :class:`ArmProbes` (looking: ``stats.looking_probes`` with ``fraction``)."""
+    label = label or arm_label(runs)
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for r in in_arm_order(runs, label):
+        groups.setdefault((r.task, label(r)), []).append(r)
+    out = []
+    for (task, arm), rs in groups.items():
+        looks = {r.seed: stats.looking_probes(_with_ratios(r.metrics), fraction=fraction, keys=list(PROBE_KEYS))
+                 for r in rs}
+        if not any(look.n_probes for look in looks.values()):
+            continue
+        pooled = {k: [v for look in looks.values() for v in look.values.get(k, ())] for k in PROBE_KEYS}
+        every = [m["cos_full_decoupled"] for r in rs for m in r.metrics if is_number(m.get("cos_full_decoupled"))]
+        out.append(ArmProbes(task, arm, {s: look.n_looking for s, look in looks.items()},
+                             {s: look.n_probes for s, look in looks.items()},
+                             {k: float(median(v)) if v else None for k, v in pooled.items()},
+                             {k: len(v) for k, v in pooled.items()}, float(median(every)) if every else None))
+    return out
+
+
+def probe_section(runs: Sequence[Run], base: Path, *, label: Callable[[Run], str] | None = None,
+                  plots: PlotResult | None = None, fraction: float = stats.LOOKING_FRACTION,
+                  heading: str = "## 4. Gradient probes where the policy looks") -> list[str]:
+    """The probe statistics over looking probes (:func:`arm_probes`) and ``plots``' PROBE_FIGURES (links
+    relative to ``base``)."""
+    out = [heading, ""]
+    found = arm_probes(runs, label=label, fraction=fraction) if runs else []
+    if not found:
+        return [*out, "No run has probe iterations with image sensitivity (`image_sensitivity_f<i>`; full and "
+                "decoupled runs with --cosine-every > 0 log them).", ""]
+    out += ["On probe iterations the trainer computes the full gradient (through the renderer) and the decoupled "
+            "one (the image input detached) of the same rollout, and for full runs also the full gradient through "
+            "the other raster model (hard against soft). A probe counts here when the policy looks at its image: "
+            f"its image sensitivity (|d mean action / d frame| summed over the frames) is above {fraction:g} x the "
+            "run's first probe's (the untrained policy's). Medians pool the looking probes of every seed (n: how "
+            "many carried the value); the last column sets the cosine over every probe beside it.", ""]
+    rows = []
+    for p in found:
+        counts = ", ".join(f"s{s}: {p.looking[s]}/{p.probes[s]}" for s in p.looking)
+        cells = [f"{p.medians[k]:.3g} (n={p.counts[k]})" if p.medians[k] is not None else "-" for k in PROBE_KEYS]
+        rows.append([p.task, p.arm, f"{sum(p.looking.values())}/{sum(p.probes.values())} ({counts})", *cells,
+                     f"{p.all_cos:.3g}" if p.all_cos is not None else "-"])
+    out += markdown_table(["task", "arm", "looking probes / probes", *(f"median {c}" for c in PROBE_KEYS.values()),
+                           "median cos(full, decoupled), every probe"], rows)
+    out.append("")
+    if plots is not None:
+        out += figure_lines(plots, PROBE_FIGURES, base)
+    return out

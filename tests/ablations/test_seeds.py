@@ -1,0 +1,282 @@
+"""ablations.seeds: arms named from run folders, iteration times measured alone, the seed-statistics section with
+its verdict, and the probe statistics over looking probes, on synthetic runs whose answers are known."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from ablations import seeds
+from ablations.plot import load_floors
+from ablations.run_folder import find_runs, load_run
+
+#: Few bootstrap resamples keep these tests fast; the intervals they check are far from their bounds.
+REPS = 20
+
+
+def write_run(parent, name, *, task="hopper", mode="decoupled", seed=0, raster="softmax", preset="dva",
+              overridden=None, settings=None, evals=(), every=10, iters=None, iter_ms=50.0, members=None,
+              probes=None, device="GPU-A"):
+    """A run folder as `ablate` writes one. config.json: the preset's record (raster model and learning-rate
+    decay supplied unless ``overridden`` names them: {key: (flag, preset's value)}), the population record when
+    ``members`` is given; metrics.jsonl: every iteration with ``iter_ms`` and ``action_std``, the evaluation
+    returns ``evals`` at iterations every, 2 every, ..., ``probes`` {iter: (sensitivity per frame, more keys)}."""
+    overridden = overridden or {}
+    decay = 2000 if preset == "shac-diffrender" else 30000
+    config = {"task": task, "mode": mode, "seed": seed, "raster_model": raster, "preset": preset,
+              "lr_decay_iters": decay, "num_envs": 64, "horizon": 32, "image_size": 84, "compile": True,
+              "encoder_lr_scale": 1.0, "warmup_iters": 2, "eval_every": every, "name": name, "out": str(parent),
+              **{k: v[0] for k, v in overridden.items()}, **(settings or {})}
+    supplied = {k: v for k, v in (("raster_model", raster), ("lr_decay_iters", decay)) if k not in overridden}
+    record = {"config": config, "environment": {"device": "cuda", "gpu": device},
+              "preset": {"name": preset, "supplied": supplied,
+                         "overridden": {k: {"flag": f, "preset": p} for k, (f, p) in overridden.items()}}}
+    if members:
+        record["population"] = {"folder": parent.name, "index": 0, "members": members}
+    run = parent / name
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps(record))
+    at = {every * (i + 1): r for i, r in enumerate(evals)}
+    probes = probes or {}
+    last = iters or max([*at, *probes, 1])
+    lines = []
+    for it in range(1, last + 1):
+        m = {"iter": it, "wall_s": 0.1 * it, "return_mean": 1.0, "iter_ms": iter_ms, "action_std": 0.4,
+             "probed": it in probes}
+        if it in at:
+            m.update(eval_return_mean=at[it], eval_return_std=1.0, eval_length_mean=100.0)
+        if it in probes:
+            frames, more = probes[it]
+            m.update({f"image_sensitivity_f{i}": v for i, v in enumerate(frames)}, **more)
+        lines.append(json.dumps(m))
+    (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    return run
+
+
+# ---------------------------------------------------------------------------------------------------- arms
+def test_arms_are_named_like_ablate_papers(tmp_path):
+    for task in ("hopper", "ant"):
+        p = tmp_path / task
+        write_run(p, "dec", task=task)
+        write_run(p, "dec_other_folder", task=task, seed=1, settings={"eval_every": 50, "device": "cpu"})
+        write_run(p, "soft", task=task, mode="full")
+        write_run(p, "hard", task=task, mode="full", raster="hard", preset="shac-diffrender")
+        write_run(p, "hard_dva", task=task, mode="full", overridden={"raster_model": ("hard", "softmax")})
+        write_run(p, "alpha", task=task, mode="full", overridden={"raster_model": ("alpha", "softmax")})
+        write_run(p, "blind", task=task, mode="blind")
+        write_run(p, "state", task=task, mode="state", raster=None)
+        write_run(p, "dec_hard", task=task, overridden={"raster_model": ("hard", "softmax")})
+        write_run(p, "dec_encoder", task=task, settings={"encoder_lr_scale": 0.1})
+        write_run(p, "dec_decay", task=task, overridden={"lr_decay_iters": (2000, 30000)})
+        write_run(p, "dec_decay_as_preset", task=task, seed=2, overridden={"lr_decay_iters": (30000, 30000)})
+    runs = find_runs([tmp_path / "hopper", tmp_path / "ant"])
+    names = {(r.task, r.path.name): n for r, n in zip(runs, seeds.arm_names(runs).values())}
+    assert set(names.values()) == {"decoupled", "full-soft", "full-hard", "full-hard-dva", "full-alpha", "blind",
+                                   "state", "decoupled (hard)", "decoupled (encoder_lr_scale=0.1)",
+                                   "decoupled (lr_decay_iters=2000)"}
+    for task in ("hopper", "ant"):  # the same arms on both tasks, although the presets' values differ per task
+        assert names[(task, "dec")] == names[(task, "dec_other_folder")] == "decoupled"
+        assert names[(task, "dec_decay_as_preset")] == "decoupled"  # a flag at the preset's own value
+        assert names[(task, "hard")] == "full-hard" and names[(task, "hard_dva")] == "full-hard-dva"
+    label = seeds.arm_label(runs)
+    order = [label(r) for r in seeds.in_arm_order([r for r in runs if r.task == "hopper"], label)]
+    assert order[:8] == ["decoupled"] * 3 + ["full-soft", "full-hard", "full-hard-dva", "full-alpha", "state"]
+    assert order[8] == "blind"
+
+
+def test_member_defaults_and_paper_arms_match_the_trainer_and_ablate_paper():
+    import dataclasses
+
+    from ablations.paper import ARMS
+    from gradlab.config import SHACConfig
+    from gradlab.presets import PRESET_FIELDS, SILHOUETTE_RASTER_MODEL
+    from gradlab.shac import MEMBER_FIELDS
+
+    defaults = {f.name: f.default for f in dataclasses.fields(SHACConfig)}
+    assert set(seeds.MEMBER_DEFAULTS) == set(MEMBER_FIELDS) - set(PRESET_FIELDS) - {"mode", "seed", "preset"}
+    for k, v in seeds.MEMBER_DEFAULTS.items():
+        assert json.dumps(v) == json.dumps(list(defaults[k]) if isinstance(defaults[k], tuple) else defaults[k]), k
+    assert seeds._PRESET_RASTER == SILHOUETTE_RASTER_MODEL
+    ours = {name: key for key, name in seeds.PAPER_ARMS.items()}
+    for name, spec in ARMS.items():
+        if name not in ours:
+            continue
+        mode, raster, preset = ours[name]
+        flags = spec["flags"]
+        assert spec["mode"] == mode and flags.get("preset", "dva") == preset, name
+        if raster is not None:
+            expected = flags.get("raster-model", "hard" if preset == "shac-diffrender" else SILHOUETTE_RASTER_MODEL)
+            assert expected == raster, name
+
+
+def test_the_population_benchmarks_members_are_its_arms():
+    import sys
+
+    from tests.ablations.conftest import ROOT
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import population
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert population.ARMS == seeds._POPULATION_BENCHMARK_ARMS
+
+
+# ---------------------------------------------------------------------------------------- iteration times
+def _two_arms(parent, *, members=None, dec_ms=40.0, full_ms=100.0, device="GPU-A"):
+    for s in (0, 1):
+        write_run(parent, f"dec{s}", seed=s, evals=[1.0], iter_ms=dec_ms, members=members, iters=20, device=device)
+        write_run(parent, f"full{s}", seed=s, mode="full", evals=[1.0], iter_ms=full_ms, members=members, iters=20)
+    runs = find_runs([parent])
+    return runs, seeds.arm_label(runs)
+
+
+def test_iteration_times_of_single_runs_come_from_the_runs(tmp_path):
+    runs, label = _two_arms(tmp_path / "runs")
+    t = seeds.iteration_times(runs, label)["hopper"]
+    assert t.ms == {"decoupled": 40.0, "full-soft": 100.0}
+    assert t.found["decoupled"].source == "runs" and t.found["decoupled"].n == 2 and "GPU-A" in t.why
+
+
+def test_population_members_need_a_benchmark(tmp_path):
+    runs, label = _two_arms(tmp_path / "pop", members=["a", "b", "c", "d"])
+    t = seeds.iteration_times(runs, label)["hopper"]
+    assert t.ms is None and "population members" in t.why and "decoupled, full-soft" in t.why
+    # benchmarks/iteration.py rows: the compiled rows of the runs' setting are the arms' times
+    bench = tmp_path / "iteration.json"
+    rows = [{"task": "hopper", "mode": "decoupled", "raster_model": "softmax", "iter_ms": 90.0, "bwd_ms": 40.0,
+             "num_envs": 64, "horizon": 32, "image_size": 84, "compile": True},
+            {"task": "hopper", "mode": "full", "raster_model": "softmax", "iter_ms": 115.0, "bwd_ms": 60.0,
+             "num_envs": 64, "horizon": 32, "image_size": 84, "compile": True},
+            {"task": "hopper", "mode": "full", "raster_model": "softmax", "iter_ms": 900.0, "bwd_ms": 60.0,
+             "num_envs": 64, "horizon": 32, "image_size": 84, "compile": False},  # eager: another setting
+            {"task": "hopper", "mode": "full", "raster_model": "hard", "iter_ms": 700.0, "bwd_ms": 60.0},
+            {"task": "hopper", "mode": "full", "status": "oom", "iter_ms": None, "bwd_ms": None}]
+    bench.write_text(json.dumps({"gpu": "GPU-B", "results": rows}))
+    t = seeds.iteration_times(runs, label, [bench])["hopper"]
+    assert t.ms == {"decoupled": 90.0, "full-soft": 115.0} and "iteration.json on GPU-B" in t.why
+    # benchmarks/population.py: only its population of one, a decoupled run alone, counts
+    pop = tmp_path / "population.json"
+    pop.write_text(json.dumps({"device": "cuda", "gpu": "GPU-B", "command": "population.py --num-envs 64 --horizon 32",
+                               "rows": [
+        {"kind": "population", "task": "hopper", "members": 12, "status": "ok", "iter_ms": 700.0},
+        {"kind": "population", "task": "hopper", "members": 1, "status": "ok", "iter_ms": 93.0},
+        {"kind": "separate", "task": "hopper", "members": 1, "arm": 1, "processes": 4, "status": "ok",
+         "iter_ms": 300.0}]}))
+    assert seeds.benchmark_iteration_rows(pop) == ("GPU-B", [
+        {"task": "hopper", "mode": "decoupled", "raster_model": "softmax", "iter_ms": 93.0, "compile": True,
+         "num_envs": 64, "horizon": 32}])  # the sizes its command gave
+    t = seeds.iteration_times(runs, label, [pop])["hopper"]
+    assert t.ms is None and t.found["decoupled"].ms == 93.0 and "full-soft: trained as population members" in t.why
+    t = seeds.iteration_times(runs, label, [pop, bench])["hopper"]  # the first file with a matching row wins
+    assert t.found["decoupled"].ms == 93.0 and t.ms == {"decoupled": 93.0, "full-soft": 115.0}
+
+
+def test_times_measured_on_different_devices_are_not_set_side_by_side(tmp_path):
+    runs, label = _two_arms(tmp_path / "runs", device="GPU-X")  # decoupled on GPU-X, full on GPU-A
+    t = seeds.iteration_times(runs, label)["hopper"]
+    assert t.ms is None and "different devices (GPU-A, GPU-X)" in t.why
+
+
+# ------------------------------------------------------------------------------------------- the section
+def _task(parent, task, dec, blind, **others):
+    """Arms of one task whose final returns (their one evaluation each) are the given per-seed values; single
+    runs, decoupled at 40 ms per iteration, the others at 80 ms."""
+    arms = {"decoupled": ("decoupled", {}), "blind": ("blind", {}), "full-soft": ("full", {}),
+            "full-hard-dva": ("full", {"overridden": {"raster_model": ("hard", "softmax")}})}
+    for arm, finals in {"decoupled": dec, "blind": blind, **others}.items():
+        mode, kw = arms[arm]
+        for s, f in enumerate(finals):
+            write_run(parent, f"{task}_{arm}_{s}", task=task, mode=mode, seed=s, evals=[f],
+                      iter_ms=40.0 if arm == "decoupled" else 80.0, iters=10, **kw)
+
+
+def test_the_section_reads_arms_only_where_decoupled_beats_blind(tmp_path):
+    parent = tmp_path / "runs"
+    dec = [1000.0, 1500.0, 1200.0]
+    # hopper: decoupled beats blind by ~800 on every seed; full-soft ~+300, full-hard-dva ~-400
+    _task(parent, "hopper", dec, [d - 800.0 + e for d, e in zip(dec, (5.0, -5.0, 0.0))],
+          **{"full-soft": [d + 300.0 + e for d, e in zip(dec, (3.0, -3.0, 1.0))],
+             "full-hard-dva": [d - 400.0 + e for d, e in zip(dec, (2.0, -1.0, 4.0))]})
+    # ant: blind as good as decoupled on some seeds: no arm is read, however far full-soft is ahead
+    _task(parent, "ant", dec, [1300.0, 900.0, 1250.0], **{"full-soft": [d + 3000.0 for d in dec]})
+    # cartpole: decoupled far above blind, but doing nothing scores high: it ranks no arms
+    _task(parent, "cartpole", dec, [0.0, 1.0, 2.0], **{"full-soft": [d + 100.0 for d in dec]})
+    runs = find_runs([parent])
+    floors = load_floors()
+    out = seeds.seed_statistics(runs, floors=floors, reps=REPS)
+    hopper = out["hopper"].verdicts["equal iterations"]
+    assert hopper.ranks and hopper.readings == {"full-soft": "better", "full-hard-dva": "worse"}
+    ant = out["ant"].verdicts["equal iterations"]
+    assert not ant.ranks and ant.readings == {} and "cannot be ranked on this task yet" in ant.reason
+    cart = out["cartpole"].verdicts["equal iterations"]
+    zero = floors.of("cartpole")["zero"]["mean"]
+    assert not cart.ranks and cart.gate is None and f"zero action {zero:.0f}, floors.json" in cart.reason
+    # all single runs, one device: the equal-wall-clock view exists (decoupled 40 ms, the others 80 ms: the
+    # budget is 10 x 40 ms, five iterations of the others, before their evaluation at 10)
+    ts = out["hopper"].stats
+    assert ts.iter_ms_alone == {"decoupled": 40.0, "blind": 80.0, "full-soft": 80.0, "full-hard-dva": 80.0}
+    assert ts.wall_s == pytest.approx(0.4) and ts.iters_at_wall["full-soft"] == 5
+    assert ts.equal_wall.arms["full-soft"].final == {} and "equal wall-clock" in out["hopper"].verdicts
+
+    text = "\n".join(seeds.seed_section(runs, tmp_path / "figs", tmp_path, floors=floors, reps=REPS, computed=out))
+    assert "**Verdict (equal iterations, 10):** decoupled beats blind" in text
+    assert "full-soft: better than decoupled; full-hard-dva: worse than decoupled" in text
+    parts = dict(part.split("\n", 1) for part in text.split("\n### ")[1:])
+    assert list(parts) == ["cartpole", "hopper", "ant"]  # tasks.TASKS' order
+    ant_part = parts["ant"]
+    assert "the pixel arms cannot be ranked on this task yet" in ant_part and "better than" not in ant_part
+    assert ant_part.count("cannot be ranked yet |") == 1  # full-soft's reading in the table
+    assert "D.Va's cartpole (with springs) ranks no arms" in text
+    row = next(ln for ln in parts["hopper"].splitlines() if ln.startswith("| full-soft | 3 | 10 |"))
+    assert "1 (final: last 1)" in row and "s0: 1303, s1: 1797, s2: 1501" in row and "better than decoupled" in row
+    assert (tmp_path / "figs" / "performance_profile_hopper.png").read_bytes()[:4] == b"\x89PNG"
+    assert "](figs/performance_profile_hopper.png)" in text
+
+
+def test_runs_without_evaluations_are_said_to_have_none(tmp_path):
+    write_run(tmp_path / "runs", "old", iters=5)
+    runs = find_runs([tmp_path / "runs"])
+    text = "\n".join(seeds.seed_section(runs, tmp_path, tmp_path, reps=REPS))
+    assert "No run logged a deterministic evaluation" in text and "--eval-every" in text
+
+
+def test_two_runs_of_one_arm_and_seed_are_named_not_fatal(tmp_path):
+    write_run(tmp_path / "runs", "a", evals=[1.0])
+    write_run(tmp_path / "runs", "b", evals=[2.0])
+    text = "\n".join(seeds.seed_section(find_runs([tmp_path / "runs"]), tmp_path, tmp_path, reps=REPS))
+    assert "Not computed: arm 'decoupled' has two runs of task 'hopper' with seed 0" in text
+
+
+# ---------------------------------------------------------------------------------------------- probes
+def _probes(values):
+    """Probes every 10 iterations: (total sensitivity over three frames, cos_full_decoupled, more keys)."""
+    return {10 * (i + 1): ([s / 3] * 3, {"cos_full_decoupled": c, "grad_norm_render_term": 2.0 * c, **more})
+            for i, (s, c, more) in enumerate(values)}
+
+
+def test_probe_statistics_count_and_pool_the_looking_probes(tmp_path):
+    parent = tmp_path / "runs"
+    hs = {"grad_norm_full_hard": 1.0, "grad_norm_full_soft": 4.0, "cos_hard_soft": 0.5}
+    # seed 0: first probe 6.0, so the bar is 0.6: probes 2 (0.01) and 4 (0.3) do not look, 1, 3, 5 do
+    write_run(parent, "full0", mode="full", seed=0, probes=_probes(
+        [(6.0, 0.9, hs), (0.01, 0.99, hs), (3.0, 0.2, hs), (0.3, 0.98, hs), (1.0, 0.4, hs)]))
+    # seed 1: first probe 1.0, bar 0.1: all but the second look
+    write_run(parent, "full1", mode="full", seed=1, probes=_probes(
+        [(1.0, 0.8, hs), (0.05, 0.97, hs), (0.5, 0.1, {**hs, "grad_norm_full_soft": 2.0})]))
+    write_run(parent, "blind0", mode="blind", seed=0, iters=50)  # no probes: no row
+    runs = find_runs([parent])
+    (p,) = seeds.arm_probes(runs)
+    assert (p.task, p.arm) == ("hopper", "full-soft")
+    assert p.looking == {0: 3, 1: 2} and p.probes == {0: 5, 1: 3}
+    # pooled over seeds: cos 0.9, 0.2, 0.4 and 0.8, 0.1; over every probe the blind-phase ones join them
+    assert p.medians["cos_full_decoupled"] == pytest.approx(0.4) and p.counts["cos_full_decoupled"] == 5
+    assert p.medians["grad_norm_render_term"] == pytest.approx(0.8)
+    assert p.medians["grad_norm_full_hard/grad_norm_full_soft"] == pytest.approx(0.25)  # 0.25 x 4, 0.5 once
+    assert p.medians["cos_hard_decoupled"] is None and p.counts["cos_hard_decoupled"] == 0
+    assert p.all_cos == pytest.approx(0.85)  # median of all eight: (0.8 + 0.9) / 2
+    text = "\n".join(seeds.probe_section(runs, tmp_path))
+    assert "above 0.1 x the run's first probe's" in text
+    assert "| hopper | full-soft | 5/8 (s0: 3/5, s1: 2/3) | 0.4 (n=5) | 0.8 (n=5) | 0.5 (n=5) | - | - |" in text
+    assert "No run has probe iterations" in "\n".join(seeds.probe_section([load_run(parent / "blind0")], tmp_path))
