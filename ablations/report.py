@@ -65,7 +65,7 @@ from ablations.plot import FIGURES, Floors, PlotResult, group_runs, load_floors,
 from ablations.run_folder import Run, RunFolder, find_runs, is_number
 
 __all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms", "run_median_ms",
-           "run_device",
+           "run_device", "is_population_member",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
            "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN",
            "figure_lines", "runs_table", "report_path", "command_text"]
@@ -174,10 +174,18 @@ class Cell:
     mode: str = ""
 
 
+def is_population_member(run: Run) -> bool:
+    """Whether the run trained in a population of several members (config.json's "population" record): its
+    iteration's times are then the whole population's, not its own."""
+    pop = RunFolder(run.path).read_record().get("population")
+    return isinstance(pop, dict) and len(pop.get("members") or ()) > 1
+
+
 def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]], *, label=None
                 ) -> dict[tuple[str, str], Cell]:
     """Our backward-time cells keyed by (task, label): benchmarks first (label = mode), then runs grouped by
-    :func:`ablations.plot.group_runs` with ``label`` (see the module docstring)."""
+    :func:`ablations.plot.group_runs` with ``label`` (see the module docstring), population members left out
+    (:func:`is_population_member`)."""
     cells: dict[tuple[str, str], Cell] = {}
     for path, meta, results in benchmarks:
         # Rows of one mode that differ in raster model or renderer (benchmarks/iteration.py records both) are
@@ -200,7 +208,7 @@ def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]]
     for (task, lab), rs in group_runs(runs, label=label).items():
         if (task, lab) in cells:
             continue
-        vals = [(v, r) for r in rs if (v := run_bwd_ms(r)) is not None]
+        vals = [(v, r) for r in rs if not is_population_member(r) and (v := run_bwd_ms(r)) is not None]
         if not vals:
             continue
         settings = sorted({_setting(r.config) for _, r in vals})
@@ -284,9 +292,10 @@ def report_path(target: str | os.PathLike, base: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- sections
-def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. Backward time per iteration (Table 1)"
-                   ) -> list[str]:
-    """Table 1: our decoupled and full backward ms per task beside the paper's; one row per full variant."""
+def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. Backward time per iteration (Table 1)",
+                   members_left_out: int = 0) -> list[str]:
+    """Table 1: our decoupled and full backward ms per task beside the paper's; one row per full variant.
+    ``members_left_out``: how many runs :func:`collect_bwd` left out as population members (said below it)."""
     cite = _PAPER.cite(_PAPER.backward_s[0]["source"]) if _PAPER.backward_s else "?"
     out = [heading, "",
            "Median backward time of one SHAC iteration (one window of `horizon` steps for `num_envs` "
@@ -335,6 +344,9 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
     if state:
         out += ["", "Runs that render nothing during training (state, blind) have backward times too: "
                 + ", ".join(f"{t} {lab} {_ms(cells[(t, lab)].ms)} ms" for t, lab in state) + "."]
+    if members_left_out:
+        out += ["", f"{members_left_out} run(s) trained as population members are left out: a member's times are "
+                "its whole population's (give --benchmark files for their arms' times alone)."]
     return [*out, ""]
 
 
@@ -396,8 +408,12 @@ def runs_table(runs: list[Run], *, label=None) -> list[str]:
                          "alloc" if peak is not None else "saved" if s.get("median_saved_mb") is not None else ""])
     out = markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps", "final return",
                           "median fwd [ms]", "median bwd [ms]", "memory [MB]", "memory kind"], rows)
-    return [*out, "", "memory kind: alloc = CUDA peak allocated; saved = median bytes saved for backward (CPU runs).",
-            ""]
+    out += ["", "memory kind: alloc = CUDA peak allocated; saved = median bytes saved for backward (CPU runs)."]
+    members = sum(map(is_population_member, runs))
+    if members:
+        out.append(f"{members} run(s) trained as population members: their times and memory are their whole "
+                   "population's.")
+    return [*out, ""]
 
 
 def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors,
@@ -534,7 +550,8 @@ def build_report(cfg: ReportConfig) -> Path:
 
     label = arm_label(runs) if runs else None
     plots = make_plots(runs, fig_dir, floors=floors, label=label) if runs else None
-    lines += table1_section(collect_bwd(runs, benchmarks))
+    lines += table1_section(collect_bwd(runs, benchmarks),
+                            members_left_out=sum(map(is_population_member, runs)))
     lines += curves_section(runs, fig_dir, base, floors=floors, plots=plots, label=label,
                             leave_out=(*SEED_FIGURES, *PROBE_FIGURES))
     lines += seed_section(runs, fig_dir, base, label=label, benchmarks=cfg.benchmark, floors=floors, plots=plots,

@@ -33,8 +33,15 @@ from statistics import median
 
 from ablations import stats
 from ablations.plot import Floors, PlotResult, arm_styles, group_runs
-from ablations.report import figure_lines, markdown_table, report_path, run_device, run_median_ms
-from ablations.run_folder import Run, RunFolder, is_number
+from ablations.report import (
+    figure_lines,
+    is_population_member,
+    markdown_table,
+    report_path,
+    run_device,
+    run_median_ms,
+)
+from ablations.run_folder import Run, is_number
 
 __all__ = ["PAPER_ARMS", "REFERENCE_ARM", "CONTROL_ARM", "IMAGELESS_MODES", "NOT_RANKING", "NOT_ARM_SETTINGS",
            "MEMBER_DEFAULTS",
@@ -188,9 +195,10 @@ class IterationTimes:
 def benchmark_iteration_rows(path: str | os.PathLike) -> tuple[str, list[dict]]:
     """(device, rows) of a ``--benchmark`` file's iteration times measured alone: ``benchmarks/iteration.py``
     results (``status`` ok, numeric ``iter_ms``), and ``benchmarks/population.py`` populations of one member
-    (its separate runs ran at the same time as each other, so they are not alone; their sizes are read from its
-    recorded command where given there). Each row: task, mode, raster_model (None where not recorded), iter_ms,
-    and the ``_TIMED_SETTINGS`` it records. ValueError naming the file when it is no benchmark JSON."""
+    (its separate runs ran at the same time as each other, so they are not alone; a row's arm is the script's
+    member order unless it names its ``mode``; the sizes are read from its recorded command where given there).
+    Each row: task, mode, raster_model (None where not recorded), iter_ms, and the ``_TIMED_SETTINGS`` it
+    records. ValueError naming the file when it is no benchmark JSON."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -210,7 +218,8 @@ def benchmark_iteration_rows(path: str | os.PathLike) -> tuple[str, list[dict]]:
             if not (isinstance(r, dict) and r.get("kind") == "population" and r.get("members") == 1
                     and r.get("status", "ok") == "ok" and is_number(r.get("iter_ms"))):
                 continue
-            mode, raster = _POPULATION_BENCHMARK_ARMS[int(r.get("arm", 0)) % len(_POPULATION_BENCHMARK_ARMS)]
+            mode, raster = ((r["mode"], r.get("raster_model")) if isinstance(r.get("mode"), str) else
+                            _POPULATION_BENCHMARK_ARMS[int(r.get("arm", 0)) % len(_POPULATION_BENCHMARK_ARMS)])
             rows.append({"task": r.get("task"), "mode": mode, "raster_model": raster or _PRESET_RASTER,
                          "iter_ms": float(r["iter_ms"]), "compile": meta.get("device") != "cpu", **sizes})
         return device, rows
@@ -229,12 +238,6 @@ def _matches(row: dict, task: str, runs: list[Run]) -> bool:
     if first.mode not in IMAGELESS_MODES and row["raster_model"] != first.config.get("raster_model"):
         return False
     return all(row[k] == first.config[k] for k in _TIMED_SETTINGS if k in row and k in first.config)
-
-
-def _is_member(run: Run) -> bool:
-    """Whether the run trained in a population of several members (config.json's "population" record)."""
-    pop = RunFolder(run.path).read_record().get("population")
-    return isinstance(pop, dict) and len(pop.get("members") or ()) > 1
 
 
 def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
@@ -257,7 +260,7 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
                 if hits:
                     bench[arm] = ArmTime(median(hits), f"benchmark {path.name}", device, len(hits))
                     break
-            alone = [r for r in rs if not _is_member(r)]
+            alone = [r for r in rs if not is_population_member(r)]
             times = [(t, r) for r in alone if (t := run_median_ms(r, "iter_ms")) is not None]
             if times:
                 own[arm] = ArmTime(median(t for t, _ in times), "runs", " / ".join(sorted({run_device(r) for _, r in

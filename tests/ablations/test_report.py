@@ -282,3 +282,25 @@ def test_report_of_evaluated_seeds_and_a_population_benchmark(tmp_path):
     assert "iteration times measured alone from runs on cpu" in text
     for png in ("performance_profile_hopper.png", "eval_return_vs_iter.png"):
         assert f"](figures/{png})" in text and (tmp_path / "r" / "figures" / png).exists()
+
+
+def test_population_members_times_are_not_their_arms(tmp_path):
+    """A member's logged times are its whole population's: Table 1 leaves members out and says so."""
+    from ablations.report import collect_bwd, runs_table, table1_section
+    from ablations.run_folder import find_runs
+
+    runs = tmp_path / "runs"
+    write_run(runs, task="hopper", mode="decoupled", seed=0, bwd_ms=20.0)  # a single run
+    for mode in ("decoupled", "full"):
+        run = write_run(runs, task="hopper", mode=mode, seed=1, bwd_ms=300.0)
+        record = json.loads((run / "config.json").read_text())
+        record["population"] = {"folder": "pop", "index": 0, "members": ["a", "b"]}
+        (run / "config.json").write_text(json.dumps(record))
+    loaded = find_runs([runs])
+    cells = collect_bwd(loaded, [])
+    assert cells[("hopper", "decoupled")].ms == 20.0 and cells[("hopper", "decoupled")].n == 1
+    assert ("hopper", "full") not in cells
+    text = "\n".join(table1_section(cells, members_left_out=2))
+    assert table_row(text, "hopper")[1:3] == ["20.0", "not run"]
+    assert "2 run(s) trained as population members are left out" in text
+    assert "2 run(s) trained as population members: their times and memory" in "\n".join(runs_table(loaded))
