@@ -65,7 +65,7 @@ from ablations.plot import FIGURES, Floors, PlotResult, group_runs, load_floors,
 from ablations.run_folder import Run, RunFolder, find_runs, is_number
 
 __all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms", "run_median_ms",
-           "run_device", "is_population_member",
+           "run_device", "is_population_member", "read_benchmark_json",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
            "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN",
            "figure_lines", "runs_table", "report_path", "command_text"]
@@ -120,15 +120,22 @@ def run_bwd_ms(run: Run) -> float | None:
     return run_median_ms(run, "bwd_ms")
 
 
-def load_benchmark(path: str | os.PathLike) -> tuple[dict, list[dict]]:
-    """(metadata, results) of a benchmark JSON; ValueError naming the problem for anything else."""
+def read_benchmark_json(path: str | os.PathLike):
+    """The parsed JSON of a ``--benchmark`` file; ValueError naming the flag and file when it is missing or not
+    JSON."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except FileNotFoundError:
         raise ValueError(f"--benchmark {path}: no such file") from None
     except json.JSONDecodeError as e:
         raise ValueError(f"--benchmark {path}: not valid JSON ({e})") from None
+
+
+def load_benchmark(path: str | os.PathLike) -> tuple[dict, list[dict]]:
+    """(metadata, results) of a benchmark JSON; ValueError naming the problem for anything else."""
+    path = Path(path)
+    data = read_benchmark_json(path)
     meta, results = ({}, data) if isinstance(data, list) else (data, data.get("results") if isinstance(data, dict)
                                                                else None)
     if isinstance(data, dict) and results is None and isinstance(data.get("rows"), list):

@@ -37,6 +37,7 @@ from ablations.report import (
     figure_lines,
     is_population_member,
     markdown_table,
+    read_benchmark_json,
     report_path,
     run_device,
     run_median_ms,
@@ -199,13 +200,7 @@ def benchmark_iteration_rows(path: str | os.PathLike) -> tuple[str, list[dict]]:
     member order unless it names its ``mode``; the sizes are read from its recorded command where given there).
     Each row: task, mode, raster_model (None where not recorded), iter_ms, and the ``_TIMED_SETTINGS`` it
     records. ValueError naming the file when it is no benchmark JSON."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"--benchmark {path}: no such file") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"--benchmark {path}: not valid JSON ({e})") from None
+    data = read_benchmark_json(path)
     meta = data if isinstance(data, dict) else {}
     device = str(meta.get("gpu") or meta.get("device") or "?")
     rows = []
