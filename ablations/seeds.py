@@ -328,10 +328,11 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
     times = iteration_times(runs, label, benchmarks)
     out = {}
     for task in dict.fromkeys(t for t, _ in group_runs(runs, label=label)):  # tasks.TASKS' order
-        curves = [stats.curve_of(r, label(r)) for r in runs if r.task == task]
-        keys = tuple(sorted({c.key for c in curves if c.key}))
         t = times[task]
-        try:
+        keys: tuple[str, ...] = ()
+        try:  # a run without a seed, or two runs of one arm and seed: this task says why, the others go on
+            curves = [stats.curve_of(r, label(r)) for r in runs if r.task == task]
+            keys = tuple(sorted({c.key for c in curves if c.key}))
             ts = stats.task_statistics(curves, iter_ms_alone=t.ms, reps=reps, seed=seed)[task]
         except ValueError as e:
             out[task] = TaskSeeds(task, None, t, {}, None, keys, error=str(e))
@@ -413,7 +414,7 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
     label = label or arm_label(runs)
     seeds = computed if computed is not None else seed_statistics(runs, label=label, benchmarks=benchmarks,
                                                                   floors=floors, reps=reps, seed=seed)
-    if not any(s.eval_keys for s in seeds.values()):
+    if not any(s.eval_keys or s.error for s in seeds.values()):
         return [*out, "No run logged a deterministic evaluation (metrics `eval_return_mean`, every `--eval-every` "
                 "iterations): these runs cannot be compared over seeds. Train with `--eval-every K` for this "
                 "section.", ""]

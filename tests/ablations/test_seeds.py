@@ -247,6 +247,12 @@ def test_two_runs_of_one_arm_and_seed_are_named_not_fatal(tmp_path):
     write_run(tmp_path / "runs", "b", evals=[2.0])
     text = "\n".join(seeds.seed_section(find_runs([tmp_path / "runs"]), tmp_path, tmp_path, reps=REPS))
     assert "Not computed: arm 'decoupled' has two runs of task 'hopper' with seed 0" in text
+    run = write_run(tmp_path / "other", "no_seed", task="ant", evals=[1.0])
+    record = json.loads((run / "config.json").read_text())
+    del record["config"]["seed"]
+    (run / "config.json").write_text(json.dumps(record))
+    text = "\n".join(seeds.seed_section([load_run(run)], tmp_path, tmp_path, reps=REPS))
+    assert "### ant" in text and "config.json's config has no 'seed'" in text
 
 
 # ---------------------------------------------------------------------------------------------- probes
