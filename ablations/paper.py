@@ -1,8 +1,10 @@
 """``ablate-paper``: the D.Va paper's experiment set as one ``ablate-sweep``, and one report of it.
 
-Per task (default hopper and ant) and seed, every arm of :data:`ARMS` runs under a wall-clock budget
-(``--time-limit-min``); an arm is a named set of ``ablate`` flags. The report (``<out>/report/report.md``,
-figures beside it; ``--report-only DIR`` redraws it from an existing sweep folder) has:
+Per task (default cartpole-swingup, hopper and ant) and seed, every arm of :data:`ARMS` runs under a wall-clock
+budget (``--time-limit-min``); an arm is a named set of ``ablate`` flags. The runs that can share a process train
+as populations (``--pack auto``: up to 12 per GPU process, one run per process on the CPU; ablate-sweep --pack).
+The report (``<out>/report/report.md``, figures beside it; ``--report-only DIR`` redraws it from an existing sweep
+folder) has:
 
     1. the arms and how many of their runs finished;
     2. return against wall-clock time and against environment steps, mean +- one standard deviation across
@@ -14,9 +16,14 @@ figures beside it; ``--report-only DIR`` redraws it from an existing sweep folde
        read off a plot): final return, return at the paper's comparison time, wall-clock time to the paper's
        return at that time, backward time per iteration;
     5. Table 1 (backward time per iteration) from a ``benchmarks/iteration.py`` JSON (``--benchmark``), else
-       from the runs; 6. the memory sweep (Fig. 10) of ``ablate-memory`` folders (``--memory``); 7. provenance.
+       from the runs; 6. each arm's iteration time alone (from a benchmarks/iteration.py or
+       benchmarks/population.py JSON) beside its runs' (a population member's is its population's:
+       ``ablations.iteration_time``); 7. the memory sweep (Fig. 10) of ``ablate-memory`` folders (``--memory``);
+       8. the runs; 9. provenance.
 
-Nothing is estimated: a comparison without our measurement says "not run" or "not reached".
+A task whose zero action scores at least the paper's final return there (D.Va's cartpole: the pole starts upright
+and stays so) is marked as not ranking arms. Nothing is estimated: a comparison without our measurement says
+"not run" or "not reached".
 """
 
 from __future__ import annotations
@@ -37,16 +44,19 @@ from ablations.report import (
     command_text,
     figure_lines,
     floors_section,
+    is_population_member,
     load_benchmark,
     load_memory_sweeps,
     markdown_table,
     memory_section,
     provenance_section,
     report_path,
+    run_median_ms,
     runs_table,
     table1_section,
 )
-from ablations.run_folder import Run, RunFolder, load_run
+from ablations.run_folder import Run, RunFolder, is_number, load_run
+from ablations.seeds import NOT_RANKING, iteration_times
 
 __all__ = ["ARMS", "DEFAULT_ARMS", "PaperConfig", "sweep_config", "gpus_per_run", "build_paper_report", "main"]
 
@@ -57,6 +67,10 @@ ARMS: dict[str, dict] = {
     "full-hard": {"mode": "full", "flags": {"preset": "shac-diffrender"}, "paper": "shac-diffrender",
                   "about": "the paper's full-APG baseline: gradients through the hard rasterizer (silhouettes "
                            "carry none), the baseline's learning-rate decay length"},
+    "full-hard-dva": {"mode": "full", "flags": {"raster-model": "hard"}, "paper": None,
+                      "about": "full-hard's estimator (the hard rasterizer) on the dva preset's learning-rate "
+                               "schedule (decoupled's): beside full-hard only the schedule differs, beside "
+                               "decoupled only the gradient estimator"},
     "full-soft": {"mode": "full", "flags": {}, "paper": None,
                   "about": "full APG through this toolkit's default soft raster model (silhouettes carry "
                            "gradient); the dva preset"},
@@ -69,8 +83,12 @@ ARMS: dict[str, dict] = {
               "about": "the actor sees a constant black image: the floor of a policy that cannot see"},
 }
 #: The arms run unless --arms names others: one full arm per kind of image gradient (none at silhouettes, the
-#: default soft model's), the two controls and D.Va.
-DEFAULT_ARMS = ("decoupled", "full-hard", "full-soft", "state", "blind")
+#: default soft model's), the hard one also on D.Va's schedule (estimator and schedule apart), the two controls
+#: and D.Va.
+DEFAULT_ARMS = ("decoupled", "full-hard", "full-hard-dva", "full-soft", "state", "blind")
+#: The tasks run unless --tasks names others. D.Va's cartpole stays available; its report marks it as not ranking
+#: arms (its zero action scores above the paper's final return, docs/floors.json).
+DEFAULT_TASKS = ("cartpole-swingup", "hopper", "ant")
 #: Flags ablate-paper sets itself (through its own options).
 _OWN_FLAGS = {"iters": "--iters", "time_limit_min": "--time-limit-min"}
 _RETURN_FIGURES = ("return_vs_wall_clock.png", "return_vs_env_steps.png", "return_vs_iter.png")
@@ -86,12 +104,14 @@ class PaperConfig:
 
     out: Path = Path("paper")
     """The sweep folder (sweep.json, runs/, logs/; rerun to resume); the report goes to <out>/report/."""
-    tasks: tuple[str, ...] = ("hopper", "ant")
-    """Tasks."""
+    tasks: tuple[str, ...] = DEFAULT_TASKS
+    """Tasks. D.Va's cartpole can be added, but its zero action scores above the paper's final return
+    (docs/floors.json): the report marks it as not ranking arms."""
     arms: tuple[str, ...] = DEFAULT_ARMS
     """Arms to run: decoupled (D.Va), full-hard (--mode full --preset shac-diffrender: the paper's baseline),
-    full-soft (--mode full: the default soft raster model, softmax), full-alpha (--mode full --raster-model
-    alpha; not in the default set), state, blind."""
+    full-hard-dva (--mode full --raster-model hard: the baseline's estimator on D.Va's schedule), full-soft (--mode
+    full: the default soft raster model, softmax), full-alpha (--mode full --raster-model alpha; not in the default
+    set), state, blind."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Seeds per task and arm."""
     time_limit_min: float | None = 60.0
@@ -101,11 +121,17 @@ class PaperConfig:
     lengths do not depend on it)."""
     set: tuple[str, ...] = ()
     """More ablate flags for every run, as FLAG=VALUE (e.g. compile=true cosine-every=10 device=cuda)."""
+    pack: str = "auto"
+    """Runs that can share a process (every arm but state, per task) train as populations of at most N members
+    (ablate-sweep --pack): auto: 12 on GPU runs (the population benchmark, BENCHMARKS.md section 7, trained 12
+    ant members in 34 GB at 1.6x the throughput of 12 separate processes on an H100), 1 on the CPU; 1: one run
+    per process. A member's iteration time is its population's: the report sets each arm's time alone beside
+    it (--benchmark)."""
     gpus_per_run: float | None = None
-    """GPUs Ray reserves per run (0.25: four runs share a GPU; 0: CPU runs). None: 1 on a machine with a CUDA GPU
-    or with --address, else 0 (CPU runs, said before they start)."""
+    """GPUs Ray reserves per process, a run or a population (0.25: four share a GPU; 0: CPU runs). None: 1 on a
+    machine with a CUDA GPU or with --address, else 0 (CPU runs, said before they start)."""
     cpus_per_run: float = 1.0
-    """CPUs Ray reserves per run."""
+    """CPUs Ray reserves per process (a run or a population)."""
     address: str | None = None
     """Ray cluster to join (see ablate-sweep --address); None: a local cluster."""
     max_retries: int = 3
@@ -120,7 +146,9 @@ class PaperConfig:
     """The report's markdown file; None: <sweep folder>/report/report.md."""
     benchmark: tuple[Path, ...] = ()
     """benchmarks/iteration.py JSONs for Table 1 (backward time per iteration; the first file that has a task and
-    mode wins); without them the runs' own, which a GPU shared by several runs slows."""
+    mode wins; without them the runs' own, which a GPU shared by several runs slows) and for each arm's iteration
+    time alone; benchmarks/population.py JSONs for the latter too (a population of one is a decoupled run alone)
+    and their populations against separate processes."""
     memory: tuple[Path, ...] = ()
     """ablate-memory folders for the memory sweep (Fig. 10)."""
     floors: Path | None = None
@@ -171,7 +199,7 @@ def sweep_config(cfg: PaperConfig):
     modes = tuple(dict.fromkeys(a["mode"] for a in arms.values()))
     sweep = SweepConfig(out=cfg.out, tasks=cfg.tasks, modes=modes, seeds=cfg.seeds, set=(*own, *cfg.set),
                         gpus_per_run=gpus_per_run(cfg)[0], cpus_per_run=cfg.cpus_per_run, address=cfg.address,
-                        max_retries=cfg.max_retries, progress=cfg.progress)
+                        max_retries=cfg.max_retries, progress=cfg.progress, pack=cfg.pack)
     return sweep, arms
 
 
@@ -227,18 +255,48 @@ def _time_to(run: Run, threshold: float) -> float | None:
     return float(x[hit[0]]) if len(hit) else None
 
 
+def _not_ranking(task: str, floors, paper: PaperNumbers) -> str:
+    """Why a task of ``ablations.seeds.NOT_RANKING`` ranks no arms, with its zero-action floor and the paper's
+    final return there, where known."""
+    facts = []
+    zero = (floors.of(task) or {}).get("zero") or {}
+    if is_number(zero.get("mean")):
+        facts.append(f"zero action {zero['mean']:.0f}" + (f", {Path(floors.source).name}" if floors.source else ""))
+    finals = [format_value(e) for e in paper.final_return if e["task"] == task]
+    if finals:
+        facts.append(f"the paper's final return {', '.join(finals)}")
+    return NOT_RANKING[task] + (f" ({'; '.join(facts)})" if facts else "")
+
+
+def _packing_lines(manifest: dict) -> list[str]:
+    """How the runs were packed into processes (sweep.json's jobs), when any population trained."""
+    jobs = manifest.get("jobs") or {}
+    sizes = sorted((len(j.get("runs", [])) for j in jobs.values()), reverse=True)
+    if not any(n > 1 for n in sizes):
+        return []
+    populations = [n for n in sizes if n > 1]
+    return ["", f"The runs trained in {len(sizes)} processes: {len(populations)} populations (of "
+                f"{', '.join(map(str, populations))} members) and {len(sizes) - len(populations)} runs alone "
+                f"(--pack {manifest.get('sweep', {}).get('pack', '?')}). A member's wall-clock and iteration time "
+                "are its population's (section 6)."]
+
+
 def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks: list[str], paper: PaperNumbers,
-                cells) -> list[str]:
+                cells, not_ranking: dict[str, str]) -> list[str]:
     out = ["## 4. Our numbers beside the paper's", "",
            "Ours: mean +- sample standard deviation across seeds (n = seeds with the measurement). Paper: as "
            "published, with its source; `~` marks a value read off a plot. D.Va is our `decoupled` arm, SHAC with "
            "a differentiable renderer our `full-hard` arm (the hard rasterizer and the baseline's decay length); "
            "other arms have no counterpart in the paper. Wall-clock times depend on the device: the paper's "
            "are on its device, ours on the device of each run (provenance below).", ""]
+    out += _packed_wall_clock_note(runs)
+    if not_ranking:
+        out += [f"Tasks marked `(does not rank arms)`: {', '.join(not_ranking)} (see the top of this report).", ""]
     method_of = {a: ARMS[a]["paper"] for a in arms}
     by = {(t, a): [r for r in runs if r.task == t and arm_of.get(r.path.name) == a] for t in tasks for a in arms}
     rows = []
     for task in tasks:
+        shown = f"{task} (does not rank arms)" if task in not_ranking else task
         for arm in arms:
             rs, method = by[(task, arm)], method_of[arm]
             finals = [v for r in rs if (v := _final_return(r)) is not None]
@@ -247,7 +305,7 @@ def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks:
             ours = _mean_std(finals) + (f", after {np.mean(minutes):.0f} min" if minutes else "")
             entries = [e for e in paper.final_return if e["task"] == task and e["method"] == method]
             for e in entries or [None]:
-                rows.append([task, "final return", arm, ours,
+                rows.append([shown, "final return", arm, ours,
                              format_value(e) + (f" ({e['note']})" if e.get("note") else "") if e else "-",
                              paper.cite(e["source"]) if e else "-"])
         for e in (x for x in paper.return_at_time if x["task"] == task):
@@ -258,13 +316,13 @@ def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks:
                 ours = _mean_std(at) if at else (NOT_RUN if not rs else f"not reached ({len(rs)} runs stopped "
                                                                         f"before {e['minutes']:g} min)")
                 paper_value = format_value(e, method) if method in e else "-"
-                rows.append([task, f"return at {e['minutes']:g} min", arm, ours, paper_value,
+                rows.append([shown, f"return at {e['minutes']:g} min", arm, ours, paper_value,
                              paper.cite(e["source"]) if method in e else "-"])
                 if method in e:
                     threshold = e[method]
                     times = [t / 60 for r in rs if (t := _time_to(r, threshold)) is not None]
                     reached = f"{_mean_std(times)} min" if times else "not reached"
-                    rows.append([task, f"minutes to return {threshold:g}", arm,
+                    rows.append([shown, f"minutes to return {threshold:g}", arm,
                                  f"{reached}; {len(times)}/{len(rs)} seeds reached it" if rs else NOT_RUN,
                                  f"{'~' if e['approx'] else ''}<= {e['minutes']:g}", paper.cite(e["source"])])
         for e in (x for x in paper.backward_s if x["task"] == task):
@@ -274,10 +332,100 @@ def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks:
                     continue
                 cell = cells.get((task, arm))
                 ours = f"{cell.ms:.4g} ms ({cell.source}, {cell.device})" if cell else NOT_RUN
-                rows.append([task, "backward per iteration", arm, ours, f"{1000 * e[method]:.4g} ms",
+                rows.append([shown, "backward per iteration", arm, ours, f"{1000 * e[method]:.4g} ms",
                              paper.cite(e["source"])])
     out += markdown_table(["task", "quantity", "arm", "ours", "paper", "paper's source"], rows)
     return [*out, ""]
+
+
+def _packed_wall_clock_note(runs: list[Run]) -> list[str]:
+    """A paragraph for wall-clock results when some runs trained as population members (none otherwise)."""
+    if not any(is_population_member(r) for r in runs):
+        return []
+    return ["**Packed runs:** a population member's wall-clock is its population's (one iteration trains every "
+            "member together), so for packed runs return against wall-clock time compares populations, not arms; "
+            "section 6 sets each arm's iteration time alone beside its population's.", ""]
+
+
+def _population_comparison(paths) -> list[list]:
+    """Rows of benchmarks/population.py files: task, N, one iteration of an N-member population, of each of N
+    single runs sharing the GPU at once, and the throughput ratio (the first file that has a (task, N) wins)."""
+    import json
+
+    rows, seen = [], set()
+    for path in map(Path, paths):
+        data = json.loads(path.read_text())  # load_benchmark has read it
+        found = data.get("rows") if isinstance(data, dict) else None
+        ok = [r for r in found or [] if isinstance(r, dict) and r.get("status", "ok") == "ok"
+              and is_number(r.get("iter_ms"))]
+        device = data.get("gpu") or data.get("device") or "?"
+        for task, n in sorted({(r.get("task"), r.get("members")) for r in ok if r.get("kind") == "population"
+                               and isinstance(r.get("members"), int) and r["members"] > 1}):
+            together = [r["iter_ms"] for r in ok if r.get("kind") == "population" and r.get("task") == task
+                        and r.get("members") == n]
+            apart = [r["iter_ms"] for r in ok if r.get("kind") == "separate" and r.get("task") == task
+                     and r.get("processes") == n]
+            if (task, n) in seen:
+                continue
+            seen.add((task, n))
+            pop, sep = float(np.median(together)), float(np.median(apart)) if apart else None
+            rows.append([task, n, f"{pop:.4g}", f"{pop / n:.4g}", f"{sep:.4g}" if sep else "-",
+                         f"{sep / pop:.2f}x" if sep else "-", f"benchmark {path.name}, {device}"])
+    return rows
+
+
+def _iteration_time_section(runs: list[Run], label, manifest: dict, folder: Path, benchmarks) -> list[str]:
+    """Section 6: per task and arm, its iteration time alone (a benchmark: ``ablations.seeds.iteration_times``)
+    beside its runs' median and how they trained (alone, or in populations of N); the benchmark's populations
+    against separate processes; and, for packed arms without a time alone, that their wall-clock is not theirs."""
+    out = ["## 6. Iteration time: each arm alone, and as its runs trained here", "",
+           "*Alone*: one run of the arm timed by itself (a benchmarks/iteration.py or benchmarks/population.py JSON "
+           "given with --benchmark). *Here*: the median over the arm's runs of their median iteration time "
+           "(warm-up and probe iterations left out) as they trained in this sweep. A population member's "
+           "iteration is its population's, every member's step together: for a packed arm *here* is the "
+           "population's time, not the arm's.", ""]
+    jobs = manifest.get("jobs") or {}
+    sizes_of = {(folder / rec.get("folder", f"runs/{run_id}")).resolve(): len(jobs.get(rec.get("job"), {}).get(
+        "runs", [])) or 1 for run_id, rec in manifest.get("runs", {}).items()}
+
+    def size(run: Run) -> int:
+        """Runs in its process, as sweep.json's jobs record them."""
+        return sizes_of.get(run.path.resolve(), 1)
+
+    times = iteration_times(runs, label, benchmarks)
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for r in runs:
+        groups.setdefault((r.task, label(r)), []).append(r)
+    rows, unknown = [], []
+    for (task, arm), rs in groups.items():
+        found = times[task].found.get(arm) if task in times else None
+        alone = found if found is not None and found.source != "runs" else None
+        here = [v for r in rs if (v := run_median_ms(r, "iter_ms")) is not None]
+        sizes = sorted({size(r) for r in rs})
+        how = "alone in its process" if sizes == [1] else "in populations of " + ", ".join(map(str, sizes))
+        rows.append([task, arm, f"{alone.ms:.4g}" if alone else "not measured",
+                     f"{alone.source}, {alone.device} (n={alone.n})" if alone else "-",
+                     f"{np.median(here):.4g}" if here else "-", how])
+        if alone is None and sizes != [1]:
+            unknown.append(f"{task} {arm}")
+    out += [*markdown_table(["task", "arm", "alone [ms]", "alone: source", "here [ms]", "how its runs trained"],
+                            rows), ""]
+    gpus = manifest.get("sweep", {}).get("gpus_per_run")
+    if is_number(gpus) and 0 < gpus < 1:
+        out += [f"Processes shared GPUs here (--gpus-per-run {gpus:g}): *here* includes waiting for the other "
+                "processes on the same GPU.", ""]
+    if unknown:
+        out += [f"No benchmark gives the iteration time alone of {', '.join(unknown)}: wall-clock comparisons of "
+                "packed members are not an arm's own time. Compare them at equal iterations or environment steps, "
+                "or time the arms alone (benchmarks/iteration.py) and pass the JSON with --benchmark.", ""]
+    comparison = _population_comparison(benchmarks)
+    if comparison:
+        out += ["A population against separate processes (benchmarks/population.py): one iteration of an N-member "
+                "population, and that of each of N single runs sharing the GPU at once; the population's "
+                "throughput is the ratio of the two.", "",
+                *markdown_table(["task", "members", "population [ms]", "per member [ms]", "N separate, each [ms]",
+                                 "population's throughput", "source"], comparison), ""]
+    return out
 
 
 def _probe_table(runs: list[Run], arm_of: dict[str, str]) -> list[str]:
@@ -309,9 +457,8 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
     out = Path(out) if out is not None else folder / "report" / "report.md"
     if out.suffix.lower() != ".md":
         raise ValueError(f"--report {out}: the report is a markdown file; give a path ending in .md")
-    if isinstance(benchmark, (str, os.PathLike)):
-        benchmark = (benchmark,)
-    benchmarks = [(Path(b), *load_benchmark(b)) for b in benchmark or ()]
+    benchmark = (benchmark,) if isinstance(benchmark, (str, os.PathLike)) else tuple(benchmark or ())
+    benchmarks = [(Path(b), *load_benchmark(b)) for b in benchmark]
     sweeps = load_memory_sweeps(memory)
     floor_data = load_floors(floors)
     paper = load_paper_numbers()
@@ -327,8 +474,11 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
 
     lines = [f"# D.Va paper experiments: {', '.join(tasks)}", "",
              f"Sweep folder `{report_path(folder, base)}`; {len(runs)} of {len(manifest.get('runs', {}))} runs "
-             "have a run folder. Nothing here is estimated: a number without a measurement says so.", "",
-             "## 1. Arms", ""]
+             "have a run folder. Nothing here is estimated: a number without a measurement says so.", ""]
+    not_ranking = {t: _not_ranking(t, floor_data, paper) for t in tasks if t in NOT_RANKING}
+    for task, why in not_ranking.items():
+        lines += [f"**{task}:** {why}. Its results are reported, not compared.", ""]
+    lines += ["## 1. Arms", ""]
     counts = {a: {} for a in arms}
     for rec in manifest.get("runs", {}).values():
         a = rec.get("arm") or rec.get("mode")
@@ -341,6 +491,7 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
     shared = sweep.get("set") or {}
     lines += ["", "Every run: " + (" ".join(f"--{k.replace('_', '-')} {v}" for k, v in shared.items()) or
                                    "ablate's defaults") + f"; seeds {sweep.get('seeds', '?')}."]
+    lines += _packing_lines(manifest)
     if missing:
         lines += ["", f"Runs without a run folder yet (queued or failed before starting): {', '.join(missing)}."]
     lines.append("")
@@ -353,6 +504,7 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
         lines += ["Mean +- one sample standard deviation across seeds (n in the legends), with the zero- and "
                   "random-action floors as horizontal lines.", ""]
         lines += figure_lines(res, _RETURN_FIGURES, base)
+        lines += _packed_wall_clock_note(runs)
         lines += floors_section(runs, floor_data, base=base)
     lines += ["## 3. Full and decoupled gradients of the same rollout (the paper's Fig. 3)", ""]
     if res is not None:
@@ -362,13 +514,14 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
         lines += figure_lines(res, _FIG3_FIGURES, base)
         lines += _probe_table(runs, arm_of)
     cells = collect_bwd(runs, benchmarks, label=label)
-    lines += _comparison(runs, arm_of, arms, tasks, paper, cells)
+    lines += _comparison(runs, arm_of, arms, tasks, paper, cells, not_ranking)
     lines += table1_section(cells, heading="## 5. Backward time per iteration (Table 1)")
     if res is not None:
         lines += ["### Cost over training", "", *figure_lines(res, _COST_FIGURES, base)]
-    lines += memory_section(sweeps, fig_dir, base, heading="## 6. Memory against scene complexity (Fig. 10)")
-    lines += ["## 7. Runs", "", *(runs_table(runs, label=label) if runs else ["No run folders.", ""])]
-    lines += provenance_section(runs, sweeps, benchmarks, base=base, heading="## 8. Provenance")
+    lines += _iteration_time_section(runs, label, manifest, folder, benchmark)
+    lines += memory_section(sweeps, fig_dir, base, heading="## 7. Memory against scene complexity (Fig. 10)")
+    lines += ["## 8. Runs", "", *(runs_table(runs, label=label) if runs else ["No run folders.", ""])]
+    lines += provenance_section(runs, sweeps, benchmarks, base=base, heading="## 9. Provenance")
     lines += [f"Sweep command: `{command_text(manifest.get('command'))}`; sweep created "
               f"{manifest.get('created', '?')}, updated {manifest.get('updated', '?')}; report "
               f"{_dt.datetime.now().astimezone().isoformat(timespec='seconds')}."]

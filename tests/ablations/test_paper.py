@@ -12,7 +12,7 @@ import pytest
 from ablations import paper
 from ablations.paper import ARMS, DEFAULT_ARMS, PaperConfig, build_paper_report, main, sweep_config
 from ablations.paper_numbers import format_value, load_paper_numbers
-from ablations.sweep import plan
+from ablations.sweep import pack_runs, plan
 from tests.ablations.conftest import write_run
 from tests.ablations.test_report import write_sweep
 
@@ -25,14 +25,18 @@ def test_arms_expand_to_the_papers_sweep(monkeypatch):
     cfg = PaperConfig(out=Path("p"), time_limit_min=55.0, set=("cosine-every=5",))
     sweep, arms = sweep_config(cfg)
     specs = plan(sweep, arms=arms)
-    assert len(specs) == 2 * len(DEFAULT_ARMS) * 3  # hopper, ant x five arms x seeds 0 1 2
-    assert list(DEFAULT_ARMS) == ["decoupled", "full-hard", "full-soft", "state", "blind"]
+    assert cfg.tasks == ("cartpole-swingup", "hopper", "ant")
+    assert len(specs) == 3 * len(DEFAULT_ARMS) * 3  # three tasks x six arms x seeds 0 1 2
+    assert list(DEFAULT_ARMS) == ["decoupled", "full-hard", "full-hard-dva", "full-soft", "state", "blind"]
     assert set(DEFAULT_ARMS) < set(ARMS)
     by_id = {s.run_id: s for s in specs}
     hard = by_id["hopper_full-hard_seed2"]
     assert hard.mode == "full" and hard.arm == "full-hard"
     assert list(hard.args) == ["--task", "hopper", "--mode", "full", "--seed", "2", "--iters", "100000",
                                "--time-limit-min", "55", "--cosine-every", "5", "--preset", "shac-diffrender"]
+    # the matched control: full-hard's estimator on the dva preset's schedule
+    matched = by_id["hopper_full-hard-dva_seed2"]
+    assert list(matched.args) == [*hard.args[:-2], "--raster-model", "hard"] and "--preset" not in matched.args
     soft = by_id["ant_full-soft_seed0"]
     assert soft.mode == "full" and "--preset" not in soft.args and "--raster-model" not in soft.args
     assert {by_id[f"ant_{m}_seed1"].mode for m in ("decoupled", "state", "blind")} == {"decoupled", "state", "blind"}
@@ -42,6 +46,22 @@ def test_arms_expand_to_the_papers_sweep(monkeypatch):
     (alpha,) = plan(alpha_sweep, arms=alpha_arms)
     assert alpha.mode == "full" and list(alpha.args[-2:]) == ["--raster-model", "alpha"]
     assert sweep.gpus_per_run == 1.0 and sweep.modes == ("decoupled", "full", "state", "blind")
+    # On a GPU the arms pack (--pack auto): per task, the five pixel arms x 3 seeds in two populations (8 + 7),
+    # the state runs in one of their own.
+    assert cfg.pack == "auto" and sweep.pack_size() == 12
+    jobs = pack_runs(specs, sweep.pack_size())
+    assert [len(j.run_ids) for j in jobs] == [8, 7, 3] * 3
+    assert all({by_id[r].mode for r in j.run_ids} == {"state"} for j in jobs[2::3])
+    assert all(by_id[r].task == j.run_ids[0].split("_")[0] for j in jobs for r in j.run_ids)
+
+
+def test_on_the_cpu_paper_runs_one_per_process(monkeypatch):
+    monkeypatch.setattr(paper, "cuda_gpus", lambda: 0)
+    sweep, arms = sweep_config(PaperConfig(out=Path("p"), tasks=("hopper",), seeds=(0,)))
+    assert sweep.gpus_per_run == 0 and sweep.pack_size() == 1
+    assert all(not j.population for j in pack_runs(plan(sweep, arms=arms), sweep.pack_size()))
+    sweep, _ = sweep_config(PaperConfig(out=Path("p"), tasks=("hopper",), seeds=(0,), pack="3"))
+    assert sweep.pack_size() == 3
 
 
 def test_dry_run_lists_the_runs_and_starts_nothing(tmp_path, capsys):
@@ -99,7 +119,7 @@ def paper_sweep(folder: Path, *, seeds=(0, 1)) -> Path:
             runs[run_id] = {"task": "hopper", "mode": spec["mode"], "arm": arm, "seed": seed, "status": "done",
                             "folder": f"runs/{run_id}"}
             settings = {"preset": "shac-diffrender" if arm == "full-hard" else "dva",
-                        "raster_model": "hard" if arm == "full-hard" else "alpha"}
+                        "raster_model": "hard" if arm.startswith("full-hard") else "alpha"}
             write_run(folder / "runs", task="hopper", mode=spec["mode"], seed=seed, name=run_id,
                       bwd_ms=30.0 if arm == "full-hard" else 10.0, wall_per_iter=WALL, settings=settings,
                       probe_every=3 if spec["mode"] in ("full", "decoupled") else 0)
@@ -158,7 +178,7 @@ def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
 
     # Fig. 3 series: medians over every probe of both seeds (grad_norm_full = 2 + seed).
     fig3 = {r[1]: r for r in rows_of(text, "| hopper | ") if len(r) == 7 and r[2].isdigit()}
-    assert set(fig3) == {"decoupled", "full-hard", "full-soft", "full-alpha"}
+    assert set(fig3) == {"decoupled", "full-hard", "full-hard-dva", "full-soft", "full-alpha"}
     assert fig3["full-hard"][2:5] == ["8", "2.5", "1"]  # 4 probes x 2 seeds; medians of |g_full|, |g_decoupled|
 
     # Our numbers beside the paper's, each paper number with its citation.
@@ -180,7 +200,7 @@ def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
     table1 = [r for r in rows_of(text, "| hopper | 10.0 |")]
     assert any(r[2:4] == ["30.0", "3.00x"] and "full-hard" in r[4] for r in table1)
     # Memory sweep and provenance.
-    assert "## 6. Memory against scene complexity (Fig. 10)" in text and "| full | 8 | 64 |" in text
+    assert "## 7. Memory against scene complexity (Fig. 10)" in text and "| full | 8 | 64 |" in text
     assert "Sweep command: `ablate-paper --tasks hopper`" in text
 
 
@@ -301,3 +321,89 @@ def test_recorded_command_reruns_as_written_and_the_report_holds_relative_paths(
 
     main(shlex.split(recorded)[1:])  # the recorded command, run again as written
     assert json.loads((tmp_path / "p" / "sweep.json").read_text())["command"] == manifest["command"]
+
+
+def packed_sweep(folder: Path) -> Path:
+    """An ablate-paper folder whose hopper and cartpole runs trained packed: per task one population of the
+    decoupled, full-hard and full-hard-dva arms (two seeds) and one of the state runs."""
+    arms = {n: {"mode": ARMS[n]["mode"], "flags": ARMS[n]["flags"], "about": ARMS[n]["about"]}
+            for n in ("decoupled", "full-hard", "full-hard-dva", "state")}
+    runs, jobs = {}, {}
+    for task in ("cartpole", "hopper"):
+        for k, names in enumerate((("decoupled", "full-hard", "full-hard-dva"), ("state",))):
+            job = f"{task}_population{k}"
+            ids = [f"{task}_{arm}_seed{seed}" for arm in names for seed in (0, 1)]
+            jobs[job] = {"runs": ids, "members": ids, "args": [], "iters": 12, "folder": f"runs/{job}"}
+            for arm in names:
+                for seed in (0, 1):
+                    run_id = f"{task}_{arm}_seed{seed}"
+                    runs[run_id] = {"task": task, "mode": arms[arm]["mode"], "arm": arm, "seed": seed,
+                                    "status": "done", "job": job, "folder": f"runs/{job}/{run_id}"}
+                    run = write_run(folder / "runs" / job, task=task, mode=arms[arm]["mode"], seed=seed,
+                                    name=run_id, wall_per_iter=WALL,
+                                    settings={"raster_model": "hard" if arm.startswith("full-hard") else "softmax"})
+                    record = json.loads((run / "config.json").read_text())
+                    record["population"] = {"folder": job, "members": ids, "index": ids.index(run_id)}
+                    (run / "config.json").write_text(json.dumps(record))
+    (folder / "sweep.json").write_text(json.dumps({
+        "version": 1, "id": "abc", "created": "2026-05-01T10:00:00", "updated": "2026-05-01T12:00:00",
+        "command": ["ablate-paper", "--tasks", "cartpole", "hopper"], "runs": runs, "jobs": jobs,
+        "sweep": {"tasks": ["cartpole", "hopper"], "modes": ["decoupled", "full", "state"], "seeds": [0, 1],
+                  "set": {"iters": "12"}, "vary": {}, "arms": arms, "pack": "auto", "pack_size": 12,
+                  "gpus_per_run": 1.0}}))
+    return folder
+
+
+def test_report_of_packed_runs_sets_each_arms_time_alone_beside_its_populations(tmp_path):
+    folder = packed_sweep(tmp_path / "p")
+    floors = tmp_path / "floors.json"
+    floors.write_text(json.dumps({"tasks": {"hopper": {"zero": {"mean": 156.5}, "random": {"mean": -40.6}},
+                                            "cartpole": {"zero": {"mean": 2097.8}, "random": {"mean": 1987.1}}}}))
+    iteration = tmp_path / "iteration.json"
+    iteration.write_text(json.dumps({"gpu": "NVIDIA H100", "command": "benchmarks/iteration.py", "results": [
+        {"task": "hopper", "mode": "decoupled", "raster_model": "softmax", "bwd_ms": 4.0, "iter_ms": 90.0},
+        {"task": "hopper", "mode": "full", "raster_model": "hard", "bwd_ms": 9.0, "iter_ms": 120.0},
+        {"task": "hopper", "mode": "full", "raster_model": "softmax", "bwd_ms": 8.0, "iter_ms": 150.0},
+        {"task": "hopper", "mode": "state", "bwd_ms": None, "status": "oom"}]}))
+    population = tmp_path / "population_hopper.json"
+    population.write_text(json.dumps({"gpu": "NVIDIA H100", "command": "population.py --tasks hopper", "rows": [
+        {"kind": "population", "task": "hopper", "members": 1, "iter_ms": 100.0, "status": "ok"},
+        {"kind": "population", "task": "hopper", "members": 12, "iter_ms": 800.0, "status": "ok"},
+        {"kind": "population", "task": "hopper", "members": 16, "status": "oom"},
+        *({"kind": "separate", "task": "hopper", "members": 1, "arm": i % 4, "processes": 12, "iter_ms": ms,
+           "status": "ok"} for i, ms in enumerate([1200.0] * 6 + [1400.0] * 6))]}))
+    text = build_paper_report(folder, floors=floors, benchmark=(iteration, population)).read_text()
+
+    # How the runs trained, and the marked task
+    assert "The runs trained in 4 processes: 4 populations (of 6, 6, 2, 2 members) and 0 runs alone (--pack auto)" \
+        in text
+    assert "**cartpole:** D.Va's cartpole (with springs) ranks no arms: doing nothing already scores high (zero " \
+           "action 2098, floors.json; the paper's final return ~1.8k)" in text
+    assert rows_of(text, "| cartpole (does not rank arms) | final return | decoupled |")
+    assert text.count("**Packed runs:** a population member's wall-clock is its population's") == 2  # sections 2, 4
+
+    # Section 6: each arm alone (the first benchmark that times it) beside its population's time
+    section = text[text.index("## 6. Iteration time"):text.index("## 7. Memory")]
+    rows = {(r[0], r[1]): r[2:] for r in rows_of(section, "| hopper |") + rows_of(section, "| cartpole |")
+            if len(r) == 6}
+    assert rows[("hopper", "decoupled")] == ["90", "benchmark iteration.json, NVIDIA H100 (n=1)", "20",
+                                             "in populations of 6"]
+    assert rows[("hopper", "state")][2:] == ["20", "in populations of 2"]
+    assert rows[("hopper", "full-hard")][:2] == ["120", "benchmark iteration.json, NVIDIA H100 (n=1)"]
+    assert rows[("hopper", "full-hard-dva")][0] == "120"  # the same estimator and cost; only the schedule differs
+    assert rows[("hopper", "state")][:2] == ["not measured", "-"]  # the oom row times nothing
+    assert rows[("cartpole", "decoupled")][0] == "not measured"
+    assert "No benchmark gives the iteration time alone of cartpole decoupled, cartpole full-hard, cartpole " \
+           "full-hard-dva, cartpole state, hopper state: wall-clock comparisons of packed members are not an " \
+           "arm's own time" in " ".join(section.split())
+    # the population benchmark: 12 members against 12 separate processes (median 1300 ms each)
+    assert rows_of(section, "| hopper | 12 |") == [["hopper", "12", "800", "66.67", "1300", "1.62x",
+                                                     "benchmark population_hopper.json, NVIDIA H100"]]
+    # Table 1 reads the iteration.py file only; provenance names both
+    assert rows_of(text, "| hopper | 4 |")
+    assert "### Benchmark ../../population_hopper.json" in text and "population.py --tasks hopper" in text
+    # a population of one in benchmarks/population.py is a decoupled run alone
+    text = build_paper_report(folder, floors=floors, benchmark=(population, iteration)).read_text()
+    section = text[text.index("## 6. Iteration time"):text.index("## 7. Memory")]
+    assert rows_of(section, "| hopper | decoupled |")[0][2:4] == [
+        "100", "benchmark population_hopper.json, NVIDIA H100 (n=1)"]
