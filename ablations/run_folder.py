@@ -487,8 +487,9 @@ def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
 
 def thin_copy(src: str | os.PathLike, dst: str | os.PathLike, *, every: int) -> RunFolder:
     """A copy of the run folder ``src`` at ``dst`` small enough to keep in a repository: its records (config.json,
-    git.txt, summary.json), videos, and the metrics lines of every ``every``-th iteration, every probe and every
-    evaluation (what plots, reports and statistics read); no checkpoints, no git.diff. Returns the copy."""
+    git.txt, summary.json), videos, and the metrics lines of every ``every``-th iteration, every probe, every
+    evaluation and the last iteration (what plots, reports and statistics read, a comparison at equal iterations
+    up to where the run ended); no checkpoints, no git.diff. Returns the copy."""
     if every < 1:
         raise ValueError(f"every must be a positive integer, got {every}")
     source, copy = RunFolder.existing(src), RunFolder(dst)
@@ -499,8 +500,9 @@ def thin_copy(src: str | os.PathLike, dst: str | os.PathLike, *, every: int) -> 
     for video in source.videos():
         copy.video_dir.mkdir(exist_ok=True)
         shutil.copy2(video, copy.video_dir / video.name)
-    kept = [r for r in source.read_metrics()
-            if r["iter"] % every == 0 or r.get("probed") or evaluation_of(r) is not None]
+    rows = source.read_metrics()
+    kept = [r for i, r in enumerate(rows) if r["iter"] % every == 0 or r.get("probed") or evaluation_of(r) is not None
+            or i == len(rows) - 1]
     from gradlab.checkpoint import atomic_write_text
 
     atomic_write_text(copy.metrics_path, "".join(json.dumps(r) + "\n" for r in kept))

@@ -155,12 +155,12 @@ def test_a_thin_copy_keeps_the_records_every_kth_iteration_probes_and_evaluation
 
     src = RunFolder.create(tmp_path, "run")
     src.write_config({"config": {"task": "hopper", "mode": "full", "seed": 1}})
-    for it in range(1, 31):
+    for it in range(1, 34):
         row = {"iter": it, "probed": it % 7 == 0}
         if it == 25:
             row.update(eval_return_mean=100.0, eval_return_std=1.0)
         src.append_metrics(row)
     src.save_checkpoint(30, {"x": 1}, keep=1)
     thin = thin_copy(src.path, tmp_path / "thin" / "run", every=10)
-    assert [r["iter"] for r in thin.read_metrics()] == [7, 10, 14, 20, 21, 25, 28, 30]
+    assert [r["iter"] for r in thin.read_metrics()] == [7, 10, 14, 20, 21, 25, 28, 30, 33]  # 33: the last
     assert not thin.checkpoint_dir.exists() and load_run(thin.path).config["mode"] == "full"
