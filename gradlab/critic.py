@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import nn
 
-__all__ = ["td_lambda_targets", "fit_critic", "polyak_update"]
+from gradlab.networks import MemberStack
+
+__all__ = ["td_lambda_targets", "fit_critic", "fit_critics", "polyak_update"]
 
 
 @torch.no_grad()
@@ -67,6 +71,79 @@ def fit_critic(critic: nn.Module, optimizer: torch.optim.Optimizer, obs: torch.T
         if it == iterations - 1:
             last = losses
     return torch.stack(last).mean()
+
+
+def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer], obs: torch.Tensor,
+                targets: torch.Tensor, *, iterations: int, batches: int,
+                grad_clip: float | torch.Tensor) -> torch.Tensor:
+    """:func:`fit_critic` for N members at once: ``iterations`` passes of ``batches`` minibatch steps, each step
+    covering every member with one stacked forward and backward.
+
+    Member m gets exactly what :func:`fit_critic` does alone on ``obs[m], targets[m]`` with its own critic
+    (``critics.members[m]``) and optimiser (``optimizers[m]``): its minibatch k is the same contiguous slice of its
+    own rows, its loss the mean squared error over them, its non-finite gradients zeroed, its gradient clipped by
+    its own total norm (``clip_grad_norm_``'s formula), its own optimiser stepped. Only the rounding of the
+    batched kernels differs. The gradients are taken with respect to the stacked parameters, so that zeroing,
+    norms and clipping run once per parameter tensor for all members; then each member's ``.grad`` is written in
+    place and its optimiser steps. No host syncs and no tensors kept between calls: the fit may be captured as a
+    CUDA graph (``gradlab.graphs.GraphedCriticPhase``).
+
+    Args:
+        critics: the members' critics, stacked (``"grouped"`` or ``"loop"`` batching, two or more members).
+        optimizers: (N,) each member's optimiser over its critic's parameters.
+        obs: (N, R, obs_dim) each member's normalised states. targets: (N, R) its value targets.
+        iterations, batches: passes over the rows and minibatches per pass (as :func:`fit_critic`).
+        grad_clip: the gradient-norm bound, one for all members or an (N,) tensor of one per member.
+    Returns:
+        (N,) each member's mean loss over the last pass's minibatches.
+    """
+    if critics.n < 2 or critics.batching == "modules":
+        raise ValueError("fit_critics needs two or more members in batched kernels (use fit_critic per member)")
+    n, rows = targets.shape
+    size = (rows + batches - 1) // batches
+    # each minibatch member-major and contiguous once, read by every pass
+    minibatches = [(obs[:, start:start + size].flatten(0, 1), targets[:, start:start + size])
+                   for start in range(0, rows, size)]
+    member_params = [list(m.parameters()) for m in critics.members]
+    for params in member_params:  # written in place below (a captured graph writes these very tensors)
+        for p in params:
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+    member_grads = [p.grad for params in member_params for p in params]
+    last = []
+    for it in range(iterations):
+        losses = []
+        for o, y in minibatches:
+            with torch.no_grad():
+                stacked = critics.stack()  # (N, ...) copies of the parameters as the last step left them
+            leaves = [t.requires_grad_() for t in stacked.values()]
+            with torch.enable_grad():
+                loss = (critics.value(stacked, o).unflatten(0, (n, -1)) - y).square().mean(dim=1)  # (N,)
+                # a member's loss reaches only its own slice of each stacked parameter
+                grads = torch.autograd.grad(loss.sum(), leaves)
+            with torch.no_grad():
+                _clip_members_(grads, grad_clip)
+                torch._foreach_copy_(member_grads, [g[m] for m in range(n) for g in grads])
+            for optimizer in optimizers:
+                optimizer.step()
+            losses.append(loss.detach())
+        if it == iterations - 1:
+            last = losses
+    return torch.stack(last).mean(dim=0)
+
+
+@torch.no_grad()
+def _clip_members_(grads: Sequence[torch.Tensor], max_norm: float | torch.Tensor) -> None:
+    """Zero the non-finite entries of stacked gradients (each (N, ...)) and clip member m's slices by their total
+    norm as ``clip_grad_norm_`` does: coef = max_norm / (total + 1e-6), at most 1. max_norm: a float or (N,)."""
+    norms = []
+    for g in grads:
+        torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
+        norms.append(torch.linalg.vector_norm(g, dim=tuple(range(1, g.dim()))))
+    total = torch.linalg.vector_norm(torch.stack(norms), dim=0)  # (N,)
+    coef = torch.clamp(max_norm / (total + 1e-6), max=1.0)
+    for g in grads:
+        g.mul_(coef.view(-1, *(1,) * (g.dim() - 1)))
 
 
 @torch.no_grad()
