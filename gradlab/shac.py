@@ -52,7 +52,7 @@ from torch import nn
 
 import tasks
 from gradlab.config import ModePlan, SHACConfig, resolve_config
-from gradlab.critic import fit_critic, polyak_update, td_lambda_targets
+from gradlab.critic import fit_critic, fit_critics, polyak_update, td_lambda_targets
 from gradlab.graphs import WARMUP_ITERS, GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
 from gradlab.networks import Critic, MemberStack, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
@@ -184,6 +184,18 @@ class Member:
         return list(self.actor.parameters())
 
 
+@dataclass(eq=False)
+class _CriticGroup:
+    """Members whose critics fit in one pass (:meth:`SHAC._critic_fit_groups`): their critics stacked (None: a
+    member alone), their indices as a tensor (None: every member, in order) and their gradient bound (a float,
+    or an (N,) tensor where they differ)."""
+
+    members: list[Member]
+    stack: MemberStack | None
+    index: torch.Tensor | None
+    grad_clip: float | torch.Tensor
+
+
 class SHAC:
     """The SHAC / D.Va trainer, for one run or a population of runs.
 
@@ -275,6 +287,7 @@ class SHAC:
         self._evaluator: tuple[tasks.Task, dict] | None = None  # built at the first evaluation
         self._eval_rng: torch.Tensor | None = None
         self.live = LiveState()
+        self._critic_groups = None if n == 1 or batching == "modules" else self._critic_fit_groups(batching)
         critics = m0.critic if n == 1 else nn.ModuleList([m.critic for m in self.members])
         self.critic_fit = (GraphedCriticPhase(self._fit_critic, critics, self.device) if self.graphs
                            else self._fit_critic)
@@ -627,16 +640,60 @@ class SHAC:
         (0-d; a population's (N,)). It reads only the window's buffers and writes only the critics and their
         optimisers, so it may run alongside the actor's backward (``SHACConfig.overlap_critic``); the target
         critics' update waits for both. Overlapped, a window whose actor step then aborts (non-finite or runaway
-        gradient) has fitted the critic already; the run stops there either way and keeps no checkpoint of it."""
-        losses = []
+        gradient) has fitted the critic already; the run stops there either way and keeps no checkpoint of it.
+
+        A single run and ``"modules"`` batching fit member after member (:func:`fit_critic`); batched kernels fit
+        the members that share iterations and minibatches in one pass (:func:`fit_critics`)."""
+        if self._critic_groups is None:
+            losses = []
+            for m in self.members:
+                c, rows = m.cfg, m.rows
+                targets = td_lambda_targets(buf["rewards"][:, rows], buf["next_values"][:, rows],
+                                            buf["dones"][:, rows], gamma=c.gamma, lam=c.lam)
+                losses.append(fit_critic(m.critic, m.critic_opt, buf["critic_obs"][:, rows].flatten(0, 1),
+                                         targets.flatten(), iterations=c.critic_iterations,
+                                         batches=c.critic_batches, grad_clip=c.grad_clip))
+            return losses[0] if self.n == 1 else torch.stack(losses)
+        cfg, n = self.cfg, self.n
+        # gamma and lam are the population's: one recursion over every member's columns
+        targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma, lam=cfg.lam)
+        # member-major rows, each member's in the order fit_critic reads them alone (step, then environment)
+        obs = buf["critic_obs"].unflatten(1, (n, -1)).movedim(1, 0).flatten(1, 2)  # (N, T * B, obs_dim)
+        targets = targets.unflatten(1, (n, -1)).movedim(1, 0).flatten(1, 2)  # (N, T * B)
+        losses = [None] * n
+        for group in self._critic_groups:
+            c = group.members[0].cfg
+            if group.stack is None:  # a member alone in its group fits as it would alone
+                m = group.members[0]
+                losses[m.index] = fit_critic(m.critic, m.critic_opt, obs[m.index], targets[m.index],
+                                             iterations=c.critic_iterations, batches=c.critic_batches,
+                                             grad_clip=c.grad_clip)
+                continue
+            rows = slice(None) if group.index is None else group.index
+            fitted = fit_critics(group.stack, [m.critic_opt for m in group.members], obs[rows], targets[rows],
+                                 iterations=c.critic_iterations, batches=c.critic_batches, grad_clip=group.grad_clip)
+            for m, loss in zip(group.members, fitted.unbind(0)):
+                losses[m.index] = loss
+        return torch.stack(losses)
+
+    def _critic_fit_groups(self, batching: str) -> list[_CriticGroup]:
+        """The members whose critics fit together: those of equal ``critic_iterations`` and ``critic_batches``
+        (one pass of minibatch steps), each group with its critics stacked and its members' gradient bounds (one
+        float where they agree, else a tensor, made here: a captured fit cannot copy from the host)."""
+        by_shape: dict[tuple[int, int], list[Member]] = {}
         for m in self.members:
-            c, rows = m.cfg, m.rows
-            targets = td_lambda_targets(buf["rewards"][:, rows], buf["next_values"][:, rows], buf["dones"][:, rows],
-                                        gamma=c.gamma, lam=c.lam)
-            losses.append(fit_critic(m.critic, m.critic_opt, buf["critic_obs"][:, rows].flatten(0, 1),
-                                     targets.flatten(), iterations=c.critic_iterations, batches=c.critic_batches,
-                                     grad_clip=c.grad_clip))
-        return losses[0] if self.n == 1 else torch.stack(losses)
+            by_shape.setdefault((m.cfg.critic_iterations, m.cfg.critic_batches), []).append(m)
+        groups = []
+        for members in by_shape.values():
+            if len(members) == 1:
+                groups.append(_CriticGroup(members, None, None, members[0].cfg.grad_clip))
+                continue
+            index = None if len(members) == self.n else torch.tensor([m.index for m in members], device=self.device)
+            clips = [m.cfg.grad_clip for m in members]
+            grad_clip = clips[0] if len(set(clips)) == 1 else torch.tensor(clips, device=self.device)
+            groups.append(_CriticGroup(members, MemberStack([m.critic for m in members], batching=batching), index,
+                                       grad_clip))
+        return groups
 
     # ------------------------------------------------------------------ one training iteration
     def _lr(self, cfg: SHACConfig, base: float) -> float:
