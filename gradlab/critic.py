@@ -6,6 +6,7 @@ from collections.abc import Sequence
 
 import torch
 from torch import nn
+from torch.optim.adam import adam as adam_step
 
 from gradlab.networks import MemberStack
 
@@ -74,8 +75,8 @@ def fit_critic(critic: nn.Module, optimizer: torch.optim.Optimizer, obs: torch.T
 
 
 def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer], obs: torch.Tensor,
-                targets: torch.Tensor, *, iterations: int, batches: int,
-                grad_clip: float | torch.Tensor) -> torch.Tensor:
+                targets: torch.Tensor, *, iterations: int, batches: int, grad_clip: float | torch.Tensor,
+                adam_groups: Sequence[Sequence[int]] | None = None) -> torch.Tensor:
     """:func:`fit_critic` for N members at once: ``iterations`` passes of ``batches`` minibatch steps, each step
     covering every member with one stacked forward and backward.
 
@@ -94,6 +95,13 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
         obs: (N, R, obs_dim) each member's normalised states. targets: (N, R) its value targets.
         iterations, batches: passes over the rows and minibatches per pass (as :func:`fit_critic`).
         grad_clip: the gradient-norm bound, one for all members or an (N,) tensor of one per member.
+        adam_groups: members (indices into ``optimizers``, each member in one group) whose optimisers, each a
+            ``torch.optim.Adam`` of one parameter group, step together in one call of torch's Adam
+            (``torch.optim.adam.adam``, its multi-tensor kernels on a GPU: the same arithmetic as each step on
+            its own, in a few launches instead of a few per member). The caller vouches that their learning rates
+            are equal at every call: a tensor learning rate (a captured fit's) is read from the group's first
+            member and not compared, which would need a host sync; the other settings are checked. None: each
+            optimiser steps on its own.
     Returns:
         (N,) each member's mean loss over the last pass's minibatches.
     """
@@ -110,6 +118,7 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
     member_grads = [p.grad for params in member_params for p in params]
+    adam_groups = _checked_adam_groups(optimizers, adam_groups)
     last = []
     for it in range(iterations):
         losses = []
@@ -124,8 +133,8 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
             with torch.no_grad():
                 _clip_members_(grads, grad_clip)
                 torch._foreach_copy_(member_grads, [g[m] for m in range(n) for g in grads])
-            for optimizer in optimizers:
-                optimizer.step()
+            for group in adam_groups:
+                _adam_step([optimizers[m] for m in group])
             losses.append(loss.detach())
         if it == iterations - 1:
             last = losses
@@ -144,6 +153,52 @@ def _clip_members_(grads: Sequence[torch.Tensor], max_norm: float | torch.Tensor
     coef = torch.clamp(max_norm / (total + 1e-6), max=1.0)
     for g in grads:
         g.mul_(coef.view(-1, *(1,) * (g.dim() - 1)))
+
+
+def _checked_adam_groups(optimizers: Sequence[torch.optim.Optimizer],
+                         groups: Sequence[Sequence[int]] | None) -> list[list[int]]:
+    """``groups`` (None: every optimiser alone) after checking that each optimiser is in exactly one and that the
+    optimisers of a group can step as one: Adam with one parameter group each, equal settings, equal learning
+    rates where they are floats, tensors in all or none."""
+    if groups is None:
+        return [[m] for m in range(len(optimizers))]
+    groups = [list(g) for g in groups]
+    if sorted(m for g in groups for m in g) != list(range(len(optimizers))):
+        raise ValueError(f"adam_groups must hold each of the {len(optimizers)} members once, got {groups}")
+    for group in groups:
+        if len(group) == 1:
+            continue
+        opts = [optimizers[m] for m in group]
+        if any(type(o) is not torch.optim.Adam or len(o.param_groups) != 1 for o in opts):
+            raise ValueError("adam_groups: only torch.optim.Adam optimisers of one parameter group step together")
+        settings = [{k: v for k, v in o.param_groups[0].items() if k not in ("params", "lr")} for o in opts]
+        lrs = [o.param_groups[0]["lr"] for o in opts]
+        tensor_lr = {isinstance(lr, torch.Tensor) for lr in lrs}
+        if any(s != settings[0] for s in settings) or len(tensor_lr) > 1 or (
+                tensor_lr == {False} and len(set(lrs)) > 1):
+            raise ValueError(f"adam_groups: members {group} differ in their Adam settings or learning rates")
+    return groups
+
+
+@torch.no_grad()
+def _adam_step(optimizers: Sequence[torch.optim.Adam]) -> None:
+    """Step Adam optimisers of equal settings (one parameter group each, every parameter with a gradient) in one
+    call of torch's Adam; an optimiser whose state is not yet made (its first step) steps on its own first."""
+    if len(optimizers) == 1 or any(len(o.state) < len(o.param_groups[0]["params"]) for o in optimizers):
+        for optimizer in optimizers:
+            optimizer.step()
+        return
+    group = optimizers[0].param_groups[0]
+    params = [p for o in optimizers for p in o.param_groups[0]["params"]]
+    states = [o.state[p] for o in optimizers for p in o.param_groups[0]["params"]]
+    beta1, beta2 = group["betas"]
+    adam_step(
+        params, [p.grad for p in params], [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states],
+        [s["max_exp_avg_sq"] for s in states] if group["amsgrad"] else [], [s["step"] for s in states],
+        foreach=group["foreach"], capturable=group["capturable"], differentiable=group["differentiable"],
+        fused=group["fused"], decoupled_weight_decay=group["decoupled_weight_decay"], amsgrad=group["amsgrad"],
+        beta1=beta1, beta2=beta2, lr=group["lr"], weight_decay=group["weight_decay"], eps=group["eps"],
+        maximize=group["maximize"])
 
 
 @torch.no_grad()

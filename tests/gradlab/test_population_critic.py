@@ -150,6 +150,35 @@ def test_a_non_finite_input_of_one_member_leaves_the_others_untouched(where, val
     assert all(torch.isfinite(p).all() for p in poisoned[1][1].parameters())
 
 
+@pytest.mark.parametrize("warm", [False, True], ids=["fresh-adam", "warm-adam"])
+def test_adam_steps_taken_together_are_each_members_own_bit_for_bit(warm):
+    """Members of equal Adam settings step in one call of torch's Adam; the others on their own."""
+    lrs = [1e-3, 1e-3, 5e-3, 1e-3]
+    obs, targets = _data(4, seed=4)
+    critics, optimizers = _members(lrs, warm=warm)
+    own_critics, own_optimizers = copy.deepcopy((critics, optimizers))
+    kwargs = dict(iterations=ITERATIONS, batches=BATCHES, grad_clip=1.0)
+    together = fit_critics(MemberStack(critics), optimizers, obs, targets, adam_groups=[[0, 1, 3], [2]], **kwargs)
+    own = fit_critics(MemberStack(own_critics), own_optimizers, obs, targets, **kwargs)
+    for m in range(4):
+        _assert_member_equal((together, critics, optimizers), (own, own_critics, own_optimizers), m, rtol=0,
+                             atol=0)
+
+
+def test_adam_groups_that_cannot_step_as_one_are_refused():
+    critics, optimizers = _members([1e-3, 2e-3, 1e-3])
+    obs, targets = _data(3)
+    for groups, match in (([[0, 1], [2]], "differ"), ([[0, 2]], "each of the 3 members once"),
+                          ([[0, 2], [1], [2]], "each of the 3 members once")):
+        with pytest.raises(ValueError, match=match):
+            fit_critics(MemberStack(critics), optimizers, obs, targets, iterations=1, batches=1, grad_clip=1.0,
+                        adam_groups=groups)
+    optimizers[2].param_groups[0]["eps"] = 1e-6
+    with pytest.raises(ValueError, match="differ"):
+        fit_critics(MemberStack(critics), optimizers, obs, targets, iterations=1, batches=1, grad_clip=1.0,
+                    adam_groups=[[0, 2], [1]])
+
+
 def test_fit_critics_refuses_what_it_cannot_batch():
     critics, optimizers = _members([1e-3, 1e-3])
     obs, targets = _data(2)
@@ -173,20 +202,23 @@ def _window(trainer: SHAC) -> dict:
 
 def test_a_population_fits_its_critics_as_its_members_alone():
     """Members that differ in critic learning rate and decay, gradient bound, iterations and minibatches: those
-    that share iterations and minibatches fit together, a member alone in its group as it would alone; all equal
-    the exact member-by-member fit (``"modules"``) to float32 rounding."""
+    that share iterations and minibatches fit together (those of one learning-rate schedule stepping their Adam
+    as one), a member alone in its group as it would alone; all equal the exact member-by-member fit
+    (``"modules"``) to float32 rounding."""
     cfgs = [dataclasses.replace(BASE, seed=0), dataclasses.replace(BASE, seed=1, critic_lr=3e-3, grad_clip=0.01),
             dataclasses.replace(BASE, seed=2, lr_decay_iters=2),
-            dataclasses.replace(BASE, seed=3, critic_iterations=2, critic_batches=2)]
+            dataclasses.replace(BASE, seed=3, critic_iterations=2, critic_batches=2), dataclasses.replace(BASE, seed=4)]
     batched, exact = SHAC(cfgs, device="cpu"), SHAC(cfgs, device="cpu", batching="modules")
-    assert sorted(len(g.members) for g in batched._critic_groups) == [1, 3]
+    assert sorted(len(g.members) for g in batched._critic_groups) == [1, 4]
+    (together,) = [g for g in batched._critic_groups if g.stack is not None]
+    assert sorted(len(a) for a in together.adam_groups) == [1, 1, 2]  # seeds 0 and 4 step their Adam as one
     for trainer in (batched, exact):
         trainer.iteration = 1  # the decay under way: member 2's critic rate is half its base
         trainer._set_learning_rates()
     buf = _window(batched)
     losses = batched._fit_critic(buf)
     exact_losses = exact._fit_critic(buf)
-    assert losses.shape == (4,)
+    assert losses.shape == (5,)
     torch.testing.assert_close(losses, exact_losses, rtol=1e-5, atol=1e-7)
     for m, e in zip(batched.members, exact.members):
         assert m.cfg == e.cfg
