@@ -187,13 +187,15 @@ class Member:
 @dataclass(eq=False)
 class _CriticGroup:
     """Members whose critics fit in one pass (:meth:`SHAC._critic_fit_groups`): their critics stacked (None: a
-    member alone), their indices as a tensor (None: every member, in order) and their gradient bound (a float,
-    or an (N,) tensor where they differ)."""
+    member alone), their indices as a tensor (None: every member, in order), their gradient bound (a float, or
+    an (N,) tensor where they differ) and which of them step their Adam together (``fit_critics``' adam_groups,
+    indices into ``members``)."""
 
     members: list[Member]
     stack: MemberStack | None
     index: torch.Tensor | None
     grad_clip: float | torch.Tensor
+    adam_groups: list[list[int]] | None = None
 
 
 class SHAC:
@@ -671,7 +673,8 @@ class SHAC:
                 continue
             rows = slice(None) if group.index is None else group.index
             fitted = fit_critics(group.stack, [m.critic_opt for m in group.members], obs[rows], targets[rows],
-                                 iterations=c.critic_iterations, batches=c.critic_batches, grad_clip=group.grad_clip)
+                                 iterations=c.critic_iterations, batches=c.critic_batches, grad_clip=group.grad_clip,
+                                 adam_groups=group.adam_groups)
             for m, loss in zip(group.members, fitted.unbind(0)):
                 losses[m.index] = loss
         return torch.stack(losses)
@@ -679,7 +682,9 @@ class SHAC:
     def _critic_fit_groups(self, batching: str) -> list[_CriticGroup]:
         """The members whose critics fit together: those of equal ``critic_iterations`` and ``critic_batches``
         (one pass of minibatch steps), each group with its critics stacked and its members' gradient bounds (one
-        float where they agree, else a tensor, made here: a captured fit cannot copy from the host)."""
+        float where they agree, else a tensor, made here: a captured fit cannot copy from the host). Members of
+        one critic learning rate, decay and betas step their Adam together: :meth:`_set_learning_rates` gives
+        them the same rate at every iteration."""
         by_shape: dict[tuple[int, int], list[Member]] = {}
         for m in self.members:
             by_shape.setdefault((m.cfg.critic_iterations, m.cfg.critic_batches), []).append(m)
@@ -691,8 +696,11 @@ class SHAC:
             index = None if len(members) == self.n else torch.tensor([m.index for m in members], device=self.device)
             clips = [m.cfg.grad_clip for m in members]
             grad_clip = clips[0] if len(set(clips)) == 1 else torch.tensor(clips, device=self.device)
+            by_schedule: dict[tuple, list[int]] = {}
+            for i, m in enumerate(members):
+                by_schedule.setdefault((m.cfg.critic_lr, m.cfg.lr_decay_iters, tuple(m.cfg.betas)), []).append(i)
             groups.append(_CriticGroup(members, MemberStack([m.critic for m in members], batching=batching), index,
-                                       grad_clip))
+                                       grad_clip, list(by_schedule.values())))
         return groups
 
     # ------------------------------------------------------------------ one training iteration
