@@ -229,3 +229,48 @@ def test_a_population_fits_its_critics_as_its_members_alone():
     alone = batched.members[3]  # alone in its group: fit_critic's own arithmetic, bit for bit
     for p, q in zip(alone.critic.parameters(), exact.members[3].critic.parameters()):
         assert torch.equal(p, q)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_the_batched_fit_replays_from_a_cuda_graph_as_it_runs_eagerly():
+    """The fit as the trainer runs it with --compile on a GPU: capturable Adam with tensor learning rates, the
+    members of one rate stepping as one (multi-tensor kernels: bit for bit their own steps), captured once
+    (``GraphedCriticPhase``) and replayed on new inputs, against the same fits run eagerly."""
+    from gradlab.graphs import GraphedCriticPhase
+
+    device = torch.device("cuda")
+    lrs = [1e-3, 1e-3, 4e-3, 1e-3]
+    critics, optimizers = [], []
+    for m, lr in enumerate(lrs):
+        torch.manual_seed(100 + m)
+        critics.append(Critic(11, (64, 64)).to(device))
+        optimizers.append(torch.optim.Adam(critics[-1].parameters(), lr=torch.tensor(lr, device=device),
+                                           betas=(0.7, 0.95), capturable=True))
+    fits = {name: copy.deepcopy((critics, optimizers)) for name in ("graphed", "eager", "eager-own-steps")}
+    grad_clip = torch.tensor([1.0, 0.5, 1.0, 1.0], device=device)  # made before the capture: no copy inside
+
+    def phase(name: str, groups):
+        critics, optimizers = fits[name]
+        stack = MemberStack(critics)
+        return lambda buf: fit_critics(stack, optimizers, buf["critic_obs"], buf["rewards"], iterations=4, batches=3,
+                                       grad_clip=grad_clip, adam_groups=groups)
+
+    groups = [[0, 1, 3], [2]]
+    graphed = GraphedCriticPhase(phase("graphed", groups), torch.nn.ModuleList(fits["graphed"][0]), device)
+    eager, own_steps = phase("eager", groups), phase("eager-own-steps", None)
+    g = torch.Generator(device=device).manual_seed(0)
+    for _ in range(4):  # an eager fit and the capture, then three replays
+        buf = dict(critic_obs=torch.randn(4, 64, 11, device=device, generator=g),
+                   rewards=torch.randn(4, 64, device=device, generator=g), next_values=torch.zeros(1, device=device),
+                   dones=torch.zeros(1, device=device))
+        losses = {"graphed": graphed(buf).clone(), "eager": eager(buf), "eager-own-steps": own_steps(buf)}
+        torch.testing.assert_close(losses["eager"], losses["eager-own-steps"], rtol=0, atol=0)
+        # a replay runs the kernels it captured: equal but for cuBLAS picking other kernels on the side stream
+        torch.testing.assert_close(losses["graphed"], losses["eager"], rtol=1e-5, atol=1e-6)
+    assert graphed.graph is not None
+    for m in range(4):
+        params = {name: list(fits[name][0][m].parameters()) for name in fits}
+        for p, q, r in zip(params["graphed"], params["eager"], params["eager-own-steps"]):
+            assert torch.equal(q, r)
+            torch.testing.assert_close(p, q, rtol=1e-5, atol=1e-6)
