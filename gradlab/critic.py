@@ -84,10 +84,10 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
     (``critics.members[m]``) and optimiser (``optimizers[m]``): its minibatch k is the same contiguous slice of its
     own rows, its loss the mean squared error over them, its non-finite gradients zeroed, its gradient clipped by
     its own total norm (``clip_grad_norm_``'s formula), its own optimiser stepped. Only the rounding of the
-    batched kernels differs. The gradients are taken with respect to the stacked parameters, so that zeroing,
-    norms and clipping run once per parameter tensor for all members; then each member's ``.grad`` is written in
-    place and its optimiser steps. No host syncs and no tensors kept between calls: the fit may be captured as a
-    CUDA graph (``gradlab.graphs.GraphedCriticPhase``).
+    batched kernels differs. The gradients are taken with respect to the stacked parameters and gathered into one
+    (N, P) tensor, so that zeroing, norms and clipping run once for all members; then each member's ``.grad`` is
+    written in place and its optimiser steps. No host syncs and no tensors kept between calls: the fit may be
+    captured as a CUDA graph (``gradlab.graphs.GraphedCriticPhase``).
 
     Args:
         critics: the members' critics, stacked (``"grouped"`` or ``"loop"`` batching, two or more members).
@@ -118,23 +118,30 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
     member_grads = [p.grad for params in member_params for p in params]
+    sizes = [p.numel() for p in member_params[0]]
     adam_groups = _checked_adam_groups(optimizers, adam_groups)
+    with torch.no_grad():
+        stacked = critics.stack()  # (N, ...) copies of the parameters, refreshed after every step
+        stacked_slices = [t[m] for m in range(n) for t in stacked.values()]
+    leaves = [t.requires_grad_() for t in stacked.values()]
     last = []
     for it in range(iterations):
         losses = []
         for o, y in minibatches:
-            with torch.no_grad():
-                stacked = critics.stack()  # (N, ...) copies of the parameters as the last step left them
-            leaves = [t.requires_grad_() for t in stacked.values()]
             with torch.enable_grad():
                 loss = (critics.value(stacked, o).unflatten(0, (n, -1)) - y).square().mean(dim=1)  # (N,)
                 # a member's loss reaches only its own slice of each stacked parameter
                 grads = torch.autograd.grad(loss.sum(), leaves)
             with torch.no_grad():
-                _clip_members_(grads, grad_clip)
-                torch._foreach_copy_(member_grads, [g[m] for m in range(n) for g in grads])
+                # one (N, P) row of every member's gradient: zeroing, norms and clipping in one kernel each
+                flat = torch.cat([g.flatten(1) for g in grads], dim=1)
+                _clip_members_(flat, grad_clip)
+                torch._foreach_copy_(member_grads, [part.view_as(p) for m in range(n)
+                                                    for part, p in zip(flat[m].split(sizes), member_params[m])])
             for group in adam_groups:
                 _adam_step([optimizers[m] for m in group])
+            with torch.no_grad():
+                torch._foreach_copy_(stacked_slices, [p for params in member_params for p in params])
             losses.append(loss.detach())
         if it == iterations - 1:
             last = losses
@@ -142,17 +149,12 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
 
 
 @torch.no_grad()
-def _clip_members_(grads: Sequence[torch.Tensor], max_norm: float | torch.Tensor) -> None:
-    """Zero the non-finite entries of stacked gradients (each (N, ...)) and clip member m's slices by their total
-    norm as ``clip_grad_norm_`` does: coef = max_norm / (total + 1e-6), at most 1. max_norm: a float or (N,)."""
-    norms = []
-    for g in grads:
-        torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
-        norms.append(torch.linalg.vector_norm(g, dim=tuple(range(1, g.dim()))))
-    total = torch.linalg.vector_norm(torch.stack(norms), dim=0)  # (N,)
-    coef = torch.clamp(max_norm / (total + 1e-6), max=1.0)
-    for g in grads:
-        g.mul_(coef.view(-1, *(1,) * (g.dim() - 1)))
+def _clip_members_(grads: torch.Tensor, max_norm: float | torch.Tensor) -> None:
+    """Zero the non-finite entries of ``grads`` (N, P), each row one member's whole gradient, and clip row m by its
+    norm as ``clip_grad_norm_`` does: coef = max_norm / (norm + 1e-6), at most 1. max_norm: a float or (N,)."""
+    torch.nan_to_num_(grads, nan=0.0, posinf=0.0, neginf=0.0)
+    total = torch.linalg.vector_norm(grads, dim=1)  # (N,)
+    grads.mul_(torch.clamp(max_norm / (total + 1e-6), max=1.0).unsqueeze(1))
 
 
 def _checked_adam_groups(optimizers: Sequence[torch.optim.Optimizer],
