@@ -42,7 +42,7 @@ for spec in "$@"; do
        run "$secs" python3 benchmarks/profile_iteration.py --tasks ${TASKS:-ant} --modes ${MODES:-decoupled full} \
          --encoder --out "$OUT/profile.json";;
     render) run "$secs" python3 benchmarks/render.py --device cuda --quick --out "$OUT/render_quick.json";;
-    fused-tests) run "$secs" python3 -m pytest tests/diffrender/test_fused.py tests/diffrender/test_fused_setup.py -q -x -p no:cacheprovider ${FUSED_K:+-k "$FUSED_K"};;
+    fused-tests) run "$secs" python3 -m pytest tests/diffrender/test_fused.py tests/diffrender/test_fused_setup.py -q -x -m "slow or not slow" -p no:cacheprovider ${FUSED_K:+-k "$FUSED_K"};;
     render-fused) # the fused Triton backend: kernel shapes (FUSED_VARIANTS) and the tiled one at the target
        # point, then batch / resolution / faces sweeps on the fused one
        run "$secs" python3 benchmarks/render.py --device cuda --backends fused tiled --graphs \

@@ -30,7 +30,7 @@ def strip_timing(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if k not in TIMING_KEYS} for r in rows]
 
 
-@pytest.mark.parametrize("task", ["cartpole", "ant"])
+@pytest.mark.parametrize("task", ["cartpole", pytest.param("ant", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("mode", ["full", "decoupled", "state", "blind"])
 def test_smoke_every_mode(tmp_path, task, mode, capsys):
     ablate("--task", task, "--mode", mode, "--iters", "2", "--cosine-every", "2", "--video-every", "2",
@@ -461,7 +461,7 @@ def test_a_folder_with_its_config_but_no_checkpoint_resumes_from_the_first_itera
     assert strip_timing(read_metrics(cut)) == strip_timing(read_metrics(tmp_path / "whole"))
 
 
-@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("sig", ["SIGINT", pytest.param("SIGTERM", marks=pytest.mark.slow)])
 def test_a_signal_checkpoints_the_last_iteration_and_the_resume_repeats_nothing(tmp_path, sig):
     """A real signal to a child ablate: it finishes its iteration, checkpoints it, marks the summary, prints the
     resume command and exits 130 without a traceback; the resumed run's metrics have every iteration once and

@@ -373,6 +373,7 @@ def killed_at(out: Path, run_id: str) -> int:
     return int((out / ".killed" / run_id).read_text().split("_")[1].split(".")[0])
 
 
+@pytest.mark.slow
 def test_sweep_recovers_a_killed_worker_then_a_rerun_skips_everything(ray_cluster, tmp_path):
     out = tmp_path / "sweep"
     killed = "cartpole_decoupled_seed0"

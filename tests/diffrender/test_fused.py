@@ -57,11 +57,13 @@ def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
         assert (gd - gf).abs().max() <= tol * gd.abs().max()
 
 
-@pytest.mark.parametrize("kw", [dict(), dict(cull_backfaces=False, floor=None, save_blend_state=True),
+@pytest.mark.parametrize("kw", [dict(), pytest.param(dict(cull_backfaces=False, floor=None, save_blend_state=True),
+                                                     marks=pytest.mark.slow),
                                 # the Triton interpreter takes ~45 s for this one: on CPUs with -m slow
                                 pytest.param(dict(sigma=0.3, gamma=1e-3), marks=pytest.mark.slow),
                                 dict(raster_model="alpha", cull_backfaces=False),
-                                dict(raster_model="alpha", floor=None, save_blend_state=True),
+                                pytest.param(dict(raster_model="alpha", floor=None, save_blend_state=True),
+                                             marks=pytest.mark.slow),
                                 dict(raster_model="hard"),
                                 dict(raster_model="hard", cull_backfaces=False, floor=None, save_blend_state=True)])
 def test_fused_matches_dense_on_the_ant(ant64, kw):
@@ -70,7 +72,8 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
 
 
-@pytest.mark.parametrize("model", ["softmax", "hard", pytest.param("alpha", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("model", ["hard", pytest.param("softmax", marks=pytest.mark.slow),
+                                   pytest.param("alpha", marks=pytest.mark.slow)])
 def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeypatch, model):
     """Super-blocks of two 16-face blocks (the 944 faces make 30 of them, most far from most tiles, so the
     coarse test skips whole runs of blocks), the backward tile chosen for crowded faces and the backward's
@@ -87,7 +90,7 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
 
 
 @pytest.mark.parametrize(("model", "splits", "sub_block"), [("hard", 3, 16), ("hard", 1, 16), ("hard", 3, 8),
-                                                          ("softmax", 3, 8)])
+                                                          pytest.param("softmax", 3, 8, marks=pytest.mark.slow)])
 def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits, sub_block):
     """Five copies of one triangle (exactly equal depths, different colours) in super-blocks of 16 faces:
     face 20 (green) and face 28 (same block; the other half when blocks are evaluated 8 faces at a time) and
@@ -189,7 +192,8 @@ def test_super_block_boxes_are_unions_of_their_blocks(monkeypatch):
     assert fused.forward_splits(0) == 1
 
 
-@pytest.mark.parametrize(("bwd_tile", "sub_block"), [(8, 64), pytest.param(4, 16, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(("bwd_tile", "sub_block"), [pytest.param(8, 64, marks=pytest.mark.slow),
+                                                     pytest.param(4, 16, marks=pytest.mark.slow)])
 def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, sub_block):
     """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
     the backward uses to skip them (no atomics, pixels skipped); the gradients must still equal dense's, with
@@ -250,7 +254,8 @@ def test_fused_degenerate_faces_match_dense(cull):
     assert v.grad[0, :3].abs().sum() > 0 and v.grad[0, 12:18].abs().sum() == 0
 
 
-@pytest.mark.parametrize("keep_state", [pytest.param(False, marks=pytest.mark.slow), True])
+@pytest.mark.parametrize("keep_state", [pytest.param(False, marks=pytest.mark.slow),
+                                        pytest.param(True, marks=pytest.mark.slow)])
 def test_fused_saved_memory_is_flat_in_faces(ant64, keep_state):
     """Saved for backward: the inputs (and with save_blend_state 7 numbers per pixel: image, blend maximum,
     denominator, the faces' weight and coverage sums), the same bytes for 3x the faces."""
@@ -274,7 +279,8 @@ def test_fused_saved_memory_is_flat_in_faces(ant64, keep_state):
     assert saved[0] > per_pixel * keep_state
 
 
-@pytest.mark.parametrize("shared_colors", [True, pytest.param(False, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("shared_colors", [pytest.param(True, marks=pytest.mark.slow),
+                                           pytest.param(False, marks=pytest.mark.slow)])
 def test_fused_chunks_over_environments_change_nothing(ant64, monkeypatch, shared_colors):
     """Rendering 3 environments 2 at a time (a ragged last chunk) gives the image and gradients of one pass."""
     q = ant_pose(3, seed=2).to(DEV)
@@ -293,6 +299,7 @@ def test_fused_chunks_over_environments_change_nothing(ant64, monkeypatch, share
         assert a.abs().max() > 0 and (a - b).abs().max() <= 1e-12 * a.abs().max()
 
 
+@pytest.mark.slow
 def test_fused_compiled_setup_matches_eager(ant64):
     """settings.compile runs the per-face setup (coefficients, floor planes) through torch.compile, in
     forward and in the backward's recompute: the same image and gradients (float64)."""

@@ -41,6 +41,7 @@ print("built")
 """
 
 
+@pytest.mark.slow
 def test_fused_kernels_compile_for_sm90():
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
     env["TRITON_DEFAULT_FP_FUSION"] = "1"  # the default fused kernels run with; set to silence Triton's notice

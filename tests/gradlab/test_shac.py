@@ -178,6 +178,7 @@ def test_raster_model_option_reaches_the_renderer():
 
 @pytest.mark.skipif(not (__import__("shutil").which("g++") or __import__("shutil").which("c++")),
                     reason="torch.compile on the CPU needs a C++ compiler")
+@pytest.mark.slow
 def test_compile_matches_eager_on_cpu():
     from gradlab.shac import COMPILE_PARTS
 

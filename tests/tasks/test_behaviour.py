@@ -7,6 +7,7 @@ import dataclasses
 
 import mujoco
 import numpy as np
+import pytest
 import torch
 
 import tasks
@@ -51,6 +52,7 @@ def test_ant_stands_when_its_ankles_push():
     assert (h[30:] > 0.5).all() and (h < 0.8).all()
 
 
+@pytest.mark.slow
 def test_humanoid_stands_briefly_then_falls():
     env = tasks.make("humanoid", 2, reset_noise=False, early_termination=False)
     env.reset()

@@ -70,7 +70,8 @@ def test_step_gradient_reaches_action_and_state():
     assert gq.abs().sum() > 0 and gv.abs().sum() > 0 and ga.abs().sum() > 0
 
 
-@pytest.mark.parametrize("name", tasks.TASKS)
+@pytest.mark.parametrize("name", [pytest.param(t, marks=pytest.mark.slow) if t == "humanoid" else t
+                                  for t in tasks.TASKS])
 def test_gradients_finite_short_windows(name):
     """CI variant of the 1000-step check: 64 steps of random actions in windows of 32 (SHAC-style, detach at
     window starts) on 8 envs, resets included; every window's action gradient is finite and non-zero."""
@@ -175,7 +176,7 @@ def test_row_gather_backward_is_the_scatter_sum_as_a_gather():
         RowGather([0, 5], 5, device=torch.device("cpu"))
 
 
-@pytest.mark.parametrize("name", ["hopper", "humanoid"])
+@pytest.mark.parametrize("name", ["hopper", pytest.param("humanoid", marks=pytest.mark.slow)])
 def test_world_frames_backward_by_subtree_sums_equals_the_tree_walk(name):
     """_WorldFrames (depth-round products forward, subtree-sum backward) against plain autograd through the
     leaf-to-root recursion X_e = X_parent(e) P_e, float64, on the robot's real tree (entries: bodies, then
