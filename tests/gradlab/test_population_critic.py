@@ -22,12 +22,7 @@ ITERATIONS, BATCHES = 3, 3
 TOL = dict(rtol=1e-10, atol=1e-12)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _members(lrs: list[float], *, warm: bool = True) -> tuple[list[Critic], list[torch.optim.Adam]]:
