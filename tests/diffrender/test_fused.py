@@ -61,10 +61,10 @@ def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
                                                      marks=pytest.mark.slow),
                                 # the Triton interpreter takes ~45 s for this one: on CPUs with -m slow
                                 pytest.param(dict(sigma=0.3, gamma=1e-3), marks=pytest.mark.slow),
-                                dict(raster_model="alpha", cull_backfaces=False),
+                                pytest.param(dict(raster_model="alpha", cull_backfaces=False), marks=pytest.mark.slow),
                                 pytest.param(dict(raster_model="alpha", floor=None, save_blend_state=True),
                                              marks=pytest.mark.slow),
-                                dict(raster_model="hard"),
+                                pytest.param(dict(raster_model="hard"), marks=pytest.mark.slow),
                                 dict(raster_model="hard", cull_backfaces=False, floor=None, save_blend_state=True)])
 def test_fused_matches_dense_on_the_ant(ant64, kw):
     q = ant_pose(2, seed=1).to(DEV)
@@ -72,8 +72,7 @@ def test_fused_matches_dense_on_the_ant(ant64, kw):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
 
 
-@pytest.mark.parametrize("model", ["hard", pytest.param("softmax", marks=pytest.mark.slow),
-                                   pytest.param("alpha", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("model", [pytest.param(m, marks=pytest.mark.slow) for m in ("hard", "softmax", "alpha")])
 def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeypatch, model):
     """Super-blocks of two 16-face blocks (the 944 faces make 30 of them, most far from most tiles, so the
     coarse test skips whole runs of blocks), the backward tile chosen for crowded faces and the backward's
@@ -120,7 +119,8 @@ def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits
         assert (g > r + 0.2).any() and not ((r > g + 0.2) | (b > g + 0.2)).any()
 
 
-@pytest.mark.parametrize("model", ["hard", "softmax", "alpha"])
+@pytest.mark.parametrize("model", ["hard", pytest.param("softmax", marks=pytest.mark.slow),
+                                   pytest.param("alpha", marks=pytest.mark.slow)])
 def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     """The state the backward reads (maximum, denominator, weight and coverage sums; the hard model's chosen
     face) and the image, from one walk and from three merged parts: equal (the hard model's exactly)."""
@@ -151,7 +151,7 @@ def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
         torch.testing.assert_close(out3, out1, rtol=1e-12, atol=1e-14)
 
 
-@pytest.mark.parametrize("model", ["softmax", "hard"])
+@pytest.mark.parametrize("model", [pytest.param("softmax", marks=pytest.mark.slow), "hard"])
 def test_small_faces_whose_boxes_end_inside_tiles_match_dense(model):
     """Six triangles of ~2 px, apart, at different sub-pixel offsets in a 32 x 32 image: the backward walks
     only the pixels inside each sub-block's face boxes, which here end inside the 8 x 8 tiles on every side;
@@ -209,6 +209,7 @@ def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, su
              dict(cull_backfaces=False, save_blend_state=bwd_tile == 8), tol=2e-3)
 
 
+@pytest.mark.slow
 def test_fused_matches_dense_with_given_normals_and_per_env_colors(ant64):
     q = ant_pose(2, seed=5).to(DEV)
     verts, normals = ant64.world_vertices_and_normals(q)
@@ -216,7 +217,7 @@ def test_fused_matches_dense_with_given_normals_and_per_env_colors(ant64):
     _compare(verts, ant64.faces, colors, ant_camera(q, size=12), dict(), normals=normals)
 
 
-@pytest.mark.parametrize("model", ["softmax", "alpha", "hard"])
+@pytest.mark.parametrize("model", ["softmax", "alpha", pytest.param("hard", marks=pytest.mark.slow)])
 def test_fused_gradcheck_tiny_scene(model):
     verts, faces, colors = (x.to(DEV) for x in tiny_scene())
     eye, target, _ = (x.to(DEV) if isinstance(x, torch.Tensor) else x for x in tiny_camera())
@@ -238,7 +239,7 @@ def test_fused_floor_only_scene_matches_dense():
     _compare(verts, faces, torch.zeros(0, 3, dtype=F64, device=DEV), cam, dict(sigma=1.0, gamma=0.05))
 
 
-@pytest.mark.parametrize("cull", [True, False])
+@pytest.mark.parametrize("cull", [True, pytest.param(False, marks=pytest.mark.slow)])
 def test_fused_degenerate_faces_match_dense(cull):
     """Zero-area, collinear, edge-on, behind-camera, znear-straddling faces and a vertex at the eye: finite,
     equal to the dense reference, and the dropped faces get no gradient."""
