@@ -89,6 +89,9 @@ def child(args) -> None:
             row["iter_ms"] = round(statistics.median(r["iter_ms"] for r in rows), 2)
             row["fwd_ms"] = round(statistics.median(r["fwd_ms"] for r in rows), 2)
             row["bwd_ms"] = round(statistics.median(r["bwd_ms"] for r in rows), 2)
+            critic = [r["critic_ms"] for r in rows if r.get("critic_ms") is not None]
+            # the critic fit, beside the backward where it overlaps: what batching the members' critics buys
+            row["critic_ms"] = round(statistics.median(critic), 2) if critic else None
             row["peak_reserved_mb"] = max(r["peak_reserved_mb"] or 0 for r in rows)
             if args.device != "cpu":
                 row["max_reserved_mb"] = round(torch.cuda.max_memory_reserved() / 2**20)
