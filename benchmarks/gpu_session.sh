@@ -32,7 +32,7 @@ for spec in "$@"; do
        NVDR_SRC=$PWD/.shared/nvdiffrast source .shared/nvdiffrast-build.sh;;
     anchor) # ours (each raster model), the Warp ray tracer and nvdiffrast on one scene; silhouette IoU
        run "$secs" python3 benchmarks/anchor.py ${ANCHOR_ARGS:-} --out "$OUT/anchor.json";;
-    cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/test_cuda_population.py tests/diffrender -q -x \
+    cuda-tests) run "$secs" python3 -m pytest tests/test_cuda.py tests/test_cuda_population.py tests/gradlab/test_population_critic.py tests/diffrender -q -x \
            -m "cuda" -p no:cacheprovider;;
     population) # populations against separate processes (benchmarks/population.py); POP_ARGS: its options
        run "$secs" python3 benchmarks/population.py ${POP_ARGS:-} --out "$OUT/population.json";;
