@@ -123,8 +123,8 @@ class PaperConfig:
     """More ablate flags for every run, as FLAG=VALUE (e.g. compile=true cosine-every=10 device=cuda)."""
     pack: str = "auto"
     """Runs that can share a process (every arm but state, per task) train as populations of at most N members
-    (ablate-sweep --pack): auto: 12 on GPU runs (the population benchmark, BENCHMARKS.md section 7, trained 12
-    ant members in 34 GB at 1.6x the throughput of 12 separate processes on an H100), 1 on the CPU; 1: one run
+    (ablate-sweep --pack): auto: 12 on GPU runs (what the population benchmark measured at that size: BENCHMARKS.md
+    section 7), 1 on the CPU; 1: one run
     per process. A member's iteration time is its population's: the report sets each arm's time alone beside
     it (--benchmark)."""
     gpus_per_run: float | None = None

@@ -73,8 +73,8 @@ class SweepConfig:
     raster model, preset and the other gradlab.shac.MEMBER_FIELDS) train as populations of at most N members,
     each one `ablate --member ...` process and one Ray task with the resources of one run (--cpus-per-run,
     --gpus-per-run); the members' run folders are runs/<population>/<member>. 1: one run per process. auto: 12
-    on GPU runs (--gpus-per-run > 0; the population benchmark, BENCHMARKS.md section 7, trained 12 ant members
-    in 34 GB at 1.6x the throughput of 12 separate processes on an H100), 1 on the CPU. State runs form
+    on GPU runs (--gpus-per-run > 0; what the population benchmark measured at that size: BENCHMARKS.md
+    section 7), 1 on the CPU. State runs form
     populations of their own. A population too large for its device's memory fails naming its size: lower N."""
     max_retries: int = 3
     """Retries of a run whose worker process died or whose ablate process was killed by a signal.
