@@ -50,6 +50,7 @@ from ablations.report import (
     markdown_table,
     memory_section,
     provenance_section,
+    read_benchmark_json,
     report_path,
     run_median_ms,
     runs_table,
@@ -350,24 +351,20 @@ def _packed_wall_clock_note(runs: list[Run]) -> list[str]:
 def _population_comparison(paths) -> list[list]:
     """Rows of benchmarks/population.py files: task, N, one iteration of an N-member population, of each of N
     single runs sharing the GPU at once, and the throughput ratio (the first file that has a (task, N) wins)."""
-    import json
-
     rows, seen = [], set()
     for path in map(Path, paths):
-        data = json.loads(path.read_text())  # load_benchmark has read it
+        data = read_benchmark_json(path)
         found = data.get("rows") if isinstance(data, dict) else None
         ok = [r for r in found or [] if isinstance(r, dict) and r.get("status", "ok") == "ok"
               and is_number(r.get("iter_ms"))]
         device = data.get("gpu") or data.get("device") or "?"
         for task, n in sorted({(r.get("task"), r.get("members")) for r in ok if r.get("kind") == "population"
-                               and isinstance(r.get("members"), int) and r["members"] > 1}):
+                               and isinstance(r.get("members"), int) and r["members"] > 1} - seen):
+            seen.add((task, n))
             together = [r["iter_ms"] for r in ok if r.get("kind") == "population" and r.get("task") == task
                         and r.get("members") == n]
             apart = [r["iter_ms"] for r in ok if r.get("kind") == "separate" and r.get("task") == task
                      and r.get("processes") == n]
-            if (task, n) in seen:
-                continue
-            seen.add((task, n))
             pop, sep = float(np.median(together)), float(np.median(apart)) if apart else None
             rows.append([task, n, f"{pop:.4g}", f"{pop / n:.4g}", f"{sep:.4g}" if sep else "-",
                          f"{sep / pop:.2f}x" if sep else "-", f"benchmark {path.name}, {device}"])
