@@ -184,8 +184,7 @@ class Cell:
 def is_population_member(run: Run) -> bool:
     """Whether the run trained in a population of several members (config.json's "population" record): its
     iteration's times are then the whole population's, not its own."""
-    pop = RunFolder(run.path).read_record().get("population")
-    return isinstance(pop, dict) and len(pop.get("members") or ()) > 1
+    return run.population is not None and len(run.population.get("members") or ()) > 1
 
 
 def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]], *, label=None

@@ -411,6 +411,8 @@ class Run:
     preset: dict | None = None
     #: config.json's "started_utc", when the run recorded it.
     started_utc: str | None = None
+    #: config.json's "population" record (its folder and members), when the run trained in one.
+    population: dict | None = None
 
     @property
     def task(self) -> str:
@@ -460,9 +462,10 @@ def load_run(path: str | os.PathLike) -> Run:
             raise ValueError(f"{folder.config_path}: config has no {k!r}")
     preset = data.get("preset") if isinstance(data.get("preset"), dict) else None
     started = data.get("started_utc") if isinstance(data.get("started_utc"), str) else None
+    population = data.get("population") if isinstance(data.get("population"), dict) else None
     return Run(path=folder.path, config=config, environment=data.get("environment") or {},
                command=data.get("command"), summary=folder.read_summary(), metrics=folder.read_metrics(),
-               preset=preset, started_utc=started)
+               preset=preset, started_utc=started, population=population)
 
 
 def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
