@@ -248,9 +248,9 @@ def _check_members(members: list[RunConfig]) -> None:
 def _common_checkpoint(folders: list[RunFolder], device) -> list[dict] | None:
     """Every member's state at the newest iteration all of them have a readable checkpoint of; None where no
     member has one (the population starts over in its folders); ValueError naming the folders otherwise."""
-    from gradlab.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
+    from gradlab.checkpoint import checkpoint_path, load_checkpoint
 
-    have = [{int(p.stem.split("_", 1)[1]) for p in list_checkpoints(f.checkpoint_dir)} for f in folders]
+    have = [f.checkpoint_iterations() for f in folders]
     if not any(have):
         return None
     for iteration in sorted(set.intersection(*have), reverse=True):

@@ -229,6 +229,12 @@ class RunFolder:
 
         return list_checkpoints(self.checkpoint_dir)
 
+    def checkpoint_iterations(self) -> set[int]:
+        """The iterations this folder holds a checkpoint of."""
+        from gradlab.checkpoint import checkpoint_iteration
+
+        return {checkpoint_iteration(p) for p in self.checkpoints()}
+
     def newest_checkpoint(self) -> Path | None:
         found = self.checkpoints()
         return found[0] if found else None

@@ -18,8 +18,8 @@ from typing import Any, NamedTuple
 import torch
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "save_checkpoint", "load_checkpoint",
-           "checkpoint_path", "list_checkpoints", "latest_checkpoint", "prune_checkpoints", "load_newest_readable",
-           "LoadedCheckpoint", "NoReadableCheckpointError"]
+           "checkpoint_iteration", "checkpoint_path", "list_checkpoints", "latest_checkpoint", "prune_checkpoints",
+           "load_newest_readable", "LoadedCheckpoint", "NoReadableCheckpointError"]
 
 
 def _create_temporary(folder: Path, name: str) -> tuple[int, str]:
@@ -81,7 +81,8 @@ def checkpoint_path(folder: str | os.PathLike, iteration: int) -> Path:
     return Path(folder) / f"ckpt_{iteration:06d}.pt"
 
 
-def _iteration(path: Path) -> int | None:
+def checkpoint_iteration(path: Path) -> int | None:
+    """The iteration of a ``ckpt_<iter>.pt`` file; None for any other name."""
     try:
         return int(path.stem.split("_", 1)[1])
     except (IndexError, ValueError):
@@ -90,7 +91,7 @@ def _iteration(path: Path) -> int | None:
 
 def list_checkpoints(folder: str | os.PathLike) -> list[Path]:
     """The ``ckpt_<iter>.pt`` files in folder, newest (highest iteration) first; other names are ignored."""
-    found = [(it, p) for p in Path(folder).glob("ckpt_*.pt") if (it := _iteration(p)) is not None]
+    found = [(it, p) for p in Path(folder).glob("ckpt_*.pt") if (it := checkpoint_iteration(p)) is not None]
     return [p for _, p in sorted(found, reverse=True)]
 
 

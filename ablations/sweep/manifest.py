@@ -13,7 +13,7 @@ from pathlib import Path
 from ablations.sweep.config import SweepConfig
 from ablations.sweep.grid import RunSpec
 from ablations.sweep.packing import Job, assign_jobs
-from ablations.sweep.store import job_state, run_path, run_state
+from ablations.sweep.store import resumable, run_path, run_state
 from gradlab.checkpoint import atomic_write_json
 
 __all__ = ["MANIFEST", "STATUSES", "load_manifest", "prepare_manifest", "plan_jobs", "write_manifest",
@@ -78,7 +78,7 @@ def prepare_manifest(cfg: SweepConfig, specs: list[RunSpec], set_table: dict, va
                 open_runs.append(rec)
         if not open_runs or (not cfg.rerun_failed and all(r["status"] == "failed" for r in open_runs)):
             continue
-        resumed = job_state(run_path(out, job.job_id), job.members, job.iters) == "resume"
+        resumed = resumable(run_path(out, job.job_id), job.members)  # some run is open, so not 'done'
         for rec in open_runs:
             rec.update(status="queued", resumed=resumed)
         todo.append(job)

@@ -43,7 +43,7 @@ def run_state(run_dir: Path, iters: int) -> str:
 def common_checkpoint(folders: list[RunFolder]) -> int | None:
     """The newest iteration of which every run folder has a checkpoint (a population resumes from it); None if
     there is none."""
-    have = [{int(p.stem.split("_", 1)[1]) for p in f.checkpoints()} for f in folders]
+    have = [f.checkpoint_iterations() for f in folders]
     common = set.intersection(*have) if have else set()
     return max(common) if common else None
 
