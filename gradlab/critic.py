@@ -117,9 +117,10 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
         for p in params:
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
-    member_grads = [p.grad for params in member_params for p in params]
+    flat_params = [p for params in member_params for p in params]
+    member_grads = [p.grad for p in flat_params]
     sizes = [p.numel() for p in member_params[0]]
-    adam_groups = _checked_adam_groups(optimizers, adam_groups)
+    adam_groups = [[optimizers[m] for m in group] for group in _checked_adam_groups(optimizers, adam_groups)]
     with torch.no_grad():
         stacked = critics.stack()  # (N, ...) copies of the parameters, refreshed after every step
         stacked_slices = [t[m] for m in range(n) for t in stacked.values()]
@@ -139,9 +140,9 @@ def fit_critics(critics: MemberStack, optimizers: Sequence[torch.optim.Optimizer
                 torch._foreach_copy_(member_grads, [part.view_as(p) for m in range(n)
                                                     for part, p in zip(flat[m].split(sizes), member_params[m])])
             for group in adam_groups:
-                _adam_step([optimizers[m] for m in group])
+                _adam_step(group)
             with torch.no_grad():
-                torch._foreach_copy_(stacked_slices, [p for params in member_params for p in params])
+                torch._foreach_copy_(stacked_slices, flat_params)
             losses.append(loss.detach())
         if it == iterations - 1:
             last = losses
