@@ -5,12 +5,13 @@
 # Budget the limits for cold compiles: a fresh machine compiles the ant's substep in ~115 s and the humanoid's
 # in ~95 s (H100) before a stage prints its first row.
 # Stages: env, nvdiffrast, anchor, cuda-tests, population, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay,
-# profile, render, render-fused, raytrace, iter, iter-compiled, iter-warp, startup, learn, paper, sweep (see each
-# case below).
+# profile, render, render-fused, raytrace, iter, iter-compiled, iter-warp, startup, learn, paper, sweep, detach, progress,
+# collect (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .gpu/*.whl >/dev/null 2>&1 \
-  || { echo "wheel install failed"; exit 1; }
+# once per machine: a later call must not rewrite the packages under a detached run that imports from them
+[ -f /tmp/site/.installed ] || { python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
+  .gpu/*.whl >/dev/null 2>&1 && touch /tmp/site/.installed; } || { echo "wheel install failed"; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 # Warp travels in two halves (the bundle alone is near the 64 MiB a call carries): a call carrying .gpuwarp1
 # leaves its half in /tmp/w, the next call (while the machine is warm) carries .gpuwarp2 and unpacks both.
@@ -133,6 +134,24 @@ for spec in "$@"; do
          --jobs ${SWEEP_JOBS:-1} \
          2>&1 | tail -n 15
        tar -C /tmp --exclude=logs -czf "$OUT/sweep_$r.tgz" "sweep_$r" ;;
+    detach) # one ablate run or population in a new process session, which outlives this call and runs until the
+       # machine goes back: DETACH_NAME its folder under /tmp/runs, DETACH_ARGS its flags, DETACH_GPU the GPU;
+       # its output goes to /tmp/runs/DETACH_NAME.log. Follow with "progress" calls, end with "collect".
+       mkdir -p /tmp/runs; export PATH=/tmp/site/bin:$PATH
+       CUDA_VISIBLE_DEVICES=${DETACH_GPU:-0} setsid nohup python3 -m ablations ablate ${DETACH_ARGS:-} --device cuda \
+         --out /tmp/runs --name "${DETACH_NAME:?}" --no-progress > "/tmp/runs/$DETACH_NAME.log" 2>&1 < /dev/null &
+       echo "detached $DETACH_NAME on GPU ${DETACH_GPU:-0} (pid $!)";;
+    progress) # where the detached runs stand (benchmarks/run_progress.py), waiting PROGRESS_WAIT seconds first
+       sleep "${PROGRESS_WAIT:-0}"; python3 benchmarks/run_progress.py /tmp/runs
+       nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader;;
+    collect) # COLLECT_STOP=1 first stops the detached runs (SIGTERM: each writes its summary and checkpoint);
+       # then their folders, thinned (every COLLECT_EVERY-th iteration, every probe and evaluation, no checkpoints),
+       # and their logs come back as a tarball in parts of 15 MB (cat runs.tgz.* | tar -xz)
+       if [ "${COLLECT_STOP:-0}" = 1 ]; then pkill -TERM -f "ablations ablate"
+         for _ in $(seq 120); do pgrep -f "ablations ablate" >/dev/null || break; sleep 1; done; fi
+       rm -rf /tmp/keep; python3 benchmarks/run_progress.py /tmp/runs --thin /tmp/keep/runs --every ${COLLECT_EVERY:-10}
+       cp /tmp/runs/*.log /tmp/keep/ 2>/dev/null
+       tar -C /tmp/keep -cz . | split -b 15M -d - "$OUT/runs.tgz.";;
     *) echo "unknown stage $stage";;
   esac
 done
