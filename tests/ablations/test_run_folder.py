@@ -124,6 +124,25 @@ def test_load_run_parses_a_folder_and_find_runs_takes_parents(tmp_path):
         load_run(tmp_path / "bad")
 
 
+def test_metrics_lines_reach_the_disk_before_the_checkpoint_or_summary_that_covers_them(tmp_path, monkeypatch):
+    """An fsync a metrics line cost a 12-member population a quarter of a second an iteration on a GPU machine's
+    disk: lines are forced to the disk once, before the checkpoint (a resume truncates the metrics to it) or the
+    summary that covers them, and a killed process still loses none (each line is written through at once)."""
+    folder = RunFolder.create(tmp_path, "r")
+    synced = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(os.readlink(f"/proc/self/fd/{fd}")), real_fsync(fd)))
+    for it in (1, 2):
+        folder.append_metrics({"iter": it})
+    assert synced == []
+    assert [r["iter"] for r in read_metrics(folder.path)] == [1, 2]  # what another process reads now
+    folder.save_checkpoint(2, {"x": 1}, keep=1)
+    assert synced[0] == str(folder.metrics_path)
+    synced.clear()
+    folder.write_summary({"status": "finished"})
+    assert synced[0] == str(folder.metrics_path)
+
+
 def test_metrics_tail_reads_only_what_was_appended(tmp_path):
     folder = RunFolder.create(tmp_path, "r")
     tail = MetricsTail(folder.metrics_path)
