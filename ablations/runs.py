@@ -43,7 +43,7 @@ REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "cr
 #: Keys added on probed iterations.
 PROBE_KEYS = ("cos_full_decoupled", "grad_norm_full", "grad_norm_decoupled", "grad_norm_render_term")
 #: Keys that depend on the clock, not on the computation (excluded when comparing runs for determinism).
-TIMING_KEYS = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb")
+TIMING_KEYS = ("wall_s", "fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "eval_s", "peak_alloc_mb", "peak_reserved_mb")
 #: Settings a resume may change (where it runs, how long it goes on); config.json wins for every other one.
 RESUMABLE = ("device", "iters", "time_limit_min", "compile_cache", "threads")
 #: Most CPU threads a run takes by default: the simulator's and networks' tensors are small, so more threads add
@@ -329,13 +329,15 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
             video = bool(cfg.video_every) and (it % cfg.video_every == 0 or ended)
             if video or (cfg.eval_every and (it % cfg.eval_every == 0 or ended)):
                 # the deterministic policy from the fixed evaluation seed (SHAC.evaluate), filmed on video iterations
+                t_eval = time.perf_counter()
                 with startup.evaluating():
                     evaluated = trainer.evaluate(video_steps=(cfg.video_steps or trainer.task.episode_length)
                                                  if video else 0)
+                eval_s = time.perf_counter() - t_eval  # what the evaluation cost beside the iteration (iter_ms)
                 for row, folder, ev in zip(rows, folders, [evaluated] if single else evaluated):
                     if row is not None:
                         frames = ev.pop("frames")
-                        row.update(ev)
+                        row.update(ev, eval_s=eval_s)
                         folder.write_video(it, frames)
             for i, (row, folder) in enumerate(zip(rows, folders)):
                 if row is not None:

@@ -169,24 +169,26 @@ def main() -> None:
         return
     jobs = [{"kind": "population", "task": t, "members": n, "batching": b}
             for t in args.tasks for n in args.members for b in args.batchings if n > 1 or b == args.batchings[0]]
-    rows = []
-    for wave in waves(jobs, args.memory_gb, args.member_gb):
-        rows += run_wave(wave, args, timed_alone=True)
-    for task in args.tasks:
-        for n in args.anchor:
-            # the anchor: the members of an N-population as N single runs, all at once
-            anchor = [{"kind": "separate", "task": task, "members": 1, "batching": "grouped", "arm": i % len(ARMS),
-                       "processes": n} for i in range(n)]
-            rows += run_wave(anchor, args, timed_alone=False)
     doc = {"commit": commit(), "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv),
-           "device": args.device, "rows": rows}
+           "device": args.device, "rows": [], "complete": False}
     if args.device != "cpu":
         import torch
 
         doc["gpu"] = torch.cuda.get_device_name()
         doc["torch"] = torch.__version__
+    # the file is rewritten after every wave: a call cut short by its time limit keeps the waves it finished
+    plan = [(wave, True) for wave in waves(jobs, args.memory_gb, args.member_gb)]
+    for task in args.tasks:
+        for n in args.anchor:
+            # the anchor: the members of an N-population as N single runs, all at once
+            plan.append(([{"kind": "separate", "task": task, "members": 1, "batching": "grouped", "arm": i % len(ARMS),
+                           "processes": n} for i in range(n)], False))
+    for wave, timed_alone in plan:
+        doc["rows"] += run_wave(wave, args, timed_alone=timed_alone)
+        write_json(args.out, doc)
+    doc["complete"] = True
     write_json(args.out, doc)
-    print_table(rows, args)
+    print_table(doc["rows"], args)
 
 
 def print_table(rows: list[dict], args) -> None:

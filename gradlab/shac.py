@@ -185,6 +185,26 @@ class Member:
 
 
 @dataclass(eq=False)
+class _Evaluation:
+    """The evaluation task's state in tensors that every evaluation reuses, in place: what a captured evaluation
+    step reads and writes (``obs``, ``stats``, ``params`` are made at the first evaluation)."""
+
+    task: Any
+    renderers: dict
+    live: LiveState
+    frames: FrameStack
+    blank: torch.Tensor | None
+    total: torch.Tensor
+    length: torch.Tensor
+    alive: torch.Tensor
+    obs: torch.Tensor | None = None
+    stats: tuple = ()
+    params: dict = field(default_factory=dict)
+    graph: Any = None
+    warm: int = 0
+
+
+@dataclass(eq=False)
 class _CriticGroup:
     """Members whose critics fit in one pass (:meth:`SHAC._critic_fit_groups`): their critics stacked (None: a
     member alone), their indices as a tensor (None: every member, in order), their gradient bound (a float, or
@@ -287,6 +307,7 @@ class SHAC:
         self._started = False
         self.start_s: float | None = None  # seconds of the first reset and render (the first render compiles)
         self._evaluator: tuple[tasks.Task, dict] | None = None  # built at the first evaluation
+        self._evaluation: _Evaluation | None = None
         self._eval_rng: torch.Tensor | None = None
         self.live = LiveState()
         self._critic_groups = None if n == 1 or batching == "modules" else self._critic_fit_groups(batching)
@@ -877,15 +898,27 @@ class SHAC:
         first ``video_steps`` steps (else empty). None for a member that has stopped.
         """
         cfg, n, E = self.cfg, self.n, self.cfg.eval_envs
-        task, renderers = self._evaluation_task()
+        ev = self._evaluation_state()
+        task, renderers = ev.task, ev.renderers
         task.rng.set_state(self._eval_rng)  # every evaluation from the same initial states
         obs = task.reset()
+        if self.sees:
+            ev.frames.reset(self._eval_images(task, renderers, E))
+        ev.live.commit(task, ev.frames if self.sees else None)
         stats = [m.obs_rms.snapshot() for m in self.members]
         stats = stats[0] if n == 1 else tuple(torch.stack(s).repeat_interleave(E, 0) for s in zip(*stats))
         params = self.actors.stack()
-        frames = FrameStack(cfg.frames)
-        if self.sees:
-            frames.reset(self._eval_images(task, renderers, E))
+        if ev.obs is None:  # the first evaluation makes the tensors every later one (and a captured step) reuses
+            ev.obs, ev.stats = obs, tuple(t.clone() for t in stats)
+            ev.params = {k: v.detach() for k, v in params.items()}
+        else:
+            with torch.no_grad():
+                ev.obs.copy_(obs)
+                for fixed, now in [*zip(ev.stats, stats), *((ev.params[k], params[k]) for k in ev.params)]:
+                    fixed.copy_(now)
+        ev.total.zero_()
+        ev.length.zero_()
+        ev.alive.fill_(True)
         video = None
         if video_steps:
             video = renderers.get(("video", video_size))
@@ -893,32 +926,22 @@ class SHAC:
                 video = renderers[("video", video_size)] = TaskRenderer(
                     task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2), sigma=None,
                     gamma=None, renderer=cfg.renderer)
-        blank = self._blank_images(n * E) if not (self.sees or self.on_state) else None
-        total = torch.zeros(n * E, device=self.device)
-        length = torch.zeros(n * E, device=self.device)
-        alive = torch.ones(n * E, device=self.device, dtype=torch.bool)
         recorded: list[list[np.ndarray]] = [[] for _ in range(n)]
+        steps = 0
         for step in range(task.episode_length):
             if video is not None and step < video_steps:
                 first = torch.arange(n, device=self.device) * E
                 shots = video(task.qpos[first]).clamp(0, 1).mul(255).byte().permute(0, 2, 3, 1).cpu().numpy()
                 for i in range(n):
                     recorded[i].append(shots[i])
-            if self.sees:
-                actor_in = frames.stacked()
-            elif self.on_state:
-                actor_in = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
+                self._eval_step(ev)
+            elif self.graphs:
+                self._eval_step_captured(ev)
             else:
-                actor_in = blank
-            action = torch.tanh(self.actors.mean(params, actor_in))
-            obs, reward, done, _ = task.step(action)
-            total += reward * alive
-            length += alive
-            alive &= ~done
-            if self.sees:
-                frames.push(self._eval_images(task, renderers, E), reset=done)
+                self._eval_step(ev)
+            steps = step + 1
             # one host sync every few steps: the episodes' ends (and videos') are read in batches
-            if step % 16 == 15 and not bool(alive.any()) and (video is None or step + 1 >= video_steps):
+            if step % 16 == 15 and not bool(ev.alive.any()) and (video is None or step + 1 >= video_steps):
                 break
         out: list[dict | None] = []
         for m in self.members:
@@ -926,12 +949,62 @@ class SHAC:
                 out.append(None)
                 continue
             rows = slice(m.index * E, (m.index + 1) * E)
-            returns = total[rows].double()
+            returns = ev.total[rows].double()
             out.append({"eval_return_mean": float(returns.mean()),
                         "eval_return_std": float(returns.std(unbiased=False)),
-                        "eval_length_mean": float(length[rows].mean()),
+                        "eval_length_mean": float(ev.length[rows].mean()),
+                        "eval_steps": steps,
                         "frames": recorded[m.index]})
         return out[0] if self.single else out
+
+    def _eval_step(self, ev: _Evaluation) -> None:
+        """One step of every evaluation environment, in place on ``ev``'s tensors (what a captured graph of it
+        replays): the deterministic action, the step, the returns of the episodes still running, the frames."""
+        task = ev.task
+        if self.sees:
+            actor_in = ev.frames.stacked()
+        elif self.on_state:
+            actor_in = RunningMeanStd.apply(ev.obs, ev.stats, self.cfg.obs_clip)
+        else:
+            actor_in = ev.blank
+        action = torch.tanh(self.actors.mean(ev.params, actor_in))
+        obs, reward, done, _ = task.step(action)
+        ev.total.add_(reward * ev.alive)
+        ev.length.add_(ev.alive.to(ev.length.dtype))
+        ev.alive.logical_and_(~done)
+        if self.sees:
+            ev.frames.push(self._eval_images(task, ev.renderers, self.cfg.eval_envs), reset=done)
+        ev.live.commit(task, ev.frames if self.sees else None)
+        ev.obs.copy_(obs)
+
+    def _eval_step_captured(self, ev: _Evaluation) -> None:
+        """:meth:`_eval_step` replayed from a CUDA graph where the trainer captures (``--compile`` on a GPU): an
+        evaluation step runs as one launch instead of the hundreds of kernels of the physics, the renderer and
+        the actors. Its first ``WARMUP_ITERS`` calls run eagerly (compiling, library warm-up), then one is
+        captured and every call replays it (capturing records without running: the captured step is replayed
+        at once, so it counts)."""
+        if ev.graph is None:
+            if ev.warm < WARMUP_ITERS:
+                ev.warm += 1
+                self._eval_step(ev)
+                return
+            ev.graph = torch.cuda.CUDAGraph()
+            torch.cuda.synchronize(self.device)
+            with torch.cuda.graph(ev.graph, stream=torch.cuda.Stream(self.device)):
+                self._eval_step(ev)
+        ev.graph.replay()
+
+    def _evaluation_state(self) -> _Evaluation:
+        if self._evaluation is None:
+            cfg, n = self.cfg, self.n
+            task, renderers = self._evaluation_task()
+            rows = n * cfg.eval_envs
+            self._evaluation = _Evaluation(
+                task=task, renderers=renderers, live=LiveState(), frames=FrameStack(cfg.frames),
+                blank=self._blank_images(rows) if not (self.sees or self.on_state) else None,
+                total=torch.zeros(rows, device=self.device), length=torch.zeros(rows, device=self.device),
+                alive=torch.ones(rows, device=self.device, dtype=torch.bool))
+        return self._evaluation
 
     def _evaluation_task(self) -> tuple[tasks.Task, dict]:
         """The evaluation task (``eval_envs`` environments per member, reset seed :data:`EVAL_SEED`) and its
@@ -941,24 +1014,32 @@ class SHAC:
             overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
             task = tasks.make(cfg.task, n * cfg.eval_envs, device=self.device,
                               seed=EVAL_SEED if n == 1 else [EVAL_SEED] * n, **overrides)
-            if cfg.compile:
-                task.compile()  # an eager episode is episode_length x substeps unfused substeps
             renderers = {r: TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options(r))
                          for r in dict.fromkeys(m.cfg.raster_model for m in self.members if m.plan.renders)}
+            if cfg.compile:
+                # an eager episode is episode_length x substeps unfused substeps, and every frame hundreds of small
+                # rendering kernels: compiled for the evaluation's own shapes once, at the first evaluation
+                task.compile()
+                for renderer in renderers.values():
+                    renderer.compile()
             self._evaluator, self._eval_rng = (task, renderers), task.rng.get_state()
         return self._evaluator
 
     def _eval_images(self, task, renderers: dict[str, TaskRenderer], per_member: int) -> torch.Tensor:
         """An evaluation task's images, (N * E, 3, H, W): each seeing member's from its raster model, blind
-        members' zeros."""
+        members' zeros; one renderer call for each run of adjacent members of one raster model (the population
+        order keeps them adjacent), as the training window renders: a call a member cost a 12-member hopper
+        population ~7k small kernels an evaluation step, most of its evaluation's 79 s on an H100."""
         blocks = []
-        for m in self.members:
-            rows = slice(m.index * per_member, (m.index + 1) * per_member)
-            if m.plan.renders:
-                blocks.append(renderers[m.cfg.raster_model](task.qpos[rows]))
-            else:
-                blocks.append(torch.zeros(per_member, 3, self.cfg.image_size, self.cfg.image_size,
+        for raster, group in itertools.groupby(self.members,
+                                               key=lambda m: m.cfg.raster_model if m.plan.renders else None):
+            group = list(group)
+            rows = slice(group[0].index * per_member, (group[-1].index + 1) * per_member)
+            if raster is None:
+                blocks.append(torch.zeros(rows.stop - rows.start, 3, self.cfg.image_size, self.cfg.image_size,
                                           device=self.device))
+            else:
+                blocks.append(renderers[raster](task.qpos[rows]))
         return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
 
     # ------------------------------------------------------------------ checkpoints

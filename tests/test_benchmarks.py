@@ -244,3 +244,19 @@ def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch):
     assert startup.run_once(["python"], tmp_path / "run", timeout=10)["bytecode_pyc_before"] == 2
     monkeypatch.delenv("PYTHONDONTWRITEBYTECODE")
     assert startup.run_once(["python"], tmp_path / "run", timeout=10)["bytecode_pyc_before"] is None
+
+
+def test_evaluation_times_each_variant_and_compares_its_episodes_with_the_first(tmp_path, monkeypatch):
+    """``evaluation.py``: per population, the first evaluation, then the captured and the eager steps (the same
+    path on the CPU, where nothing is captured: equal episodes), each with its time per evaluation step."""
+    evaluation = _load("evaluation")
+    out = tmp_path / "evaluation.json"
+    monkeypatch.setattr(sys, "argv", ["evaluation.py", "--device", "cpu", "--tasks", "cartpole", "--members", "2",
+                                      "--num-envs", "2", "--eval-envs", "2", "--image-size", "16", "--repeats", "1",
+                                      "--out", str(out)])
+    evaluation.main()
+    doc = json.loads(out.read_text())
+    assert doc["complete"] and [r["variant"] for r in doc["rows"]] == [
+        "first evaluation (compiling, capturing)", "captured", "eager (same compiled kernels)"]
+    for r in doc["rows"][1:]:
+        assert r["max_rel_diff"] == 0 and r["steps"] > 0 and r["ms_per_step"] > 0

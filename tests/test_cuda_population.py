@@ -62,3 +62,23 @@ def test_each_member_follows_its_run_alone_on_cuda():
         for k in ("actor_loss", "critic_loss", "grad_norm", "grad_norm_full", "action_std"):
             if k in alone:
                 assert together[m.index][k] == pytest.approx(alone[k], rel=2e-3, abs=1e-5), (_key(m), k)
+
+
+@pytest.mark.parametrize("members", ["mixed", "state"])
+def test_a_captured_evaluation_replays_what_the_same_kernels_give_eagerly(members):
+    """--compile: after WARMUP_ITERS eager steps an evaluation step is captured once and replayed, in this and every
+    later evaluation; the same compiled kernels run eagerly give the same episodes."""
+    base = [dataclasses.replace(BASE, mode="state", seed=s) for s in (0, 1)] if members == "state" else MIXED
+    cfgs = [dataclasses.replace(c, compile=True, eval_envs=4, episode_length=48) for c in base]
+    trainer = SHAC(cfgs, device="cuda")
+    trainer.train_iteration()
+    first = trainer.evaluate()
+    assert trainer._evaluation.graph is not None
+    replayed = trainer.evaluate()  # every step a replay
+    trainer.graphs = False  # the evaluation's steps eagerly, through the same compiled kernels
+    eager = trainer.evaluate()
+    for a, b, c in zip(first, replayed, eager):
+        assert 0 < a["eval_steps"] <= 48 and a["eval_steps"] == b["eval_steps"] == c["eval_steps"]
+        assert b["eval_length_mean"] == a["eval_length_mean"] == c["eval_length_mean"]
+        for other in (b, c):
+            assert other["eval_return_mean"] == pytest.approx(a["eval_return_mean"], rel=1e-5, abs=1e-4)

@@ -180,6 +180,33 @@ def test_evaluation_is_deterministic_and_leaves_training_untouched():
     assert [evaluated[k] for k in stats] == [first[k] for k in stats]
 
 
+def test_evaluation_renders_each_raster_model_once_a_step_with_each_members_own_images():
+    """One renderer call per run of adjacent members of one raster model (a call a member cost a 12-member
+    population most of its evaluation time on a GPU), and every member's rows the image its own call renders."""
+    cfgs = [dataclasses.replace(BASE, mode=mode, raster_model=raster, seed=seed, eval_envs=2)
+            for seed in (0, 1) for mode, raster in (("decoupled", None), ("full", "hard"), ("full", None),
+                                                     ("blind", None))]
+    trainer = SHAC(cfgs, device="cpu")
+    task, renderers = trainer._evaluation_task()
+    task.reset()
+    # every member starts from the same evaluation states: a distinct pose a row, so that no row passes for another
+    task.qpos = task.qpos + 0.1 * torch.arange(task.qpos.shape[0], dtype=task.qpos.dtype).unsqueeze(1)
+    calls = []
+    for raster, renderer in renderers.items():
+        renderer_call = renderer.__call__
+        renderers[raster] = lambda q, r=raster, f=renderer_call: (calls.append((r, q.shape[0])), f(q))[1]
+    images = trainer._eval_images(task, renderers, 2)
+    # population order puts members of one raster model side by side: softmax, hard, then the blind ones
+    assert sorted(calls) == sorted({(raster, 2 * sum(m.cfg.raster_model == raster and m.plan.renders
+                                                     for m in trainer.members)) for raster, _ in calls})
+    assert len(calls) == len(renderers)
+    for m in trainer.members:
+        rows = slice(2 * m.index, 2 * m.index + 2)
+        own = (renderers[m.cfg.raster_model](task.qpos[rows]) if m.plan.renders
+               else torch.zeros_like(images[rows]))
+        assert torch.equal(images[rows], own), (m.cfg.mode, m.cfg.raster_model)
+
+
 def test_a_population_too_large_for_the_devices_memory_is_refused(monkeypatch):
     import gradlab.shac as shac
 
