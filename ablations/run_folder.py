@@ -178,9 +178,8 @@ class RunFolder:
 
     def append_metrics(self, row: dict) -> None:
         """One metrics line, handed to the operating system before this returns: a killed process loses none.
-        Its way to the disk is forced when a checkpoint is saved (:meth:`save_checkpoint`), not here: a checkpoint
-        must not be on the disk before the lines it covers, but an fsync a line cost a 12-member population on a
-        GPU machine's disk about a quarter of a second an iteration."""
+        Its way to the disk is forced where it matters, before the checkpoint (:meth:`save_checkpoint`) or summary
+        that covers it, once for every line since, rather than a disk round trip a line and a member."""
         with open(self.metrics_path, "a") as f:
             f.write(json.dumps(row) + "\n")
 

@@ -190,10 +190,12 @@ class SHACConfig:
     added to the iteration's. False: fit after the backward (the phases' times add up)."""
     abort_grad_norm: float = 1e8
     """Stop (as D.Va does) when the actor's pre-clip gradient norm exceeds this."""
-    eval_every: int = 100
+    eval_every: int = 250
     """Every K-th iteration (and at the last), evaluate the deterministic policy (its mean action) on eval_envs
     environments started from fixed evaluation seeds (the same initial states at every evaluation, for every
-    run), for one whole episode each; logs eval_return_mean, eval_return_std and eval_length_mean. 0 disables."""
+    run), for one whole episode each; logs eval_return_mean, eval_return_std, eval_length_mean and its cost
+    eval_s. 0 disables. Cost (BENCHMARKS.md, section 7): with --compile on a GPU about 1 s for a hopper run's 16
+    whole episodes, 4-5 % of 250 iterations, plus about 40 s compiling at the first evaluation."""
     eval_envs: int = 16
     """Environments (whole episodes) per evaluation."""
     encoder_lr_scale: float = 1.0

@@ -1028,8 +1028,8 @@ class SHAC:
     def _eval_images(self, task, renderers: dict[str, TaskRenderer], per_member: int) -> torch.Tensor:
         """An evaluation task's images, (N * E, 3, H, W): each seeing member's from its raster model, blind
         members' zeros; one renderer call for each run of adjacent members of one raster model (the population
-        order keeps them adjacent), as the training window renders: a call a member cost a 12-member hopper
-        population ~7k small kernels an evaluation step, most of its evaluation's 79 s on an H100."""
+        order keeps them adjacent), as the training window renders: a call a member costs hundreds of small
+        kernels a member and step (BENCHMARKS.md, section 7)."""
         blocks = []
         for raster, group in itertools.groupby(self.members,
                                                key=lambda m: m.cfg.raster_model if m.plan.renders else None):

@@ -125,9 +125,9 @@ def test_load_run_parses_a_folder_and_find_runs_takes_parents(tmp_path):
 
 
 def test_metrics_lines_reach_the_disk_before_the_checkpoint_or_summary_that_covers_them(tmp_path, monkeypatch):
-    """An fsync a metrics line cost a 12-member population a quarter of a second an iteration on a GPU machine's
-    disk: lines are forced to the disk once, before the checkpoint (a resume truncates the metrics to it) or the
-    summary that covers them, and a killed process still loses none (each line is written through at once)."""
+    """Lines are forced to the disk once, before the checkpoint (a resume truncates the metrics to it) or the
+    summary that covers them, not one fsync a line and a member; a killed process still loses none (each line is
+    handed to the operating system at once)."""
     folder = RunFolder.create(tmp_path, "r")
     synced = []
     real_fsync = os.fsync
