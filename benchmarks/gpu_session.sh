@@ -136,7 +136,8 @@ for spec in "$@"; do
        tar -C /tmp --exclude=logs -czf "$OUT/sweep_$r.tgz" "sweep_$r" ;;
     detach) # one ablate run or population in a new process session, which outlives this call and runs until the
        # machine goes back: DETACH_NAME its folder under /tmp/runs, DETACH_ARGS its flags, DETACH_GPU the GPU;
-       # its output goes to /tmp/runs/DETACH_NAME.log. Follow with "progress" calls, end with "collect".
+       # its output goes to /tmp/runs/DETACH_NAME.log. Follow with "progress" calls, end with "collect" well before
+       # the machine's 30 minutes are up: it goes back then even in the middle of a call, and the runs with it.
        mkdir -p /tmp/runs; export PATH=/tmp/site/bin:$PATH
        CUDA_VISIBLE_DEVICES=${DETACH_GPU:-0} setsid nohup python3 -m ablations ablate ${DETACH_ARGS:-} --device cuda \
          --out /tmp/runs --name "${DETACH_NAME:?}" --no-progress > "/tmp/runs/$DETACH_NAME.log" 2>&1 < /dev/null &
