@@ -57,7 +57,7 @@ from ablations.report import (
     table1_section,
 )
 from ablations.run_folder import Run, RunFolder, is_number, load_run
-from ablations.seeds import NOT_RANKING, iteration_times
+from ablations.seeds import NOT_RANKING, iteration_times, not_ranking_reason
 
 __all__ = ["ARMS", "DEFAULT_ARMS", "PaperConfig", "sweep_config", "gpus_per_run", "build_paper_report", "main"]
 
@@ -259,14 +259,8 @@ def _time_to(run: Run, threshold: float) -> float | None:
 def _not_ranking(task: str, floors, paper: PaperNumbers) -> str:
     """Why a task of ``ablations.seeds.NOT_RANKING`` ranks no arms, with its zero-action floor and the paper's
     final return there, where known."""
-    facts = []
-    zero = (floors.of(task) or {}).get("zero") or {}
-    if is_number(zero.get("mean")):
-        facts.append(f"zero action {zero['mean']:.0f}" + (f", {Path(floors.source).name}" if floors.source else ""))
     finals = [format_value(e) for e in paper.final_return if e["task"] == task]
-    if finals:
-        facts.append(f"the paper's final return {', '.join(finals)}")
-    return NOT_RANKING[task] + (f" ({'; '.join(facts)})" if facts else "")
+    return not_ranking_reason(task, floors, facts=[f"the paper's final return {', '.join(finals)}"] if finals else [])
 
 
 def _packing_lines(manifest: dict) -> list[str]:
@@ -290,7 +284,8 @@ def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks:
            "a differentiable renderer our `full-hard` arm (the hard rasterizer and the baseline's decay length); "
            "other arms have no counterpart in the paper. Wall-clock times depend on the device: the paper's "
            "are on its device, ours on the device of each run (provenance below).", ""]
-    out += _packed_wall_clock_note(runs)
+    if any(is_population_member(r) for r in runs):
+        out += ["Packed runs' wall-clock times are their populations' (section 2 says why).", ""]
     if not_ranking:
         out += [f"Tasks marked `(does not rank arms)`: {', '.join(not_ranking)} (see the top of this report).", ""]
     method_of = {a: ARMS[a]["paper"] for a in arms}

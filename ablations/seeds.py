@@ -310,12 +310,18 @@ class TaskSeeds:
     error: str | None = None
 
 
-def _not_ranking(task: str, floors: Floors | None) -> str | None:
+def not_ranking_reason(task: str, floors: Floors | None, *, facts: Sequence[str] = ()) -> str | None:
+    """Why ``task`` ranks no arms (:data:`NOT_RANKING`), with its zero-action floor from ``floors`` and any further
+    ``facts`` in brackets; None for a task that ranks arms."""
     reason = NOT_RANKING.get(task)
     if reason is None:
         return None
-    zero = (floors.of(task) or {}).get("zero") if floors is not None else None
-    return reason + (f" (zero action {zero['mean']:.0f}, {floors.source.name})" if zero and floors.source else "")
+    zero = ((floors.of(task) or {}).get("zero") or {}) if floors is not None else {}
+    found = []
+    if is_number(zero.get("mean")):
+        found.append(f"zero action {zero['mean']:.0f}" + (f", {Path(floors.source).name}" if floors.source else ""))
+    found += facts
+    return reason + (f" ({'; '.join(found)})" if found else "")
 
 
 def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None = None,
@@ -337,7 +343,7 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
         except ValueError as e:
             out[task] = TaskSeeds(task, None, t, {}, None, keys, error=str(e))
             continue
-        reason = _not_ranking(task, floors)
+        reason = not_ranking_reason(task, floors)
         verdicts = {"equal iterations": stats.verdict(ts.equal_iters, control=CONTROL_ARM, not_ranking=reason)}
         if ts.equal_wall is not None:
             verdicts["equal wall-clock"] = stats.verdict(ts.equal_wall, control=CONTROL_ARM, not_ranking=reason)

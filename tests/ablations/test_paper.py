@@ -380,7 +380,9 @@ def test_report_of_packed_runs_sets_each_arms_time_alone_beside_its_populations(
     assert "**cartpole:** D.Va's cartpole (with springs) ranks no arms: doing nothing already scores high (zero " \
            "action 2098, floors.json; the paper's final return ~1.8k)" in text
     assert rows_of(text, "| cartpole (does not rank arms) | final return | decoupled |")
-    assert text.count("**Packed runs:** a population member's wall-clock is its population's") == 2  # sections 2, 4
+    # the paragraph once (section 2, beside the wall-clock figures), a pointer to it in section 4
+    assert text.count("**Packed runs:** a population member's wall-clock is its population's") == 1
+    assert "Packed runs' wall-clock times are their populations' (section 2 says why)." in text
 
     # Section 6: each arm alone (the first benchmark that times it) beside its population's time
     section = text[text.index("## 6. Iteration time"):text.index("## 7. Memory")]
