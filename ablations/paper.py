@@ -507,7 +507,8 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
         lines += _probe_table(runs, arm_of)
     cells = collect_bwd(runs, benchmarks, label=label)
     lines += _comparison(runs, arm_of, arms, tasks, paper, cells, not_ranking)
-    lines += table1_section(cells, heading="## 5. Backward time per iteration (Table 1)")
+    lines += table1_section(cells, heading="## 5. Backward time per iteration (Table 1)",
+                            members_left_out=sum(map(is_population_member, runs)))
     if res is not None:
         lines += ["### Cost over training", "", *figure_lines(res, _COST_FIGURES, base)]
     lines += _iteration_time_section(runs, label, manifest, folder, benchmark)

@@ -383,6 +383,8 @@ def test_report_of_packed_runs_sets_each_arms_time_alone_beside_its_populations(
     # the paragraph once (section 2, beside the wall-clock figures), a pointer to it in section 4
     assert text.count("**Packed runs:** a population member's wall-clock is its population's") == 1
     assert "Packed runs' wall-clock times are their populations' (section 2 says why)." in text
+    # Table 1 leaves the members out, and says so
+    assert "16 run(s) trained as population members are left out" in text
 
     # Section 6: each arm alone (the first benchmark that times it) beside its population's time
     section = text[text.index("## 6. Iteration time"):text.index("## 7. Memory")]
