@@ -113,12 +113,14 @@ def member_name(cfg: RunConfig, members: list[RunConfig]) -> str:
     """A member's run folder name: task, mode, the member settings that differ between members and that it sets
     (a raster model or preset by its name, another setting as name-value), seed; e.g. ``hopper_full_hard_seed0``
     beside ``hopper_full_seed0``."""
+    from ablations.sweep.config import slug
     from gradlab.shac import MEMBER_FIELDS
 
     varying = [k for k in MEMBER_FIELDS if k not in ("mode", "seed")
                and len({repr(getattr(c, k)) for c in members}) > 1 and getattr(cfg, k) is not None]
-    labels = [str(getattr(cfg, k)) if k in ("raster_model", "preset") else f"{k.replace('_', '-')}{getattr(cfg, k)}"
-              for k in varying]
+    # values as the sweep writes them into folder names (a tuple such as betas: "betas0.5-0.9", not "(0.5, 0.9)")
+    labels = [str(getattr(cfg, k)) if k in ("raster_model", "preset")
+              else f"{k.replace('_', '-')}{slug(getattr(cfg, k))}" for k in varying]
     return "_".join([cfg.task, cfg.mode, *labels, f"seed{cfg.seed}"])
 
 

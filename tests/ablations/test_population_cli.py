@@ -110,3 +110,14 @@ def test_a_signal_stops_a_population_and_its_resume_repeats_nothing(tmp_path):
     for name, rows in resumed.items():
         assert [r["iter"] for r in rows] == list(range(1, iters + 1))
         assert strip_timing(rows) == strip_timing(whole[name]), name
+
+
+def test_member_folder_names_write_tuple_values_as_the_sweep_does():
+    """A member setting that is a tuple (betas) names its folder as ablate-sweep writes flag values
+    (``ablations.sweep.config.slug``): no brackets, commas or spaces in folder names."""
+    from ablations.population import member_name
+    from ablations.runs import RunConfig
+
+    members = [RunConfig(task="cartpole", mode="decoupled", seed=0, betas=b) for b in ((0.7, 0.95), (0.5, 0.9))]
+    assert [member_name(m, members) for m in members] == ["cartpole_decoupled_betas0.7-0.95_seed0",
+                                                          "cartpole_decoupled_betas0.5-0.9_seed0"]
