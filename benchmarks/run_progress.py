@@ -3,8 +3,8 @@
 
 Every run folder under ROOT (a folder holding ``metrics.jsonl``, a population's members included) gets one line:
 its last iteration, the median iteration time of its last 50 iterations, its newest deterministic evaluation,
-and its status (``summary.json``'s, or ``running``). A ``*.log`` in ROOT whose run has no summary and whose
-process is gone gets its tail printed, so a crash shows in the reply.
+and its status (``summary.json``'s, or ``running``). A ``*.log`` in ROOT that ends in a traceback or an error
+gets its tail printed, so a crash shows in the reply.
 
     python benchmarks/run_progress.py /tmp/runs
     python benchmarks/run_progress.py /tmp/runs --thin /tmp/keep --every 10   # then tar /tmp/keep
@@ -14,45 +14,38 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import statistics
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from ablations.population import POPULATION
+from ablations.run_folder import METRICS, SUMMARY, evaluation_of, read_metrics, thin_copy
+
 
 def run_folders(root: Path) -> list[Path]:
-    return sorted(p.parent for p in root.rglob("metrics.jsonl"))
-
-
-def last_rows(path: Path, n: int) -> list[dict]:
-    """The last ``n`` readable lines of a metrics file (a line being written is skipped)."""
-    rows = []
-    for line in path.read_text().splitlines()[-n - 1:]:
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return rows[-n:]
+    return sorted(p.parent for p in root.rglob(METRICS))
 
 
 def line(folder: Path, root: Path) -> str:
-    rows = last_rows(folder / "metrics.jsonl", 50)
+    rows = read_metrics(folder)  # a line still being written is left out
     if not rows:
         return f"{folder.relative_to(root)}: no iterations yet"
     last = rows[-1]
-    ms = [r["iter_ms"] for r in rows if "iter_ms" in r and not r.get("probed")]
-    evals = [r for r in last_rows(folder / "metrics.jsonl", 600) if "eval_return_mean" in r]
+    ms = [r["iter_ms"] for r in rows[-50:] if "iter_ms" in r and not r.get("probed")]
+    evals = [(r["iter"], ev) for r in rows if (ev := evaluation_of(r)) is not None]
     status = "running"
-    if (folder / "summary.json").exists():
-        status = json.loads((folder / "summary.json").read_text()).get("status", "?")
+    if (folder / SUMMARY).exists():
+        status = json.loads((folder / SUMMARY).read_text()).get("status", "?")
     text = f"{folder.relative_to(root)}: iter {last['iter']}"
     if ms:
         text += f", {statistics.median(ms):.0f} ms/it"
     if last.get("return_mean") is not None:
         text += f", train return {last['return_mean']:.0f}"
     if evals:
-        text += f", eval {evals[-1]['eval_return_mean']:.0f} at {evals[-1]['iter']}"
+        text += f", eval {evals[-1][1][0]:.0f} at {evals[-1][0]}"
     return f"{text}, {status}"
 
 
@@ -71,15 +64,10 @@ def main() -> None:
         if any("Traceback" in t or "Error" in t for t in text[-8:]):
             print(f"--- {log.name} (last lines)\n" + "\n".join(text[-15:]))
     if args.thin is not None:
-        from ablations.run_folder import thin_copy
-
         for folder in folders:
-            rel = folder.relative_to(args.root)
-            thin_copy(folder, args.thin / rel, every=args.every)
-            population = folder.parent / "population.json"
-            if population.exists():
-                (args.thin / rel.parent).mkdir(parents=True, exist_ok=True)
-                (args.thin / rel.parent / "population.json").write_text(population.read_text())
+            thin_copy(folder, args.thin / folder.relative_to(args.root), every=args.every)
+        for record in args.root.rglob(POPULATION):  # a population's record beside its members' copies
+            shutil.copy2(record, args.thin / record.relative_to(args.root))
         print(f"thinned {len(folders)} run folders into {args.thin}")
 
 

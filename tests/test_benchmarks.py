@@ -260,3 +260,29 @@ def test_evaluation_times_each_variant_and_compares_its_episodes_with_the_first(
         "first evaluation (compiling, capturing)", "captured", "eager (same compiled kernels)"]
     for r in doc["rows"][1:]:
         assert r["max_rel_diff"] == 0 and r["steps"] > 0 and r["ms_per_step"] > 0
+
+
+def test_run_progress_says_where_each_run_stands_and_thins_copies_with_the_population_record(tmp_path, monkeypatch,
+                                                                                         capsys):
+    from ablations.run_folder import RunFolder, read_metrics
+
+    progress = _load("run_progress")
+    home = tmp_path / "runs" / "pop"
+    home.mkdir(parents=True)
+    (home / "population.json").write_text('{"members": ["a"]}')
+    folder = RunFolder.create(home, "a")
+    (folder.path / "config.json").write_text('{"config": {"task": "cartpole", "mode": "decoupled"}}')
+    for it in range(1, 31):
+        row = {"iter": it, "iter_ms": 100.0 + it % 2, "return_mean": 5.0}
+        if it == 20:
+            row.update(eval_return_mean=42.0, eval_return_std=1.0)
+        folder.append_metrics(row)
+    (tmp_path / "runs" / "pop.log").write_text("step\nTraceback (most recent call last):\nValueError: boom\n")
+    monkeypatch.setattr(sys, "argv", ["run_progress.py", str(tmp_path / "runs"), "--thin", str(tmp_path / "keep"),
+                                      "--every", "10"])
+    progress.main()
+    out = capsys.readouterr().out
+    assert "pop/a: iter 30, 100 ms/it, train return 5, eval 42 at 20, running" in out
+    assert "--- pop.log (last lines)" in out and "ValueError: boom" in out
+    assert (tmp_path / "keep" / "pop" / "population.json").read_text() == '{"members": ["a"]}'
+    assert [r["iter"] for r in read_metrics(tmp_path / "keep" / "pop" / "a")] == [10, 20, 30]
