@@ -148,8 +148,12 @@ for spec in "$@"; do
     collect) # COLLECT_STOP=1 first stops the detached runs (SIGTERM: each writes its summary and checkpoint);
        # then their folders, thinned (every COLLECT_EVERY-th iteration, every probe and evaluation, no checkpoints),
        # and their logs come back as a tarball in parts of 15 MB (cat runs.tgz.* | tar -xz)
-       if [ "${COLLECT_STOP:-0}" = 1 ]; then pkill -TERM -f "ablations ablate"
-         for _ in $(seq 120); do pgrep -f "ablations ablate" >/dev/null || break; sleep 1; done; fi
+       # (the pattern is anchored to the runs' own command line: unanchored, it also matches the shell of a call
+       # whose command text names it, and stops that call)
+       # COLLECT_WAIT=N first gives them up to N seconds to finish on their own
+       for _ in $(seq ${COLLECT_WAIT:-0}); do pgrep -f "^python3 -m ablations ablate" >/dev/null || break; sleep 1; done
+       if [ "${COLLECT_STOP:-0}" = 1 ]; then pkill -TERM -f "^python3 -m ablations ablate"
+         for _ in $(seq 120); do pgrep -f "^python3 -m ablations ablate" >/dev/null || break; sleep 1; done; fi
        rm -rf /tmp/keep; python3 benchmarks/run_progress.py /tmp/runs --thin /tmp/keep/runs --every ${COLLECT_EVERY:-10}
        cp /tmp/runs/*.log /tmp/keep/ 2>/dev/null
        tar -C /tmp/keep -cz . | split -b 15M -d - "$OUT/runs.tgz.";;
