@@ -483,9 +483,10 @@ def load_run(path: str | os.PathLike) -> Run:
 
 
 def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
-    """Runs of the given folders; a folder that is not a run but holds run folders stands for all of them.
+    """Runs of the given folders; a folder that is not a run stands for every run folder below it, at any depth
+    (an experiment's folder of populations, each a folder of member runs), in path order.
 
-    Raises ValueError when no path is given, or a path is neither a run nor a parent of runs.
+    Raises ValueError when no path is given, or a path is neither a run nor holds one.
     """
     if not paths:
         raise ValueError("no run folders given (pass one or more folders written by `ablate`)")
@@ -493,12 +494,20 @@ def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:
     for p in paths:
         p = Path(p)
         if p.is_dir() and not (p / CONFIG).exists():
-            children = sorted(c for c in p.iterdir() if c.is_dir() and (c / CONFIG).exists())
-            if children:
-                runs.extend(load_run(c) for c in children)
+            below = _runs_below(p)
+            if below:
+                runs.extend(load_run(c) for c in below)
                 continue
         runs.append(load_run(p))
     return runs
+
+
+def _runs_below(folder: Path) -> list[Path]:
+    """The run folders (holding config.json) below ``folder``, sorted; a run's own subfolders are not searched."""
+    found = []
+    for child in sorted(c for c in folder.iterdir() if c.is_dir()):
+        found.extend([child] if (child / CONFIG).exists() else _runs_below(child))
+    return found
 
 
 

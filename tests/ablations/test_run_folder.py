@@ -124,6 +124,19 @@ def test_load_run_parses_a_folder_and_find_runs_takes_parents(tmp_path):
         load_run(tmp_path / "bad")
 
 
+def test_find_runs_takes_an_experiment_folder_of_populations_at_any_depth(tmp_path):
+    # docs/<experiment>/runs/<population>/<member>: one path stands for every member of every population
+    a = write_run(tmp_path / "exp" / "ant_b", task="ant", mode="full", seed=1)
+    b = write_run(tmp_path / "exp" / "ant_a", task="ant", mode="decoupled", seed=0)
+    c = write_run(tmp_path / "exp" / "deeper" / "hopper", task="hopper", mode="blind", seed=2)
+    (a / "videos").mkdir()  # a run's own subfolders are not searched for runs
+    write_run(a / "videos", task="ant", mode="blind", seed=9)
+    assert [r.path for r in find_runs([tmp_path / "exp"])] == [b, a, c]
+    (tmp_path / "empty" / "sub").mkdir(parents=True)
+    with pytest.raises(ValueError):
+        find_runs([tmp_path / "empty"])
+
+
 def test_metrics_lines_reach_the_disk_before_the_checkpoint_or_summary_that_covers_them(tmp_path, monkeypatch):
     """Lines are forced to the disk once, before the checkpoint (a resume truncates the metrics to it) or the
     summary that covers them, not one fsync a line and a member; a killed process still loses none (each line is
