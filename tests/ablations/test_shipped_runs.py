@@ -1,0 +1,32 @@
+"""The GPU experiments shipped under docs/ are what their READMEs say: the reports' inputs, readable as run folders."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+from ablations.run_folder import evaluation_of, find_runs
+from ablations.seeds import arm_names
+
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
+
+
+def _last_evaluated_iteration(run) -> int:
+    return max(r["iter"] for r in run.metrics if evaluation_of(r) is not None)
+
+
+def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_2000_iterations():
+    # issue 35: decoupled, full, full with the hard raster model and blind, seeds 0-2, one compiled GPU run
+    runs = find_runs([DOCS / "hopper_population_h100" / "runs"])
+    assert len(runs) == 12
+    assert {r.population["folder"] for r in runs} == {"hopper_population12"}
+    assert all(len(r.population["members"]) == 12 for r in runs)
+    assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 2000)}
+    assert all(r.config["compile"] and r.task == "hopper" for r in runs)
+    assert all(r.environment["device"] == "cuda" for r in runs)
+    arms = arm_names(runs)
+    assert Counter(arms.values()) == {a: 3 for a in ARMS}
+    assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in ARMS for s in range(3)}
+    assert {_last_evaluated_iteration(r) for r in runs} == {2000}
+
