@@ -27,7 +27,7 @@ import json
 import os
 import shlex
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import median
 
@@ -509,7 +509,7 @@ class ArmProbes:
     """One arm's probe statistics on one task over the probes where its policy looks: ``looking`` / ``probes``
     per seed, ``medians`` PROBE_KEYS key -> median pooled over every seed's looking probes (None without any),
     ``counts`` how many probes that pooled, ``all_cos``: the median cos(full, decoupled) over every probe (to
-    set beside the looking one)."""
+    set beside the looking one); ``blind``: per seed, its blind phase (``stats.blind_phase``)."""
 
     task: str
     arm: str
@@ -518,6 +518,7 @@ class ArmProbes:
     medians: dict[str, float | None]
     counts: dict[str, int]
     all_cos: float | None
+    blind: dict[int, stats.BlindPhase] = field(default_factory=dict)
 
 
 def _with_ratios(rows: list[dict]) -> list[dict]:
@@ -552,8 +553,34 @@ def arm_probes(runs: Sequence[Run], *, label: Callable[[Run], str] | None = None
         out.append(ArmProbes(task, arm, {s: look.n_looking for s, look in looks.items()},
                              {s: look.n_probes for s, look in looks.items()},
                              {k: float(median(v)) if v else None for k, v in pooled.items()},
-                             {k: len(v) for k, v in pooled.items()}, float(median(every)) if every else None))
+                             {k: len(v) for k, v in pooled.items()}, float(median(every)) if every else None,
+                             {s: stats.blind_phase(look) for s, look in looks.items() if look.n_probes}))
     return out
+
+
+def _blind_phase_lines(found: Sequence[ArmProbes], fraction: float) -> list[str]:
+    """The blind-phase table: per arm, how deep and how long its policies stopped looking early in training."""
+    rows = []
+    for p in found:
+        phases = {s: b for s, b in p.blind.items() if b.probes}
+        if not phases:
+            continue
+        lowest = [b.lowest for b in phases.values() if b.lowest is not None]
+        rows.append([p.task, p.arm, ", ".join(f"s{s}: {b.blind}/{b.probes}" for s, b in phases.items()),
+                     f"{median(lowest):.2g} ({', '.join(f's{s}: {b.lowest:.2g}' for s, b in phases.items())})",
+                     ", ".join(f"s{s}: " + ("never blind" if not b.blind else str(b.looks_again_at)
+                                            if b.looks_again_at is not None else f"blind at {b.within}")
+                               for s, b in phases.items()),
+                     ", ".join(f"s{s}: {'-' if b.last_blind is None else b.last_blind}" for s, b in phases.items())])
+    if not rows:
+        return []
+    within = next(iter(found[0].blind.values())).within if found[0].blind else stats.BLIND_PHASE_ITERS
+    return [f"**The blind phase** (the first {within} iterations, probes after the first): on how many probes the "
+            f"policy did not look (sensitivity at most {fraction:g} x the first probe's), the lowest sensitivity "
+            "relative to the first probe (median over seeds, then each seed), the probe at which it first looked "
+            "again, and its last blind probe (it may look again and stop once more).", "",
+            *markdown_table(["task", "arm", "blind probes / probes", "lowest sensitivity / first",
+                             "looks again at iteration", "last blind probe"], rows), ""]
 
 
 def probe_section(runs: Sequence[Run], base: Path, *, label: Callable[[Run], str] | None = None,
@@ -581,6 +608,7 @@ def probe_section(runs: Sequence[Run], base: Path, *, label: Callable[[Run], str
     out += markdown_table(["task", "arm", "looking probes / probes", *(f"median {c}" for c in PROBE_KEYS.values()),
                            "median cos(full, decoupled), every probe"], rows)
     out.append("")
+    out += _blind_phase_lines(found, fraction)
     if plots is not None:
         out += figure_lines(plots, PROBE_FIGURES, base)
     return out

@@ -54,7 +54,8 @@ __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", 
            "LookingProbes", "curve_of", "load_arms", "final_return", "auc", "collapse_rate", "iqm_estimate",
            "mean_estimate", "compare", "common_iteration", "truncate_at_iteration", "common_wall_s",
            "truncate_at_wall_s", "task_statistics", "performance_profiles", "plot_performance_profiles",
-           "looking_probes", "LOOKING_FRACTION", "Verdict", "Gate", "verdict"]
+           "looking_probes", "LOOKING_FRACTION", "BlindPhase", "blind_phase", "BLIND_PHASE_ITERS", "Verdict", "Gate",
+           "verdict"]
 
 #: Bootstrap resamples per confidence interval (see the module docstring for why this many).
 DEFAULT_REPS = 2000
@@ -601,6 +602,44 @@ def looking_probes(metrics: Sequence[Mapping], *, fraction: float = LOOKING_FRAC
                          sensitivity=tuple(s for _, s in probes),
                          looking_iters=tuple(int(r["iter"]) for r in looking), medians=medians, counts=counts,
                          values=values)
+
+
+#: Iterations from the start over which ``blind_phase`` looks for the blind phase (issue 36 measures the first 500).
+BLIND_PHASE_ITERS = 500
+
+
+@dataclass(frozen=True)
+class BlindPhase:
+    """How far and how long a run's policy stops looking at its image early in training (the blind phase): over
+    the probes after the first up to iteration ``within``: ``probes`` of them, ``blind`` where the policy does not
+    look (sensitivity at most ``fraction`` x the first probe's), ``lowest`` the lowest sensitivity relative to the
+    first probe's (None without such probes); ``looks_again_at`` the first probe after a blind one where it looks
+    again (None when it never stopped looking or is still blind at ``within``); ``last_blind`` the last blind
+    probe (None without any): a policy may look again and stop once more."""
+
+    within: int
+    probes: int
+    blind: int
+    lowest: float | None
+    looks_again_at: int | None
+    last_blind: int | None = None
+
+
+def blind_phase(looking: LookingProbes, *, within: int = BLIND_PHASE_ITERS) -> BlindPhase:
+    """:class:`BlindPhase` of a run's probes (``looking``: :func:`looking_probes` of its metrics)."""
+    if not (isinstance(within, int) and within > 0):
+        raise ValueError(f"within must be a positive integer, got {within!r}")
+    early = [(i, s) for i, s in zip(looking.probe_iters[1:], looking.sensitivity[1:]) if i <= within]
+    if not early or not looking.initial:
+        return BlindPhase(within, len(early), 0, None, None)
+    threshold = looking.fraction * looking.initial
+    blind = [s <= threshold for _, s in early]
+    again = None
+    if any(blind):
+        first_blind = blind.index(True)
+        again = next((i for (i, _), b in zip(early[first_blind:], blind[first_blind:]) if not b), None)
+    last = max((i for (i, _), b in zip(early, blind) if b), default=None)
+    return BlindPhase(within, len(early), sum(blind), min(s for _, s in early) / looking.initial, again, last)
 
 
 # ------------------------------------------------------------------------------------------------ verdict

@@ -285,4 +285,9 @@ def test_probe_statistics_count_and_pool_the_looking_probes(tmp_path):
     text = "\n".join(seeds.probe_section(runs, tmp_path))
     assert "above 0.1 x the run's first probe's" in text
     assert "| hopper | full-soft | 5/8 (s0: 3/5, s1: 2/3) | 0.4 (n=5) | 0.8 (n=5) | 0.5 (n=5) | - | - |" in text
+    # the blind phase: seed 0 stops looking at 20 and 40 (lowest 0.01 / 6), seed 1 at 20 (0.05 / 1)
+    assert (p.blind[0].blind, p.blind[0].probes, p.blind[0].looks_again_at, p.blind[0].last_blind) == (2, 4, 30, 40)
+    assert p.blind[0].lowest == pytest.approx(0.01 / 6) and p.blind[1].lowest == pytest.approx(0.05)
+    assert ("| hopper | full-soft | s0: 2/4, s1: 1/2 | 0.026 (s0: 0.0017, s1: 0.05) | s0: 30, s1: 30 | s0: 40, s1: 20 |"
+            in text)
     assert "No run has probe iterations" in "\n".join(seeds.probe_section([load_run(parent / "blind0")], tmp_path))

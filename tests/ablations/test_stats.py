@@ -257,6 +257,23 @@ def test_looking_probes_select_by_a_fraction_of_the_first_probe(tmp_path):
         stats.looking_probes(rows, reduce="max")
 
 
+def test_the_blind_phase_is_how_deep_and_how_long_the_policy_stops_looking():
+    # first probe 4.0, bar 0.4: blind at 20 and 40 (lowest 0.04 / 4), looking again at 30; 600 is past the window
+    rows = [_probe(10, 3.0, 1.0, 1.0), _probe(20, 0.04, 0.0, 0.9), _probe(30, 1.0, 0.0, 0.5),
+            _probe(40, 0.1, 0.1, 0.5), _probe(50, 2.0, 0.0, 0.5), _probe(600, 0.0, 0.0, 0.5)]
+    phase = stats.blind_phase(stats.looking_probes(rows))
+    assert (phase.within, phase.probes, phase.blind, phase.looks_again_at, phase.last_blind) == (500, 4, 2, 30, 40)
+    assert phase.lowest == pytest.approx(0.01)
+    # a shorter window stops before the policy looks again; a run that always looks was never blind
+    assert stats.blind_phase(stats.looking_probes(rows), within=25).looks_again_at is None
+    assert stats.blind_phase(stats.looking_probes(rows), within=25).last_blind == 20
+    always = stats.blind_phase(stats.looking_probes([_probe(10, 1.0, 0.0, 1.0), _probe(20, 0.5, 0.0, 1.0)]))
+    assert (always.blind, always.looks_again_at, always.last_blind, always.lowest) == (0, None, None, 0.5)
+    assert stats.blind_phase(stats.looking_probes([_probe(10, 1.0, 0.0, 1.0)])).lowest is None
+    with pytest.raises(ValueError, match="within"):
+        stats.blind_phase(stats.looking_probes(rows), within=0)
+
+
 # ------------------------------------------------------------------------------------------------ verdict
 def test_arms_are_read_against_decoupled_where_decoupled_beats_blind():
     dec = [100.0, 200.0, 150.0, 120.0, 180.0]
