@@ -31,6 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from statistics import median
 
+import numpy as np
+
 from ablations import stats
 from ablations.plot import Floors, PlotResult, arm_styles, group_runs
 from ablations.report import (
@@ -465,6 +467,7 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             out += ["Seeds without a partner (left out of the paired differences): " + "; ".join(
                 f"{arm} against {REFERENCE_ARM}: " + ", ".join(f"{a} {list(v)}" for a, v in m.items())
                 for arm, m in missing.items()) + ".", ""]
+        out += _swings_lines([r for r in runs if r.task == task], label, n)
         if ts.equal_wall is None:
             out += [f"Equal wall-clock: not available: {s.times.why}.", ""]
         else:
@@ -483,6 +486,36 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
     if plots is not None:
         out += figure_lines(plots, SEED_FIGURES, base)
     return out
+
+
+def training_collapse_rate(run: Run, until: int) -> float:
+    """``stats.collapse_rate`` of the run's training return (``return_mean``: the last 100 episodes of the
+    exploring policy, on every logged iteration up to ``until``): how often training falls below half its best so
+    far, the swings that the deterministic evaluation's own collapse rate sets apart from exploration noise."""
+    pts = sorted((r["iter"], r["return_mean"]) for r in run.metrics
+                 if r["iter"] <= until and is_number(r.get("return_mean")))
+    curve = stats.Curve(task=run.task, arm="", seed=0, path=str(run.path), last_iter=until, key="return_mean",
+                        iters=np.array([p[0] for p in pts], dtype=np.int64),
+                        returns=np.array([p[1] for p in pts], dtype=np.float64))
+    return stats.collapse_rate(curve)
+
+
+def _swings_lines(runs: Sequence[Run], label: Callable[[Run], str], until: int) -> list[str]:
+    rows = []
+    by: dict[str, list[Run]] = {}
+    for r in in_arm_order(runs, label):
+        by.setdefault(label(r), []).append(r)
+    for arm, rs in by.items():
+        rates = {r.seed: training_collapse_rate(r, until) for r in rs}
+        defined = [v for v in rates.values() if not np.isnan(v)]
+        rows.append([arm, f"{np.mean(defined):.2f}" if defined else "-",
+                     ", ".join(f"s{s}: {'-' if np.isnan(v) else f'{v:.2f}'}" for s, v in rates.items())])
+    if not rows:
+        return []
+    return [f"Swings of the training return up to iteration {until}: the fraction of logged iterations, after the "
+            "first positive best, whose training return (last 100 episodes of the exploring policy) is below half "
+            "its best so far.", "", *markdown_table(["arm", "training-return collapse rate: mean", "per seed"], rows),
+            ""]
 
 
 def _arms_table(runs: Sequence[Run], label: Callable[[Run], str]) -> list[str]:

@@ -4,12 +4,14 @@ its verdict, and the probe statistics over looking probes, on synthetic runs who
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ablations import seeds
 from ablations.plot import load_floors
-from ablations.run_folder import find_runs, load_run
+from ablations.run_folder import Run, find_runs, load_run
 
 #: Few bootstrap resamples keep these tests fast; the intervals they check are far from their bounds.
 REPS = 20
@@ -233,6 +235,8 @@ def test_the_section_reads_arms_only_where_decoupled_beats_blind(tmp_path):
     assert "1 (final: last 1)" in row and "s0: 1303, s1: 1797, s2: 1501" in row and "better than decoupled" in row
     assert (tmp_path / "figs" / "performance_profile_hopper.png").read_bytes()[:4] == b"\x89PNG"
     assert "](figs/performance_profile_hopper.png)" in text
+    assert parts["hopper"].count("Swings of the training return up to iteration 10") == 1
+    assert "| arm | training-return collapse rate: mean | per seed |" in parts["hopper"]
 
 
 def test_runs_without_evaluations_are_said_to_have_none(tmp_path):
@@ -291,3 +295,14 @@ def test_probe_statistics_count_and_pool_the_looking_probes(tmp_path):
     assert ("| hopper | full-soft | s0: 2/4, s1: 1/2 | 0.026 (s0: 0.0017, s1: 0.05) | s0: 30, s1: 30 | s0: 40, s1: 20 |"
             in text)
     assert "No run has probe iterations" in "\n".join(seeds.probe_section([load_run(parent / "blind0")], tmp_path))
+
+
+def test_the_training_return_collapse_rate_counts_falls_below_half_the_best_so_far():
+    # returns 0 (no positive best yet), 100, 40 (below 50), 60, 120, 50 (below 60), 200 (past `until`)
+    rows = [{"iter": i, "return_mean": v} for i, v in zip(range(10, 80, 10), (0.0, 100.0, 40.0, 60.0, 120.0, 50.0,
+                                                                               200.0))]
+    rows.insert(1, {"iter": 15, "return_mean": None})  # no finished episode on this line
+    run = Run(path=Path("r"), config={"task": "hopper", "seed": 0, "mode": "decoupled"}, environment={},
+              command=None, summary=None, metrics=rows)
+    assert seeds.training_collapse_rate(run, until=60) == pytest.approx(2 / 4)  # after the first positive best
+    assert np.isnan(seeds.training_collapse_rate(run, until=10))  # no positive best
