@@ -30,3 +30,12 @@ def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_20
     assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in ARMS for s in range(3)}
     assert {_last_evaluated_iteration(r) for r in runs} == {2000}
 
+
+def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_iterations():
+    # issue 36, item 7: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
+    runs = find_runs([DOCS / "seeded_h100" / "runs"])
+    ant = [r for r in runs if r.task == "ant"]
+    arms = arm_names(ant)
+    assert {(arms[r.path], r.seed) for r in ant} == {(a, s) for a in ARMS for s in range(3)}
+    assert all(r.summary["status"] in ("finished", "time_limit") and r.summary["iterations"] >= 2000 for r in ant)
+    assert all(_last_evaluated_iteration(r) == r.summary["iterations"] for r in ant)
