@@ -598,20 +598,20 @@ def _blind_phase_lines(found: Sequence[ArmProbes], fraction: float) -> list[str]
         phases = {s: b for s, b in p.blind.items() if b.probes}
         if not phases:
             continue
-        lowest = [b.lowest for b in phases.values() if b.lowest is not None]
+        lowest = [b.lowest for b in phases.values() if b.lowest is not None]  # None: a first probe of 0
         rows.append([p.task, p.arm, ", ".join(f"s{s}: {b.blind}/{b.probes}" for s, b in phases.items()),
-                     f"{median(lowest):.2g} ({', '.join(f's{s}: {b.lowest:.2g}' for s, b in phases.items())})",
+                     (f"{median(lowest):.2g} " if lowest else "- ") + "(" + ", ".join(
+                         f"s{s}: {'-' if b.lowest is None else f'{b.lowest:.2g}'}" for s, b in phases.items()) + ")",
                      ", ".join(f"s{s}: " + ("never blind" if not b.blind else str(b.looks_again_at)
                                             if b.looks_again_at is not None else f"blind at {b.within}")
                                for s, b in phases.items()),
                      ", ".join(f"s{s}: {'-' if b.last_blind is None else b.last_blind}" for s, b in phases.items())])
     if not rows:
         return []
-    within = next(iter(found[0].blind.values())).within if found[0].blind else stats.BLIND_PHASE_ITERS
-    return [f"**The blind phase** (the first {within} iterations, probes after the first): on how many probes the "
-            f"policy did not look (sensitivity at most {fraction:g} x the first probe's), the lowest sensitivity "
-            "relative to the first probe (median over seeds, then each seed), the probe at which it first looked "
-            "again, and its last blind probe (it may look again and stop once more).", "",
+    return [f"**The blind phase** (the first {stats.BLIND_PHASE_ITERS} iterations, probes after the first): on how "
+            f"many probes the policy did not look (sensitivity at most {fraction:g} x the first probe's), the lowest "
+            "sensitivity relative to the first probe (median over seeds, then each seed), the probe at which it first "
+            "looked again, and its last blind probe (it may look again and stop once more).", "",
             *markdown_table(["task", "arm", "blind probes / probes", "lowest sensitivity / first",
                              "looks again at iteration", "last blind probe"], rows), ""]
 

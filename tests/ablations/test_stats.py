@@ -270,6 +270,9 @@ def test_the_blind_phase_is_how_deep_and_how_long_the_policy_stops_looking():
     always = stats.blind_phase(stats.looking_probes([_probe(10, 1.0, 0.0, 1.0), _probe(20, 0.5, 0.0, 1.0)]))
     assert (always.blind, always.looks_again_at, always.last_blind, always.lowest) == (0, None, None, 0.5)
     assert stats.blind_phase(stats.looking_probes([_probe(10, 1.0, 0.0, 1.0)])).lowest is None
+    # a first probe of 0 sets no bar: nothing is called blind and there is no ratio
+    zero = stats.blind_phase(stats.looking_probes([_probe(10, 0.0, 0.0, 1.0), _probe(20, 0.5, 0.0, 1.0)]))
+    assert (zero.probes, zero.blind, zero.lowest) == (1, 0, None)
     with pytest.raises(ValueError, match="within"):
         stats.blind_phase(stats.looking_probes(rows), within=0)
 
