@@ -55,8 +55,9 @@ for spec in "$@"; do
            --modes graph --kernels $opts --out "$OUT/sim_${v//[=,]/_}.json"; done;;
     iter) run "$secs" python3 benchmarks/iteration.py --device cuda --warmup 1 --iters 3 --out "$OUT/iter_eager.json" \
             --tasks ${TASKS:-cartpole hopper ant humanoid};;
-    iter-compiled) run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \
-            --out "$OUT/iter_compiled.json" --tasks ${TASKS:-cartpole hopper ant humanoid};;
+    iter-compiled) # ITER_ARGS adds flags, e.g. "--modes decoupled full blind --raster-model softmax hard" (every arm)
+       run "$secs" python3 benchmarks/iteration.py --device cuda --compile --warmup 3 --iters 4 \
+            --out "$OUT/iter_compiled.json" --tasks ${TASKS:-cartpole hopper ant humanoid} ${ITER_ARGS:-};;
     sim-par) # inductor settings and cases in concurrent processes that compile together and then time one at a
        # time (benchmarks/sim.py --gpu-lock); SIM_JOBS="task:envs:setting ..." (setting "base" or k=v,k=v; a job
        # may repeat). Every row records the kernel configs autotuning kept (--configs). Jobs share inductor's and

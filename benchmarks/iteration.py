@@ -12,6 +12,10 @@ same rollout) is timed separately and the overhead at K is ``(probed - plain) / 
 Not a test. Examples::
 
     python benchmarks/iteration.py --device cuda --tasks cartpole ant --modes decoupled full --out iter.json
+    # each arm of the seeded experiment alone (decoupled, full soft and hard, blind), for the reports'
+    # equal-wall-clock view (ablate-report --benchmark iter.json)
+    python benchmarks/iteration.py --device cuda --compile --tasks hopper --modes decoupled full blind \
+        --raster-model softmax hard --out iter.json
     python benchmarks/iteration.py --device cpu --tasks cartpole --num-envs 4 --horizon 4 --image-size 32 \
         --warmup 1 --iters 2 --out /tmp/iter.json
 """
@@ -52,16 +56,17 @@ def window_start(kind: str):
 
 
 def measure(task: str, mode: str, args, *, renderer: str = "soft", start: str = "leaf",
-            overlap_critic: bool = True) -> dict:
+            overlap_critic: bool = True, raster_model: str | None = None) -> dict:
     with window_start(start):
-        row = _measure(task, mode, args, renderer=renderer, overlap_critic=overlap_critic)
+        row = _measure(task, mode, args, renderer=renderer, overlap_critic=overlap_critic, raster_model=raster_model)
     return {**row, "window_start": start}
 
 
-def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_critic: bool = True) -> dict:
+def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_critic: bool = True,
+             raster_model: str | None = None) -> dict:
     cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
                      iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
-                     raster_model=args.raster_model, extra_meshes=args.extra_meshes,
+                     raster_model=raster_model, extra_meshes=args.extra_meshes,
                      extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic)
     row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": args.num_envs, "horizon": args.horizon,
            "image_size": args.image_size, "compile": args.compile, "overlap_critic": overlap_critic, "status": "ok"}
@@ -126,8 +131,9 @@ def main() -> None:
     p.add_argument("--compile", action="store_true", help="the trainer's --compile path")
     p.add_argument("--renderers", nargs="+", choices=["soft", "warp"], default=["soft"],
                    help="image sources to time (warp: the ray tracer, for modes without image gradient)")
-    p.add_argument("--raster-model", choices=["hard", "softmax", "alpha"], default=None,
-                   help="the rasterizer's image model (default: the preset's)")
+    p.add_argument("--raster-model", nargs="+", choices=["hard", "softmax", "alpha"], default=[None],
+                   help="the rasterizer's image models, each timed for every mode that renders (default: the "
+                        "preset's); modes without images (blind, state) are timed once")
     p.add_argument("--extra-meshes", type=int, default=0, help="extra meshes on the robot's links (scene size)")
     p.add_argument("--extra-mesh-verts", type=int, default=64, help="vertices per extra mesh")
     p.add_argument("--window-starts", nargs="+", choices=["leaf", "detached"], default=["leaf"],
@@ -149,10 +155,13 @@ def main() -> None:
     if args.device.startswith("cuda"):
         env["gpu"] = torch.cuda.get_device_name()
     results = []
-    runs = [(t, m, r, w, o) for t in args.tasks for m in args.modes for r in args.renderers for w in args.window_starts
-            for o in args.overlap_critic if r == "soft" or not ModePlan.of(m).grad_through_images]
-    for task, mode, renderer, start, overlap in runs:
-        row = measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on")
+    runs = [(t, m, r, w, o, rm) for t in args.tasks for m in args.modes for r in args.renderers
+            for w in args.window_starts for o in args.overlap_critic
+            for rm in (args.raster_model if ModePlan.of(m).renders else [None])
+            if r == "soft" or not ModePlan.of(m).grad_through_images]
+    for task, mode, renderer, start, overlap, raster in runs:
+        row = measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on",
+                      raster_model=raster)
         results.append(row)
         print(json.dumps(row), flush=True)
         # The format ablate-report reads: provenance at the top level, one row per (task, mode).

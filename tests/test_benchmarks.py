@@ -228,6 +228,27 @@ def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypa
         assert r["critic_overlapped"] is False and r["critic_ms"] > 0 and r["iter_ms"] > r["fwd_ms"] > 0
 
 
+def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path, monkeypatch):
+    """``--modes decoupled full blind --raster-model softmax hard``: every rendering mode with each raster model and
+    blind once, each row naming its raster model, so that a report finds each arm's time alone in the file."""
+    from ablations.seeds import benchmark_iteration_rows
+
+    iteration = _load("iteration")
+    out = tmp_path / "iter.json"
+    monkeypatch.setattr(sys, "argv", ["iteration.py", "--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled",
+                                      "full", "blind", "--raster-model", "softmax", "hard", "--num-envs", "2",
+                                      "--horizon", "2", "--image-size", "32", "--warmup", "1", "--iters", "1",
+                                      "--probe-every", "0", "--out", str(out)])
+    iteration.main()
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["mode"], r.get("raster_model"), r["status"]) for r in rows] == [
+        ("decoupled", "softmax", "ok"), ("decoupled", "hard", "ok"), ("full", "softmax", "ok"), ("full", "hard", "ok"),
+        ("blind", None, "ok")], rows
+    _, timed = benchmark_iteration_rows(out)
+    assert [(r["mode"], r["raster_model"]) for r in timed] == [(r["mode"], r.get("raster_model")) for r in rows]
+    assert all(r["iter_ms"] > 0 and r["num_envs"] == 2 and r["compile"] is False for r in timed)
+
+
 def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch):
     """Where Python writes no bytecode beside the sources, a row says how many modules' bytecode ablate's folder
     held before the run (0: the run compiled all its Python too); elsewhere there is no such folder to count."""
