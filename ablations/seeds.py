@@ -591,6 +591,19 @@ def arm_probes(runs: Sequence[Run], *, label: Callable[[Run], str] | None = None
     return out
 
 
+def _blind_count(b: stats.BlindPhase) -> str:
+    # a first probe of 0 sets no bar (lowest is None): nothing can be called blind or looking
+    return f"-/{b.probes}" if b.lowest is None else f"{b.blind}/{b.probes}"
+
+
+def _looks_again(b: stats.BlindPhase) -> str:
+    if b.lowest is None:
+        return "no bar (first probe 0)"
+    if not b.blind:
+        return "never blind"
+    return str(b.looks_again_at) if b.looks_again_at is not None else f"still blind at its last probe ({b.last_blind})"
+
+
 def _blind_phase_lines(found: Sequence[ArmProbes], fraction: float) -> list[str]:
     """The blind-phase table: per arm, how deep and how long its policies stopped looking early in training."""
     rows = []
@@ -598,13 +611,11 @@ def _blind_phase_lines(found: Sequence[ArmProbes], fraction: float) -> list[str]
         phases = {s: b for s, b in p.blind.items() if b.probes}
         if not phases:
             continue
-        lowest = [b.lowest for b in phases.values() if b.lowest is not None]  # None: a first probe of 0
-        rows.append([p.task, p.arm, ", ".join(f"s{s}: {b.blind}/{b.probes}" for s, b in phases.items()),
+        lowest = [b.lowest for b in phases.values() if b.lowest is not None]
+        rows.append([p.task, p.arm, ", ".join(f"s{s}: {_blind_count(b)}" for s, b in phases.items()),
                      (f"{median(lowest):.2g} " if lowest else "- ") + "(" + ", ".join(
                          f"s{s}: {'-' if b.lowest is None else f'{b.lowest:.2g}'}" for s, b in phases.items()) + ")",
-                     ", ".join(f"s{s}: " + ("never blind" if not b.blind else str(b.looks_again_at)
-                                            if b.looks_again_at is not None else f"blind at {b.within}")
-                               for s, b in phases.items()),
+                     ", ".join(f"s{s}: {_looks_again(b)}" for s, b in phases.items()),
                      ", ".join(f"s{s}: {'-' if b.last_blind is None else b.last_blind}" for s, b in phases.items())])
     if not rows:
         return []

@@ -613,9 +613,10 @@ class BlindPhase:
     """How far and how long a run's policy stops looking at its image early in training (the blind phase): over
     the probes after the first up to iteration ``within``: ``probes`` of them, ``blind`` where the policy does not
     look (sensitivity at most ``fraction`` x the first probe's), ``lowest`` the lowest sensitivity relative to the
-    first probe's (None without such probes); ``looks_again_at`` the first probe after a blind one where it looks
-    again (None when it never stopped looking or is still blind at ``within``); ``last_blind`` the last blind
-    probe (None without any): a policy may look again and stop once more."""
+    first probe's (None without such probes, or when the first probe is 0 and sets no bar); ``looks_again_at`` the
+    first probe after a blind one where it looks again (None when it never stopped looking or is still blind at
+    its last probe in the window); ``last_blind`` the last blind probe (None without any): a policy may look again
+    and stop once more."""
 
     within: int
     probes: int

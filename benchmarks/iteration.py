@@ -157,7 +157,7 @@ def main() -> None:
     results = []
     runs = [(t, m, r, w, o, rm) for t in args.tasks for m in args.modes for r in args.renderers
             for w in args.window_starts for o in args.overlap_critic
-            for rm in (args.raster_model if ModePlan.of(m).renders else [None])
+            for rm in (args.raster_model if ModePlan.of(m).renders and r == "soft" else [None])
             if r == "soft" or not ModePlan.of(m).grad_through_images]
     for task, mode, renderer, start, overlap, raster in runs:
         row = measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on",
@@ -173,16 +173,18 @@ def main() -> None:
     print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
-    print(f"{'task':9} {'mode':9} {'render':6} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} {'overlap':>7} "
-          f"{'iter ms':>9} "
+    print(f"{'task':9} {'mode':9} {'render':6} {'raster':7} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} "
+          f"{'overlap':>7} {'iter ms':>9} "
           f"{'alloc MB':>9} {'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
     for r in results:
         if r["status"] != "ok":
-            print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r['window_start']:8} {r['status']}: "
+            print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r.get('raster_model') or '-':7} "
+                  f"{r['window_start']:8} {r['status']}: "
                   f"{r.get('error', '')[:80]}")
             continue
         ov = r.get("probe_overhead_at_k")
-        print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r['window_start']:8} {fmt(r['fwd_ms']):>9} "
+        print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r.get('raster_model') or '-':7} "
+              f"{r['window_start']:8} {fmt(r['fwd_ms']):>9} "
               f"{fmt(r['bwd_ms']):>9} "
               f"{fmt(r['critic_ms']):>8} {('yes' if r['critic_overlapped'] else 'no'):>7} "
               f"{fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} "

@@ -237,6 +237,7 @@ def test_the_section_reads_arms_only_where_decoupled_beats_blind(tmp_path):
     assert "](figs/performance_profile_hopper.png)" in text
     assert parts["hopper"].count("Swings of the training return up to iteration 10") == 1
     assert "| arm | training-return collapse rate: mean | per seed |" in parts["hopper"]
+    assert "| decoupled | 0.00 | s0: 0.00, s1: 0.00, s2: 0.00 |" in parts["hopper"]  # a flat training return
 
 
 def test_runs_without_evaluations_are_said_to_have_none(tmp_path):
@@ -306,3 +307,16 @@ def test_the_training_return_collapse_rate_counts_falls_below_half_the_best_so_f
               command=None, summary=None, metrics=rows)
     assert seeds.training_collapse_rate(run, until=60) == pytest.approx(2 / 4)  # after the first positive best
     assert np.isnan(seeds.training_collapse_rate(run, until=10))  # no positive best
+
+
+def test_the_blind_phase_table_says_what_it_could_not_tell():
+    from ablations.stats import BlindPhase
+
+    phases = {0: BlindPhase(500, 2, 0, None, None),  # a first probe of 0: no bar
+              1: BlindPhase(500, 4, 4, 0.01, None, 401),  # blind on every probe of the window
+              2: BlindPhase(500, 3, 0, 0.5, None)}  # always looking
+    probes = seeds.ArmProbes("hopper", "decoupled", {0: 1, 1: 1, 2: 3}, {0: 3, 1: 5, 2: 4}, {}, {}, None, phases)
+    row = next(ln for ln in seeds._blind_phase_lines([probes], 0.1) if ln.startswith("| hopper"))
+    assert row == ("| hopper | decoupled | s0: -/2, s1: 4/4, s2: 0/3 | 0.26 (s0: -, s1: 0.01, s2: 0.5) | "
+                   "s0: no bar (first probe 0), s1: still blind at its last probe (401), s2: never blind | "
+                   "s0: -, s1: 401, s2: - |")

@@ -35,6 +35,7 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
     # issue 36, item 7: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
     runs = find_runs([DOCS / "seeded_h100" / "runs"])
     ant = [r for r in runs if r.task == "ant"]
+    assert len(ant) == 12  # no (arm, seed) twice
     arms = arm_names(ant)
     assert {(arms[r.path], r.seed) for r in ant} == {(a, s) for a in ARMS for s in range(3)}
     assert all(r.summary["status"] in ("finished", "time_limit") and r.summary["iterations"] >= 2000 for r in ant)
