@@ -502,10 +502,7 @@ def training_collapse_rate(run: Run, until: int) -> float:
 
 def _swings_lines(runs: Sequence[Run], label: Callable[[Run], str], until: int) -> list[str]:
     rows = []
-    by: dict[str, list[Run]] = {}
-    for r in in_arm_order(runs, label):
-        by.setdefault(label(r), []).append(r)
-    for arm, rs in by.items():
+    for arm, rs in _by_arm(runs, label).items():
         rates = {r.seed: training_collapse_rate(r, until) for r in rs}
         defined = [v for v in rates.values() if not np.isnan(v)]
         rows.append([arm, f"{np.mean(defined):.2f}" if defined else "-",
@@ -518,12 +515,17 @@ def _swings_lines(runs: Sequence[Run], label: Callable[[Run], str], until: int) 
             ""]
 
 
-def _arms_table(runs: Sequence[Run], label: Callable[[Run], str]) -> list[str]:
+def _by_arm(runs: Sequence[Run], label: Callable[[Run], str]) -> dict[str, list[Run]]:
+    """Arm -> its runs, arms and runs in :func:`in_arm_order`."""
     by: dict[str, list[Run]] = {}
     for r in in_arm_order(runs, label):
         by.setdefault(label(r), []).append(r)
+    return by
+
+
+def _arms_table(runs: Sequence[Run], label: Callable[[Run], str]) -> list[str]:
     rows = []
-    for arm, rs in by.items():
+    for arm, rs in _by_arm(runs, label).items():
         r0 = rs[0]
         raster = "-" if r0.mode in IMAGELESS_MODES else r0.config.get("raster_model")
         tasks = {}
