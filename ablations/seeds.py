@@ -372,7 +372,8 @@ def _span(values) -> str:
 
 
 _READING = {"better": "better than decoupled", "worse": "worse than decoupled",
-            "not resolved": "not resolved (CI covers 0)", "no paired seeds": "no paired seeds"}
+            "not resolved": "not resolved (CI covers 0)", "no paired seeds": "no paired seeds",
+            "too few seeds": f"too few paired seeds to read (fewer than {stats.MIN_SEEDS})"}
 
 
 def _view_table(cmp: stats.Comparison, v: stats.Verdict, iters: dict[str, int]) -> list[str]:

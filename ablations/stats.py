@@ -29,7 +29,8 @@ precipice", 2021), called as its authors do:
 * **looking probes** (``looking_probes``): the probe iterations where the policy's image sensitivity is above a
   fraction (``LOOKING_FRACTION``) of its first probe's, and the probe statistics over those only;
 * **the verdict** (``verdict``): an arm is read against the reference (decoupled) only where the reference beats
-  the control that cannot see (blind) with a confidence interval that excludes zero (issue 36).
+  the control that cannot see (blind) with a confidence interval that excludes zero (issue 36), and no interval
+  decides anything with fewer than ``MIN_SEEDS`` seeds (see there).
 
 Importing this module needs numpy, scipy and rliable only (no torch): it reads JSON. ``load_arms`` reads folders
 through ``ablations.run_folder.find_runs``, which imports no torch either; ``curve_of`` takes an already loaded run.
@@ -55,7 +56,7 @@ __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", 
            "mean_estimate", "compare", "common_iteration", "truncate_at_iteration", "common_wall_s",
            "truncate_at_wall_s", "task_statistics", "performance_profiles", "plot_performance_profiles",
            "looking_probes", "LOOKING_FRACTION", "BlindPhase", "blind_phase", "BLIND_PHASE_ITERS", "Verdict", "Gate",
-           "verdict"]
+           "verdict", "MIN_SEEDS"]
 
 #: Bootstrap resamples per confidence interval (see the module docstring for why this many).
 DEFAULT_REPS = 2000
@@ -69,6 +70,11 @@ EVAL_KEYS = ("eval_return_mean", "eval_return")
 #: A probe counts as looking when its image sensitivity exceeds this fraction of the run's first probe's (the
 #: untrained policy's): the blind phase (issue 36) drops it by orders of magnitude, so the bar needs no precision.
 LOOKING_FRACTION = 0.1
+#: The fewest seeds whose interval the verdict reads. A percentile bootstrap over 1 seed is a point and over 2
+#: excludes zero whenever both seeds agree in sign (half the time under no difference at all); with 3 it is
+#: still only as strict as "all three agree" (a quarter of the time under none), which the module docstring's
+#: caveat covers. Fewer seeds than this: the table shows the numbers, the verdict says "too few seeds".
+MIN_SEEDS = 3
 _SENSITIVITY_KEY = re.compile(r"image_sensitivity_f(\d+)$")
 
 
@@ -664,7 +670,8 @@ class Verdict:
     """How one task's arms may be read against the reference. ``ranks``: whether they may; ``reason``: why (or
     why not), one sentence; ``gate``: the reference against the control (None when the task does not rank arms
     or an arm is missing); ``readings``: arm -> ``"better"``, ``"worse"`` (the paired difference's CI excludes
-    zero on that side), ``"not resolved"`` (it covers zero) or ``"no paired seeds"``; empty unless ``ranks``."""
+    zero on that side), ``"not resolved"`` (it covers zero), ``"too few seeds"`` (fewer than ``MIN_SEEDS``
+    paired seeds) or ``"no paired seeds"``; empty unless ``ranks``."""
 
     task: str
     reference: str
@@ -700,13 +707,17 @@ def verdict(cmp: Comparison, *, control: str = "blind", not_ranking: str | None 
     r, c = cmp.arms[ref].final_iqm, cmp.arms[control].final_iqm
     d = cmp.differences[control].mean
     paired = _negated(d) if d is not None else None
-    if paired is not None and paired.ci_low > 0:
+    if paired is not None and paired.n >= MIN_SEEDS and paired.ci_low > 0:
         by = "paired difference"
         why = (f"{ref} beats {control}: {ref} minus {control}, mean over {paired.n} paired seeds "
                f"{_ci(paired)}, CI above zero")
-    elif r.ci_low > c.ci_high:
+    elif min(r.n, c.n) >= MIN_SEEDS and r.ci_low > c.ci_high:
         by = "IQMs"
         why = f"{ref} beats {control}: IQM {_ci(r)} (n={r.n}) wholly above {_ci(c)} (n={c.n})"
+    elif min(r.n, c.n) < MIN_SEEDS:  # (paired seeds are never more than either arm's)
+        by = None
+        why = (f"too few seeds to read {ref} against {control}: {r.n} and {c.n} seed(s), an interval over fewer "
+               f"than {MIN_SEEDS} decides nothing")
     else:
         by = None
         why = (f"{ref} does not beat {control} with a CI that excludes zero: "
@@ -721,6 +732,6 @@ def verdict(cmp: Comparison, *, control: str = "blind", not_ranking: str | None 
         if arm == control:
             continue
         m = diff.mean
-        readings[arm] = ("no paired seeds" if m is None else "better" if m.ci_low > 0 else "worse" if m.ci_high < 0
-                         else "not resolved")
+        readings[arm] = ("no paired seeds" if m is None else "too few seeds" if m.n < MIN_SEEDS
+                         else "better" if m.ci_low > 0 else "worse" if m.ci_high < 0 else "not resolved")
     return Verdict(cmp.task, ref, control, True, why, gate, readings)

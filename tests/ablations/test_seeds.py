@@ -320,3 +320,19 @@ def test_the_blind_phase_table_says_what_it_could_not_tell():
     assert row == ("| hopper | decoupled | s0: -/2, s1: 4/4, s2: 0/3 | 0.26 (s0: -, s1: 0.01, s2: 0.5) | "
                    "s0: no bar (first probe 0), s1: still blind at its last probe (401), s2: never blind | "
                    "s0: -, s1: 401, s2: - |")
+
+
+def test_the_section_reads_no_arm_from_fewer_than_three_seeds(tmp_path):
+    parent = tmp_path / "runs"
+    dec = [1000.0, 1500.0, 1200.0]
+    # hopper: the gate passes on three seeds; full-hard-dva has one, far above decoupled
+    _task(parent, "hopper", dec, [d - 800.0 for d in dec], **{"full-hard-dva": [9000.0]})
+    # ant: one seed of each, decoupled far above blind: a point, not an interval
+    _task(parent, "ant", [2000.0], [100.0])
+    runs = find_runs([parent])
+    text = "\n".join(seeds.seed_section(runs, tmp_path / "figs", tmp_path, floors=load_floors(), reps=REPS))
+    parts = dict(part.split("\n", 1) for part in text.split("\n### ")[1:])
+    assert "full-hard-dva: too few paired seeds to read (fewer than 3)" in parts["hopper"]
+    assert "better than decoupled" not in parts["hopper"]
+    assert ("too few seeds to read decoupled against blind: 1 and 1 seed(s), an interval over fewer than 3 "
+            "decides nothing; the pixel arms cannot be ranked on this task yet") in parts["ant"]

@@ -311,6 +311,27 @@ def test_the_gate_holds_by_the_iqms_when_no_seed_is_paired():
     assert not stats.verdict(stats.compare(flipped, reps=REPS)).ranks
 
 
+def test_an_interval_over_fewer_than_three_seeds_decides_nothing():
+    # one seed: the bootstrap "interval" is a point; two seeds that agree in sign: an interval above zero that
+    # half of all pairs would give with no difference at all. Neither may pass the gate or read an arm.
+    for n in (1, 2):
+        seeds = list(range(n))
+        curves = (_arm("decoupled", [1000.0 + 10 * i for i in seeds], seeds=seeds)
+                  + _arm("blind", [10.0 + i for i in seeds], seeds=seeds))
+        v = stats.verdict(stats.compare(curves, reps=FEW))
+        assert v.gate.paired.ci_low > 0 and v.gate.reference_iqm.ci_low > v.gate.control_iqm.ci_high
+        assert not v.ranks and not v.gate.passed and v.gate.by is None and v.readings == {}
+        assert f"too few seeds to read decoupled against blind: {n} and {n} seed(s)" in v.reason
+    # the gate passes on five seeds; an arm with two paired seeds far above decoupled is still not read
+    dec = [100.0, 200.0, 150.0, 120.0, 180.0]
+    curves = (_arm("decoupled", dec) + _arm("blind", [d - 90.0 for d in dec])
+              + _arm("full-soft", [d + 400.0 for d in dec[:2]], seeds=[0, 1])
+              + _arm("full-hard", [d + 400.0 for d in dec[:3]], seeds=[0, 1, 2]))
+    v = stats.verdict(stats.compare(curves, reps=FEW))
+    assert v.ranks and v.readings == {"full-soft": "too few seeds", "full-hard": "better"}
+    assert stats.MIN_SEEDS == 3
+
+
 def test_a_task_without_blind_or_that_ranks_no_arms_is_not_read():
     curves = _arm("decoupled", [1.0, 2.0, 3.0]) + _arm("full-soft", [9.0, 9.5, 9.9])
     v = stats.verdict(stats.compare(curves, reps=FEW))
