@@ -98,6 +98,9 @@ class ReportConfig:
     """Title of the report."""
     reps: int = 2000
     """Bootstrap resamples per confidence interval of the seed statistics (ablations.stats.DEFAULT_REPS)."""
+    at_iteration: int | None = None
+    """Read the seed statistics (section 3) as if every run had stopped at this iteration, e.g. to set longer
+    runs beside shorter ones; None: at the fewest iterations any run of the task reached."""
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -528,6 +531,8 @@ def build_report(cfg: ReportConfig) -> Path:
         raise ValueError("nothing to report: give run folders, --memory SWEEP_DIR and/or --benchmark FILE.json")
     if cfg.reps < 1:
         raise ValueError(f"--reps must be a positive number of bootstrap resamples, got {cfg.reps}")
+    if cfg.at_iteration is not None and cfg.at_iteration < 1:
+        raise ValueError(f"--at-iteration must be a positive iteration, got {cfg.at_iteration}")
     runs = find_runs(list(cfg.runs)) if cfg.runs else []
     sweeps = load_memory_sweeps(cfg.memory)
     benchmarks = [(Path(b), *load_benchmark(b)) for b in cfg.benchmark]
@@ -561,7 +566,7 @@ def build_report(cfg: ReportConfig) -> Path:
     lines += curves_section(runs, fig_dir, base, floors=floors, plots=plots, label=label,
                             leave_out=(*SEED_FIGURES, *PROBE_FIGURES))
     lines += seed_section(runs, fig_dir, base, label=label, benchmarks=cfg.benchmark, floors=floors, plots=plots,
-                          reps=cfg.reps)
+                          reps=cfg.reps, at_iteration=cfg.at_iteration)
     lines += probe_section(runs, base, label=label, plots=plots)
     lines += memory_section(sweeps, fig_dir, base, heading="## 5. Memory sweep")
     lines += provenance_section(runs, sweeps, benchmarks, base=base, heading="## 6. Provenance")

@@ -328,9 +328,12 @@ def not_ranking_reason(task: str, floors: Floors | None, *, facts: Sequence[str]
 
 def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None = None,
                     benchmarks: Sequence[str | os.PathLike] = (), floors: Floors | None = None,
-                    reps: int = stats.DEFAULT_REPS, seed: int = stats.DEFAULT_SEED) -> dict[str, TaskSeeds]:
+                    reps: int = stats.DEFAULT_REPS, seed: int = stats.DEFAULT_SEED,
+                    at_iteration: int | None = None) -> dict[str, TaskSeeds]:
     """Task -> :class:`TaskSeeds` of the runs (arms by ``label``, default :func:`arm_label`), tasks in the order
-    of ``tasks.TASKS``. ``floors``: quoted where a task ranks no arms (NOT_RANKING)."""
+    of ``tasks.TASKS``. ``floors``: quoted where a task ranks no arms (NOT_RANKING). ``at_iteration``: every
+    run read as if it had stopped there (``stats.task_statistics``)."""
+    stats.check_at_iteration(at_iteration)  # here: a ValueError inside a task's loop becomes that task's note
     label = label or arm_label(runs)
     runs = in_arm_order(runs, label)
     times = iteration_times(runs, label, benchmarks)
@@ -341,7 +344,8 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
         try:  # a run without a seed, or two runs of one arm and seed: this task says why, the others go on
             curves = [stats.curve_of(r, label(r)) for r in runs if r.task == task]
             keys = tuple(sorted({c.key for c in curves if c.key}))
-            ts = stats.task_statistics(curves, iter_ms_alone=t.ms, reps=reps, seed=seed)[task]
+            ts = stats.task_statistics(curves, iter_ms_alone=t.ms, reps=reps, seed=seed,
+                                       at_iteration=at_iteration)[task]
         except ValueError as e:
             out[task] = TaskSeeds(task, None, t, {}, None, keys, error=str(e))
             continue
@@ -411,18 +415,19 @@ def _verdict_line(view: str, v: stats.Verdict) -> str:
 def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Callable[[Run], str] | None = None,
                  benchmarks: Sequence[str | os.PathLike] = (), floors: Floors | None = None,
                  plots: PlotResult | None = None, reps: int = stats.DEFAULT_REPS, seed: int = stats.DEFAULT_SEED,
-                 computed: dict[str, TaskSeeds] | None = None,
+                 computed: dict[str, TaskSeeds] | None = None, at_iteration: int | None = None,
                  heading: str = "## 3. Seed statistics: which arm trains better") -> list[str]:
     """The seed-statistics section: the arms, per task the verdict and the tables at equal iterations and equal
     wall-clock, the performance profiles (drawn into ``fig_dir``) and ``plots``' SEED_FIGURES (links relative to
     ``base``, the report's folder). ``computed``: :func:`seed_statistics` of these runs and arguments, when the
-    caller has it already."""
+    caller has it already. ``at_iteration``: the runs read as if they had stopped there."""
     out = [heading, ""]
     if not runs:
         return [*out, "No training runs were given.", ""]
     label = label or arm_label(runs)
     seeds = computed if computed is not None else seed_statistics(runs, label=label, benchmarks=benchmarks,
-                                                                  floors=floors, reps=reps, seed=seed)
+                                                                  floors=floors, reps=reps, seed=seed,
+                                                                  at_iteration=at_iteration)
     if not any(s.eval_keys or s.error for s in seeds.values()):
         return [*out, "No run logged a deterministic evaluation (metrics `eval_return_mean`, every `--eval-every` "
                 "iterations): these runs cannot be compared over seeds. Train with `--eval-every K` for this "
@@ -440,6 +445,9 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             "of the task reached. **Equal wall-clock**: every run cut at the training time the slowest reached, "
             "modelled as iterations x its arm's iteration time measured alone (compilation, evaluations and the "
             "probes' extra backward left out).", "",
+            *([f"**Read at iteration {at_iteration}** (`--at-iteration`): every run is cut there first, so all "
+               "of this section's views end at or before it (the figures and the probe section show the whole "
+               "runs).", ""] if at_iteration is not None else []),
             f"**Reading rule** (issue 36): an arm is read against {REFERENCE_ARM} only where {REFERENCE_ARM} "
             f"beats {CONTROL_ARM} (the same pixels, never looked at) with a CI that excludes zero: of the paired "
             f"difference {REFERENCE_ARM} minus {CONTROL_ARM}, or of the IQMs ({REFERENCE_ARM}'s interval wholly "

@@ -54,9 +54,9 @@ __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", 
            "PairedDifference", "Comparison", "TaskStatistics", "ProfileCurve", "PerformanceProfile",
            "LookingProbes", "curve_of", "load_arms", "final_return", "auc", "collapse_rate", "iqm_estimate",
            "mean_estimate", "compare", "common_iteration", "truncate_at_iteration", "common_wall_s",
-           "truncate_at_wall_s", "task_statistics", "performance_profiles", "plot_performance_profiles",
-           "looking_probes", "LOOKING_FRACTION", "BlindPhase", "blind_phase", "BLIND_PHASE_ITERS", "Verdict", "Gate",
-           "verdict", "MIN_SEEDS"]
+           "truncate_at_wall_s", "check_at_iteration", "task_statistics", "performance_profiles",
+           "plot_performance_profiles", "looking_probes", "LOOKING_FRACTION", "BlindPhase", "blind_phase",
+           "BLIND_PHASE_ITERS", "Verdict", "Gate", "verdict", "MIN_SEEDS"]
 
 #: Bootstrap resamples per confidence interval (see the module docstring for why this many).
 DEFAULT_REPS = 2000
@@ -409,6 +409,13 @@ def truncate_at_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, floa
     return [truncate_at_iteration([c], math.floor(wall_s * 1e3 / ms[c.arm] * (1 + 1e-12)))[0] for c in curves]
 
 
+def check_at_iteration(at_iteration: int | None) -> None:
+    """ValueError unless ``at_iteration`` is None or a positive integer (an iteration to read runs at)."""
+    if at_iteration is not None and (isinstance(at_iteration, bool) or not isinstance(at_iteration, int)
+                                     or at_iteration < 1):
+        raise ValueError(f"at_iteration must be a positive number of iterations, got {at_iteration!r}")
+
+
 @dataclass(frozen=True)
 class TaskStatistics:
     """One task's comparison three ways: ``whole`` (every run's whole curve), ``equal_iters`` (curves cut at
@@ -428,16 +435,20 @@ class TaskStatistics:
 
 def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupled",
                     iter_ms_alone: Mapping[str, float] | None = None, final_evals: int = FINAL_EVALS,
-                    reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED,
-                    confidence: float = 0.95) -> dict[str, TaskStatistics]:
+                    reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED, confidence: float = 0.95,
+                    at_iteration: int | None = None) -> dict[str, TaskStatistics]:
     """Task -> its ``TaskStatistics`` (tasks in the curves' order). Equal iterations and equal wall-clock are
     taken over all runs of the task, every arm together. ``iter_ms_alone``: arm -> milliseconds per training
     iteration of that arm measured alone (population members share a process, so their own ``wall_s`` is not
-    their arm's time)."""
+    their arm's time). ``at_iteration``: every curve is cut there first (to read longer runs at an earlier
+    point: all three views then end at or before it)."""
+    check_at_iteration(at_iteration)
     kw = dict(reference=reference, final_evals=final_evals, reps=reps, seed=seed, confidence=confidence)
     out = {}
     for task in dict.fromkeys(c.task for c in curves):
         cs = [c for c in curves if c.task == task]
+        if at_iteration is not None:
+            cs = truncate_at_iteration(cs, at_iteration)
         n = common_iteration(cs)
         stats = TaskStatistics(task=task, whole=compare(cs, **kw), iteration=n,
                                equal_iters=compare(truncate_at_iteration(cs, n), **kw))

@@ -145,6 +145,8 @@ def test_bad_input_errors(tmp_path, capsys):
         build_report(ReportConfig(runs=(run,), out=tmp_path / "report.txt"))
     with pytest.raises(ValueError, match="--reps must be a positive number"):
         build_report(ReportConfig(runs=(run,), reps=0, out=tmp_path / "r.md"))
+    with pytest.raises(ValueError, match="--at-iteration must be a positive iteration, got 0"):
+        build_report(ReportConfig(runs=(run,), at_iteration=0, out=tmp_path / "r.md"))
     assert not (tmp_path / "r.md").exists()
 
     with pytest.raises(SystemExit) as e:

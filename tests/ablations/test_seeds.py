@@ -336,3 +336,24 @@ def test_the_section_reads_no_arm_from_fewer_than_three_seeds(tmp_path):
     assert "better than decoupled" not in parts["hopper"]
     assert ("too few seeds to read decoupled against blind: 1 and 1 seed(s), an interval over fewer than 3 "
             "decides nothing; the pixel arms cannot be ranked on this task yet") in parts["ant"]
+
+
+def test_runs_read_at_an_earlier_iteration(tmp_path):
+    # evaluations at 10 and 20: at 20 full-soft is far ahead of decoupled, at 10 far behind
+    parent = tmp_path / "runs"
+    for s_, d in enumerate([1000.0, 1200.0, 1100.0]):
+        write_run(parent, f"dec{s_}", seed=s_, evals=[d, d + 10.0], iters=20)
+        write_run(parent, f"blind{s_}", mode="blind", seed=s_, evals=[d - 500.0, d - 500.0], iters=20)
+        write_run(parent, f"full{s_}", mode="full", seed=s_, evals=[d - 300.0 + s_, d + 600.0 + s_], iters=20)
+    runs = find_runs([parent])
+    whole = seeds.seed_statistics(runs, reps=REPS)["hopper"]
+    early = seeds.seed_statistics(runs, reps=REPS, at_iteration=10)["hopper"]
+    assert whole.stats.iteration == 20 and whole.verdicts["equal iterations"].readings == {"full-soft": "better"}
+    assert early.stats.iteration == 10 and early.verdicts["equal iterations"].readings == {"full-soft": "worse"}
+    assert early.stats.whole.arms["full-soft"].final == {0: 700.0, 1: 901.0, 2: 802.0}
+    # beyond the runs' end it changes nothing; the section says where it read them
+    assert seeds.seed_statistics(runs, reps=REPS, at_iteration=500)["hopper"].stats.iteration == 20
+    text = "\n".join(seeds.seed_section(runs, tmp_path / "f", tmp_path, reps=REPS, at_iteration=10))
+    assert "**Read at iteration 10** (`--at-iteration`)" in text and "**Verdict (equal iterations, 10):**" in text
+    with pytest.raises(ValueError, match="at_iteration must be a positive number of iterations, got 0"):
+        seeds.seed_statistics(runs, reps=REPS, at_iteration=0)
