@@ -451,7 +451,9 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             f"**Reading rule** (issue 36): an arm is read against {REFERENCE_ARM} only where {REFERENCE_ARM} "
             f"beats {CONTROL_ARM} (the same pixels, never looked at) with a CI that excludes zero: of the paired "
             f"difference {REFERENCE_ARM} minus {CONTROL_ARM}, or of the IQMs ({REFERENCE_ARM}'s interval wholly "
-            f"above {CONTROL_ARM}'s). Otherwise the pixel arms cannot be ranked on that task yet.", ""]
+            f"above {CONTROL_ARM}'s). Otherwise the pixel arms cannot be ranked on that task yet. No interval over "
+            f"fewer than {stats.MIN_SEEDS} seeds decides anything (over 2 seeds it excludes zero whenever both "
+            "agree in sign).", ""]
     out += _arms_table(runs, label)
     styles = arm_styles(group_runs(list(runs), label=label))
     for task, s in seeds.items():
