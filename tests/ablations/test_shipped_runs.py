@@ -40,3 +40,25 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
     assert {(arms[r.path], r.seed) for r in ant} == {(a, s) for a in ARMS for s in range(3)}
     assert all(r.summary["status"] in ("finished", "time_limit") and r.summary["iterations"] >= 2000 for r in ant)
     assert all(_last_evaluated_iteration(r) == r.summary["iterations"] for r in ant)
+
+
+def test_the_hopper_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations():
+    # issue 36, item 7: hopper, the four arms, 5 seeds, at least 3000 iterations; compiled GPU populations
+    hopper = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == "hopper"]
+    assert len(hopper) == 20  # no (arm, seed) twice
+    arms = arm_names(hopper)
+    assert {(arms[r.path], r.seed) for r in hopper} == {(a, s) for a in ARMS for s in range(5)}
+    assert {(r.summary["status"], r.summary["iterations"]) for r in hopper} == {("finished", 3000)}
+    assert {_last_evaluated_iteration(r) for r in hopper} == {3000}
+    assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in hopper)
+    assert {r.population["folder"] for r in hopper} == {f"hopper_population_{p}" for p in "abc"}
+
+
+def test_cartpole_swingup_so_far_holds_the_runs_its_readme_names():
+    # issue 36, item 7 (in progress): 5 of the 20 runs, each at 3000 iterations
+    cart = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == "cartpole-swingup"]
+    arms = arm_names(cart)
+    assert sorted((arms[r.path], r.seed) for r in cart) == sorted(
+        [(a, 0) for a in ARMS] + [("decoupled", 1)])
+    assert {(r.summary["status"], r.summary["iterations"]) for r in cart} == {("finished", 3000)}
+    assert {_last_evaluated_iteration(r) for r in cart} == {3000}
