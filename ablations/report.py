@@ -531,8 +531,12 @@ def build_report(cfg: ReportConfig) -> Path:
         raise ValueError("nothing to report: give run folders, --memory SWEEP_DIR and/or --benchmark FILE.json")
     if cfg.reps < 1:
         raise ValueError(f"--reps must be a positive number of bootstrap resamples, got {cfg.reps}")
-    if cfg.at_iteration is not None and cfg.at_iteration < 1:
-        raise ValueError(f"--at-iteration must be a positive iteration, got {cfg.at_iteration}")
+    from ablations.stats import check_at_iteration  # (rliable and scipy load only when a report is built)
+
+    try:
+        check_at_iteration(cfg.at_iteration)
+    except ValueError as e:
+        raise ValueError(f"--at-iteration: {e}") from None
     runs = find_runs(list(cfg.runs)) if cfg.runs else []
     sweeps = load_memory_sweeps(cfg.memory)
     benchmarks = [(Path(b), *load_benchmark(b)) for b in cfg.benchmark]

@@ -420,7 +420,8 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
     """The seed-statistics section: the arms, per task the verdict and the tables at equal iterations and equal
     wall-clock, the performance profiles (drawn into ``fig_dir``) and ``plots``' SEED_FIGURES (links relative to
     ``base``, the report's folder). ``computed``: :func:`seed_statistics` of these runs and arguments, when the
-    caller has it already. ``at_iteration``: the runs read as if they had stopped there."""
+    caller has it already (computed with the same ``at_iteration``). ``at_iteration``: the runs read as if they
+    had stopped there."""
     out = [heading, ""]
     if not runs:
         return [*out, "No training runs were given.", ""]
@@ -446,8 +447,9 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             "modelled as iterations x its arm's iteration time measured alone (compilation, evaluations and the "
             "probes' extra backward left out).", "",
             *([f"**Read at iteration {at_iteration}** (`--at-iteration`): every run is cut there first, so all "
-               "of this section's views end at or before it (the figures and the probe section show the whole "
-               "runs).", ""] if at_iteration is not None else []),
+               "of this section's views end at or before it; a task whose runs all ended sooner is read at their "
+               "ends (each verdict names its iteration). The figures and the probe section show the whole runs.",
+               ""] if at_iteration is not None else []),
             f"**Reading rule** (issue 36): an arm is read against {REFERENCE_ARM} only where {REFERENCE_ARM} "
             f"beats {CONTROL_ARM} (the same pixels, never looked at) with a CI that excludes zero: of the paired "
             f"difference {REFERENCE_ARM} minus {CONTROL_ARM}, or of the IQMs ({REFERENCE_ARM}'s interval wholly "

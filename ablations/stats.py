@@ -448,7 +448,11 @@ def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupl
     for task in dict.fromkeys(c.task for c in curves):
         cs = [c for c in curves if c.task == task]
         if at_iteration is not None:
+            evaluated = [c for c in cs if len(c.iters)]
             cs = truncate_at_iteration(cs, at_iteration)
+            if evaluated and not any(len(c.iters) for c in cs):
+                raise ValueError(f"no {task} run has an evaluation at or before iteration {at_iteration} (the "
+                                 f"first is at {min(int(c.iters[0]) for c in evaluated)}): read it later")
         n = common_iteration(cs)
         stats = TaskStatistics(task=task, whole=compare(cs, **kw), iteration=n,
                                equal_iters=compare(truncate_at_iteration(cs, n), **kw))
@@ -725,14 +729,16 @@ def verdict(cmp: Comparison, *, control: str = "blind", not_ranking: str | None 
     elif min(r.n, c.n) >= MIN_SEEDS and r.ci_low > c.ci_high:
         by = "IQMs"
         why = f"{ref} beats {control}: IQM {_ci(r)} (n={r.n}) wholly above {_ci(c)} (n={c.n})"
-    elif min(r.n, c.n) < MIN_SEEDS:  # (paired seeds are never more than either arm's)
+    elif min(r.n, c.n) < MIN_SEEDS:  # neither path has the seeds (paired ones are never more than either arm's)
         by = None
         why = (f"too few seeds to read {ref} against {control}: {r.n} and {c.n} seed(s), an interval over fewer "
                f"than {MIN_SEEDS} decides nothing")
     else:
         by = None
+        few = paired is not None and paired.n < MIN_SEEDS
         why = (f"{ref} does not beat {control} with a CI that excludes zero: "
-               + (f"{ref} minus {control} {_ci(paired)} over {paired.n} paired seeds; " if paired else "")
+               + (f"{ref} minus {control} {_ci(paired)} over {paired.n} paired seeds"
+                  + (f" (fewer than {MIN_SEEDS}: not read)" if few else "") + "; " if paired else "")
                + f"IQMs {_ci(r)} (n={r.n}) and {_ci(c)} (n={c.n})")
     gate = Gate(by is not None, by, paired, r, c, why)
     if not gate.passed:

@@ -145,7 +145,7 @@ def test_bad_input_errors(tmp_path, capsys):
         build_report(ReportConfig(runs=(run,), out=tmp_path / "report.txt"))
     with pytest.raises(ValueError, match="--reps must be a positive number"):
         build_report(ReportConfig(runs=(run,), reps=0, out=tmp_path / "r.md"))
-    with pytest.raises(ValueError, match="--at-iteration must be a positive iteration, got 0"):
+    with pytest.raises(ValueError, match="--at-iteration: at_iteration must be a positive number of iterations, got 0"):
         build_report(ReportConfig(runs=(run,), at_iteration=0, out=tmp_path / "r.md"))
     assert not (tmp_path / "r.md").exists()
 

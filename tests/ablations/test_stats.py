@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -330,6 +331,31 @@ def test_an_interval_over_fewer_than_three_seeds_decides_nothing():
     v = stats.verdict(stats.compare(curves, reps=FEW))
     assert v.ranks and v.readings == {"full-soft": "too few seeds", "full-hard": "better"}
     assert stats.MIN_SEEDS == 3
+    # three seeds an arm but two of them paired, IQMs overlapping: not ranked, and the reason says the paired
+    # interval was not read rather than calling it one that covers zero
+    curves = _arm("decoupled", [300.0, 200.0, 210.0]) + _arm("blind", [100.0, 105.0, 900.0], seeds=[1, 2, 3])
+    v = stats.verdict(stats.compare(curves, reps=REPS))
+    assert v.gate.paired.n == 2 and v.gate.paired.ci_low > 0 and not v.ranks
+    assert "over 2 paired seeds (fewer than 3: not read); IQMs" in v.reason
+
+
+def test_runs_cut_before_their_first_evaluation_say_so():
+    curves = [dataclasses.replace(c, iters=c.iters + 100, last_iter=c.last_iter + 100)
+              for c in _arm("decoupled", [1.0, 2.0, 3.0]) + _arm("blind", [0.0, 0.5, 1.0])]
+    with pytest.raises(ValueError, match=r"no hopper run has an evaluation at or before iteration 50 \(the first "
+                                         r"is at 110\): read it later"):
+        stats.task_statistics(curves, reps=FEW, at_iteration=50)
+
+
+def test_equal_wall_clock_is_taken_within_the_cut():
+    # decoupled 50 ms, blind 100 ms an iteration; runs of 20 iterations read at 10: the budget is 10 x 50 ms, so
+    # decoupled is read at 10 and blind at 5
+    curves = [curve([1.0, 2.0, 3.0, 4.0], arm=a, seed=s, iters=[5, 10, 15, 20]) for a in ("decoupled", "blind")
+              for s in range(3)]
+    ts = stats.task_statistics(curves, reps=FEW, iter_ms_alone={"decoupled": 50.0, "blind": 100.0},
+                               at_iteration=10)["hopper"]
+    assert ts.iteration == 10 and ts.wall_s == pytest.approx(0.5)
+    assert ts.iters_at_wall == {"decoupled": 10, "blind": 5}
 
 
 def test_a_task_without_blind_or_that_ranks_no_arms_is_not_read():
