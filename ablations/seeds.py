@@ -443,9 +443,10 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             "mean height of the evaluation curve (trapezoid over its span). **Collapse rate**: the fraction of "
             "evaluations, after the first positive best, below half the best so far (defined for runs with such "
             "evaluations; n says how many). **Equal iterations**: every run cut at the fewest iterations any run "
-            "of the task reached. **Equal wall-clock**: every run cut at the training time the slowest reached, "
-            "modelled as iterations x its arm's iteration time measured alone (compilation, evaluations and the "
-            "probes' extra backward left out).", "",
+            "of the task reached. **Equal wall-clock**: every run cut at the least training time any run of the task "
+            "reached, modelled as iterations x its arm's iteration time measured alone (compilation, evaluations "
+            "and the probes' extra backward left out); with equal iterations that is the fastest arm's last "
+            "iteration.", "",
             *([f"**Read at iteration {at_iteration}** (`--at-iteration`): every run is cut there first, so all "
                "of this section's views end at or before it; a task whose runs all ended sooner is read at their "
                "ends (each verdict names its iteration). The figures and the probe section show the whole runs.",
