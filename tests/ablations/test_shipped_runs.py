@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
+import pytest
+
 from ablations.run_folder import evaluation_of, find_runs
 from ablations.seeds import arm_label, arm_names, iteration_times
 
@@ -43,29 +45,21 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
     assert all(_last_evaluated_iteration(r) == r.summary["iterations"] for r in ant)
 
 
-def test_the_hopper_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations():
-    # issue 36, item 7: hopper, the four arms, 5 seeds, at least 3000 iterations; compiled GPU populations
-    hopper = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == "hopper"]
-    assert len(hopper) == 20  # no (arm, seed) twice
-    arms = arm_names(hopper)
-    assert {(arms[r.path], r.seed) for r in hopper} == {(a, s) for a in ARMS for s in range(5)}
-    assert {(r.summary["status"], r.summary["iterations"]) for r in hopper} == {("finished", 3000)}
-    assert {_last_evaluated_iteration(r) for r in hopper} == {3000}
-    assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in hopper)
-    assert {r.population["folder"] for r in hopper} == {f"hopper_population_{p}" for p in "abc"}
-
-
-def test_the_cartpole_swingup_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations():
-    # issue 36, item 7: cartpole-swingup "the same" as the hopper: the four arms, 5 seeds, at least 3000 iterations
-    cart = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == "cartpole-swingup"]
-    assert len(cart) == 20  # no (arm, seed) twice
-    arms = arm_names(cart)
-    assert {(arms[r.path], r.seed) for r in cart} == {(a, s) for a in ARMS for s in range(5)}
-    assert {(r.summary["status"], r.summary["iterations"]) for r in cart} == {("finished", 3000)}
-    assert {_last_evaluated_iteration(r) for r in cart} == {3000}
-    assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in cart)
-    assert {r.population["folder"] for r in cart} == {f"cartpole_swingup_population_{p}" for p in "abcd"}
-
+@pytest.mark.parametrize(("task", "folders"), [
+    ("hopper", {f"hopper_population_{p}" for p in "abc"}),
+    ("cartpole-swingup", {f"cartpole_swingup_population_{p}" for p in "abcd"}),
+])
+def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations(task, folders):
+    # issue 36, item 7: hopper and cartpole-swingup, the four arms, 5 seeds, at least 3000 iterations; compiled GPU
+    # populations
+    runs = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == task]
+    assert len(runs) == 20  # no (arm, seed) twice
+    arms = arm_names(runs)
+    assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in ARMS for s in range(5)}
+    assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 3000)}
+    assert {_last_evaluated_iteration(r) for r in runs} == {3000}
+    assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in runs)
+    assert {r.population["folder"] for r in runs} == folders
 
 
 def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alone():
