@@ -177,21 +177,18 @@ def main() -> None:
           f"{'overlap':>7} {'iter ms':>9} "
           f"{'alloc MB':>9} {'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
     for r in results:
+        head = (f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r.get('raster_model') or '-':7} "
+                f"{r['window_start']:8}")
         if r["status"] != "ok":
-            print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r.get('raster_model') or '-':7} "
-                  f"{r['window_start']:8} {r['status']}: "
-                  f"{r.get('error', '')[:80]}")
+            print(f"{head} {r['status']}: {r.get('error', '')[:80]}")
             continue
         ov = r.get("probe_overhead_at_k")
-        print(f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r.get('raster_model') or '-':7} "
-              f"{r['window_start']:8} {fmt(r['fwd_ms']):>9} "
-              f"{fmt(r['bwd_ms']):>9} "
+        print(f"{head} {fmt(r['fwd_ms']):>9} {fmt(r['bwd_ms']):>9} "
               f"{fmt(r['critic_ms']):>8} {('yes' if r['critic_overlapped'] else 'no'):>7} "
               f"{fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} "
               f"{fmt(r['peak_reserved_mb'], 0):>9} "
               f"{fmt(r['saved_mb'], 1):>9} {('-' if ov is None else f'{100 * ov:.1f}'):>8} "
               f"{fmt(r.get('cos_full_decoupled'), 3):>6}")
-
 
 if __name__ == "__main__":
     main()
