@@ -152,3 +152,44 @@ def test_scan_reads_flags_values_and_inline_values():
 ])
 def test_one_line_keeps_what_went_wrong_from_either_box(box):
     assert command_line.one_line("\x1b[31m" + box + "\x1b[0m") == "invalid choice 'x' for '--mode'."
+
+
+@pytest.mark.parametrize(("set_", "message"), [
+    (("num-envs=1.5",), "ablate rejects its flags: --task cartpole --mode state --seed 0 --num-envs 1.5 "
+                        "(--num-envs must be an integer, got '1.5')"),
+    (("raster-model=hard",), "run cartpole_state_seed0: --raster-model hard means nothing with --mode state"),
+])
+def test_a_sweeps_runs_are_checked_as_ablate_checks_them(capsys, set_, message):
+    from ablations.sweep import SweepConfig, plan
+
+    with pytest.raises(ValueError) as e:
+        plan(SweepConfig(modes=("state",), set=set_))
+    assert message in str(e.value) and capsys.readouterr().err == ""  # no box from tyro
+
+
+@pytest.mark.skipif(not (ROOT / ".git").exists(), reason="not a git checkout")
+def test_no_console_scripts_default_output_is_a_shipped_file():
+    """Every console script of pyproject.toml writes by default where nothing is tracked and everything is
+    git-ignored: a shipped file (docs/floors.json, docs/robots, a shipped report) changes only where named."""
+    import tomllib
+
+    from ablations.memory import MemoryConfig
+    from ablations.paper import PaperConfig
+    from ablations.plot import PlotConfig
+    from ablations.report import ReportConfig
+    from ablations.runs import RunConfig
+    from ablations.sweep import SweepConfig
+    from tasks.floors import FloorsConfig
+    from tasks.snapshots import SnapshotsConfig
+
+    configs = {"ablate": RunConfig, "ablate-memory": MemoryConfig, "ablate-plot": PlotConfig,
+               "ablate-report": ReportConfig, "ablate-sweep": SweepConfig, "ablate-paper": PaperConfig,
+               "robot-snapshots": SnapshotsConfig, "task-floors": FloorsConfig}
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert set(scripts) == set(configs), "a new console script: add its config here"
+    for script, config in configs.items():
+        out = config().out
+        tracked = subprocess.run(["git", "ls-files", "--", str(out)], cwd=ROOT, capture_output=True, text=True)
+        assert tracked.stdout == "", f"{script}'s default --out {out} is tracked"
+        path = str(out) if out.suffix else f"{out}/x"
+        assert subprocess.run(["git", "check-ignore", "-q", path], cwd=ROOT).returncode == 0, (script, out)

@@ -144,13 +144,6 @@ def test_the_readmes_floors_command_leaves_the_shipped_file_alone(tmp_path, caps
     assert real.read_bytes() == real_shipped
 
 
-@pytest.mark.parametrize("main", [floors.main, snapshots.main])
-def test_no_default_output_is_a_tracked_file(main):
-    """Every console script's default output lies outside what the repository ships (docs/ and the sources)."""
-    config = {floors.main: floors.FloorsConfig, snapshots.main: snapshots.SnapshotsConfig}[main]
-    assert not str(config().out).startswith("docs")
-
-
 @pytest.mark.parametrize(("main", "argv", "message"), [
     (floors.main, ["--episodes", "1.5"], "--episodes must be an integer, got '1.5'"),
     (floors.main, ["--threads", "3"], "--threads 3 is more than the 2 cores"),
