@@ -209,6 +209,10 @@ def memory_main(argv: list[str] | None = None) -> None:
         rows = sweep(cfg)
     except ValueError as e:
         _fail(str(e))
+    except KeyboardInterrupt:  # the sweep has stopped its workers; what they measured is in memory.csv
+        print(f"interrupted: the points measured so far are kept in {cfg.out}; the same command continues the "
+              f"sweep", file=sys.stderr)
+        raise SystemExit(130) from None
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1

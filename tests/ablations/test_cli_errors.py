@@ -193,3 +193,17 @@ def test_no_console_scripts_default_output_is_a_shipped_file():
         assert tracked.stdout == "", f"{script}'s default --out {out} is tracked"
         path = str(out) if out.suffix else f"{out}/x"
         assert subprocess.run(["git", "check-ignore", "-q", path], cwd=ROOT).returncode == 0, (script, out)
+
+
+def test_ablate_memory_ctrl_c_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch):
+    import ablations.memory
+    from ablations.cli import memory_main
+
+    def interrupted(cfg):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ablations.memory, "sweep", interrupted)
+    with pytest.raises(SystemExit) as e:
+        memory_main(["--device", "cpu", "--out", str(tmp_path / "sweep")])
+    err = capsys.readouterr().err
+    assert e.value.code == 130 and err.count("\n") == 1 and err.startswith("interrupted: the points measured")
