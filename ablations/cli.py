@@ -8,9 +8,10 @@ non-positive sizes, an unwritable output folder) is reported in one line naming 
 from __future__ import annotations
 
 import inspect
+import os
 import sys
 from collections.abc import Sequence
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, NoReturn, TypeVar
 
 __all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "parse", "ABLATE_GROUPS"]
 
@@ -33,7 +34,7 @@ ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
 }
 
 
-def _fail(msg: str) -> None:
+def _fail(msg: str) -> NoReturn:
     print(f"error: {msg}", file=sys.stderr)
     raise SystemExit(2)
 
@@ -52,7 +53,8 @@ def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[s
           prog: str | None = None, default: T | None = None) -> T:
     """``tyro.cli(cls)`` with readable ``--help``: each field's docstring is one paragraph, and with ``groups``
     ({panel: field names}) the flags appear in panels in that order (the flags keep their names; fields that no
-    panel names go to a last panel, "more"). ``default``: an instance whose values are the defaults."""
+    panel names go to a last panel, "more"). ``default``: an instance whose values are the defaults. Every refusal
+    is one ``error:`` line naming its flag (``tasks.command_line``), exit status 2."""
     import tyro
     from tyro.constructors import MISSING_NONPROP, ConstructorRegistry, StructConstructorSpec, StructFieldSpec
 
@@ -92,8 +94,16 @@ def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[s
 
         return StructConstructorSpec(instantiate=instantiate, fields=tuple(panel_fields))
 
-    return tyro.cli(cls, args=argv, prog=prog, default=default, description=inspect.cleandoc(cls.__doc__ or ""),
-                    registry=registry)
+    # not at the top: importing tasks imports torch, and ablate starts before torch is imported
+    from tasks.command_line import check_argv, tyro_one_line
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        check_argv(cls, argv, prog)
+    except ValueError as e:
+        _fail(str(e))
+    return tyro_one_line(lambda: tyro.cli(cls, args=argv, prog=prog, default=default,
+                                          description=inspect.cleandoc(cls.__doc__ or ""), registry=registry), prog)
 
 
 def ablate_main(argv: list[str] | None = None) -> None:
@@ -113,9 +123,10 @@ def _ablate(argv: list[str] | None, startup) -> None:
     from ablations.runs import closing_lines, run
     from gradlab.probes import NonFiniteError
 
+    argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse(population.AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
     try:
-        members = cfg.members()
+        members = _checked_members(cfg, argv)
         run_dir = run(members[0] if len(members) == 1 else members, startup=startup)
     except ValueError as e:
         _fail(str(e))
@@ -135,6 +146,60 @@ def _ablate(argv: list[str] | None, startup) -> None:
         raise SystemExit(130)
 
 
+def _field(key: str, fields) -> str:
+    """The field a flag sets: ``num-envs`` -> ``num_envs``, ``no-progress`` -> ``progress``."""
+    name = key.replace("-", "_")
+    return name[3:] if name.startswith("no_") and name[3:] in fields else name
+
+
+def _checked_members(cfg, argv: list[str]) -> list:
+    """The runs ``ablate``'s options stand for, each validated as given (before a preset fills in), after the
+    checks that need the whole command line; ValueError naming the flag (``--member`` and its entry for a listed
+    member's own settings), before anything is created."""
+    import dataclasses
+
+    from ablations.runs import RESUMABLE, RunConfig
+    from gradlab.config import check_as_given
+    from tasks.command_line import scan, usable_cores
+
+    fields = {f.name for f in dataclasses.fields(cfg)}
+    given = scan(argv)
+    if cfg.resume is not None:
+        # config.json wins over every other setting, so any other flag would be dropped without a word
+        takes = {*RESUMABLE, "resume", "progress", "compile_helper"}
+        ignored = list(dict.fromkeys(g.spelling for g in given if _field(g.key, fields) not in takes))
+        if ignored:
+            raise ValueError(f"--resume continues {cfg.resume} with the settings its config.json records, so "
+                             f"{', '.join(ignored)} would be ignored: drop {'it' if len(ignored) == 1 else 'them'} "
+                             f"(a resume takes {', '.join('--' + k.replace('_', '-') for k in RESUMABLE)})")
+    if cfg.name is not None and (cfg.name in ("", ".", "..") or "/" in cfg.name
+                                 or any(sep and sep in cfg.name for sep in (os.sep, os.altsep))):
+        raise ValueError(f"--name {cfg.name!r}: the run folder's name inside --out, not a path (no '/', not '.' "
+                         f"or '..'); give the parent folder with --out")
+    if cfg.threads is not None and cfg.threads > usable_cores():
+        cores = usable_cores()
+        raise ValueError(f"--threads {cfg.threads} is more than the {cores} cores this process may use (its CPU "
+                         f"affinity): more threads than cores make every iteration wait; give at most {cores}")
+    members: list[RunConfig] = cfg.members()
+    if cfg.resume is not None:
+        return members
+    for i, member in enumerate(members):
+        try:
+            member.validate()
+            check_as_given(member)
+        except ValueError as e:
+            if not cfg.member:
+                raise
+            spec = cfg.member[i]
+            message = str(e)
+            for part in filter(None, (p.strip() for p in spec.split(","))):
+                key, _, value = (x.strip() for x in part.partition("="))
+                flag = "--" + key.replace("_", "-")
+                message = message.replace(f"{flag} {value}", f"{key}={value}").replace(flag, key)
+            raise ValueError(f"--member {spec!r}: {message}") from None
+    return members
+
+
 def memory_main(argv: list[str] | None = None) -> None:
     """``ablate-memory --task ant --meshes 0 4 16 --verts 64 256 ...``: the mesh-complexity sweep."""
     from ablations.memory import MemoryConfig, sweep
@@ -144,6 +209,10 @@ def memory_main(argv: list[str] | None = None) -> None:
         rows = sweep(cfg)
     except ValueError as e:
         _fail(str(e))
+    except KeyboardInterrupt:  # the sweep has stopped its workers; what they measured is in memory.csv
+        print(f"interrupted: the points measured so far are kept in {cfg.out}; the same command continues the "
+              f"sweep", file=sys.stderr)
+        raise SystemExit(130) from None
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1

@@ -18,7 +18,7 @@ from gradlab.presets import PRESET_FIELDS, PRESETS, preset_values
 from tasks import TASKS
 from tasks.vision import RENDERERS
 
-__all__ = ["SHACConfig", "MODES", "ModePlan", "resolve_config"]
+__all__ = ["SHACConfig", "MODES", "ModePlan", "resolve_config", "check_as_given"]
 
 @dataclass(frozen=True)
 class ModePlan:
@@ -252,6 +252,17 @@ class SHACConfig:
         if self.num_envs is not None and self.critic_batches > self.num_envs * self.horizon:
             raise ValueError(f"--critic-batches {self.critic_batches} cannot exceed --num-envs x --horizon "
                              f"({self.num_envs * self.horizon})")
+
+
+def check_as_given(cfg: SHACConfig) -> None:
+    """Checks of the settings as given, before the preset fills in the unset ones (a preset's table holds values
+    for every mode, so a resolved config.json may hold them where they do not act): a setting given for a mode in
+    which it means nothing is refused, rather than recorded in config.json as if it had acted. ValueError naming
+    the flags."""
+    plan = ModePlan.of(cfg.mode)
+    if cfg.raster_model is not None and not plan.renders:
+        raise ValueError(f"--raster-model {cfg.raster_model} means nothing with --mode {cfg.mode}: the raster model "
+                         "is the image model of the images the actor trains on, and this actor sees none")
 
 
 def resolve_config(cfg: SHACConfig) -> SHACConfig:

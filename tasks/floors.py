@@ -21,16 +21,18 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, NoReturn
+from typing import Any, Literal
 
 import torch
 from tqdm import tqdm
 
+from .command_line import fail as _fail
+from .command_line import usable_cores
 from .device import resolve_device
 from .registry import TASKS, make
 from .task import Task
 
-__all__ = ["POLICIES", "FloorsConfig", "action_floors", "main", "rollout_returns"]
+__all__ = ["POLICIES", "SHIPPED", "FloorsConfig", "action_floors", "main", "rollout_returns"]
 
 #: the action policies whose returns are measured
 POLICIES: tuple[str, ...] = ("zero", "random")
@@ -200,8 +202,9 @@ class FloorsConfig:
     """Reset seed and random-action seed."""
     device: str = "auto"
     """Where to simulate: auto (CUDA when available, else CPU), cpu or cuda[:N]."""
-    out: Path = Path("docs/floors.json")
-    """JSON file to write; it keeps the entries of tasks not measured in this run (unless --fresh)."""
+    out: Path = Path("floors.json")
+    # Readers (plots, reports, ablate's closing lines) take the shipped docs/floors.json: updating it is a choice.
+    """JSON file to write (other tasks' entries kept unless --fresh); the shipped docs/floors.json only where named."""
     fresh: bool = False
     """Start from an empty file instead of merging into --out."""
     threads: int = 1
@@ -219,6 +222,9 @@ class FloorsConfig:
                 raise ValueError(f"{flag} must be >= 1, got {value}")
         if self.out.is_dir():
             raise ValueError(f"--out {self.out} is a folder; give the JSON file to write")
+        if self.threads > usable_cores():
+            raise ValueError(f"--threads {self.threads} is more than the {usable_cores()} cores this process may "
+                             f"use (its CPU affinity); give at most {usable_cores()}")
         try:
             return resolve_device(self.device)
         except ValueError as e:
@@ -226,21 +232,24 @@ class FloorsConfig:
             raise ValueError(message if message.startswith("--device") else f"--device: {message}") from None
 
 
-def _fail(msg: str) -> NoReturn:
-    print(f"error: {msg}", file=sys.stderr)
-    raise SystemExit(2)
+#: The floors this checkout ships, which every reader of floors takes unless given another file.
+SHIPPED = Path(__file__).resolve().parents[1] / "docs" / "floors.json"
 
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point ``task-floors`` (``--help`` lists the flags); bad flags exit with status 2 and one
     line naming the flag."""
-    import tyro
+    from .command_line import cli, scan
 
-    cfg = tyro.cli(FloorsConfig, args=argv, prog="task-floors")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cfg = cli(FloorsConfig, argv, prog="task-floors")
     try:
         device = cfg.validate()
     except ValueError as e:
         _fail(str(e))
+    if cfg.out.resolve() == SHIPPED and not any(g.key == "out" for g in scan(argv)):
+        _fail(f"the default --out {cfg.out} here is the shipped {SHIPPED}: run it from another folder, or name "
+              f"--out to update the shipped floors")
     torch.set_num_threads(cfg.threads)
     data: dict[str, Any] = {"tasks": {}}
     if cfg.out.exists() and not cfg.fresh:

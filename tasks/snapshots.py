@@ -8,15 +8,15 @@ of poses; ``--size`` sets the resolution (the policy sees 84 x 84).
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn
 
 import numpy as np
 import torch
 
 import tasks
+from tasks.command_line import cli
+from tasks.command_line import fail as _fail
 from tasks.vision import TaskRenderer
 
 __all__ = ["SnapshotsConfig", "snapshot", "main"]
@@ -48,8 +48,8 @@ class SnapshotsConfig:
     actions), seen from its task camera: <out>/<task>.png, one row of poses per image."""
 
     # Each field's docstring (its --help) is one source line: tyro breaks the help text where a line ends.
-    out: Path = Path("docs/robots")
-    """Folder for <task>.png."""
+    out: Path = Path("robots")
+    """Folder for <task>.png (the shipped ones, docs/robots, only where named: --out docs/robots)."""
     tasks: tuple[str, ...] = tasks.TASKS
     """Robots to draw, by task name."""
     poses: int = 4
@@ -75,17 +75,10 @@ class SnapshotsConfig:
             raise ValueError(f"--out {self.out} is a file; give the folder for the PNGs")
 
 
-def _fail(msg: str) -> NoReturn:
-    print(f"error: {msg}", file=sys.stderr)
-    raise SystemExit(2)
-
-
 def main(argv: list[str] | None = None) -> None:
     """Console entry point ``robot-snapshots`` (``--help`` lists the flags); prints the path of every PNG. Bad
     flags exit with status 2 and one line naming the flag."""
-    import tyro
-
-    cfg = tyro.cli(SnapshotsConfig, args=argv, prog="robot-snapshots")
+    cfg = cli(SnapshotsConfig, argv, prog="robot-snapshots")
     try:
         cfg.validate()
         cfg.out.mkdir(parents=True, exist_ok=True)

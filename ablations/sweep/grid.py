@@ -96,8 +96,9 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     --vary, run ids ``<task>_<arm>_seed<seed>...``, each run with its arm's mode and flags (after --set).
     """
     from ablations.runs import RunConfig
-    from gradlab.config import ModePlan
+    from gradlab.config import ModePlan, check_as_given
     from gradlab.shac import MEMBER_FIELDS
+    from tasks.command_line import check_argv
 
     cfg.validate()
     set_table = parse_set(cfg.set) if set_table is None else {norm_key(k, where=f"set {k}"): v
@@ -129,12 +130,17 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
                           *(a for name, value in {**arm_flags, **flags}.items() if name not in MEMBER_FIELDS
                             for a in flag_args(name, value))]
             try:
+                check_argv(RunConfig, [*args, *RUN_ARGS], "ablate")  # what tyro would answer with a box
+            except ValueError as e:
+                raise ValueError(f"run {run_id}: ablate rejects its flags: {' '.join(args)} ({e})") from None
+            try:
                 run_cfg = tyro.cli(RunConfig, args=[*args, *RUN_ARGS])
             except SystemExit:
                 # tyro has printed what it rejected; name the run and its flags.
                 raise ValueError(f"run {run_id}: ablate rejects its flags: {' '.join(args)}") from None
             try:
                 run_cfg.validate()
+                check_as_given(run_cfg)
             except ValueError as e:
                 raise ValueError(f"run {run_id}: {e}") from None
             if run_id in seen:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,3 +109,50 @@ def test_snapshots_tiny_run_writes_the_strip(tmp_path, capsys):
     assert image.shape == (16, 32, 3)
     np.testing.assert_array_equal(image, expected)  # PNG is lossless
     assert set(tasks.TASKS) == set(snapshots.SnapshotsConfig().tasks)
+
+
+def test_the_readmes_floors_command_leaves_the_shipped_file_alone(tmp_path, capsys, monkeypatch):
+    """The README's ``task-floors --tasks cartpole hopper ant``, run in a checkout whose shipped floors file is
+    read-only, writes ./floors.json and leaves the shipped one as it was; updating it is naming it."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    assert "task-floors --tasks cartpole hopper ant " in readme
+    monkeypatch.setattr(floors, "make", lambda name, n, **kw: tasks.make(name, n, **kw, episode_length=4))
+    real = floors.SHIPPED
+    real_shipped = real.read_bytes()
+    shipped = tmp_path / "docs" / "floors.json"
+    shipped.parent.mkdir()
+    shipped.write_bytes(real_shipped)
+    shipped.chmod(0o444)
+    monkeypatch.setattr(floors, "SHIPPED", shipped)
+    monkeypatch.chdir(tmp_path)
+    try:
+        assert floors.main(["--tasks", "cartpole", "hopper", "ant", "--no-progress"]) == 0
+        assert capsys.readouterr().out.rstrip().endswith("wrote floors.json")
+        assert set(json.loads((tmp_path / "floors.json").read_text())["tasks"]) == {"cartpole", "hopper", "ant"}
+        assert shipped.read_bytes() == real_shipped and (shipped.stat().st_mode & 0o777) == 0o444
+        # from the shipped file's own folder, the default would be the shipped file: refused, not written
+        monkeypatch.chdir(shipped.parent)
+        with pytest.raises(SystemExit) as e:
+            floors.main(["--tasks", "cartpole", "--no-progress"])
+        assert e.value.code == 2 and "is the shipped" in _one_line_error(capsys)
+        assert shipped.read_bytes() == real_shipped
+        # named, it is updated: a choice made on the command line
+        assert floors.main(["--tasks", "cartpole", "--no-progress", "--out", str(shipped)]) == 0
+        assert json.loads(shipped.read_text())["tasks"]["cartpole"]["episode_length"] == 4
+    finally:
+        shipped.chmod(0o644)
+    assert real.read_bytes() == real_shipped
+
+
+@pytest.mark.parametrize(("main", "argv", "message"), [
+    (floors.main, ["--episodes", "1.5"], "--episodes must be an integer, got '1.5'"),
+    (floors.main, ["--threads", "3"], "--threads 3 is more than the 2 cores"),
+    (floors.main, ["--tasks", "cartpole", "--tasks", "ant"], "--tasks is given twice"),
+    (snapshots.main, ["--size", "big"], "--size must be an integer, got 'big'"),
+])
+def test_bad_values_are_one_line_not_a_box(main, argv, message, capsys, monkeypatch, tmp_path):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--out", str(tmp_path / "out")])
+    assert e.value.code == 2 and message in _one_line_error(capsys)
+    assert not (tmp_path / "out").exists()
