@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from ablations.run_folder import evaluation_of, find_runs
+from ablations.run_folder import COMPACTED, CONFIG, METRICS, SUMMARY, evaluation_of, find_runs
 from ablations.seeds import arm_label, arm_names, iteration_times
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -74,3 +74,13 @@ def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alon
         assert {a.source for a in t.found.values()} == {f"benchmark {bench.name}"}
         # blind renders nothing, decoupled renders without a backward through the image, full does both
         assert t.ms["blind"] < t.ms["decoupled"] < min(t.ms["full-soft"], t.ms["full-hard-dva"])
+
+
+def test_every_shipped_run_folder_is_compacted():
+    # The run data is most of what a clone checks out; plain metrics and summaries would make it six times larger
+    # (docs/design.md, "Shipped run data"). Each folder keeps both, compacted, and nothing plain beside them.
+    folders = sorted(p.parent for p in DOCS.glob(f"*/runs/**/{CONFIG}"))
+    assert folders
+    for folder in folders:
+        names = {p.name for p in folder.iterdir()}
+        assert {METRICS + COMPACTED, SUMMARY + COMPACTED} <= names and not names & {METRICS, SUMMARY}, folder
