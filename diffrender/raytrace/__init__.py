@@ -43,7 +43,7 @@ import torch
 
 from ..camera import Camera
 from ..raster.kernel import vertex_normals
-from ..render import _can_sync
+from ..render import _can_sync, _check_float
 from ..settings import RasterSettings
 from ..shading import unit_light
 
@@ -74,13 +74,6 @@ def _warp() -> tuple[Any, Any]:
 
 def _not_int(x) -> bool:
     return isinstance(x, bool) or not isinstance(x, int)
-
-
-def _check_float(name: str, x, shape_desc: str) -> None:
-    if not isinstance(x, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor of shape {shape_desc}, got {type(x).__name__}")
-    if x.dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
 
 
 class RayTracer:
