@@ -20,7 +20,7 @@ def _last_evaluated_iteration(run) -> int:
 
 
 def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_2000_iterations():
-    # issue 35: decoupled, full, full with the hard raster model and blind, seeds 0-2, one compiled GPU run
+    # decoupled, full, full with the hard raster model and blind, seeds 0-2, one compiled GPU run
     runs = find_runs([DOCS / "hopper_population_h100" / "runs"])
     assert len(runs) == 12
     assert {r.population["folder"] for r in runs} == {"hopper_population12"}
@@ -35,7 +35,7 @@ def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_20
 
 
 def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_iterations():
-    # issue 36, item 7: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
+    # the seeded experiment: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
     runs = find_runs([DOCS / "seeded_h100" / "runs"])
     ant = [r for r in runs if r.task == "ant"]
     assert len(ant) == 12  # no (arm, seed) twice
@@ -50,8 +50,8 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
     ("cartpole-swingup", {f"cartpole_swingup_population_{p}" for p in "abcd"}),
 ])
 def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations(task, folders):
-    # issue 36, item 7: hopper and cartpole-swingup, the four arms, 5 seeds, at least 3000 iterations; compiled GPU
-    # populations
+    # the seeded experiment: hopper and cartpole-swingup, the four arms, 5 seeds, at least 3000 iterations;
+    # compiled GPU populations
     runs = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == task]
     assert len(runs) == 20  # no (arm, seed) twice
     arms = arm_names(runs)
@@ -63,8 +63,8 @@ def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_
 
 
 def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alone():
-    # issue 36, item 4: the equal-wall-clock view needs each arm's iteration time measured alone; the README's
-    # report command passes this benchmark, whose rows must match every arm's settings (sizes, raster, compile)
+    # the equal-wall-clock view needs each arm's iteration time measured alone; the README's report command passes
+    # this benchmark, whose rows must match every arm's settings (sizes, raster, compile)
     runs = find_runs([DOCS / "seeded_h100" / "runs"])
     bench = ROOT / "benchmarks" / "results" / "iteration_arms_alone_h100_20261127.json"
     times = iteration_times(runs, arm_label(runs), [bench])
