@@ -22,8 +22,6 @@ from pathlib import Path
 
 from _common import commit, write_json
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 ARMS = (("decoupled", None), ("full", None), ("full", "hard"), ("blind", None))
 
 

@@ -16,10 +16,7 @@ import argparse
 import json
 import shutil
 import statistics
-import sys
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ablations.population import POPULATION
 from ablations.run_folder import METRICS, SUMMARY, evaluation_of, read_metrics, thin_copy

@@ -344,10 +344,17 @@ if triton is not None:
 
 
     @triton.jit
-    def _floor_rays(rot, eye, prm, pix, W):
-        """Per pixel centre: the camera-space ray (dxc, dyc, 1), the world ray's (dx, dy), the eye's height,
-        whether dz is usable (ok) and dz (1 where not), the hit flag, the hit's depth t (znear where there is
-        no hit) and the focal length [px]."""
+    def _floor_rays(rot_ptr, eye_ptr, prm, HW, W, BLOCK: tl.constexpr):
+        """What both floor kernels start from, for the program's environment ``env`` and BLOCK pixels ``pix``
+        (``m``: those inside the image), and per pixel centre the camera-space ray (dxc, dyc, 1), the world
+        ray's (dx, dy), the eye's height, whether dz is usable (ok) and dz (1 where not), the hit flag, the
+        hit's depth t (znear where there is no hit), the focal length [px] and the floor point (xw, yw) [m] at
+        depth t."""
+        env = tl.program_id(1).to(tl.int64)
+        pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        m = pix < HW
+        rot = rot_ptr + env * 9
+        eye = eye_ptr + env * 3
         cx = tl.load(prm)
         cy = tl.load(prm + 1)
         focal = tl.load(prm + 2)
@@ -366,7 +373,9 @@ if triton is not None:
         t0 = -ez / dzs
         hit = ok & (t0 > znear)
         t = tl.where(hit, t0, znear)
-        return dxc, dyc, dx, dy, ez, ok, dzs, hit, t, focal
+        xw = tl.load(eye) + t * dx
+        yw = tl.load(eye + 1) + t * dy
+        return env, pix, m, dxc, dyc, dx, dy, ez, ok, dzs, hit, t, focal, xw, yw
 
     @triton.jit
     def _tanh(a):
@@ -379,18 +388,11 @@ if triton is not None:
     def _floor_forward(rot_ptr, eye_ptr, prm, out_ptr, HW, W, BLOCK: tl.constexpr):
         """One program per (BLOCK pixels, environment): the floor's normalised depth, lit colour and hit flag
         (1.0 / 0.0) into out (B, 5, H, W)."""
-        env = tl.program_id(1).to(tl.int64)
-        pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        m = pix < HW
-        rot = rot_ptr + env * 9
-        eye = eye_ptr + env * 3
-        _, _, dx, dy, _, _, dzs, hit, t, focal = _floor_rays(rot, eye, prm, pix, W)
+        env, pix, m, _, _, _, _, _, _, dzs, hit, t, focal, xw, yw = _floor_rays(rot_ptr, eye_ptr, prm, HW, W, BLOCK)
         zfar = tl.load(prm + 4)
         s = tl.load(prm + 7)
         pi = tl.load(prm + 9)
         light = tl.load(prm + 10)
-        xw = tl.load(eye) + t * dx
-        yw = tl.load(eye + 1) + t * dy
         # pixel footprint on the floor [m]: depth / focal, stretched by the grazing angle
         footprint = t / (focal * tl.abs(dzs))
         sharp = tl.minimum(s / (tl.load(prm + 8) * footprint), _MAX_SHARP)
@@ -409,18 +411,12 @@ if triton is not None:
         """One program per (BLOCK pixels, environment): the gradients of its pixels' depth and colour planes
         (g: (B, >= 4, H, W), rows 0-3 read) mapped to the camera's rotation (3, 3) and eye (3), summed over
         the pixels, then added atomically."""
-        env = tl.program_id(1).to(tl.int64)
-        pix = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        m = pix < HW
-        rot = rot_ptr + env * 9
-        eye = eye_ptr + env * 3
-        dxc, dyc, dx, dy, ez, ok, dzs, hit, t, focal = _floor_rays(rot, eye, prm, pix, W)
+        env, pix, m, dxc, dyc, dx, dy, ez, ok, dzs, hit, t, focal, xw, yw = _floor_rays(rot_ptr, eye_ptr, prm, HW,
+                                                                                        W, BLOCK)
         zfar = tl.load(prm + 4)
         s = tl.load(prm + 7)
         pi = tl.load(prm + 9)
         light = tl.load(prm + 10)
-        xw = tl.load(eye) + t * dx
-        yw = tl.load(eye + 1) + t * dy
         adz = tl.abs(dzs)
         footprint = t / (focal * adz)
         sharp_raw = s / (tl.load(prm + 8) * footprint)

@@ -43,7 +43,7 @@ import torch
 
 from ..camera import Camera
 from ..raster.kernel import vertex_normals
-from ..render import _can_sync
+from ..render import _can_sync, _check_float
 from ..settings import RasterSettings
 from ..shading import unit_light
 
@@ -74,13 +74,6 @@ def _warp() -> tuple[Any, Any]:
 
 def _not_int(x) -> bool:
     return isinstance(x, bool) or not isinstance(x, int)
-
-
-def _check_float(name: str, x, shape_desc: str) -> None:
-    if not isinstance(x, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor of shape {shape_desc}, got {type(x).__name__}")
-    if x.dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"{name} must be float32 or float64, got {x.dtype}")
 
 
 class RayTracer:
@@ -212,7 +205,10 @@ class RayTracer:
 
         s = settings
         floor = s.floor
-        self._constants = dict(
+        self._scene = scene = kernels.Scene()
+        scene.indices, scene.points = self._wp_indices, self._wp_points
+        scene.normals, scene.colors = self._wp_normals, self._wp_colors
+        for name, value in dict(
             znear=float(s.znear),
             zfar=_NO_FAR_LIMIT if s.raster_model == "alpha" else float(s.zfar),
             light=wp.vec3(*unit_light(s.light_dir)),
@@ -227,7 +223,8 @@ class RayTracer:
             cull_backfaces=int(s.cull_backfaces),
             floor_occludes=int(s.raster_model != "alpha"),
             shadows=int(shadows),
-        )
+        ).items():
+            setattr(scene, name, value)
         wp.load_module(kernels, device=self._wp_device)
 
     def __call__(self, verts: torch.Tensor, colors: torch.Tensor, camera: Camera, *,
@@ -374,8 +371,7 @@ class RayTracer:
                     block_dim=self.block_dim if self.device.type == "cuda" else None, inputs=[
                         self._mesh.id if self._mesh is not None else 0, int(self._mesh is not None),
                         self._wp_roots, tile_h, tile_w, self.rays_per_thread,
-                        self._wp_rotation, self._wp_eye, self._wp_indices, self._wp_points, self._wp_normals,
-                        self._wp_colors, float(camera.focal), *self._constants.values(), wp.from_torch(image)])
+                        self._wp_rotation, self._wp_eye, float(camera.focal), self._scene, wp.from_torch(image)])
             else:
                 launch.set_param_by_name("focal", float(camera.focal))
                 launch.set_param_by_name_from_ctype("image", wp.from_torch(image, return_ctype=True))

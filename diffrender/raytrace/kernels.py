@@ -16,7 +16,7 @@ import warp as wp
 
 from ..floor import _MAX_SHARPNESS
 
-__all__ = ["group_roots", "trace"]
+__all__ = ["Scene", "group_roots", "trace"]
 
 # Back faces skipped along one ray when culling (a ray leaving a closed mesh meets at most a few).
 _MAX_CULLED = wp.constant(16)
@@ -44,6 +44,33 @@ def group_roots(mesh: wp.uint64, roots: wp.array(dtype=wp.int32)):
     roots[b] = wp.mesh_get_group_root(mesh, b)
 
 
+@wp.struct
+class Scene:
+    """What every pixel's shading reads besides its own ray and the camera's focal length, the same for every
+    frame of a tracer: the meshes' vertex data (``indices``: the mesh's (B * F * 3) global vertex ids;
+    ``points`` (the mesh's), ``normals``, ``colors``: (B * V) per global vertex), the clip planes [m], the
+    light, the background colour, the floor's checker and the flags (0/1 ints)."""
+
+    indices: wp.array(dtype=wp.int32)
+    points: wp.array(dtype=wp.vec3)
+    normals: wp.array(dtype=wp.vec3)
+    colors: wp.array(dtype=wp.vec3)
+    znear: float
+    zfar: float
+    light: wp.vec3
+    ambient: float
+    diffuse: float
+    background: wp.vec3
+    has_floor: int
+    square_size: float
+    color_a: wp.vec3
+    color_b: wp.vec3
+    edge_px: float
+    cull_backfaces: int
+    floor_occludes: int
+    shadows: int
+
+
 @wp.func
 def _shade(
     b: int,
@@ -56,25 +83,8 @@ def _shade(
     root: int,
     rot: wp.mat33,
     origin: wp.vec3,
-    indices: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
-    colors: wp.array(dtype=wp.vec3),
     focal: float,
-    znear: float,
-    zfar: float,
-    light: wp.vec3,
-    ambient: float,
-    diffuse: float,
-    background: wp.vec3,
-    has_floor: int,
-    square_size: float,
-    color_a: wp.vec3,
-    color_b: wp.vec3,
-    edge_px: float,
-    cull_backfaces: int,
-    floor_occludes: int,
-    shadows: int,
+    scene: Scene,
 ) -> wp.vec3:
     """The colour of pixel (i, j) of environment b (see :func:`trace`)."""
     dxc = (float(j) + 0.5 - 0.5 * float(width)) / focal
@@ -85,26 +95,26 @@ def _shade(
     # the analytic floor z = 0 where the ray meets it beyond znear (also beyond zfar: it reaches the horizon)
     floor_hit = int(0)
     t_floor = float(0.0)
-    if has_floor != 0 and wp.abs(d[2]) > 1.0e-12:
+    if scene.has_floor != 0 and wp.abs(d[2]) > 1.0e-12:
         t_floor = -origin[2] / d[2]
-        if t_floor > znear:
+        if t_floor > scene.znear:
             floor_hit = 1
 
     # faces between znear and zfar, and in front of the floor where the floor occludes them
-    far = zfar
-    if floor_hit != 0 and floor_occludes != 0:
+    far = scene.zfar
+    if floor_hit != 0 and scene.floor_occludes != 0:
         far = wp.min(far, t_floor)
     face = int(-1)
     bu = float(0.0)
     bv = float(0.0)
     depth = float(0.0)
-    if has_mesh != 0 and far > znear:
-        start = znear
+    if has_mesh != 0 and far > scene.znear:
+        start = scene.znear
         for _ in range(_MAX_CULLED):
             q = wp.mesh_query_ray(mesh, origin + start * d, d, far - start, root)
             if not q.result:
                 break
-            if cull_backfaces != 0 and q.sign < 0.0:
+            if scene.cull_backfaces != 0 and q.sign < 0.0:
                 start = start + q.t + _RAY_EPSILON * (1.0 + start + q.t)
                 if start >= far:
                     break
@@ -115,41 +125,43 @@ def _shade(
             depth = start + q.t
             break
 
-    color = background
+    color = scene.background
     if face >= 0:
         # barycentric weights of the face's corners: the hit is bu * p0 + bv * p1 + (1 - bu - bv) * p2
-        v0 = indices[3 * face]
-        v1 = indices[3 * face + 1]
-        v2 = indices[3 * face + 2]
+        v0 = scene.indices[3 * face]
+        v1 = scene.indices[3 * face + 1]
+        v2 = scene.indices[3 * face + 2]
         bw = 1.0 - bu - bv
-        n = bu * normals[v0] + bv * normals[v1] + bw * normals[v2]
-        albedo = bu * colors[v0] + bv * colors[v1] + bw * colors[v2]
-        shade = _lambert(n, light, ambient, diffuse)
-        if shadows != 0 and shade > ambient:
+        n = bu * scene.normals[v0] + bv * scene.normals[v1] + bw * scene.normals[v2]
+        albedo = bu * scene.colors[v0] + bv * scene.colors[v1] + bw * scene.colors[v2]
+        shade = _lambert(n, scene.light, scene.ambient, scene.diffuse)
+        if scene.shadows != 0 and shade > scene.ambient:
             p = origin + depth * d
             # leave the surface on the side facing the light (the geometric normal, not the interpolated one,
             # decides which side the shadow ray starts on)
-            ng = wp.normalize(wp.cross(points[v1] - points[v0], points[v2] - points[v0]))
-            if wp.dot(ng, light) < 0.0:
+            ng = wp.normalize(wp.cross(scene.points[v1] - scene.points[v0], scene.points[v2] - scene.points[v0]))
+            if wp.dot(ng, scene.light) < 0.0:
                 ng = -ng
             eps = _RAY_EPSILON * (1.0 + depth)
-            if wp.mesh_query_ray_anyhit(mesh, p + eps * (ng + light), light, _SHADOW_RAY_LENGTH, root):
-                shade = ambient
+            if wp.mesh_query_ray_anyhit(mesh, p + eps * (ng + scene.light), scene.light, _SHADOW_RAY_LENGTH,
+                                        root):
+                shade = scene.ambient
         color = albedo * shade
     elif floor_hit != 0:
         x = origin[0] + t_floor * d[0]
         y = origin[1] + t_floor * d[1]
         # the checker of diffrender.floor.floor_candidate: an edge spans edge_px pixels at this depth
         footprint = t_floor / (focal * wp.abs(d[2]))
-        sharpness = wp.min(square_size / (wp.pi * edge_px * footprint), _CHECKER_MAX_SHARPNESS)
-        mix = 0.5 + 0.5 * wp.tanh(sharpness * wp.sin(wp.pi * x / square_size) * wp.sin(wp.pi * y / square_size))
-        shade = ambient + diffuse * wp.max(light[2], 0.0)
-        if shadows != 0 and has_mesh != 0 and light[2] > 0.0:
+        sharpness = wp.min(scene.square_size / (wp.pi * scene.edge_px * footprint), _CHECKER_MAX_SHARPNESS)
+        mix = 0.5 + 0.5 * wp.tanh(sharpness * wp.sin(wp.pi * x / scene.square_size)
+                                  * wp.sin(wp.pi * y / scene.square_size))
+        shade = scene.ambient + scene.diffuse * wp.max(scene.light[2], 0.0)
+        if scene.shadows != 0 and has_mesh != 0 and scene.light[2] > 0.0:
             eps = _RAY_EPSILON * (1.0 + t_floor)
-            p = wp.vec3(x, y, 0.0) + eps * (wp.vec3(0.0, 0.0, 1.0) + light)
-            if wp.mesh_query_ray_anyhit(mesh, p, light, _SHADOW_RAY_LENGTH, root):
-                shade = ambient
-        color = (color_b + mix * (color_a - color_b)) * shade
+            p = wp.vec3(x, y, 0.0) + eps * (wp.vec3(0.0, 0.0, 1.0) + scene.light)
+            if wp.mesh_query_ray_anyhit(mesh, p, scene.light, _SHADOW_RAY_LENGTH, root):
+                shade = scene.ambient
+        color = (scene.color_b + mix * (scene.color_a - scene.color_b)) * shade
     return color
 
 
@@ -163,25 +175,8 @@ def trace(
     rays_per_thread: int,
     rotation: wp.array(dtype=wp.mat33),
     eye: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
-    colors: wp.array(dtype=wp.vec3),
     focal: float,
-    znear: float,
-    zfar: float,
-    light: wp.vec3,
-    ambient: float,
-    diffuse: float,
-    background: wp.vec3,
-    has_floor: int,
-    square_size: float,
-    color_a: wp.vec3,
-    color_b: wp.vec3,
-    edge_px: float,
-    cull_backfaces: int,
-    floor_occludes: int,
-    shadows: int,
+    scene: Scene,
     image: wp.array4d(dtype=wp.float32),
 ):
     """Shade ``rays_per_thread`` pixels of environment b into ``image[b, :, i, j]`` (B, 3, H, W).
@@ -191,9 +186,9 @@ def trace(
     so walk the same BVH nodes; a thread shades its pixel in ``rays_per_thread`` such blocks stacked
     downwards. Pixels beyond the image (a partial last tile) are skipped.
 
-    ``mesh`` holds every environment's triangles, environment b's as group b, whose subtree is ``roots[b]``
-    (``indices``: the mesh's (B * F * 3) global vertex ids; ``points`` (the mesh's), ``normals``,
-    ``colors``: (B * V) per global vertex). ``rotation``, ``eye``: (B) world -> camera. Flags are 0/1 ints.
+    ``mesh`` holds every environment's triangles, environment b's as group b, whose subtree is ``roots[b]``;
+    ``scene``: its vertex data and the settings (:class:`Scene`). ``rotation``, ``eye``: (B) world -> camera.
+    Flags are 0/1 ints.
     """
     b, ty, tx, lane = wp.tid()
     height = image.shape[2]
@@ -210,9 +205,7 @@ def trace(
     for r in range(rays_per_thread):
         i = i0 + r * tile_h
         if i < height:
-            color = _shade(b, i, j, height, width, mesh, has_mesh, root, rot, origin, indices, points, normals,
-                           colors, focal, znear, zfar, light, ambient, diffuse, background, has_floor, square_size,
-                           color_a, color_b, edge_px, cull_backfaces, floor_occludes, shadows)
+            color = _shade(b, i, j, height, width, mesh, has_mesh, root, rot, origin, focal, scene)
             image[b, 0, i, j] = color[0]
             image[b, 1, i, j] = color[1]
             image[b, 2, i, j] = color[2]

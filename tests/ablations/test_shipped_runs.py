@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from ablations.run_folder import evaluation_of, find_runs
+from ablations.run_folder import COMPACTED, CONFIG, METRICS, SUMMARY, evaluation_of, find_runs
 from ablations.seeds import arm_label, arm_names, iteration_times
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -20,7 +20,7 @@ def _last_evaluated_iteration(run) -> int:
 
 
 def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_2000_iterations():
-    # issue 35: decoupled, full, full with the hard raster model and blind, seeds 0-2, one compiled GPU run
+    # decoupled, full, full with the hard raster model and blind, seeds 0-2, one compiled GPU run
     runs = find_runs([DOCS / "hopper_population_h100" / "runs"])
     assert len(runs) == 12
     assert {r.population["folder"] for r in runs} == {"hopper_population12"}
@@ -35,7 +35,7 @@ def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_20
 
 
 def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_iterations():
-    # issue 36, item 7: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
+    # the seeded experiment: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
     runs = find_runs([DOCS / "seeded_h100" / "runs"])
     ant = [r for r in runs if r.task == "ant"]
     assert len(ant) == 12  # no (arm, seed) twice
@@ -50,8 +50,8 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
     ("cartpole-swingup", {f"cartpole_swingup_population_{p}" for p in "abcd"}),
 ])
 def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations(task, folders):
-    # issue 36, item 7: hopper and cartpole-swingup, the four arms, 5 seeds, at least 3000 iterations; compiled GPU
-    # populations
+    # the seeded experiment: hopper and cartpole-swingup, the four arms, 5 seeds, at least 3000 iterations;
+    # compiled GPU populations
     runs = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == task]
     assert len(runs) == 20  # no (arm, seed) twice
     arms = arm_names(runs)
@@ -63,8 +63,8 @@ def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_
 
 
 def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alone():
-    # issue 36, item 4: the equal-wall-clock view needs each arm's iteration time measured alone; the README's
-    # report command passes this benchmark, whose rows must match every arm's settings (sizes, raster, compile)
+    # the equal-wall-clock view needs each arm's iteration time measured alone; the README's report command passes
+    # this benchmark, whose rows must match every arm's settings (sizes, raster, compile)
     runs = find_runs([DOCS / "seeded_h100" / "runs"])
     bench = ROOT / "benchmarks" / "results" / "iteration_arms_alone_h100_20261127.json"
     times = iteration_times(runs, arm_label(runs), [bench])
@@ -74,3 +74,13 @@ def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alon
         assert {a.source for a in t.found.values()} == {f"benchmark {bench.name}"}
         # blind renders nothing, decoupled renders without a backward through the image, full does both
         assert t.ms["blind"] < t.ms["decoupled"] < min(t.ms["full-soft"], t.ms["full-hard-dva"])
+
+
+def test_every_shipped_run_folder_is_compacted():
+    # The run data is most of what a clone checks out; plain metrics and summaries would make it six times larger
+    # (docs/design.md, "Shipped run data"). Each folder keeps both, compacted, and nothing plain beside them.
+    folders = sorted(p.parent for p in DOCS.glob(f"*/runs/**/{CONFIG}"))
+    assert folders
+    for folder in folders:
+        names = {p.name for p in folder.iterdir()}
+        assert {METRICS + COMPACTED, SUMMARY + COMPACTED} <= names and not names & {METRICS, SUMMARY}, folder

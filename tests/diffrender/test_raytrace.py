@@ -398,7 +398,7 @@ def test_bad_input_is_named():
 
 
 # ------------------------------------------------------------------------------------------------ benchmark
-def test_benchmark_runs_on_the_cpu(tmp_path, capsys):
+def test_benchmark_runs_on_the_cpu(tmp_path, capsys, monkeypatch):
     """benchmarks/raytrace.py --tiny on Warp's CPU device: every variant timed, its image the default's, the
     JSON with its provenance and the table printed last."""
     import importlib.util
@@ -406,6 +406,7 @@ def test_benchmark_runs_on_the_cpu(tmp_path, capsys):
     from pathlib import Path
 
     path = Path(__file__).resolve().parents[2] / "benchmarks" / "raytrace.py"
+    monkeypatch.syspath_prepend(str(path.parent))  # its sibling _common, as `python benchmarks/raytrace.py` finds it
     spec = importlib.util.spec_from_file_location("bench_raytrace", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
