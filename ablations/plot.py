@@ -58,7 +58,8 @@ if TYPE_CHECKING:
 
 __all__ = ["PlotConfig", "group_runs", "run_labels", "aggregate", "make_plots",
            "build_figures", "FigureSet", "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS",
-           "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs"]
+           "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs",
+           "PNG_METADATA", "draw_learning_curves", "draw_difference_curves"]
 
 _EVAL = ("Stars: the deterministic evaluation return of each run (bar: +- std over its evaluation episodes, "
          "where recorded); dotted and dash-dotted lines: the zero- and random-action return floors.")
@@ -313,15 +314,121 @@ class FigureSet:
             plt.close(fig)
 
 
+#: PNG metadata of every figure: a fixed Software entry and no date, so that a figure whose data did not change
+#: is byte for byte the same file (matplotlib writes its version otherwise).
+PNG_METADATA = {"Software": "pixelgrad ablations"}
+
+
 def _save(fig, path: Path) -> None:
+    """The figure as a PNG at ``path``, written atomically, with :data:`PNG_METADATA` only; the figure is closed."""
     import matplotlib.pyplot as plt
 
     from gradlab.checkpoint import atomic_write_bytes
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight", metadata=PNG_METADATA)
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
+
+
+def _floor_lines(ax, floors: dict[str, dict] | None) -> None:
+    for policy, st in (floors or {}).items():
+        style, name = _FLOOR_LINES[policy]
+        ax.axhline(st["mean"], color="0.15", ls=style, lw=1.0, zorder=1.5, label=f"{name} floor ({st['mean']:.4g})",
+                   gid=f"floor:{policy}")
+
+
+def _draw_band(ax, band, style: ArmStyle | None, label: str, *, lw: float = 1.6) -> None:
+    """A band's mean line (solid where 2 or more runs have the point, thin dotted where only one does) and its
+    interval shaded where it exists."""
+    look = {"color": style.color} if style is not None else {}
+    many = band.n >= 2
+    (line,) = ax.plot(band.x, np.where(many, band.mean, np.nan), lw=lw, label=label, gid="mean",
+                      ls=style.linestyle if style is not None else "-", **look)
+    if not many.all():
+        ax.plot(band.x, np.where(~many, band.mean, np.nan), lw=0.8, ls=":", color=line.get_color(),
+                marker=".", ms=3, gid="single run", label=f"_{label} (1 run)")
+    ax.fill_between(band.x, band.ci_low, band.ci_high, where=many, color=line.get_color(), alpha=0.18, lw=0)
+
+
+def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathLike, *,
+                         floors: dict[str, dict] | None = None, styles: dict[str, ArmStyle] | None = None,
+                         confidence: float = 0.95, exact_max_n: int = 10) -> Path:
+    """One task's learning curves per arm in two panels, the deterministic **evaluation return** and the
+    **training return** (the exploring policy's last 100 episodes), against iterations: arm -> {"evaluation":
+    Band, "training": Band} (``ablations.stats.mean_band``), the band the mean's bootstrap interval over seeds
+    (shaded where 2 or more runs have the point; a single run's stretch dotted), the zero- and random-action
+    floors as horizontal lines; the legend gives each arm's runs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11.0, 3.8), layout="constrained")
+    for ax, kind, ylabel in ((axes[0], "evaluation", "evaluation return\n(deterministic policy)"),
+                             (axes[1], "training", "training return\n(last 100 episodes, exploring)")):
+        for arm, b in bands.items():
+            band = b.get(kind)
+            if band is not None and band.x.size:
+                _draw_band(ax, band, (styles or {}).get(arm), f"{arm} (n={int(band.n.max())})")
+        _floor_lines(ax, floors)
+        ax.set_xlabel("iteration")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        _one_line_per_axis_value(ax)
+    axes[0].set_title(f"{task}: evaluation return")
+    axes[1].set_title(f"{task}: training return")
+    fig.suptitle(f"mean over seeds; shaded: {confidence:.0%} bootstrap interval of the mean (exact up to "
+                 f"{exact_max_n} seeds)\nwhere 2 or more runs have the point; dotted: a point only one run has",
+                 fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside right upper", fontsize=8)
+    path = Path(path)
+    _save(fig, path)
+    return path
+
+
+def draw_difference_curves(task: str, curves: dict[tuple[str, str], object], path: str | os.PathLike, *,
+                           styles: dict[str, ArmStyle] | None = None, reference: str = "decoupled") -> Path:
+    """One task's paired differences against ``reference`` along the training budget
+    (``ablations.stats.difference_curves``: (arm, axis) -> DifferenceCurve): a panel in iterations and one in
+    modelled wall-clock where given; per arm the mean difference (line), the median (thin, dashed) and the mean's
+    interval at each evaluation (shaded), and zero."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes_used = [a for a in ("iteration", "wall-clock") if any(k[1] == a for k in curves)]
+    fig, axes = plt.subplots(1, max(len(axes_used), 1), figsize=(5.6 * max(len(axes_used), 1), 3.8), squeeze=False,
+                             layout="constrained")
+    conf = next(iter(curves.values())).confidence if curves else 0.95
+    for ax, axis in zip(axes[0], axes_used):
+        for (arm, a), dc in curves.items():
+            if a != axis:
+                continue
+            style = (styles or {}).get(arm)
+            look = {"color": style.color} if style is not None else {}
+            (line,) = ax.plot(dc.x, dc.mean, lw=1.6, marker="o", ms=3, label=f"{arm} (n={int(dc.n.max())})",
+                              gid="mean", ls=style.linestyle if style is not None else "-", **look)
+            ax.plot(dc.x, dc.median, lw=0.9, ls="--", color=line.get_color(), gid="median", label=f"_{arm} median")
+            ax.fill_between(dc.x, dc.ci_low, dc.ci_high, color=line.get_color(), alpha=0.18, lw=0)
+        ax.axhline(0.0, color="0.15", lw=1.0, zorder=1.5)
+        ax.set_xlabel("iteration" if axis == "iteration" else "modelled training time [s] (iterations x the arm's "
+                      "iteration time alone)")
+        ax.set_ylabel(f"final return: arm − {reference}\n(paired by seed)")
+        ax.set_title(f"{task}: at equal {'iterations' if axis == 'iteration' else 'wall-clock'}")
+        ax.grid(alpha=0.3)
+        _one_line_per_axis_value(ax)
+    fig.suptitle(f"line: mean paired difference, dashed: median, shaded: {conf:.0%} bootstrap interval of the "
+                 "mean\nat each evaluation (pointwise, not corrected for the many budgets)", fontsize=8)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside right upper", fontsize=8)
+    path = Path(path)
+    _save(fig, path)
+    return path
 
 
 def _frame_keys(runs: list[Run]) -> list[str]:

@@ -13,7 +13,7 @@ precipice", 2021), computed here with numpy so that no resampling library (and n
   ``floor(n / 4)`` seeds dropped at each end, so 3 seeds give the plain mean, 5 seeds the mean of the middle 3);
 * **95 % CI**: the percentile interval of the bootstrap over seeds. Up to ``EXACT_BOOTSTRAP_MAX_N`` seeds it is
   exact: every distinct resample is enumerated with its multinomial probability (C(2n - 1, n) of them: 10 for 3
-  seeds, 126 for 5, 92378 for 10), so the interval has no draw noise; beyond, ``reps`` resamples drawn with
+  seeds, 126 for 5, 6435 for 8), so the interval has no draw noise; beyond, ``reps`` resamples drawn with
   ``numpy.random.default_rng(seed)``. Over 3 seeds the interval is the range [min, max] of the seeds (each
   extreme resample has probability 1/27 > 2.5 %): it excludes 0 exactly when all three agree in sign, which
   happens a quarter of the time with no difference at all. Read it as the range it is;
@@ -67,15 +67,16 @@ __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", 
            "BLIND_PHASE_ITERS", "Verdict", "Gate", "verdict", "MIN_SEEDS", "ALPHA", "EXACT_BOOTSTRAP_MAX_N",
            "EXACT_SIGN_FLIP_MAX_N", "bootstrap_distribution", "percentile_interval", "sign_flip_p", "holm",
            "correct", "correct_statistics", "common_window", "paired_difference", "DifferenceCurve",
-           "difference_curves", "sign_holds"]
+           "difference_curves", "sign_holds", "Band", "mean_band"]
 
 #: Bootstrap resamples per confidence interval where the bootstrap is not enumerated (more seeds than
 #: EXACT_BOOTSTRAP_MAX_N), and for the probability of improvement's interval.
 DEFAULT_REPS = 2000
 #: Seed of the random generator (``numpy.random.default_rng``) of every drawn resample or sign pattern.
 DEFAULT_SEED = 0
-#: Up to this many seeds a bootstrap interval enumerates every distinct resample (92378 at 10 seeds).
-EXACT_BOOTSTRAP_MAX_N = 10
+#: Up to this many seeds a bootstrap interval enumerates every distinct resample (6435 at 8 seeds; 92378 at 10
+#: would make a report's thousands of intervals slow for no gain a reader could see).
+EXACT_BOOTSTRAP_MAX_N = 8
 #: Up to this many paired seeds the sign-flip p-value enumerates every sign pattern (65536 at 16).
 EXACT_SIGN_FLIP_MAX_N = 16
 #: Family-wise error level of the Holm-corrected verdicts.
@@ -765,6 +766,46 @@ def difference_curves(curves: Sequence[Curve], *, reference: str = "decoupled",
     return out
 
 
+@dataclass(frozen=True)
+class Band:
+    """An arm's mean curve over its runs: at each ``x`` where any run has a value, ``n`` runs, their ``mean`` and
+    the mean's percentile bootstrap interval [``ci_low``, ``ci_high``] over runs (exact up to
+    ``EXACT_BOOTSTRAP_MAX_N``; NaN where fewer than 2 runs have a value: one run has no interval)."""
+
+    x: np.ndarray
+    n: np.ndarray
+    mean: np.ndarray
+    ci_low: np.ndarray
+    ci_high: np.ndarray
+
+
+def mean_band(series: Sequence[tuple[np.ndarray, np.ndarray]], *, reps: int = DEFAULT_REPS,
+              seed: int = DEFAULT_SEED, confidence: float = 0.95) -> Band:
+    """:class:`Band` of runs' (x, y) series, each run counted at its own x values only (no interpolation: a
+    point's n is how many runs have it)."""
+    table: dict[float, list[float]] = {}
+    for x, y in series:
+        for xi, yi in zip(np.asarray(x, float), np.asarray(y, float)):
+            if math.isfinite(yi):
+                table.setdefault(float(xi), []).append(float(yi))
+    xs = np.array(sorted(table))
+    n = np.array([len(table[x]) for x in xs], dtype=np.int64)
+    mean = np.array([np.mean(table[x]) for x in xs])
+    lo, hi = np.full(xs.size, np.nan), np.full(xs.size, np.nan)
+    for k in sorted(set(n.tolist()) - {1}):
+        rows = np.flatnonzero(n == k)
+        vals = np.sort(np.array([table[xs[i]] for i in rows]), axis=1)
+        if k <= EXACT_BOOTSTRAP_MAX_N:
+            idx, w = _multisets(k)
+            stat = vals[:, idx].mean(axis=2)
+        else:
+            draws = np.random.default_rng(seed).integers(0, k, size=(reps, k))
+            stat, w = vals[:, draws].mean(axis=2), np.full(reps, 1.0 / reps)
+        for j, i in enumerate(rows):
+            lo[i], hi[i] = percentile_interval(stat[j], w, confidence)
+    return Band(xs, n, mean, lo, hi)
+
+
 def sign_holds(dc: DifferenceCurve) -> str:
     """Where along the budget the interval of ``dc`` excludes 0, as one clause: ``full − decoupled < 0 with the
     interval excluding 0 from iteration 1500 on (7 of 12 evaluation points)``; segments of consecutive budgets
@@ -832,9 +873,9 @@ def performance_profiles(curves: Sequence[Curve], *, thresholds: Sequence[float]
                          final_evals: int = FINAL_EVALS, reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED,
                          confidence: float = 0.95) -> dict[str, PerformanceProfile]:
     """Task -> performance profile of the final returns (rliable's score distributions: the fraction of an arm's
-    runs above each threshold, with percentile bootstrap CIs of that fraction, exact up to
-    ``EXACT_BOOTSTRAP_MAX_N`` runs), per task because raw returns of different tasks do not share a scale; the
-    final returns over the evaluation iterations every run of the task shares (:func:`common_window`).
+    runs above each threshold, with the exact percentile bootstrap CI of that fraction: a binomial), per task
+    because raw returns of different tasks do not share a scale; the final returns over the evaluation iterations
+    every run of the task shares (:func:`common_window`).
     ``thresholds`` default: ``points`` evenly spaced from 5 % of the range below the task's lowest final return
     to 5 % above its highest. Runs without an evaluation are left out."""
     out = {}
@@ -854,16 +895,17 @@ def performance_profiles(curves: Sequence[Curve], *, thresholds: Sequence[float]
             taus = np.asarray(thresholds, dtype=np.float64)
         arms = {}
         for a, v in finals.items():
-            x = np.sort(np.asarray(v, dtype=np.float64))
-            if x.size <= EXACT_BOOTSTRAP_MAX_N:
-                idx, w = _multisets(x.size)
-                rows = x[idx]
-            else:
-                rows = x[np.random.default_rng(seed).integers(0, x.size, size=(reps, x.size))]
-                w = np.full(reps, 1.0 / reps)
-            above = (rows[:, :, None] > taus[None, None, :]).mean(axis=1)
-            bounds = np.array([percentile_interval(above[:, t], w, confidence) for t in range(taus.size)])
-            arms[a] = ProfileCurve(np.mean(x[:, None] > taus[None, :], axis=0), bounds[:, 0], bounds[:, 1], x.size)
+            x = np.asarray(v, dtype=np.float64)
+            n = x.size
+            # a resample's fraction above tau is Binomial(n, k / n) / n, k the runs above tau: its bootstrap
+            # distribution is exact for any n, no resample drawn
+            fractions = np.arange(n + 1) / n
+            bounds = []
+            for k in (x[:, None] > taus[None, :]).sum(axis=0):
+                pmf = np.array([math.comb(n, j) * (k / n) ** j * (1 - k / n) ** (n - j) for j in range(n + 1)])
+                bounds.append(percentile_interval(fractions, pmf, confidence))
+            bounds = np.array(bounds)
+            arms[a] = ProfileCurve(np.mean(x[:, None] > taus[None, :], axis=0), bounds[:, 0], bounds[:, 1], n)
         out[task] = PerformanceProfile(task=task, thresholds=taus, arms=arms, reps=reps, seed=seed,
                                        final_evals=final_evals, confidence=confidence)
     return out
