@@ -403,7 +403,8 @@ def figure_lines(res: PlotResult, names, base: Path) -> list[str]:
 
 
 def runs_table(runs: list[Run], *, label=None) -> list[str]:
-    """One row per run: its group, status, size, final return, medians of time and memory."""
+    """One row per run: its group, status, size, training return at its end (the exploring policy's last 100
+    episodes: not the deterministic evaluation return the seed statistics read), medians of time and memory."""
     rows = []
     for (_task, lab), rs in group_runs(runs, label=label).items():
         for r in rs:
@@ -415,7 +416,8 @@ def runs_table(runs: list[Run], *, label=None) -> list[str]:
                          s.get("final_return", last.get("return_mean")), s.get("median_fwd_ms"), run_bwd_ms(r),
                          peak if peak is not None else s.get("median_saved_mb"),
                          "alloc" if peak is not None else "saved" if s.get("median_saved_mb") is not None else ""])
-    out = markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps", "final return",
+    out = markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps",
+                          "training return (last 100 episodes, at the run's end)",
                           "median fwd [ms]", "median bwd [ms]", "memory [MB]", "memory kind"], rows)
     out += ["", "memory kind: alloc = CUDA peak allocated; saved = median bytes saved for backward (CPU runs)."]
     members = sum(map(is_population_member, runs))
