@@ -397,6 +397,8 @@ def figure_lines(res: PlotResult, names, base: Path) -> list[str]:
         caption = FIGURES[name]
         if name in res.files:
             out += [f"![{caption}]({report_path(res.files[name], base)})", "", f"*{caption}*", ""]
+            out += [f"*{line}.*" for line in res.left_out if line.startswith(f"{name}:")]
+            out += [""] if out[-1] != "" else []
         elif name in res.skipped:
             out += [f"*{name} not drawn: {res.skipped[name]}.*", ""]
     return out
@@ -437,7 +439,10 @@ def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors
     if not runs:
         return [*out, "No training runs were given.", ""]
     res = plots if plots is not None else make_plots(runs, fig_dir, floors=floors, label=label)
-    out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends).", ""]
+    out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends; where fewer runs "
+            "cover an iteration the line goes on dotted, with n at each change).", ""]
+    out += [f"**{line}.**" for line in res.left_out if line.startswith("left out of every figure")]
+    out += [""] if out[-1] != "" else []
     out += figure_lines(res, [f for f in FIGURES if f not in leave_out], base)
     out += floors_section(runs, floors, base=base)
     return [*out, "### Runs", "", *runs_table(runs, label=label)]
