@@ -10,10 +10,13 @@ Sections:
        random-action floors), the floors table, and a table of the runs. Runs are grouped by arm
        (:func:`ablations.seeds.arm_label`: ``decoupled``, ``full-soft``, ``full-hard-dva``, ...).
     3. Seed statistics (:func:`ablations.seeds.seed_section`): per task and arm the IQM of the final evaluation
-       return with 95 % CIs, paired differences against decoupled with the probability of improvement, AUC and
-       collapse rate, at equal iterations and (from iteration times measured alone) at equal wall-clock; the
-       verdict of issue 36 (arms are ranked only where decoupled beats blind); performance profiles and the
-       evaluation curves. Runs without deterministic evaluations are said to have none.
+       return (every run over the same evaluation iterations) with 95 % CIs, paired differences against
+       decoupled (per seed, seeds agreeing in sign, exact bootstrap interval, exact sign-flip p-value, Holm's
+       correction over every comparison of the report) with the probability of improvement, AUC and collapse
+       rate, at equal iterations and (from iteration times measured alone) at equal wall-clock; the verdict by
+       the control rule (arms are ranked only where decoupled beats blind after correction); the paired
+       differences along the budget, learning curves with intervals, performance profiles and the evaluation
+       curves. Runs without deterministic evaluations are said to have none.
     4. Gradient probes where the policy looks (:func:`ablations.seeds.probe_section`): medians of the cosines
        and norms over the probes whose image sensitivity shows the policy looking, how many counted, and the
        exploration-noise and image-sensitivity figures.

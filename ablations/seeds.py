@@ -1,5 +1,5 @@
 """Seed statistics of run folders as report sections: which arm trains better, with confidence intervals, and
-what the gradient probes say while the policy looks at its image (issue 36).
+what the gradient probes say while the policy looks at its image.
 
 ``ablate-report`` writes these sections; ``ablate-paper`` can call the same functions:
 
@@ -13,8 +13,10 @@ what the gradient probes say while the policy looks at its image (issue 36).
   the runs' own median ``iter_ms`` when no run of the task was a population member (a member's iterations
   are its whole population's); otherwise the view is not available, and the section says why.
 * :func:`seed_statistics`: per task, :func:`ablations.stats.task_statistics` at equal iterations and equal
-  wall-clock, the performance profile, and the verdict of issue 36 (:func:`ablations.stats.verdict`): full
-  against decoupled is read only where decoupled beats blind with a CI that excludes zero.
+  wall-clock with Holm's correction over every task's and view's paired comparisons together, the paired
+  differences along the budget, the learning-curve bands, the performance profile, and the verdict
+  (:func:`ablations.stats.verdict`): full against decoupled is read only where decoupled beats blind after
+  correction (the control rule).
 * :func:`seed_section` and :func:`probe_section`: the markdown (figures from :func:`ablations.plot.make_plots`
   and the performance profiles, linked relative to the report's folder).
 

@@ -41,9 +41,9 @@ precipice", 2021), computed here with numpy so that no resampling library (and n
   the control that cannot see (blind) after Holm correction (the control rule), and nothing is decided from
   fewer than ``MIN_SEEDS`` paired seeds (the minimum-seeds rule).
 
-Importing this module needs numpy only (scipy for the exact enumeration's weights; no torch, no rliable, no
-pandas): it reads JSON. ``load_arms`` reads folders through ``ablations.run_folder.find_runs``, which imports no
-torch either; ``curve_of`` takes an already loaded run.
+Importing this module needs numpy only (no torch, no rliable, no scipy, no pandas): it reads JSON. ``load_arms``
+reads folders through ``ablations.run_folder.find_runs``, which imports no torch either; ``curve_of`` takes an
+already loaded run.
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ FINAL_EVALS = 3
 #: environments, else the older single-rollout return logged on video iterations.
 EVAL_KEYS = ("eval_return_mean", "eval_return")
 #: A probe counts as looking when its image sensitivity exceeds this fraction of the run's first probe's (the
-#: untrained policy's): the blind phase (issue 36) drops it by orders of magnitude, so the bar needs no precision.
+#: untrained policy's): the blind phase drops it by orders of magnitude, so the bar needs no precision.
 LOOKING_FRACTION = 0.1
 #: The minimum-seeds rule: no verdict rests on fewer paired seeds than this. A percentile bootstrap over 1 seed
 #: is a point and over 2 excludes zero whenever both agree in sign (half the time under no difference); the
@@ -224,12 +224,10 @@ def _multisets(n: int) -> tuple[np.ndarray, np.ndarray]:
     (``combinations_with_replacement``: M = C(2n - 1, n)) with its probability n! / (prod of the index
     multiplicities!) / n^n: the n^n ordered resamples grouped by the multiset they draw. The rows are sorted,
     so a statistic of sorted values reads them directly."""
-    import scipy.special
-
     idx = np.array(list(itertools.combinations_with_replacement(range(n), n)), dtype=np.int64)
     counts = np.stack([np.bincount(row, minlength=n) for row in idx])
-    log_w = scipy.special.gammaln(n + 1) - scipy.special.gammaln(counts + 1).sum(axis=1) - n * math.log(n)
-    return idx, np.exp(log_w)
+    factorial = np.array([math.factorial(k) for k in range(n + 1)], dtype=np.float64)
+    return idx, math.factorial(n) / factorial[counts].prod(axis=1) / float(n) ** n
 
 
 def bootstrap_distribution(values: Sequence[float], statistic: Callable[[np.ndarray], np.ndarray], *,
@@ -1013,7 +1011,7 @@ def looking_probes(metrics: Sequence[Mapping], *, fraction: float = LOOKING_FRAC
                          values=values)
 
 
-#: Iterations from the start over which ``blind_phase`` looks for the blind phase (issue 36 measures the first 500).
+#: Iterations from the start over which ``blind_phase`` looks for the blind phase (the first 500).
 BLIND_PHASE_ITERS = 500
 
 
