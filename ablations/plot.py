@@ -585,6 +585,11 @@ class _Drawer:
     def legend(fig, handles: list, labels: list[str], *, title: str | None = None) -> None:
         """One legend for the figure, right of its panels; the figure is widened by the legend's width, so the
         panels keep theirs."""
+        if any(ln.get_gid() == "fewer runs" for ax in fig.axes for ln in ax.lines):
+            from matplotlib.lines import Line2D
+
+            handles = [*handles, Line2D([], [], color="0.35", ls=":", lw=0.9)]
+            labels = [*labels, "dotted: fewer of the arm's runs\ncover it (n where it changes)"]
         leg = fig.legend(handles, labels, loc="outside right upper", fontsize=8, title=title, title_fontsize=8,
                          alignment="left", handlelength=3.2)
         width = leg.get_window_extent(fig.canvas.get_renderer()).width / fig.dpi

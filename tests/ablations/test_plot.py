@@ -487,6 +487,8 @@ def test_arms_of_different_lengths_are_all_drawn_over_their_own_ranges(tmp_path)
         fewer = next(ln for ln in ax.lines if ln.get_gid() == "fewer runs")
         assert fewer.get_xdata()[-1] == 40 and fewer.get_linestyle() == ":"
         assert sorted(t.get_text() for t in ax.texts if t.get_gid() == "count") == ["n=1", "n=2"]
+        legend = [t.get_text() for t in figs.figures["return_vs_iter.png"].legends[0].get_texts()]
+        assert "dotted: fewer of the arm's runs\ncover it (n where it changes)" in legend
         # the band only where two runs cover the iteration: up to 20
         band = next(c for c in ax.collections if c.get_paths() and c.get_paths()[0].vertices[:, 0].max() > 5)
         assert band.get_paths()[0].vertices[:, 0].max() <= 20
