@@ -232,6 +232,8 @@ def plot_main(argv: list[str] | None = None) -> None:
         print(path)
     for name, why in res.skipped.items():
         print(f"skipped {name}: {why}", file=sys.stderr)
+    for line in res.left_out:
+        print(line, file=sys.stderr)
 
 
 def report_main(argv: list[str] | None = None) -> None:

@@ -282,7 +282,9 @@ def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks:
            "Ours: mean +- sample standard deviation across seeds (n = seeds with the measurement). Paper: as "
            "published, with its source; `~` marks a value read off a plot. D.Va is our `decoupled` arm, SHAC with "
            "a differentiable renderer our `full-hard` arm (the hard rasterizer and the baseline's decay length); "
-           "other arms have no counterpart in the paper. Wall-clock times depend on the device: the paper's "
+           "other arms have no counterpart in the paper. Our final return here is the training return (the "
+           "exploring policy's last 100 episodes at the run's end), not the deterministic evaluation return of the "
+           "seed statistics. Wall-clock times depend on the device: the paper's "
            "are on its device, ours on the device of each run (provenance below).", ""]
     if any(is_population_member(r) for r in runs):
         out += ["Packed runs' wall-clock times are their populations' (section 2 says why).", ""]
@@ -301,7 +303,7 @@ def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks:
             ours = _mean_std(finals) + (f", after {np.mean(minutes):.0f} min" if minutes else "")
             entries = [e for e in paper.final_return if e["task"] == task and e["method"] == method]
             for e in entries or [None]:
-                rows.append([shown, "final return", arm, ours,
+                rows.append([shown, "final return (ours: training return)", arm, ours,
                              format_value(e) + (f" ({e['note']})" if e.get("note") else "") if e else "-",
                              paper.cite(e["source"]) if e else "-"])
         for e in (x for x in paper.return_at_time if x["task"] == task):

@@ -10,9 +10,13 @@ at every point; denser ones at about a dozen points, shifted per arm. One legend
 it gives each arm's number of runs n (per panel, left to right, where the panels differ: ``n=2/1``).
 
 Curves are aligned on iteration or environment steps and linearly interpolated onto a common grid on the wall
-clock (seeds never finish iterations at the same second), over the range every run of the group covers (no tail
-averaged over fewer seeds than the legend says). The band is +- one sample standard deviation across runs (none
-for a single run). Quantities plotted on a log axis (gradient norms, 1 - cosine) are averaged in log space: the
+clock (seeds never finish iterations at the same second). Every run is drawn over its own range: where all of an
+arm's runs cover the x the arm's line is full, where fewer do (runs of different lengths) it goes on thin and
+dotted with "n=k" where the count changes. The band is +- one sample standard deviation across the runs at that
+point, drawn where 2 or more cover it. An arm with two runs of one task and seed is not averaged (one seed would
+count twice): ``ablate-plot`` refuses it with one error line naming the runs, a report leaves that arm out of its
+figures and names it; any arm a figure cannot draw (no data for it) is named in one line per figure.
+Quantities plotted on a log axis (gradient norms, 1 - cosine) are averaged in log space: the
 line is the geometric mean and the band multiplies/divides by the geometric standard deviation. Linear axes
 print plain tick values (no offset such as ``1e-5+9.9999e-1``).
 
@@ -22,7 +26,8 @@ runs) of every run as star markers in the arm's colour, and the task's zero-acti
 floors as labelled horizontal lines (``task-floors``' JSON: docs/floors.json of this checkout, or ``--floors
 FILE``); a task without an entry is drawn without them and named in one warning.
 
-Files (PNG, written atomically; a figure without data is skipped and the reason returned):
+Files (PNG, written atomically, with fixed metadata so that unchanged data gives the same bytes; a figure without
+data is skipped and the reason returned):
     return_vs_env_steps.png  return_vs_wall_clock.png  return_vs_iter.png  grad_norm.png  cosine_hist.png
     cosine_vs_iter.png  probe_grad_norms.png (full, decoupled and render-term norms of the same rollout)
     render_term_groups.png (the render term by the actor's parameter groups)
@@ -58,7 +63,8 @@ if TYPE_CHECKING:
 
 __all__ = ["PlotConfig", "group_runs", "run_labels", "aggregate", "make_plots",
            "build_figures", "FigureSet", "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS",
-           "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs"]
+           "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs",
+           "PNG_METADATA", "draw_learning_curves", "draw_difference_curves"]
 
 _EVAL = ("Stars: the deterministic evaluation return of each run (bar: +- std over its evaluation episodes, "
          "where recorded); dotted and dash-dotted lines: the zero- and random-action return floors.")
@@ -257,13 +263,25 @@ def load_floors(path: str | os.PathLike | None = None) -> Floors:
     return Floors(source=path, tasks=tasks)
 
 
-def aggregate(series: list[tuple[np.ndarray, np.ndarray]], *, log: bool = False
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """Mean and +-1 std band of several (x, y) curves on a common x grid.
+class Aggregate(NamedTuple):
+    """Several runs' curves on one x grid: ``centre`` +- ``low``/``high`` (one sample standard deviation; the
+    centre itself where fewer than 2 runs have the point) and ``n``, how many runs cover each x."""
 
-    The grid is every x of every curve inside the range all curves cover; each curve is linearly interpolated
-    onto it (exact where a curve has a point). Returns (x, centre, low, high), or None when the curves share no
-    range. ``log``: average log10(y) (y <= 0 dropped): geometric mean and geometric-std band.
+    x: np.ndarray
+    centre: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    n: np.ndarray
+
+
+def aggregate(series: list[tuple[np.ndarray, np.ndarray]], *, log: bool = False) -> Aggregate | None:
+    """Mean and +-1 std band of several (x, y) curves over the range ANY of them covers, with the number of runs
+    at each point.
+
+    The grid is every x of every curve; at each, the curves whose own range [first x, last x] covers it are
+    linearly interpolated onto it (exact where a curve has a point) and averaged, so runs of different lengths
+    are each drawn over their own range and ``n`` says how many stand behind each point. None without any
+    point. ``log``: average log10(y) (y <= 0 dropped): geometric mean and geometric-std band.
     """
     clean = []
     for x, y in series:
@@ -274,37 +292,42 @@ def aggregate(series: list[tuple[np.ndarray, np.ndarray]], *, log: bool = False
             clean.append((x, y))
     if not clean:
         return None
-    lo = max(x[0] for x, _ in clean)
-    hi = min(x[-1] for x, _ in clean)
-    if lo > hi:
-        return None
-    grid = np.unique(np.concatenate([x[(x >= lo) & (x <= hi)] for x, _ in clean]))
-    ys = np.stack([np.interp(grid, x, y) for x, y in clean])
-    mean = ys.mean(0)
-    std = ys.std(0, ddof=1) if len(clean) > 1 else np.zeros_like(mean)
+    grid = np.unique(np.concatenate([x for x, _ in clean]))
+    ys = np.stack([np.where((grid >= x[0]) & (grid <= x[-1]), np.interp(grid, x, y), np.nan) for x, y in clean])
+    n = np.sum(~np.isnan(ys), axis=0)
+    mean = np.nanmean(ys, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # one run at a point: no spread there
+        std = np.where(n > 1, np.nanstd(ys, axis=0, ddof=1), 0.0)
     low, high = mean - std, mean + std
     if log:
-        return grid, 10**mean, 10**low, 10**high
-    return grid, mean, low, high
+        return Aggregate(grid, 10**mean, 10**low, 10**high, n)
+    return Aggregate(grid, mean, low, high, n)
 
 
 @dataclass
 class PlotResult:
-    """What ``make_plots`` wrote, what it skipped (file name -> reason) and what it warned about."""
+    """What ``make_plots`` wrote, what it skipped (file name -> reason), what it warned about, and what it left
+    out (one line each: arms a figure could not draw, runs that share a seed)."""
 
     files: dict[str, Path] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    left_out: list[str] = field(default_factory=list)
 
 
 @dataclass
 class FigureSet:
     """The figures of :func:`build_figures` (file name -> matplotlib Figure, in drawing order), the figures
-    without data (file name -> reason) and the warnings (tasks without floors). ``close()`` frees the figures."""
+    without data (file name -> reason), the warnings (tasks without floors), what was left out (one line each)
+    and what each figure drew (``drawn``). ``close()`` frees the figures."""
 
     figures: dict[str, Figure] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    left_out: list[str] = field(default_factory=list)
+    #: file name -> {(task, arm): (first x, last x, most runs at a point)} of every arm line drawn
+    drawn: dict[str, dict[tuple[str, str], tuple[float, float, int]]] = field(default_factory=dict)
 
     def close(self) -> None:
         import matplotlib.pyplot as plt
@@ -313,15 +336,121 @@ class FigureSet:
             plt.close(fig)
 
 
+#: PNG metadata of every figure: a fixed Software entry and no date, so that a figure whose data did not change
+#: is byte for byte the same file (matplotlib writes its version otherwise).
+PNG_METADATA = {"Software": "pixelgrad ablations"}
+
+
 def _save(fig, path: Path) -> None:
+    """The figure as a PNG at ``path``, written atomically, with :data:`PNG_METADATA` only; the figure is closed."""
     import matplotlib.pyplot as plt
 
     from gradlab.checkpoint import atomic_write_bytes
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight", metadata=PNG_METADATA)
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
+
+
+def _floor_lines(ax, floors: dict[str, dict] | None) -> None:
+    for policy, st in (floors or {}).items():
+        style, name = _FLOOR_LINES[policy]
+        ax.axhline(st["mean"], color="0.15", ls=style, lw=1.0, zorder=1.5, label=f"{name} floor ({st['mean']:.4g})",
+                   gid=f"floor:{policy}")
+
+
+def _draw_band(ax, band, style: ArmStyle | None, label: str, *, lw: float = 1.6) -> None:
+    """A band's mean line (solid where 2 or more runs have the point, thin dotted where only one does) and its
+    interval shaded where it exists."""
+    look = {"color": style.color} if style is not None else {}
+    many = band.n >= 2
+    (line,) = ax.plot(band.x, np.where(many, band.mean, np.nan), lw=lw, label=label, gid="mean",
+                      ls=style.linestyle if style is not None else "-", **look)
+    if not many.all():
+        ax.plot(band.x, np.where(~many, band.mean, np.nan), lw=0.8, ls=":", color=line.get_color(),
+                marker=".", ms=3, gid="single run", label=f"_{label} (1 run)")
+    ax.fill_between(band.x, band.ci_low, band.ci_high, where=many, color=line.get_color(), alpha=0.18, lw=0)
+
+
+def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathLike, *,
+                         floors: dict[str, dict] | None = None, styles: dict[str, ArmStyle] | None = None,
+                         confidence: float = 0.95, exact_max_n: int = 10) -> Path:
+    """One task's learning curves per arm in two panels, the deterministic **evaluation return** and the
+    **training return** (the exploring policy's last 100 episodes), against iterations: arm -> {"evaluation":
+    Band, "training": Band} (``ablations.stats.mean_band``), the band the mean's bootstrap interval over seeds
+    (shaded where 2 or more runs have the point; a single run's stretch dotted), the zero- and random-action
+    floors as horizontal lines; the legend gives each arm's runs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11.0, 3.8), layout="constrained")
+    for ax, kind, ylabel in ((axes[0], "evaluation", "evaluation return\n(deterministic policy)"),
+                             (axes[1], "training", "training return\n(last 100 episodes, exploring)")):
+        for arm, b in bands.items():
+            band = b.get(kind)
+            if band is not None and band.x.size:
+                _draw_band(ax, band, (styles or {}).get(arm), f"{arm} (n={int(band.n.max())})")
+        _floor_lines(ax, floors)
+        ax.set_xlabel("iteration")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        _one_line_per_axis_value(ax)
+    axes[0].set_title(f"{task}: evaluation return")
+    axes[1].set_title(f"{task}: training return")
+    fig.suptitle(f"mean over seeds; shaded: {confidence:.0%} bootstrap interval of the mean (exact up to "
+                 f"{exact_max_n} seeds)\nwhere 2 or more runs have the point; dotted: a point only one run has",
+                 fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside right upper", fontsize=8)
+    path = Path(path)
+    _save(fig, path)
+    return path
+
+
+def draw_difference_curves(task: str, curves: dict[tuple[str, str], object], path: str | os.PathLike, *,
+                           styles: dict[str, ArmStyle] | None = None, reference: str = "decoupled") -> Path:
+    """One task's paired differences against ``reference`` along the training budget
+    (``ablations.stats.difference_curves``: (arm, axis) -> DifferenceCurve): a panel in iterations and one in
+    modelled wall-clock where given; per arm the mean difference (line), the median (thin, dashed) and the mean's
+    interval at each evaluation (shaded), and zero."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes_used = [a for a in ("iteration", "wall-clock") if any(k[1] == a for k in curves)]
+    fig, axes = plt.subplots(1, max(len(axes_used), 1), figsize=(5.6 * max(len(axes_used), 1), 3.8), squeeze=False,
+                             layout="constrained")
+    conf = next(iter(curves.values())).confidence if curves else 0.95
+    for ax, axis in zip(axes[0], axes_used):
+        for (arm, a), dc in curves.items():
+            if a != axis:
+                continue
+            style = (styles or {}).get(arm)
+            look = {"color": style.color} if style is not None else {}
+            (line,) = ax.plot(dc.x, dc.mean, lw=1.6, marker="o", ms=3, label=f"{arm} (n={int(dc.n.max())})",
+                              gid="mean", ls=style.linestyle if style is not None else "-", **look)
+            ax.plot(dc.x, dc.median, lw=0.9, ls="--", color=line.get_color(), gid="median", label=f"_{arm} median")
+            ax.fill_between(dc.x, dc.ci_low, dc.ci_high, color=line.get_color(), alpha=0.18, lw=0)
+        ax.axhline(0.0, color="0.15", lw=1.0, zorder=1.5)
+        ax.set_xlabel("iteration" if axis == "iteration" else "modelled training time [s] (iterations x the arm's "
+                      "iteration time alone)")
+        ax.set_ylabel(f"final return: arm − {reference}\n(paired by seed)")
+        ax.set_title(f"{task}: at equal {'iterations' if axis == 'iteration' else 'wall-clock'}")
+        ax.grid(alpha=0.3)
+        _one_line_per_axis_value(ax)
+    fig.suptitle(f"line: mean paired difference, dashed: median, shaded: {conf:.0%} bootstrap interval of the "
+                 "mean\nat each evaluation (pointwise, not corrected for the many budgets)", fontsize=8)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside right upper", fontsize=8)
+    path = Path(path)
+    _save(fig, path)
+    return path
 
 
 def _frame_keys(runs: list[Run]) -> list[str]:
@@ -366,14 +495,30 @@ _QUANTITY_COLORS = ("tab:purple", "tab:orange", "tab:cyan", "tab:olive", "tab:br
 class _Drawer:
     """Draws the FIGURES of some runs into a FigureSet; one method per kind of figure."""
 
-    def __init__(self, runs: list[Run], floors: Floors, label: Callable[[Run], str] | None):
+    def __init__(self, runs: list[Run], floors: Floors, label: Callable[[Run], str] | None, *,
+                 shared_seed: str = "leave out"):
         self.runs = runs
         self.floors = floors
+        self.out = FigureSet()
+        self.figure = ""
         self.groups = group_runs(runs, label=label)
+        for (task, lab), rs in list(self.groups.items()):
+            seen: dict[str, Run] = {}
+            for r in rs:
+                if str(r.seed) in seen:
+                    msg = (f"arm {lab!r} has two runs of task {task!r} with seed {r.seed}: {seen[str(r.seed)].path} "
+                           f"and {r.path}; give one folder per seed")
+                    if shared_seed == "refuse":
+                        raise ValueError(msg)
+                    # as the seed statistics do: an arm whose runs share a seed is not averaged as seeds
+                    self.out.left_out.append(f"left out of every figure: {msg}")
+                    del self.groups[(task, lab)]
+                    break
+                seen[str(r.seed)] = r
         self.styles = arm_styles(self.groups)
         self.arm_index = {lab: i for i, lab in enumerate(self.styles)}
+        self.runs = [r for rs in self.groups.values() for r in rs]
         self.tasks = list(dict.fromkeys(t for t, _ in self.groups))
-        self.out = FigureSet()
 
     # ------------------------------------------------------------------------------------------ pieces
     def panels(self, nrows: int = 1):
@@ -388,18 +533,36 @@ class _Drawer:
             if t == task and (modes is None or rs[0].mode in modes):
                 yield lab, rs
 
-    def band(self, ax, agg, rs: list[Run], lab: str, *, color=None, marker: str | None = None,
-             lw: float = 1.5, ms: float = 4.5) -> None:
-        """The aggregated curve of an arm in its style (``color``/``marker`` replace the arm's) and, for more
-        than one run, its +-1 std band."""
-        gx, centre, low, high = agg
+    def band(self, ax, agg: Aggregate, rs: list[Run], lab: str, *, task: str, color=None,
+             marker: str | None = None, lw: float = 1.5, ms: float = 4.5) -> None:
+        """The aggregated curve of an arm in its style (``color``/``marker`` replace the arm's): the full line
+        where the most runs cover the x, a thin dotted one where fewer do (runs of different lengths, each over
+        its own range), "n=k" where the count changes, and the +-1 std band where 2 or more runs cover it."""
+        gx, centre, low, high, n = agg
         style = self.styles[lab]
         color = style.color if color is None else color
-        ax.plot(gx, centre, color=color, ls=style.linestyle, lw=lw, marker=marker or style.marker, ms=ms,
-                mfc="none", mew=1.1, markevery=_markevery(len(gx), self.arm_index[lab], len(self.styles)),
-                label=lab)
-        if len(rs) > 1:
-            ax.fill_between(gx, low, high, color=color, alpha=0.15, lw=0)
+        most = int(n.max())
+        full = n == most
+        if not full.all():
+            ax.plot(gx, centre, color=color, ls=":", lw=max(lw * 0.6, 0.8), label=f"_{lab} (fewer runs)",
+                    gid="fewer runs")
+            change = [i for i in range(len(n)) if i == 0 or n[i] != n[i - 1]]
+            for i in change:
+                ax.annotate(f"n={int(n[i])}", (gx[i], centre[i]), xytext=(2, 3), textcoords="offset points",
+                            fontsize=6, color=color, gid="count")
+        ax.plot(gx, np.where(full, centre, np.nan), color=color, ls=style.linestyle, lw=lw,
+                marker=marker or style.marker, ms=ms, mfc="none", mew=1.1,
+                markevery=_markevery(len(gx), self.arm_index[lab], len(self.styles)), label=lab, gid="arm")
+        if most > 1:
+            ax.fill_between(gx, low, high, where=n >= 2, color=color, alpha=0.15, lw=0)
+        drawn = self.out.drawn.setdefault(self.figure, {})
+        lo_x, hi_x, k = drawn.get((task, lab), (float(gx[0]), float(gx[-1]), most))
+        drawn[(task, lab)] = (min(lo_x, float(gx[0])), max(hi_x, float(gx[-1])), max(k, most))
+
+    def leave_out(self, missing: list[str], why: str) -> None:
+        """One line naming the arms the current figure could not draw, and why."""
+        if missing:
+            self.out.left_out.append(f"{self.figure}: left out {', '.join(missing)} ({why})")
 
     def arm_handle(self, lab: str, *, color=None, marker: bool = True):
         from matplotlib.lines import Line2D
@@ -422,6 +585,11 @@ class _Drawer:
     def legend(fig, handles: list, labels: list[str], *, title: str | None = None) -> None:
         """One legend for the figure, right of its panels; the figure is widened by the legend's width, so the
         panels keep theirs."""
+        if any(ln.get_gid() == "fewer runs" for ax in fig.axes for ln in ax.lines):
+            from matplotlib.lines import Line2D
+
+            handles = [*handles, Line2D([], [], color="0.35", ls=":", lw=0.9)]
+            labels = [*labels, "dotted: fewer of the arm's runs\ncover it (n where it changes)"]
         leg = fig.legend(handles, labels, loc="outside right upper", fontsize=8, title=title, title_fontsize=8,
                          alignment="left", handlelength=3.2)
         width = leg.get_window_extent(fig.canvas.get_renderer()).width / fig.dpi
@@ -488,8 +656,10 @@ class _Drawer:
         dashed reference line (y, its legend text)."""
         from matplotlib.lines import Line2D
 
+        self.figure = name
         fig, axes = self.panels()
         drawn: dict[str, dict[str, int]] = {}
+        missing: list[str] = []
         evaluated = False
         for col, task in enumerate(self.tasks):
             ax = axes[0][col]
@@ -502,8 +672,10 @@ class _Drawer:
                         for sx, sy in series:
                             ax.plot(sx, sy, color=self.styles[lab].color, lw=0.8, alpha=0.45, marker=".", ms=3,
                                     label=f"_run {lab}", gid="run")
-                    self.band(ax, agg, rs, lab, lw=2.2 if each_run else 1.5)
+                    self.band(ax, agg, rs, lab, task=task, lw=2.2 if each_run else 1.5)
                     drawn.setdefault(lab, {})[task] = len(rs)
+                else:
+                    missing.append(f"{task} {lab}")
             if returns:
                 for lab, n in self.evaluations(ax, task, x).items():
                     drawn.setdefault(lab, {}).setdefault(task, n)
@@ -529,6 +701,7 @@ class _Drawer:
             labels.append(hline[1])
         if drawn:
             self.legend(fig, handles, labels)
+            self.leave_out(missing, f"no run of theirs has both {x} and {y}")
         self.keep(name, fig, bool(drawn), f"no run has both {x} and {y}")
 
     def quantities(self, name: str, keys: dict[str, str], *, ylabel: str, why: str) -> None:
@@ -543,17 +716,21 @@ class _Drawer:
             return
         colors = dict(zip(present, _QUANTITY_COLORS * len(present)))
         markers = dict(zip(present, _MARKERS * len(present)))
+        self.figure = name
         fig, axes = self.panels()
         drawn: dict[str, dict[str, int]] = {}
+        missing: list[str] = []
         for col, task in enumerate(self.tasks):
             ax = axes[0][col]
             for lab, rs in self.arms_of(task):
                 for i, k in enumerate(present):
                     agg = aggregate([r.series("iter", k) for r in rs], log=True)
                     if agg is not None:
-                        self.band(ax, agg, rs, lab, color=colors[k], marker=markers[k], lw=max(3.2 - i, 1.2),
-                                  ms=max(7.0 - 1.5 * i, 4.5))
+                        self.band(ax, agg, rs, lab, task=task, color=colors[k], marker=markers[k],
+                                  lw=max(3.2 - i, 1.2), ms=max(7.0 - 1.5 * i, 4.5))
                         drawn.setdefault(lab, {})[task] = len(rs)
+                if task not in drawn.get(lab, {}):
+                    missing.append(f"{task} {lab}")
             self.finish(ax, task, "iteration", log=True)
         axes[0][0].set_ylabel(ylabel)
         if drawn:
@@ -563,10 +740,12 @@ class _Drawer:
             labels = [keys[k] for k in present]
             labels += [self.arm_label(lab, drawn[lab]) for lab in self.styles if lab in drawn]
             self.legend(fig, handles, labels, title="colour and marker: quantity\nline style: runs")
+            self.leave_out(missing, why.replace("no run has", "no run of theirs has"))
         self.keep(name, fig, bool(drawn), why)
 
     def cosine_hist(self) -> None:
         """1 - cos of every probe of every seed pooled (the distribution, not a curve), two bins per decade."""
+        self.figure = "cosine_hist.png"
         fig, axes = self.panels()
         values = {(t, lab): np.clip(1.0 - np.concatenate([r.series("iter", "cos_full_decoupled")[1] for r in rs]),
                                     _COS_FLOOR, None) for (t, lab), rs in self.groups.items()}
@@ -598,10 +777,13 @@ class _Drawer:
             labs = [lab for lab in self.styles if lab in drawn]
             self.legend(fig, [self.arm_handle(lab, marker=False) for lab in labs],
                         [self.arm_label(lab, drawn[lab], probes[lab]) for lab in labs])
+            self.leave_out([f"{t} {lab}" for t, lab in self.groups if (t, lab) not in values],
+                           "no probe iterations: runs of modes that render nothing have none")
         self.keep("cosine_hist.png", fig, bool(drawn), "no run has probe iterations (cos_full_decoupled)")
 
     def timing(self) -> None:
         """Forward and backward time per iteration, two rows; a log axis where a panel spans a decade."""
+        self.figure = "timing.png"
         fig, axes = self.panels(2)
         drawn: dict[str, dict[str, int]] = {}
         for row, (key, name) in enumerate((("fwd_ms", "forward"), ("bwd_ms", "backward"))):
@@ -613,7 +795,7 @@ class _Drawer:
                     if agg is None:
                         continue
                     spans += [float(agg[1].min()), float(agg[1].max())]
-                    self.band(ax, agg, rs, lab)
+                    self.band(ax, agg, rs, lab, task=task)
                     drawn.setdefault(lab, {})[task] = len(rs)
                 # warm-up and full vs decoupled often differ by decades; else linear
                 log = bool(spans) and min(spans) > 0 and max(spans) >= 10 * min(spans)
@@ -623,6 +805,8 @@ class _Drawer:
         if drawn:
             labs = [lab for lab in self.styles if lab in drawn]
             self.legend(fig, [self.arm_handle(lab) for lab in labs], [self.arm_label(lab, drawn[lab]) for lab in labs])
+            self.leave_out([f"{t} {lab}" for t, lab in self.groups if t not in drawn.get(lab, {})],
+                           "no run of theirs has fwd_ms/bwd_ms")
         self.keep("timing.png", fig, bool(drawn), "no run has fwd_ms/bwd_ms")
 
     def all(self) -> FigureSet:
@@ -670,21 +854,28 @@ class _Drawer:
         return self.out
 
 
-def build_figures(runs: list[Run], *, floors: Floors | None = None,
-                  label: Callable[[Run], str] | None = None) -> FigureSet:
+def build_figures(runs: list[Run], *, floors: Floors | None = None, label: Callable[[Run], str] | None = None,
+                  shared_seed: str = "leave out") -> FigureSet:
     """The FIGURES that the runs have data for, as matplotlib Figures (not written; close them with
     ``FigureSet.close``); see the module docstring.
 
     floors: the return floors (None: :func:`load_floors`'s default file); label: a run's group label (None:
     :func:`run_labels`). A task without floors is named once in ``FigureSet.warnings`` and a UserWarning.
+    shared_seed: what to do with an arm that has two runs of one task and seed (averaging them would count one
+    seed twice): ``"leave out"`` that arm, named in ``FigureSet.left_out`` (as the seed statistics leave it
+    out), or ``"refuse"``: ValueError naming the two runs. Whatever else a figure leaves out is named there too.
     """
     import matplotlib
 
     matplotlib.use("Agg")
+    if shared_seed not in ("leave out", "refuse"):
+        raise ValueError(f"shared_seed must be 'leave out' or 'refuse', got {shared_seed!r}")
     if not runs:
         raise ValueError("no runs to plot")
     floors = load_floors() if floors is None else floors
-    drawer = _Drawer(runs, floors, label)
+    drawer = _Drawer(runs, floors, label, shared_seed=shared_seed)
+    if not drawer.groups:
+        raise ValueError("nothing to plot: " + "; ".join(drawer.out.left_out))
     for task in drawer.tasks:
         if floors.of(task) is None:
             msg = floors.missing_message(task)
@@ -694,11 +885,11 @@ def build_figures(runs: list[Run], *, floors: Floors | None = None,
 
 
 def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None = None,
-               label: Callable[[Run], str] | None = None) -> PlotResult:
+               label: Callable[[Run], str] | None = None, shared_seed: str = "leave out") -> PlotResult:
     """Write the FIGURES that the runs have data for into ``out`` (:func:`build_figures`' arguments)."""
-    figures = build_figures(runs, floors=floors, label=label)
+    figures = build_figures(runs, floors=floors, label=label, shared_seed=shared_seed)
     out = Path(out)
-    result = PlotResult(skipped=figures.skipped, warnings=figures.warnings)
+    result = PlotResult(skipped=figures.skipped, warnings=figures.warnings, left_out=figures.left_out)
     try:
         out.mkdir(parents=True, exist_ok=True)
         for name, fig in figures.figures.items():
@@ -710,5 +901,6 @@ def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None
 
 
 def plot_runs(cfg: PlotConfig) -> PlotResult:
-    """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``."""
-    return make_plots(find_runs(list(cfg.runs)), cfg.out, floors=load_floors(cfg.floors))
+    """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``; runs
+    that share an arm and a seed are refused (one error line naming them), as the seed statistics refuse them."""
+    return make_plots(find_runs(list(cfg.runs)), cfg.out, floors=load_floors(cfg.floors), shared_seed="refuse")

@@ -10,10 +10,13 @@ Sections:
        random-action floors), the floors table, and a table of the runs. Runs are grouped by arm
        (:func:`ablations.seeds.arm_label`: ``decoupled``, ``full-soft``, ``full-hard-dva``, ...).
     3. Seed statistics (:func:`ablations.seeds.seed_section`): per task and arm the IQM of the final evaluation
-       return with 95 % CIs, paired differences against decoupled with the probability of improvement, AUC and
-       collapse rate, at equal iterations and (from iteration times measured alone) at equal wall-clock; the
-       verdict of issue 36 (arms are ranked only where decoupled beats blind); performance profiles and the
-       evaluation curves. Runs without deterministic evaluations are said to have none.
+       return (every run over the same evaluation iterations) with 95 % CIs, paired differences against
+       decoupled (per seed, seeds agreeing in sign, exact bootstrap interval, exact sign-flip p-value, Holm's
+       correction over every comparison of the report) with the probability of improvement, AUC and collapse
+       rate, at equal iterations and (from iteration times measured alone) at equal wall-clock; the verdict by
+       the control rule (arms are ranked only where decoupled beats blind after correction); the paired
+       differences along the budget, learning curves with intervals, performance profiles and the evaluation
+       curves. Runs without deterministic evaluations are said to have none.
     4. Gradient probes where the policy looks (:func:`ablations.seeds.probe_section`): medians of the cosines
        and norms over the probes whose image sensitivity shows the policy looking, how many counted, and the
        exploration-noise and image-sensitivity figures.
@@ -397,13 +400,16 @@ def figure_lines(res: PlotResult, names, base: Path) -> list[str]:
         caption = FIGURES[name]
         if name in res.files:
             out += [f"![{caption}]({report_path(res.files[name], base)})", "", f"*{caption}*", ""]
+            out += [f"*{line}.*" for line in res.left_out if line.startswith(f"{name}:")]
+            out += [""] if out[-1] != "" else []
         elif name in res.skipped:
             out += [f"*{name} not drawn: {res.skipped[name]}.*", ""]
     return out
 
 
 def runs_table(runs: list[Run], *, label=None) -> list[str]:
-    """One row per run: its group, status, size, final return, medians of time and memory."""
+    """One row per run: its group, status, size, training return at its end (the exploring policy's last 100
+    episodes: not the deterministic evaluation return the seed statistics read), medians of time and memory."""
     rows = []
     for (_task, lab), rs in group_runs(runs, label=label).items():
         for r in rs:
@@ -415,7 +421,8 @@ def runs_table(runs: list[Run], *, label=None) -> list[str]:
                          s.get("final_return", last.get("return_mean")), s.get("median_fwd_ms"), run_bwd_ms(r),
                          peak if peak is not None else s.get("median_saved_mb"),
                          "alloc" if peak is not None else "saved" if s.get("median_saved_mb") is not None else ""])
-    out = markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps", "final return",
+    out = markdown_table(["run", "task", "mode", "seed", "status", "iterations", "env steps",
+                          "training return (last 100 episodes, at the run's end)",
                           "median fwd [ms]", "median bwd [ms]", "memory [MB]", "memory kind"], rows)
     out += ["", "memory kind: alloc = CUDA peak allocated; saved = median bytes saved for backward (CPU runs)."]
     members = sum(map(is_population_member, runs))
@@ -435,7 +442,10 @@ def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors
     if not runs:
         return [*out, "No training runs were given.", ""]
     res = plots if plots is not None else make_plots(runs, fig_dir, floors=floors, label=label)
-    out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends).", ""]
+    out += ["Per task and group, mean +- one standard deviation across seeds (n in the legends; where fewer runs "
+            "cover an iteration the line goes on dotted, with n at each change).", ""]
+    out += [f"**{line}.**" for line in res.left_out if line.startswith("left out of every figure")]
+    out += [""] if out[-1] != "" else []
     out += figure_lines(res, [f for f in FIGURES if f not in leave_out], base)
     out += floors_section(runs, floors, base=base)
     return [*out, "### Runs", "", *runs_table(runs, label=label)]

@@ -1,5 +1,5 @@
 """Seed statistics of run folders as report sections: which arm trains better, with confidence intervals, and
-what the gradient probes say while the policy looks at its image (issue 36).
+what the gradient probes say while the policy looks at its image.
 
 ``ablate-report`` writes these sections; ``ablate-paper`` can call the same functions:
 
@@ -13,8 +13,10 @@ what the gradient probes say while the policy looks at its image (issue 36).
   the runs' own median ``iter_ms`` when no run of the task was a population member (a member's iterations
   are its whole population's); otherwise the view is not available, and the section says why.
 * :func:`seed_statistics`: per task, :func:`ablations.stats.task_statistics` at equal iterations and equal
-  wall-clock, the performance profile, and the verdict of issue 36 (:func:`ablations.stats.verdict`): full
-  against decoupled is read only where decoupled beats blind with a CI that excludes zero.
+  wall-clock with Holm's correction over every task's and view's paired comparisons together, the paired
+  differences along the budget, the learning-curve bands, the performance profile, and the verdict
+  (:func:`ablations.stats.verdict`): full against decoupled is read only where decoupled beats blind after
+  correction (the control rule).
 * :func:`seed_section` and :func:`probe_section`: the markdown (figures from :func:`ablations.plot.make_plots`
   and the performance profiles, linked relative to the report's folder).
 
@@ -298,10 +300,13 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
 # ------------------------------------------------------------------------------------------- statistics
 @dataclass(frozen=True)
 class TaskSeeds:
-    """One task's seed statistics: ``stats`` (whole, equal iterations, equal wall-clock when ``times.ms``),
-    ``times``, ``verdicts`` (view name -> :class:`ablations.stats.Verdict`: "equal iterations", and "equal
-    wall-clock" where available), ``profile`` (None without evaluations), ``eval_keys`` (the metrics keys the
-    evaluations came from), ``error`` (why nothing could be computed, e.g. two runs of one arm and seed)."""
+    """One task's seed statistics: ``stats`` (whole, equal iterations, equal wall-clock when ``times.ms``; their
+    paired differences Holm-corrected over every task's and view's together), ``times``, ``verdicts`` (view name
+    -> :class:`ablations.stats.Verdict`: "equal iterations", and "equal wall-clock" where available),
+    ``profile`` (None without evaluations), ``eval_keys`` (the metrics keys the evaluations came from),
+    ``error`` (why nothing could be computed, e.g. two runs of one arm and seed), ``curves`` (the paired
+    differences along the budget, :func:`ablations.stats.difference_curves`), ``bands`` (arm -> "evaluation" /
+    "training" -> its mean curve with interval, :func:`ablations.stats.mean_band`)."""
 
     task: str
     stats: stats.TaskStatistics | None
@@ -310,6 +315,8 @@ class TaskSeeds:
     profile: stats.PerformanceProfile | None
     eval_keys: tuple[str, ...]
     error: str | None = None
+    curves: dict[tuple[str, str], stats.DifferenceCurve] = field(default_factory=dict)
+    bands: dict[str, dict[str, stats.Band]] = field(default_factory=dict)
 
 
 def not_ranking_reason(task: str, floors: Floors | None, *, facts: Sequence[str] = ()) -> str | None:
@@ -338,6 +345,7 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
     runs = in_arm_order(runs, label)
     times = iteration_times(runs, label, benchmarks)
     out = {}
+    computed = {}
     for task in dict.fromkeys(t for t, _ in group_runs(runs, label=label)):  # tasks.TASKS' order
         t = times[task]
         keys: tuple[str, ...] = ()
@@ -349,14 +357,37 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
         except ValueError as e:
             out[task] = TaskSeeds(task, None, t, {}, None, keys, error=str(e))
             continue
+        computed[task] = (ts, curves, keys)
+    # the family of Holm's correction: every paired comparison the section shows, every task and view
+    corrected = stats.correct_statistics({task: ts for task, (ts, _, _) in computed.items()})
+    for task, (_, curves, keys) in computed.items():
+        ts, t = corrected[task], times[task]
         reason = not_ranking_reason(task, floors)
         verdicts = {"equal iterations": stats.verdict(ts.equal_iters, control=CONTROL_ARM, not_ranking=reason)}
         if ts.equal_wall is not None:
             verdicts["equal wall-clock"] = stats.verdict(ts.equal_wall, control=CONTROL_ARM, not_ranking=reason)
+        cut = curves if at_iteration is None else stats.truncate_at_iteration(curves, at_iteration)
         profile = stats.performance_profiles(stats.truncate_at_iteration(curves, ts.iteration), reps=reps,
                                              seed=seed).get(task) if keys else None
-        out[task] = TaskSeeds(task, ts, t, verdicts, profile, keys)
-    return out
+        diffs = stats.difference_curves(cut, reference=REFERENCE_ARM, iter_ms_alone=t.ms, reps=reps,
+                                        seed=seed) if keys else {}
+        task_runs = [r for r in runs if r.task == task]
+        bands = {}
+        for arm in dict.fromkeys(label(r) for r in task_runs):
+            rs = [r for r in task_runs if label(r) == arm]
+            until = at_iteration or max((r.metrics[-1]["iter"] for r in rs if r.metrics), default=0)
+            evals = [c for c in cut if c.arm == arm and c.returns.size]
+            train = [_training_series(r, until) for r in rs]
+            bands[arm] = {"evaluation": stats.mean_band([(c.iters, c.returns) for c in evals], reps=reps, seed=seed),
+                          "training": stats.mean_band(train, reps=reps, seed=seed)}
+        out[task] = TaskSeeds(task, ts, t, verdicts, profile, keys, curves=diffs, bands=bands)
+    return {task: out[task] for task in dict.fromkeys(t for t, _ in group_runs(runs, label=label))}
+
+
+def _training_series(run: Run, until: int) -> tuple[np.ndarray, np.ndarray]:
+    """(iterations, training return ``return_mean``) of a run up to ``until``."""
+    pts = [(m["iter"], m["return_mean"]) for m in run.metrics if m["iter"] <= until and is_number(m.get("return_mean"))]
+    return np.array([p[0] for p in pts], float), np.array([p[1] for p in pts], float)
 
 
 # ---------------------------------------------------------------------------------------------- markdown
@@ -375,9 +406,22 @@ def _span(values) -> str:
     return "-" if not vals else str(vals[0]) if len(vals) == 1 else f"{vals[0]}-{vals[-1]}"
 
 
-_READING = {"better": "better than decoupled", "worse": "worse than decoupled",
-            "not resolved": "not resolved (CI covers 0)", "no paired seeds": "no paired seeds",
+_READING = {"better": "better than decoupled (differs after Holm correction)",
+            "worse": "worse than decoupled (differs after Holm correction)",
+            "not resolved": f"not resolved (Holm-adjusted p > {stats.ALPHA:g})", "no paired seeds": "no paired seeds",
             "too few seeds": f"too few paired seeds to read (fewer than {stats.MIN_SEEDS})"}
+
+
+def _interval(e: stats.Estimate) -> str:
+    """A mean's interval, said for what it is over few seeds: over 3 the seeds' range."""
+    text = _est(e)
+    return text + (" (the range of the 3 seeds)" if e.n == 3 and e.exact else "")
+
+
+def _window_text(a: stats.ArmSummary) -> str:
+    if a.window:
+        return ", ".join(map(str, a.window))
+    return "each run's own last: " + "; ".join(f"s{s}: {', '.join(map(str, w))}" for s, w in a.own_windows.items())
 
 
 def _view_table(cmp: stats.Comparison, v: stats.Verdict, iters: dict[str, int]) -> list[str]:
@@ -385,24 +429,34 @@ def _view_table(cmp: stats.Comparison, v: stats.Verdict, iters: dict[str, int]) 
     for arm, a in cmp.arms.items():
         d = cmp.differences.get(arm)
         if arm == cmp.reference:
-            diff, prob, reading = "reference", "-", "reference"
+            per, agree, diff, p, holm, prob, reading = "-", "-", "reference", "-", "-", "-", "reference"
+        elif d is None or d.mean is None:
+            per, agree, diff, p, holm, prob, reading = "-", "-", "no paired seeds", "-", "-", "-", "no paired seeds"
         else:
-            diff = f"{_est(d.mean)} (n={d.mean.n})" if d and d.mean else "no paired seeds"
-            prob = _est(d.improvement, ".2f") if d and d.improvement else "-"
+            per = _per_seed(d.diff)
+            agree = f"{d.agree} of {d.mean.n}"
+            diff = _interval(d.mean)
+            p = f"{d.p_value:.3g}"
+            holm = f"{d.p_holm:.3g}" if d.p_holm is not None else "-"
+            prob = _est(d.improvement, ".2f") if d.improvement else "-"
             reading = ("control" if arm == v.control else _READING[v.readings[arm]] if arm in v.readings
                        else "cannot be ranked yet" if v.gate is not None else "not ranked")
+            if arm == v.control:
+                reading += (f" ({_READING['worse' if d.mean.value < 0 else 'better']})" if d.differs(v.alpha)
+                            else f" ({_READING['not resolved']})")
         collapse = a.collapse_mean
-        rows.append([arm, len(a.final), iters.get(arm, "-"),
-                     _span(a.evals.values()) + f" (final: last {min([cmp.final_evals, *a.evals.values()])})"
-                     if a.evals else "0",
+        evals = (_span(a.evals.values()) if a.evals else "0") + (
+            f"; seeds without an evaluation: {', '.join(map(str, a.without_evals))}" if a.without_evals else "")
+        rows.append([arm, len(a.final), iters.get(arm, "-"), evals, _window_text(a) if a.final else "-",
                      _est(a.final_iqm), _per_seed(a.final), _est(a.auc_iqm),
-                     f"{_est(collapse, '.2f')} (n={collapse.n})" if collapse else "-", diff, prob, reading])
-        if a.without_evals:
-            rows[-1][3] += f"; seeds without an evaluation: {', '.join(map(str, a.without_evals))}"
-    return markdown_table(["arm", "seeds", "iterations", "evaluations per run", "final return: IQM [95 % CI]",
-                           "final return per seed", "AUC: IQM [95 % CI]", "collapse rate: mean [95 % CI]",
-                           "minus decoupled: mean [95 % CI] (paired seeds)", "P(arm > decoupled) [95 % CI]",
-                           "reading"], rows)
+                     f"{_est(collapse, '.2f')} (n={collapse.n})" if collapse else "-", per, agree, diff, p, holm,
+                     prob, reading])
+    return markdown_table(["arm", "seeds", "iterations", "evaluations per run",
+                           "evaluation window (iterations averaged)", "evaluation return: IQM [95 % CI]",
+                           "evaluation return per seed", "AUC: IQM [95 % CI]", "collapse rate: mean [95 % CI]",
+                           "minus decoupled per seed", "seeds agreeing in sign",
+                           "minus decoupled: mean [95 % exact bootstrap CI]", "sign-flip p",
+                           "Holm-adjusted p", "P(arm > decoupled) [95 % CI]", "reading"], rows)
 
 
 def _verdict_line(view: str, v: stats.Verdict) -> str:
@@ -410,6 +464,46 @@ def _verdict_line(view: str, v: stats.Verdict) -> str:
         return f"**Verdict ({view}):** {v.reason}."
     readings = "; ".join(f"{arm}: {_READING[r]}" for arm, r in v.readings.items()) or "no other arm"
     return f"**Verdict ({view}):** {v.reason}, so the other arms are read against {v.reference}: {readings}."
+
+
+def _family_size(seeds: dict[str, TaskSeeds]) -> int:
+    return max((d.family or 0 for s in seeds.values() if s.stats for c in (s.stats.equal_iters, s.stats.equal_wall)
+                if c is not None for d in c.differences.values()), default=0)
+
+
+def _budget_lines(s: TaskSeeds, task: str, fig_dir: Path, base: Path, styles, floors: Floors | None
+                  ) -> list[str]:
+    """The paired differences along the budget (figure and where the sign holds) and the learning curves."""
+    from ablations.plot import draw_difference_curves, draw_learning_curves
+
+    out = []
+    if s.curves:
+        png = draw_difference_curves(task, s.curves, fig_dir / f"difference_vs_budget_{task}.png", styles=styles,
+                                     reference=REFERENCE_ARM)
+        out += [f"![{task}: paired differences along the budget]({report_path(png, base)})", "",
+                f"*{task}: each arm minus {REFERENCE_ARM}, paired by seed, at every evaluation (left: equal "
+                "iterations; right, where the arms' times alone are known: equal modelled wall-clock). At each "
+                f"budget a run's return is the mean of its last {stats.FINAL_EVALS} evaluations up to it, at the "
+                "evaluation iterations its arm's and the reference's runs share. Line: mean; dashed: median; "
+                "shaded: the mean's 95 % bootstrap interval (exact), pointwise and not corrected for the many "
+                "budgets.*", "",
+                "Where the sign holds (pointwise intervals):", ""]
+        for axis in ("iteration", "wall-clock"):
+            for (_arm, a), dc in s.curves.items():
+                if a == axis:
+                    out.append(f"- at equal {'iterations' if axis == 'iteration' else 'modelled wall-clock'}: "
+                               f"{stats.sign_holds(dc)}.")
+        out.append("")
+    if s.bands:
+        png = draw_learning_curves(task, s.bands, fig_dir / f"learning_curves_{task}.png",
+                                   floors=floors.of(task) if floors is not None else None,
+                                   styles=styles, exact_max_n=stats.EXACT_BOOTSTRAP_MAX_N)
+        out += [f"![{task}: learning curves]({report_path(png, base)})", "",
+                f"*{task}: each arm's mean evaluation return (left; the deterministic policy) and training return "
+                "(right; the exploring policy's last 100 episodes) over its seeds against iterations, shaded: the "
+                "mean's 95 % bootstrap interval where 2 or more runs have the point (a stretch only one run reaches "
+                "is dotted); dotted and dash-dotted horizontal lines: the zero- and random-action floors.*", ""]
+    return out
 
 
 def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Callable[[Run], str] | None = None,
@@ -433,30 +527,44 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
         return [*out, "No run logged a deterministic evaluation (metrics `eval_return_mean`, every `--eval-every` "
                 "iterations): these runs cannot be compared over seeds. Train with `--eval-every K` for this "
                 "section.", ""]
-    out += [f"A run's **final return** is the mean of its last {stats.FINAL_EVALS} deterministic evaluations (the "
-            "policy's mean action from the fixed evaluation seed; fewer where it has fewer: the tables say how "
-            "many). Over seeds: the **interquartile mean** (IQM; with 3 seeds the plain mean, with 5 the mean of "
-            "the middle 3) with a 95 % percentile stratified-bootstrap CI (rliable, "
-            f"{reps} resamples, seeded); with 3-5 seeds such an interval is narrower than a true 95 % one. "
-            "Against decoupled: each seed's difference (the same seed in both arms), their mean with a bootstrap "
-            "CI, and rliable's probability of improvement P(arm > decoupled) on the paired seeds. **AUC**: the "
-            "mean height of the evaluation curve (trapezoid over its span). **Collapse rate**: the fraction of "
-            "evaluations, after the first positive best, below half the best so far (defined for runs with such "
-            "evaluations; n says how many). **Equal iterations**: every run cut at the fewest iterations any run "
-            "of the task reached. **Equal wall-clock**: every run cut at the least training time any run of the task "
-            "reached, modelled as iterations x its arm's iteration time measured alone (compilation, evaluations "
-            "and the probes' extra backward left out); with equal iterations that is the fastest arm's last "
-            "iteration.", "",
+    family = _family_size(seeds)
+    out += [f"A run's **final return** here is its deterministic **evaluation return** (the policy's mean action "
+            "from the fixed evaluation seed) averaged over the last "
+            f"{stats.FINAL_EVALS} evaluation iterations that **every run of the comparison** has (at equal "
+            "wall-clock, where each arm ends at its own iteration: every run of the arm); the tables name those "
+            "iterations. The training return (the exploring policy's last 100 episodes) is a different number and "
+            "is labelled as such wherever it appears. Over seeds: the **interquartile mean** (IQM; with 3 seeds "
+            "the plain mean, with 5 the mean of the middle 3) with a 95 % percentile bootstrap CI over seeds: "
+            f"exact up to {stats.EXACT_BOOTSTRAP_MAX_N} seeds (every distinct resample enumerated with its "
+            f"probability), else {reps} resamples from a fixed seed. Over 3 seeds that interval is the seeds' range "
+            "[min, max]: it excludes 0 exactly when all three agree in sign, which happens a quarter of the time "
+            "with no difference at all.", "",
+            f"**Against {REFERENCE_ARM}**, per arm: each seed's difference (the same seed in both arms), how many "
+            "seeds agree in sign, the mean with its exact bootstrap CI, the two-sided **sign-flip permutation "
+            "p-value** (exact: all 2^n sign patterns; its smallest value is 2/2^n, 0.25 over 3 seeds and 0.0625 "
+            f"over 5, so 5 seeds cannot reach p < 0.05), and the **Holm-adjusted p-value** over the family of all "
+            f"{family} paired comparisons of this section (every arm against {REFERENCE_ARM}, blind included, on "
+            "every task, at equal iterations and at equal wall-clock), at a family-wise level of "
+            f"{stats.ALPHA:g}. A difference **differs after Holm correction** where its adjusted p-value is at "
+            f"most {stats.ALPHA:g}, and is **not resolved** otherwise; the readings say only that. Beside them: "
+            f"the probability of improvement P(arm > {REFERENCE_ARM}) on the paired seeds (each arm resampled "
+            f"independently, {reps} resamples). **AUC**: the mean height of the evaluation curve (trapezoid over "
+            "its span). **Collapse rate**: the fraction of evaluations, after the first positive best, below half "
+            "the best so far (defined for runs with such evaluations; n says how many). **Equal iterations**: "
+            "every run cut at the fewest iterations any run of the task reached. **Equal wall-clock**: every run "
+            "cut at the least training time any run of the task reached, modelled as iterations x its arm's "
+            "iteration time measured alone (compilation, evaluations and the probes' extra backward left out); "
+            "with equal iterations that is the fastest arm's last iteration. Both cuts are single points of a "
+            "curve: the figure of paired differences along the budget shows every evaluation, and the text under "
+            "it says where the sign holds.", "",
             *([f"**Read at iteration {at_iteration}** (`--at-iteration`): every run is cut there first, so all "
                "of this section's views end at or before it; a task whose runs all ended sooner is read at their "
-               "ends (each verdict names its iteration). The figures and the probe section show the whole runs.",
-               ""] if at_iteration is not None else []),
-            f"**Reading rule** (issue 36): an arm is read against {REFERENCE_ARM} only where {REFERENCE_ARM} "
-            f"beats {CONTROL_ARM} (the same pixels, never looked at) with a CI that excludes zero: of the paired "
-            f"difference {REFERENCE_ARM} minus {CONTROL_ARM}, or of the IQMs ({REFERENCE_ARM}'s interval wholly "
-            f"above {CONTROL_ARM}'s). Otherwise the pixel arms cannot be ranked on that task yet. No interval over "
-            f"fewer than {stats.MIN_SEEDS} seeds decides anything (over 2 seeds it excludes zero whenever both "
-            "agree in sign).", ""]
+               "ends (each verdict names its iteration). The figures of section 2 and the probe section show the "
+               "whole runs.", ""] if at_iteration is not None else []),
+            f"**The control rule**: an arm is read against {REFERENCE_ARM} only where {REFERENCE_ARM} beats "
+            f"{CONTROL_ARM} (the same pixels, never looked at): {REFERENCE_ARM} minus {CONTROL_ARM} positive and "
+            f"differing after Holm correction. Otherwise the pixel arms cannot be ranked on that task yet. **The "
+            f"minimum-seeds rule**: nothing is decided from fewer than {stats.MIN_SEEDS} paired seeds.", ""]
     out += _arms_table(runs, label)
     styles = arm_styles(group_runs(list(runs), label=label))
     for task, s in seeds.items():
@@ -473,7 +581,8 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
         ts = s.stats
         n = ts.iteration
         out += [_verdict_line(f"equal iterations, {n}", s.verdicts["equal iterations"]), "",
-                f"Equal iterations: every run cut at iteration {n}.", ""]
+                f"Equal iterations: every run cut at iteration {n}; its final evaluation return averages the "
+                f"evaluations at iterations {_window_text(next(iter(ts.equal_iters.arms.values())))}.", ""]
         out += _view_table(ts.equal_iters, s.verdicts["equal iterations"], dict.fromkeys(ts.equal_iters.arms, n))
         out.append("")
         missing = {arm: d.missing for arm, d in ts.equal_iters.differences.items() if d.missing}
@@ -488,15 +597,17 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             times = ", ".join(f"{a} {ms:.4g} ms" for a, ms in ts.iter_ms_alone.items())
             out += [_verdict_line(f"equal wall-clock, {ts.wall_s:.4g} s", s.verdicts["equal wall-clock"]), "",
                     f"Equal wall-clock: every run cut at {ts.wall_s:.4g} s of modelled training time ({times} per "
-                    f"iteration; {s.times.why}).", ""]
+                    f"iteration; {s.times.why}); each run's final evaluation return averages its arm's last "
+                    "common evaluations (the window column).", ""]
             out += _view_table(ts.equal_wall, s.verdicts["equal wall-clock"], ts.iters_at_wall or {})
             out.append("")
+        out += _budget_lines(s, task, fig_dir, base, styles, floors)
         if s.profile is not None:
             png = stats.plot_performance_profiles(s.profile, fig_dir / f"performance_profile_{task}.png",
                                                   styles=styles)
             out += [f"![{task}: performance profile]({report_path(png, base)})", "",
-                    f"*{task}: the fraction of each arm's runs whose final return (at equal iterations, {n}) "
-                    f"exceeds each return (shaded: 95 % CI, {reps} bootstrap resamples).*", ""]
+                    f"*{task}: the fraction of each arm's runs whose final evaluation return (at equal iterations, "
+                    f"{n}) exceeds each return (shaded: 95 % bootstrap CI, exact).*", ""]
     if plots is not None:
         out += figure_lines(plots, SEED_FIGURES, base)
     return out

@@ -34,12 +34,13 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
     written (none without ok rows)."""
     import matplotlib.pyplot as plt
 
+    from ablations.plot import PNG_METADATA
     from gradlab.checkpoint import atomic_write_bytes
 
     written = []
     for name, fig in sweep_figures(rows).items():
         buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
+        fig.savefig(buf, format="png", dpi=120, bbox_inches="tight", metadata=PNG_METADATA)
         plt.close(fig)
         atomic_write_bytes(Path(out) / name, buf.getvalue())
         written.append(Path(out) / name)

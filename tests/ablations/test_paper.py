@@ -184,10 +184,11 @@ def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
     # Our numbers beside the paper's, each paper number with its citation.
     numbers = load_paper_numbers()
     comparison = rows_of(text, "| hopper | ")
-    final = next(r for r in comparison if r[1] == "final return" and r[2] == "decoupled")
+    final = next(r for r in comparison if r[1] == "final return (ours: training return)" and r[2] == "decoupled")
     assert final[3].startswith("120.5 +- 0.7071 (n=2)") and final[4] == "~5k"
     assert numbers.cite("readme") in final[5] and "read off plots" in final[5]
-    assert next(r for r in comparison if r[1] == "final return" and r[2] == "blind")[4:] == ["-", "-"]
+    final_row = "final return (ours: training return)"
+    assert next(r for r in comparison if r[1] == final_row and r[2] == "blind")[4:] == ["-", "-"]
     at55 = next(r for r in comparison if r[1] == "return at 55 min" and r[2] == "full-hard")
     # 55 min = 3300 s lies between iterations 5 (3000 s) and 6 (3600 s): returns 55 and 56 for seeds 0 and 1.
     assert at55[3] == "55.5 +- 0.7071 (n=2)" and at55[4] == "~3.8k"
@@ -379,7 +380,7 @@ def test_report_of_packed_runs_sets_each_arms_time_alone_beside_its_populations(
         in text
     assert "**cartpole:** D.Va's cartpole (with springs) ranks no arms: doing nothing already scores high (zero " \
            "action 2098, floors.json; the paper's final return ~1.8k)" in text
-    assert rows_of(text, "| cartpole (does not rank arms) | final return | decoupled |")
+    assert rows_of(text, "| cartpole (does not rank arms) | final return (ours: training return) | decoupled |")
     # the paragraph once (section 2, beside the wall-clock figures), a pointer to it in section 4
     assert text.count("**Packed runs:** a population member's wall-clock is its population's") == 1
     assert "Packed runs' wall-clock times are their populations' (section 2 says why)." in text
@@ -411,3 +412,15 @@ def test_report_of_packed_runs_sets_each_arms_time_alone_beside_its_populations(
     section = text[text.index("## 6. Iteration time"):text.index("## 7. Memory")]
     assert rows_of(section, "| hopper | decoupled |")[0][2:4] == [
         "100", "benchmark population_hopper.json, NVIDIA H100 (n=1)"]
+
+
+def test_starting_ablate_paper_imports_no_statistics_stack():
+    # ablate-paper and ablate-sweep train for hours before any statistic: a resampling library that cannot
+    # import (arch under pandas 3) must not stop them at the start; the statistics need none of them at all
+    import subprocess
+
+    code = ("import sys; import ablations.paper as p, ablations.sweep; from ablations.cli import parse; "
+            "parse(p.PaperConfig, ['--tasks', 'hopper', '--seeds', '0', '--dry-run'], prog='ablate-paper'); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'rliable', 'arch', 'pandas'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -38,26 +38,30 @@ def runs_dir(tmp_path):
 
 def test_aggregate_mean_and_sample_std():
     x = np.arange(5.0)
-    gx, c, lo, hi = aggregate([(x, np.full(5, 1.0)), (x, np.full(5, 3.0))])
+    gx, c, lo, hi, n = aggregate([(x, np.full(5, 1.0)), (x, np.full(5, 3.0))])
+    np.testing.assert_array_equal(n, 2)
     np.testing.assert_array_equal(gx, x)
     np.testing.assert_allclose(c, 2.0)
     np.testing.assert_allclose(hi - c, np.sqrt(2.0))  # sample std (ddof=1) of {1, 3}
     np.testing.assert_allclose(c - lo, np.sqrt(2.0))
 
 
-def test_aggregate_interpolates_onto_the_common_wall_clock_range():
+def test_aggregate_covers_every_runs_own_range_with_the_count_per_point():
     a = (np.array([0.0, 2.0, 4.0]), np.array([0.0, 2.0, 4.0]))
     b = (np.array([1.0, 3.0, 5.0]), np.array([1.0, 3.0, 5.0]))
-    gx, c, lo, hi = aggregate([a, b])
-    np.testing.assert_array_equal(gx, [1.0, 2.0, 3.0, 4.0])  # only where both runs have data
+    gx, c, lo, hi, n = aggregate([a, b])
+    np.testing.assert_array_equal(gx, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0])  # each run over its own range
+    np.testing.assert_array_equal(n, [1, 2, 2, 2, 2, 1])
     np.testing.assert_allclose(c, gx)  # both are y = x, linearly interpolated
     np.testing.assert_allclose(hi - lo, 0.0, atol=1e-12)
-    assert aggregate([(np.array([0.0, 1.0]), np.array([0.0, 1.0])), (np.array([2.0, 3.0]), np.ones(2))]) is None
+    gx, c, _, _, n = aggregate([(np.array([0.0, 1.0]), np.array([0.0, 1.0])), (np.array([2.0, 3.0]), np.ones(2))])
+    np.testing.assert_array_equal(n, [1, 1, 1, 1]) and np.testing.assert_allclose(c, [0.0, 1.0, 1.0, 1.0])
+    assert aggregate([(np.array([]), np.array([]))]) is None
 
 
 def test_aggregate_log_space_is_geometric():
     x = np.arange(3.0)
-    _, c, lo, hi = aggregate([(x, np.full(3, 1.0)), (x, np.full(3, 100.0))], log=True)
+    _, c, lo, hi, _ = aggregate([(x, np.full(3, 1.0)), (x, np.full(3, 100.0))], log=True)
     np.testing.assert_allclose(c, 10.0)  # geometric mean of 1 and 100
     np.testing.assert_allclose(hi / c, c / lo)  # a multiplicative band
     assert (lo > 0).all()
@@ -189,7 +193,7 @@ def test_floors_are_drawn_beside_every_return_curve(runs_dir, tmp_path):
             if name.startswith(("return_", "eval_return_")):
                 assert drawn == {"floor:zero": 5.0, "floor:random": 7.0}, name
                 # named on the figure beside the line, the higher floor above the lower
-                texts = {t.get_text(): t.get_va() for t in cartpole.texts}
+                texts = {t.get_text(): t.get_va() for t in cartpole.texts if t.get_gid() != "count"}
                 assert texts == {"zero action\nfloor 5": "top", "random action\nfloor 7": "bottom"}
                 assert not any(str(ln.get_gid()).startswith("floor") for ln in hopper.lines)
             else:
@@ -246,7 +250,7 @@ def _dashes(line):
 
 def _arm_lines(ax):
     """The arms' curves of a panel (not floors, evaluations or histogram patches)."""
-    return [ln for ln in ax.lines if ln.get_gid() is None and not ln.get_label().startswith("_")]
+    return [ln for ln in ax.lines if ln.get_gid() in (None, "arm") and not ln.get_label().startswith("_")]
 
 
 def _rewrite_metrics(run, change):
@@ -452,3 +456,98 @@ def test_evaluations_noise_and_looking_over_iterations(runs_dir):
         assert "looking bar: 0.1 x the first probe's" in [t.get_text() for t in fig.legends[0].get_texts()]
     finally:
         figs.close()
+
+
+# ---------------------------------------------------------------------------- nothing lost, nothing hidden
+def _lengths_dir(tmp_path):
+    """The quick start's situation: three arms of different lengths (10, 40, 25 iterations), and within
+    decoupled two seeds of different lengths (40 and 20)."""
+    parent = tmp_path / "lengths"
+    write_run(parent, task="cartpole", mode="full", seed=0, iters=10)
+    write_run(parent, task="cartpole", mode="decoupled", seed=0, iters=40)
+    write_run(parent, task="cartpole", mode="decoupled", seed=1, iters=20)
+    write_run(parent, task="cartpole", mode="state", seed=0, iters=25, probe_every=0)
+    return parent
+
+
+def test_arms_of_different_lengths_are_all_drawn_over_their_own_ranges(tmp_path):
+    figs = build_figures(find_runs([_lengths_dir(tmp_path)]), floors=load_floors())
+    try:
+        # return_mean starts at iteration 3 (no finished episode before)
+        assert figs.drawn["return_vs_iter.png"] == {("cartpole", "full"): (3.0, 10.0, 1),
+                                                    ("cartpole", "decoupled"): (3.0, 40.0, 2),
+                                                    ("cartpole", "state"): (3.0, 25.0, 1)}
+        assert figs.drawn["grad_norm.png"][("cartpole", "decoupled")] == (1.0, 40.0, 2)
+        ax = figs.figures["return_vs_iter.png"].axes[0]
+        assert [ln.get_label() for ln in _arm_lines(ax)] == ["full", "decoupled", "state"]
+        dec = next(ln for ln in _arm_lines(ax) if ln.get_label() == "decoupled")
+        # the full line where both seeds cover the iteration, the dotted one on to seed 0's end, n where it changes
+        y = np.asarray(dec.get_ydata(), float)
+        assert dec.get_xdata()[-1] == 40 and np.isnan(y[-1]) and not np.isnan(y[dec.get_xdata().tolist().index(20)])
+        fewer = next(ln for ln in ax.lines if ln.get_gid() == "fewer runs")
+        assert fewer.get_xdata()[-1] == 40 and fewer.get_linestyle() == ":"
+        assert sorted(t.get_text() for t in ax.texts if t.get_gid() == "count") == ["n=1", "n=2"]
+        legend = [t.get_text() for t in figs.figures["return_vs_iter.png"].legends[0].get_texts()]
+        assert "dotted: fewer of the arm's runs\ncover it (n where it changes)" in legend
+        # the band only where two runs cover the iteration: up to 20
+        band = next(c for c in ax.collections if c.get_paths() and c.get_paths()[0].vertices[:, 0].max() > 5)
+        assert band.get_paths()[0].vertices[:, 0].max() <= 20
+        # the probe figure keeps every probe of every run: decoupled probes at 1, 4, ..., 40
+        cos = figs.drawn["cosine_vs_iter.png"]
+        assert cos[("cartpole", "decoupled")] == (1.0, 40.0, 2) and cos[("cartpole", "full")] == (1.0, 10.0, 1)
+        assert not figs.left_out or all("state" in line for line in figs.left_out)
+    finally:
+        figs.close()
+
+
+def test_what_a_figure_cannot_draw_is_named_in_one_line(tmp_path):
+    parent = _lengths_dir(tmp_path)
+    _rewrite_metrics(parent / "cartpole_state_seed0", lambda m: m.pop("grad_norm"))
+    figs = build_figures(find_runs([parent]), floors=load_floors())
+    try:
+        assert ("grad_norm.png: left out cartpole state (no run of theirs has both iter and grad_norm)"
+                in figs.left_out)
+        assert ("cosine_hist.png: left out cartpole state (no probe iterations: runs of modes that render nothing "
+                "have none)" in figs.left_out)
+        assert ("cartpole", "state") not in figs.drawn["grad_norm.png"]
+    finally:
+        figs.close()
+
+
+def test_runs_sharing_a_seed_are_not_averaged_as_seeds(tmp_path, capsys):
+    parent = tmp_path / "shared"
+    write_run(parent, task="cartpole", mode="decoupled", seed=0, name="a")
+    write_run(parent, task="cartpole", mode="decoupled", seed=0, name="b")
+    write_run(parent, task="cartpole", mode="full", seed=0)
+    runs = find_runs([parent])
+    figs = build_figures(runs, floors=load_floors())
+    try:  # the report's way: that arm left out of the figures, named
+        assert figs.left_out[0] == (f"left out of every figure: arm 'decoupled' has two runs of task 'cartpole' with "
+                                    f"seed 0: {parent / 'a'} and {parent / 'b'}; give one folder per seed")
+        assert set(figs.drawn["return_vs_iter.png"]) == {("cartpole", "full")}
+    finally:
+        figs.close()
+    # ablate-plot's way: one error line naming the runs, as ablate-report's seed statistics name them
+    from ablations.cli import plot_main
+
+    with pytest.raises(SystemExit) as e:
+        plot_main([str(parent), "--out", str(tmp_path / "p")])
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and len(err.splitlines()) == 1
+    assert f"seed 0: {parent / 'a'} and {parent / 'b'}; give one folder per seed" in err
+
+
+def test_figures_are_byte_identical_when_their_data_is(runs_dir, tmp_path):
+    from ablations.stats import PerformanceProfile, ProfileCurve, plot_performance_profiles
+
+    runs = find_runs([runs_dir])
+    first = make_plots(runs, tmp_path / "one", floors=load_floors())
+    second = make_plots(runs, tmp_path / "two", floors=load_floors())
+    assert first.files and set(first.files) == set(second.files)
+    for name, path in first.files.items():
+        data = path.read_bytes()
+        assert data == second.files[name].read_bytes(), name
+        assert b"matplotlib" not in data and b"Software\x00pixelgrad ablations" in data, name
+    prof = PerformanceProfile("t", np.linspace(0, 1, 5), {"a": ProfileCurve(*[np.linspace(1, 0, 5)] * 3, 2)}, 10, 0, 3)
+    assert plot_performance_profiles(prof, tmp_path / "p1.png").read_bytes() == \
+        plot_performance_profiles(prof, tmp_path / "p2.png").read_bytes()

@@ -194,17 +194,24 @@ def _task(parent, task, dec, blind, **others):
                       iter_ms=40.0 if arm == "decoupled" else 80.0, iters=10, **kw)
 
 
+#: Ten seeds: the smallest sign-flip p-value is 2 / 2^10, so a difference every seed agrees on survives Holm's
+#: correction over up to 25 comparisons (fewer seeds cannot: 5 give 0.0625 even alone).
+DEC = [1000.0 + 50.0 * i for i in range(10)]
+E3 = [5.0, -5.0, 0.0, 2.0, -2.0, 1.0, -1.0, 3.0, -3.0, 4.0]
+
+
 def test_the_section_reads_arms_only_where_decoupled_beats_blind(tmp_path):
     parent = tmp_path / "runs"
-    dec = [1000.0, 1500.0, 1200.0]
+    dec = DEC
     # hopper: decoupled beats blind by ~800 on every seed; full-soft ~+300, full-hard-dva ~-400
-    _task(parent, "hopper", dec, [d - 800.0 + e for d, e in zip(dec, (5.0, -5.0, 0.0))],
-          **{"full-soft": [d + 300.0 + e for d, e in zip(dec, (3.0, -3.0, 1.0))],
-             "full-hard-dva": [d - 400.0 + e for d, e in zip(dec, (2.0, -1.0, 4.0))]})
+    _task(parent, "hopper", dec, [d - 800.0 + e for d, e in zip(dec, E3)],
+          **{"full-soft": [d + 300.0 + e for d, e in zip(dec, E3[::-1])],
+             "full-hard-dva": [d - 400.0 + e for d, e in zip(dec, E3)]})
     # ant: blind as good as decoupled on some seeds: no arm is read, however far full-soft is ahead
-    _task(parent, "ant", dec, [1300.0, 900.0, 1250.0], **{"full-soft": [d + 3000.0 for d in dec]})
+    _task(parent, "ant", dec, [d + (300.0 if i % 2 else -400.0) for i, d in enumerate(dec)],
+          **{"full-soft": [d + 3000.0 for d in dec]})
     # cartpole: decoupled far above blind, but doing nothing scores high: it ranks no arms
-    _task(parent, "cartpole", dec, [0.0, 1.0, 2.0], **{"full-soft": [d + 100.0 for d in dec]})
+    _task(parent, "cartpole", dec, [float(i) for i in range(10)], **{"full-soft": [d + 100.0 for d in dec]})
     runs = find_runs([parent])
     floors = load_floors()
     out = seeds.seed_statistics(runs, floors=floors, reps=REPS)
@@ -224,20 +231,29 @@ def test_the_section_reads_arms_only_where_decoupled_beats_blind(tmp_path):
 
     text = "\n".join(seeds.seed_section(runs, tmp_path / "figs", tmp_path, floors=floors, reps=REPS, computed=out))
     assert "**Verdict (equal iterations, 10):** decoupled beats blind" in text
-    assert "full-soft: better than decoupled; full-hard-dva: worse than decoupled" in text
+    assert ("full-soft: better than decoupled (differs after Holm correction); full-hard-dva: worse than decoupled "
+            "(differs after Holm correction)") in text
+    # the family: every paired comparison with a p-value, every task and view (equal wall-clock: full-soft and
+    # full-hard-dva have no evaluation by 0.4 s on the hopper, nor full-soft on ant and cartpole)
+    assert "the family of all 7 paired comparisons of this section" in text
+    assert "10 of 10 seeds agree in sign, sign-flip p = 0.00195, Holm-adjusted p = 0.0137 (7 comparisons)" in text
     parts = dict(part.split("\n", 1) for part in text.split("\n### ")[1:])
     assert list(parts) == ["cartpole", "hopper", "ant"]  # tasks.TASKS' order
     ant_part = parts["ant"]
     assert "the pixel arms cannot be ranked on this task yet" in ant_part and "better than" not in ant_part
     assert ant_part.count("cannot be ranked yet |") == 1  # full-soft's reading in the table
     assert "D.Va's cartpole (with springs) ranks no arms" in text
-    row = next(ln for ln in parts["hopper"].splitlines() if ln.startswith("| full-soft | 3 | 10 |"))
-    assert "1 (final: last 1)" in row and "s0: 1303, s1: 1797, s2: 1501" in row and "better than decoupled" in row
+    row = next(ln for ln in parts["hopper"].splitlines() if ln.startswith("| full-soft | 10 | 10 |"))
+    assert "| 1 | 10 |" in row and "s0: 1304, s1: 1347," in row and "better than decoupled" in row
+    assert "| 10 of 10 | 300.4 [" in row and "| 0.00195 | 0.0137 |" in row
+    assert "evaluations at iterations 10." in parts["hopper"]  # the window every run's final return averages
+    for name in ("difference_vs_budget_hopper.png", "learning_curves_hopper.png"):
+        assert (tmp_path / "figs" / name).read_bytes()[:4] == b"\x89PNG" and f"](figs/{name})" in text
     assert (tmp_path / "figs" / "performance_profile_hopper.png").read_bytes()[:4] == b"\x89PNG"
     assert "](figs/performance_profile_hopper.png)" in text
     assert parts["hopper"].count("Swings of the training return up to iteration 10") == 1
     assert "| arm | training-return collapse rate: mean | per seed |" in parts["hopper"]
-    assert "| decoupled | 0.00 | s0: 0.00, s1: 0.00, s2: 0.00 |" in parts["hopper"]  # a flat training return
+    assert "| decoupled | 0.00 | s0: 0.00, s1: 0.00, s2: 0.00, s3: 0.00," in parts["hopper"]  # a flat training return
 
 
 def test_runs_without_evaluations_are_said_to_have_none(tmp_path):
@@ -324,8 +340,8 @@ def test_the_blind_phase_table_says_what_it_could_not_tell():
 
 def test_the_section_reads_no_arm_from_fewer_than_three_seeds(tmp_path):
     parent = tmp_path / "runs"
-    dec = [1000.0, 1500.0, 1200.0]
-    # hopper: the gate passes on three seeds; full-hard-dva has one, far above decoupled
+    dec = DEC
+    # hopper: the gate passes on ten seeds; full-hard-dva has one, far above decoupled
     _task(parent, "hopper", dec, [d - 800.0 for d in dec], **{"full-hard-dva": [9000.0]})
     # ant: one seed of each, decoupled far above blind: a point, not an interval
     _task(parent, "ant", [2000.0], [100.0])
@@ -334,14 +350,15 @@ def test_the_section_reads_no_arm_from_fewer_than_three_seeds(tmp_path):
     parts = dict(part.split("\n", 1) for part in text.split("\n### ")[1:])
     assert "full-hard-dva: too few paired seeds to read (fewer than 3)" in parts["hopper"]
     assert "better than decoupled" not in parts["hopper"]
-    assert ("too few seeds to read decoupled against blind: 1 and 1 seed(s), an interval over fewer than 3 "
-            "decides nothing; the pixel arms cannot be ranked on this task yet") in parts["ant"]
+    assert ("too few seeds to read decoupled against blind: 1 paired seed(s), and no verdict rests on fewer than 3 "
+            "(decoupled minus blind 1900 [1900, 1900]); the pixel arms cannot be ranked on this task yet"
+            ) in parts["ant"]
 
 
 def test_runs_read_at_an_earlier_iteration(tmp_path):
     # evaluations at 10 and 20: at 20 full-soft is far ahead of decoupled, at 10 far behind
     parent = tmp_path / "runs"
-    for s_, d in enumerate([1000.0, 1200.0, 1100.0]):
+    for s_, d in enumerate(DEC):
         write_run(parent, f"dec{s_}", seed=s_, evals=[d, d + 10.0], iters=20)
         write_run(parent, f"blind{s_}", mode="blind", seed=s_, evals=[d - 500.0, d - 500.0], iters=20)
         write_run(parent, f"full{s_}", mode="full", seed=s_, evals=[d - 300.0 + s_, d + 600.0 + s_], iters=20)
@@ -350,7 +367,7 @@ def test_runs_read_at_an_earlier_iteration(tmp_path):
     early = seeds.seed_statistics(runs, reps=REPS, at_iteration=10)["hopper"]
     assert whole.stats.iteration == 20 and whole.verdicts["equal iterations"].readings == {"full-soft": "better"}
     assert early.stats.iteration == 10 and early.verdicts["equal iterations"].readings == {"full-soft": "worse"}
-    assert early.stats.whole.arms["full-soft"].final == {0: 700.0, 1: 901.0, 2: 802.0}
+    assert early.stats.whole.arms["full-soft"].final == {s_: d - 300.0 + s_ for s_, d in enumerate(DEC)}
     # beyond the runs' end it changes nothing; the section says where it read them
     assert seeds.seed_statistics(runs, reps=REPS, at_iteration=500)["hopper"].stats.iteration == 20
     text = "\n".join(seeds.seed_section(runs, tmp_path / "f", tmp_path, reps=REPS, at_iteration=10))

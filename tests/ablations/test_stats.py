@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
 import subprocess
@@ -105,11 +106,11 @@ def test_collapse_rate_counts_evaluations_below_half_the_running_best_after_the_
 def test_iqm_of_a_known_set_and_a_deterministic_interval():
     # 8 values: two dropped at each end, the mean of 3, 4, 5, 6
     est = stats.iqm_estimate([7, 1, 100, 3, 2, 6, 4, 5], reps=REPS, seed=4)
-    assert est.value == 4.5 and est.n == 8 and est.reps == REPS
+    assert est.value == 4.5 and est.n == 8 and est.exact and est.reps == math.comb(15, 8)  # every resample
     assert est.ci_low <= 4.5 <= est.ci_high and est.ci_low < est.ci_high
     assert stats.iqm_estimate([1, 2, 3, 4, 100], reps=REPS).value == 3.0  # 5 values: the middle 3
     assert stats.iqm_estimate([1, 2, 9], reps=REPS).value == 4.0  # 3 values: nothing dropped
-    np.random.seed(123)  # noqa: NPY002 (the global state rliable uses; it must come back unchanged)
+    np.random.seed(123)  # noqa: NPY002 (numpy's global state: no statistic here may draw from it)
     before = np.random.get_state()[1].copy()  # noqa: NPY002
     again = stats.iqm_estimate([7, 1, 100, 3, 2, 6, 4, 5], reps=REPS, seed=4)
     assert again == est
@@ -279,18 +280,22 @@ def test_the_blind_phase_is_how_deep_and_how_long_the_policy_stops_looking():
 
 
 # ------------------------------------------------------------------------------------------------ verdict
+DEC8 = [100.0, 200.0, 150.0, 120.0, 180.0, 90.0, 210.0, 160.0]
+NOISE8 = [1.0, -2.0, 0.5, 2.0, -1.5, 0.7, -0.4, 1.2]
+
+
 def test_arms_are_read_against_decoupled_where_decoupled_beats_blind():
-    dec = [100.0, 200.0, 150.0, 120.0, 180.0]
-    noise = [1.0, -2.0, 0.5, 2.0, -1.5]
-    curves = (_arm("decoupled", dec) + _arm("blind", [d - 90.0 + e for d, e in zip(dec, noise)])
-              + _arm("full-soft", [d + 40.0 + e for d, e in zip(dec, noise)])
-              + _arm("full-hard", [d - 30.0 - e for d, e in zip(dec, noise)])
-              + _arm("full-alpha", [d + 10.0 * (-1) ** i for i, d in enumerate(dec)]))
+    # 8 seeds, all agreeing in sign: sign-flip p = 2 / 2^8 each; Holm over the 4 comparisons: 4 x 2/256 = 0.031
+    curves = (_arm("decoupled", DEC8) + _arm("blind", [d - 90.0 + e for d, e in zip(DEC8, NOISE8)])
+              + _arm("full-soft", [d + 40.0 + e for d, e in zip(DEC8, NOISE8)])
+              + _arm("full-hard", [d - 30.0 - e for d, e in zip(DEC8, NOISE8)])
+              + _arm("full-alpha", [d + 10.0 * (-1) ** i for i, d in enumerate(DEC8)]))
     v = stats.verdict(stats.compare(curves, reps=REPS))
     assert v.ranks and v.gate.passed and v.gate.by == "paired difference"
-    assert v.gate.paired.value == pytest.approx(90.0) and v.gate.paired.ci_low > 0  # decoupled minus blind
+    assert v.gate.paired.value == pytest.approx(90.0 - np.mean(NOISE8)) and v.gate.paired.ci_low > 0
+    assert v.gate.p_holm == pytest.approx(4 * 2 / 256)
     assert v.readings == {"full-soft": "better", "full-hard": "worse", "full-alpha": "not resolved"}
-    assert "decoupled beats blind" in v.reason
+    assert "decoupled beats blind" in v.reason and "8 of 8 seeds agree in sign" in v.reason
 
 
 def test_no_arm_is_ranked_where_decoupled_does_not_beat_blind():
@@ -303,13 +308,21 @@ def test_no_arm_is_ranked_where_decoupled_does_not_beat_blind():
     assert "cannot be ranked on this task yet" in v.reason
 
 
-def test_the_gate_holds_by_the_iqms_when_no_seed_is_paired():
-    # decoupled's seeds 0-2 and blind's 3-5 share none; their intervals lie far apart
+def test_five_seeds_that_all_agree_do_not_pass_the_gate():
+    # the exact sign-flip p-value over 5 seeds cannot go below 2 / 32 = 0.0625: however far apart, 5 seeds do not
+    # resolve a difference at 0.05, even uncorrected
+    dec = DEC8[:5]
+    curves = _arm("decoupled", dec) + _arm("blind", [d - 900.0 for d in dec])
+    v = stats.verdict(stats.compare(curves, reps=REPS))
+    assert v.gate.paired.ci_low > 0 and v.gate.p_holm == pytest.approx(0.0625) and not v.ranks
+    assert "5 of 5 seeds agree in sign, sign-flip p = 0.0625" in v.reason
+
+
+def test_the_gate_needs_paired_seeds():
+    # decoupled's seeds 0-2 and blind's 3-5 share none: their IQMs lie far apart, but nothing is paired to test
     curves = _arm("decoupled", [500.0, 510.0, 520.0]) + _arm("blind", [10.0, 20.0, 30.0], seeds=[3, 4, 5])
     v = stats.verdict(stats.compare(curves, reps=REPS))
-    assert v.ranks and v.gate.by == "IQMs" and v.gate.paired is None
-    flipped = _arm("decoupled", [10.0, 20.0, 30.0]) + _arm("blind", [500.0, 510.0, 520.0], seeds=[3, 4, 5])
-    assert not stats.verdict(stats.compare(flipped, reps=REPS)).ranks
+    assert not v.ranks and v.gate.paired is None and "no decoupled seed has a blind run of the same seed" in v.reason
 
 
 def test_an_interval_over_fewer_than_three_seeds_decides_nothing():
@@ -322,21 +335,14 @@ def test_an_interval_over_fewer_than_three_seeds_decides_nothing():
         v = stats.verdict(stats.compare(curves, reps=FEW))
         assert v.gate.paired.ci_low > 0 and v.gate.reference_iqm.ci_low > v.gate.control_iqm.ci_high
         assert not v.ranks and not v.gate.passed and v.gate.by is None and v.readings == {}
-        assert f"too few seeds to read decoupled against blind: {n} and {n} seed(s)" in v.reason
-    # the gate passes on five seeds; an arm with two paired seeds far above decoupled is still not read
-    dec = [100.0, 200.0, 150.0, 120.0, 180.0]
-    curves = (_arm("decoupled", dec) + _arm("blind", [d - 90.0 for d in dec])
-              + _arm("full-soft", [d + 400.0 for d in dec[:2]], seeds=[0, 1])
-              + _arm("full-hard", [d + 400.0 for d in dec[:3]], seeds=[0, 1, 2]))
+        assert f"too few seeds to read decoupled against blind: {n} paired seed(s)" in v.reason
+    # the gate passes on eight seeds; an arm with two paired seeds far above decoupled is still not read
+    curves = (_arm("decoupled", DEC8) + _arm("blind", [d - 90.0 for d in DEC8])
+              + _arm("full-soft", [d + 400.0 for d in DEC8[:2]], seeds=[0, 1])
+              + _arm("full-hard", [d + 400.0 for d in DEC8], seeds=range(8)))
     v = stats.verdict(stats.compare(curves, reps=FEW))
     assert v.ranks and v.readings == {"full-soft": "too few seeds", "full-hard": "better"}
     assert stats.MIN_SEEDS == 3
-    # three seeds an arm but two of them paired, IQMs overlapping: not ranked, and the reason says the paired
-    # interval was not read rather than calling it one that covers zero
-    curves = _arm("decoupled", [300.0, 200.0, 210.0]) + _arm("blind", [100.0, 105.0, 900.0], seeds=[1, 2, 3])
-    v = stats.verdict(stats.compare(curves, reps=REPS))
-    assert v.gate.paired.n == 2 and v.gate.paired.ci_low > 0 and not v.ranks
-    assert "over 2 paired seeds (fewer than 3: not read); IQMs" in v.reason
 
 
 def test_runs_cut_before_their_first_evaluation_say_so():
@@ -386,3 +392,127 @@ def test_profiles_take_the_arms_styles(tmp_path, monkeypatch):
     stats.plot_performance_profiles(prof, tmp_path / "p.png", styles=styles)
     assert to_rgb(seen["decoupled (n=2)"][0]) == (0.1, 0.2, 0.7) and seen["decoupled (n=2)"][1] == (0, (5, 2))
     assert seen["blind (n=2)"] == (None, None)  # not named: matplotlib's next colour
+
+
+# ------------------------------------------------------------------------- exact resampling and correction
+def _brute_force_interval(values, confidence=0.95):
+    """The percentile interval of the mean over all n^n ordered resamples, each of probability n^-n."""
+    means = np.array([np.mean(r) for r in itertools.product(values, repeat=len(values))])
+    return stats.percentile_interval(means, np.full(means.size, 1.0 / means.size), confidence)
+
+
+@pytest.mark.parametrize("values", [[3.0, -1.0, 7.0], [-1546.0, -48.0, -900.0], [0.5, 2.0, 2.0, -4.0],
+                                    [1.0, 9.0, -3.0, 4.0, 2.5]])
+def test_the_exact_bootstrap_equals_the_enumeration_of_every_ordered_resample(values):
+    est = stats.mean_estimate(values)
+    assert est.exact and est.reps == math.comb(2 * len(values) - 1, len(values))
+    assert (est.ci_low, est.ci_high) == pytest.approx(_brute_force_interval(values))
+    _stat, w, exact = stats.bootstrap_distribution(values, lambda rows: rows.mean(axis=1))
+    assert exact and w.sum() == pytest.approx(1.0)
+    if len(values) == 3:  # each extreme resample has probability 1/27 > 2.5 %: the interval is the range
+        assert (est.ci_low, est.ci_high) == (min(values), max(values))
+
+
+def test_more_seeds_than_the_enumeration_takes_draw_a_stated_number_of_resamples():
+    values = list(range(stats.EXACT_BOOTSTRAP_MAX_N + 1))
+    est = stats.mean_estimate(values, reps=500, seed=3)
+    assert not est.exact and est.reps == 500 and est == stats.mean_estimate(values, reps=500, seed=3)
+
+
+def test_sign_flip_p_values_are_exact():
+    assert stats.sign_flip_p([1, 2, 3, 4, 5]) == 0.0625  # 2 of 32 patterns reach the observed |mean|
+    assert stats.sign_flip_p([-4, -1, -2]) == 0.25
+    assert stats.sign_flip_p([5.0] * 8) == pytest.approx(2 / 256)
+    assert stats.sign_flip_p([1, -1, 2, -2]) == 1.0
+    # by hand: d = (3, 1, -1) sums to 3; the 8 signed sums are +-5, +-3, +-3, +-1: |sum| >= 3 in 6 of 8
+    assert stats.sign_flip_p([3, 1, -1]) == 0.75
+    assert math.isnan(stats.sign_flip_p([]))
+
+
+def test_holm_adjusts_known_p_values():
+    # sorted 0.01, 0.03, 0.04, 0.2 times 4, 3, 2, 1: 0.04, 0.09, 0.08 -> 0.09 (monotone), 0.2
+    assert stats.holm([0.01, 0.04, 0.03, 0.2]) == pytest.approx([0.04, 0.09, 0.09, 0.2])
+    out = stats.holm([0.5, math.nan, 0.01])  # NaN stays out of the family: m = 2
+    assert out[0] == 0.5 and math.isnan(out[1]) and out[2] == pytest.approx(0.02)
+    assert stats.holm([0.6, 0.7]) == [1.0, 1.0]
+
+
+def test_a_clearly_worse_arm_on_eight_seeds_differs_after_correction_and_noise_does_not():
+    rng = np.random.default_rng(0)
+    dec = list(rng.normal(1000, 200, 8))
+    worse = [d - 300 + e for d, e in zip(dec, rng.normal(0, 30, 8))]
+    noise = [d + e for d, e in zip(dec, rng.normal(0, 300, 8))]
+    blind = [d - 800 + e for d, e in zip(dec, rng.normal(0, 30, 8))]
+    cmp = stats.compare(_arm("decoupled", dec) + _arm("blind", blind) + _arm("full", worse) + _arm("noisy", noise))
+    (cmp,) = stats.correct([cmp])
+    d = cmp.differences["full"]
+    assert d.agree == 8 and d.p_value == pytest.approx(2 / 256) and d.family == 3 and d.differs()
+    assert not cmp.differences["noisy"].differs() and cmp.differences["noisy"].p_holm > 0.05
+    assert stats.verdict(cmp).readings == {"full": "worse", "noisy": "not resolved"}
+    # the same comparison in a larger family (the 18 of a three-task report): 18 x 2/256 > 0.05
+    (big,) = stats.correct([cmp] * 6)[:1]
+    assert big.differences["full"].family == 18 and not big.differences["full"].differs()
+
+
+def test_every_run_of_a_comparison_averages_the_same_evaluation_iterations():
+    # a: evaluations at 1500, 1750, 2000, 2038; b: at 1250, 1500, 1750, 2000: the common last three are
+    # 1500, 1750, 2000 for both (not 1750, 2000, 2038 for a)
+    a = curve([10.0, 20.0, 30.0, 1000.0], arm="decoupled", iters=[1500, 1750, 2000, 2038])
+    b = curve([1.0, 2.0, 3.0, 4.0], arm="full", iters=[1250, 1500, 1750, 2000])
+    assert stats.common_window([a, b]) == (1500, 1750, 2000)
+    cmp = stats.compare([a, b], reps=FEW)
+    assert cmp.arms["decoupled"].final == {0: 20.0} and cmp.arms["full"].final == {0: 3.0}
+    assert cmp.arms["full"].window == (1500, 1750, 2000)
+    per_arm = stats.compare([a, b], reps=FEW, window="per arm")
+    assert per_arm.arms["decoupled"].window == (1750, 2000, 2038)
+    # runs that share no evaluation iteration: each its own last three, listed per seed
+    c = curve([5.0, 6.0], arm="full", iters=[1, 2])
+    cmp = stats.compare([a, c], reps=FEW)
+    assert cmp.arms["full"].window == () and cmp.arms["full"].own_windows == {0: (1, 2)}
+
+
+def test_difference_curves_say_where_the_sign_holds():
+    # 8 seeds; full's evaluations equal decoupled's up to iteration 30, then 100 below on every seed
+    iters = np.arange(1, 11) * 10
+    curves = []
+    for s in range(8):
+        base = np.linspace(0, 900, 10) + 37.0 * s
+        curves.append(curve(base, arm="decoupled", seed=s, iters=iters))
+        curves.append(curve(base - np.where(iters > 30, 100.0 + s, 0.0) + (s % 2 - 0.5) * 0.01 * (iters <= 30),
+                            arm="full", seed=s, iters=iters))
+    dcs = stats.difference_curves(curves, iter_ms_alone={"decoupled": 100.0, "full": 200.0}, final_evals=1)
+    dc = dcs[("full", "iteration")]
+    assert list(dc.x) == list(iters) and set(dc.n) == {8}
+    assert np.all(dc.ci_high[3:] < 0) and not np.any(dc.ci_high[:3] < 0)
+    assert stats.sign_holds(dc) == ("full − decoupled < 0 with the interval excluding 0 from iteration 40 on "
+                                    "(7 of 10 budgets, iteration 10 to iteration 100)")
+    wall = dcs[("full", "wall-clock")]
+    # budgets: every evaluation time of either arm from the later first one (2 s) to the shortest run's end
+    # (10 s: decoupled at 100 iterations x 0.1 s; full at 100 x 0.2 s = 20 s)
+    assert wall.x[0] == pytest.approx(2.0) and wall.x[-1] == pytest.approx(10.0)
+    # at 10 s full is at iteration 50 (below decoupled's 50 by 100 + s), decoupled at 100
+    assert wall.mean[-1] == pytest.approx(np.mean([(np.linspace(0, 900, 10)[4] - 103.5) - 900]))
+    flat = [curve([1.0 + s % 3] * 3, arm="decoupled", seed=s) for s in range(3)]
+    flat += [curve([1.0 + (s + 1) % 3] * 3, arm="full", seed=s) for s in range(3)]
+    assert "the interval covers 0 at every one of its 3 budget(s)" in stats.sign_holds(
+        stats.difference_curves(flat)[("full", "iteration")])
+
+
+def test_the_statistics_work_where_the_resampling_libraries_cannot_import():
+    # arch (rliable's bootstrap) fails to import under pandas 3: blocked here, the statistics still compute
+    code = ("import sys; sys.modules.update(dict.fromkeys(['rliable', 'arch', 'pandas'])); "
+            "import ablations.stats as s; "
+            "c = [s.Curve('t', a, i, '', s.np.array([10, 20]), s.np.array([v, v + i]), 20) "
+            "for a, v in (('decoupled', 5.0), ('full', 1.0)) for i in range(4)]; "
+            "d = s.compare(c).differences['full']; s.performance_profiles(c); "
+            "print(d.mean.value, d.p_value, sorted({m.split('.')[0] for m in sys.modules if sys.modules[m]} "
+            "& {'rliable', 'arch', 'pandas', 'torch'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "-4.0 0.125 []"
+
+
+def test_the_iqm_is_rliables():
+    rly_metrics = pytest.importorskip("rliable.metrics")
+    for values in ([7, 1, 100, 3, 2, 6, 4, 5], [1, 2, 9], [4.0, -2.0, 8.5, 1.0, 3.0]):
+        ours = stats.iqm_estimate(values).value
+        assert ours == pytest.approx(float(rly_metrics.aggregate_iqm(np.array(values, float).reshape(-1, 1))))
