@@ -64,7 +64,7 @@ if TYPE_CHECKING:
 __all__ = ["PlotConfig", "group_runs", "run_labels", "aggregate", "make_plots",
            "build_figures", "FigureSet", "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS",
            "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs",
-           "PNG_METADATA", "draw_learning_curves", "draw_difference_curves"]
+           "PNG_METADATA", "png_bytes", "draw_learning_curves", "draw_difference_curves"]
 
 _EVAL = ("Stars: the deterministic evaluation return of each run (bar: +- std over its evaluation episodes, "
          "where recorded); dotted and dash-dotted lines: the zero- and random-action return floors.")
@@ -339,18 +339,34 @@ class FigureSet:
 #: PNG metadata of every figure: a fixed Software entry and no date, so that a figure whose data did not change
 #: is byte for byte the same file (matplotlib writes its version otherwise).
 PNG_METADATA = {"Software": "pixelgrad ablations"}
+#: Figures are line plots on a white ground: 80 dpi and a 256-colour palette keep them legible at a quarter of
+#: the bytes of a 110-dpi RGBA file, so that the shipped reports fit the repository's size budget
+#: (docs/design.md, "Shipped run data").
+FIGURE_DPI = 80
+
+
+def png_bytes(fig, *, dpi: int = FIGURE_DPI) -> bytes:
+    """``fig`` as palette PNG bytes, deterministic (no date, fixed Software entry, no dithering); closes ``fig``."""
+    import matplotlib.pyplot as plt
+    from PIL import Image, PngImagePlugin
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight", metadata=PNG_METADATA)
+    plt.close(fig)
+    image = Image.open(buf).convert("RGB").quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    info = PngImagePlugin.PngInfo()
+    for key, value in PNG_METADATA.items():
+        info.add_text(key, value)
+    out = io.BytesIO()
+    image.save(out, format="png", optimize=True, pnginfo=info)
+    return out.getvalue()
 
 
 def _save(fig, path: Path) -> None:
-    """The figure as a PNG at ``path``, written atomically, with :data:`PNG_METADATA` only; the figure is closed."""
-    import matplotlib.pyplot as plt
-
+    """The figure as a PNG at ``path`` (:func:`png_bytes`), written atomically; the figure is closed."""
     from gradlab.checkpoint import atomic_write_bytes
 
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight", metadata=PNG_METADATA)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write_bytes(path, png_bytes(fig))
 
 
 def _floor_lines(ax, floors: dict[str, dict] | None) -> None:

@@ -96,3 +96,18 @@ def test_what_the_quick_start_writes_is_git_ignored():
         assert r.returncode == 0, f"{out} is not git-ignored"
     shipped = subprocess.run(["git", "check-ignore", "-q", "docs/seeded_h100/runs/x/config.json"], cwd=ROOT)
     assert shipped.returncode == 1
+
+
+#: What a default clone checks out, at most (docs/design.md, "Shipped run data").
+TRACKED_BUDGET = 8 * 2**20
+
+
+def test_the_tracked_tree_fits_its_budget():
+    """Run data stays compact and figures small: a clone of the repository checks out at most 8 MiB."""
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    names = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
+    paths = [ROOT / n for n in names.decode().split("\0") if n]
+    total = sum(p.stat().st_size for p in paths if p.is_file())
+    assert total <= TRACKED_BUDGET, (f"tracked files take {total / 2**20:.2f} MiB, over the "
+                                     f"{TRACKED_BUDGET / 2**20:.0f} MiB budget")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -32,17 +31,12 @@ def _spans_decade(values) -> bool:
 def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
     """memory_peak.png and memory_bwd.png (:func:`sweep_figures`) written into ``out``; returns the files
     written (none without ok rows)."""
-    import matplotlib.pyplot as plt
-
-    from ablations.plot import PNG_METADATA
+    from ablations.plot import png_bytes
     from gradlab.checkpoint import atomic_write_bytes
 
     written = []
     for name, fig in sweep_figures(rows).items():
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=120, bbox_inches="tight", metadata=PNG_METADATA)
-        plt.close(fig)
-        atomic_write_bytes(Path(out) / name, buf.getvalue())
+        atomic_write_bytes(Path(out) / name, png_bytes(fig))
         written.append(Path(out) / name)
     return written
 
