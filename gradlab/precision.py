@@ -1,11 +1,10 @@
-"""The numeric precision a process trains in (``SHACConfig.precision``; docs/design.md, "Image model" and
-"Numeric precision").
+"""The numeric precision a process trains in (``SHACConfig.precision``; docs/design.md, "Data flow").
 
 * ``fp32``: float32 everywhere, with PyTorch's defaults: matmuls in full float32, and cuDNN free to run the
   encoder's float32 convolutions in TF32 (PyTorch's default for convolutions). What every run did before this
   option existed, bit for bit.
 * ``tf32``: TF32 tensor cores for every float32 CUDA matmul and convolution. The switch is process-wide: it also
-  reaches the simulator's and the renderer's matmuls (the mass-matrix inverse, forward kinematics) and the
+  reaches the simulator's and the renderer's cuBLAS matmuls (the mass-matrix inverse, forward kinematics) and the
   critic, not only the encoder.
 * ``bf16``: the encoder's convolutions under bfloat16 autocast (channels-last kept); their output is cast back to
   float32 before the trunk (Linear, LayerNorm, Tanh), which runs in float32 like everything else. No process-wide
