@@ -151,3 +151,16 @@ def test_ablate_records_the_precision_and_refuses_what_cannot_apply(tmp_path, ca
     ablate_main([*tiny, "--precision", "fp32", "--name", "run"])
     record = json.loads((tmp_path / "run" / "config.json").read_text())
     assert record["config"]["precision"] == "fp32"
+
+
+def test_one_precision_flag_gives_every_member_of_a_seeded_population_its_value():
+    from ablations.cli import ABLATE_GROUPS, parse
+    from ablations.population import AblateConfig
+    from ablations.runs import shac_part
+    from gradlab.config import resolve_config
+
+    cfg = parse(AblateConfig, ["--task", "hopper", "--mode", "decoupled", "full", "--seed", "0", "1", "2", "3", "4",
+                               "--precision", "bf16"], groups=ABLATE_GROUPS)
+    members = cfg.members()
+    assert len(members) == 10 and {m.precision for m in members} == {"bf16"}
+    check_population([resolve_config(shac_part(m)) for m in members])  # one population
