@@ -197,6 +197,7 @@ def prepare(cfg) -> tuple[list[RunConfig], list[RunFolder], object, list[dict] |
     to resume from (None: a fresh start; a resume from the newest iteration every member has a checkpoint of) and
     the population folder. ValueError naming the flag for members that cannot share a process."""
     from ablations.runs import _stored_config, default_threads, shac_part
+    from gradlab import precision
     from gradlab.seeding import resolve_device
     from gradlab.shac import check_population, population_order
 
@@ -218,6 +219,7 @@ def prepare(cfg) -> tuple[list[RunConfig], list[RunFolder], object, list[dict] |
     threads = members[0].threads or default_threads()
     members = [dataclasses.replace(m, threads=threads) for m in members]
     device = resolve_device(members[0].device)
+    precision.check(members[0].precision, device)  # a refusal before any folder is made
     if home is not None:
         folders = [folders[i] for i in order]
         return members, folders, device, _common_checkpoint(folders, device), home

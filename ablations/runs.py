@@ -26,6 +26,7 @@ import torch
 
 from ablations.run_folder import RunFolder, environment_info, evaluation_of
 from ablations.startup import Startup
+from gradlab import precision
 from gradlab.checkpoint import LoadedCheckpoint
 from gradlab.config import SHACConfig
 from gradlab.config_checks import check_integers, check_number
@@ -195,6 +196,7 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, RunFolder, torch.device, LoadedC
     else:
         cfg.validate()
         device = resolve_device(cfg.device)
+        precision.check(cfg.precision, device)  # a refusal before the folder is made
         name = cfg.name or f"{cfg.task}_{cfg.mode}_seed{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         folder, resume_from = RunFolder.create(cfg.out, name), None
     if cfg.threads is None:
@@ -225,6 +227,9 @@ def run(cfg: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None)
             else:
                 cfgs, folders, device, states, home = population.prepare(cfg)
             use_threads(cfgs[0].threads)
+            # process-wide (TF32 switches, the encoders' precision): before the trainer is built; config.json's
+            # environment then records the switches the run trained with
+            precision.use(cfgs[0].precision, device)
             cache_opened = time.time()
             startup.open(cfgs[0], shac_part(cfgs[0]) if single else [shac_part(c) for c in cfgs], device,
                          folders[0].path if single else home.path, resuming=states is not None)

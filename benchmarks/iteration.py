@@ -36,7 +36,7 @@ from _common import commit, write_json
 
 import diffrender
 import tasks
-from gradlab import SHAC, ModePlan, SHACConfig, resolve_device
+from gradlab import SHAC, ModePlan, SHACConfig, precision, resolve_device
 from gradlab.timing import median
 
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
@@ -67,9 +67,10 @@ def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_crit
     cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
                      iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
                      raster_model=raster_model, extra_meshes=args.extra_meshes,
-                     extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic)
+                     extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic, precision=args.precision)
     row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": args.num_envs, "horizon": args.horizon,
-           "image_size": args.image_size, "compile": args.compile, "overlap_critic": overlap_critic, "status": "ok"}
+           "image_size": args.image_size, "compile": args.compile, "overlap_critic": overlap_critic,
+           "precision": args.precision, "status": "ok"}
     try:
         t0 = time.perf_counter()
         trainer = SHAC(cfg, device=args.device)
@@ -142,6 +143,8 @@ def main() -> None:
     p.add_argument("--overlap-critic", nargs="+", choices=["on", "off"], default=["on"],
                    help="the critic fit alongside the replayed backward (on, the trainer's default) or after it "
                         "(off); several: each timed in this process (SHACConfig.overlap_critic)")
+    p.add_argument("--precision", choices=precision.PRECISIONS, default="fp32",
+                   help="SHACConfig.precision for every row (on the CPU a dry run: no TF32 there, bf16 emulated)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("iteration.json"))
     args = p.parse_args()
@@ -149,6 +152,7 @@ def main() -> None:
         args.device = str(resolve_device(args.device))
     except ValueError as e:
         p.error(str(e))
+    precision.use(args.precision, args.device, allow_cpu=True)  # process-wide, before any trainer is built
 
     env = {"torch": torch.__version__, "python": platform.python_version(), "device": args.device,
            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv), "commit": commit()}
@@ -171,7 +175,7 @@ def main() -> None:
         write_json(args.out, doc, indent=2)
 
     print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
-          f"{env.get('gpu', args.device)}, compile={args.compile} "
+          f"{env.get('gpu', args.device)}, compile={args.compile}, precision={args.precision} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
     print(f"{'task':9} {'mode':9} {'render':6} {'raster':7} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} "
           f"{'overlap':>7} {'iter ms':>9} "

@@ -7,9 +7,11 @@ jobs compile at the same time in processes of their own (as many as the GPU's me
 other and are timed one at a time on an otherwise idle GPU. The anchor's N processes are timed at once.
 
 Members cycle through decoupled, full (the soft silhouette model), full with the hard raster model and blind,
-seeds 0, 1, ...; a population of one is a decoupled single run.
+seeds 0, 1, ...; a population of one is a decoupled single run. ``--precision fp32 bf16`` times every job at each
+precision (SHACConfig.precision; each job is a process of its own, so each has its own process-wide switches).
 
     python benchmarks/population.py --tasks ant hopper --members 1 2 4 8 12 16 --anchor 4 12 --out population.json
+    python benchmarks/population.py --tasks ant --members 1 12 --anchor --precision fp32 bf16 --out pop_bf16.json
     python benchmarks/population.py --device cpu --tasks cartpole --members 1 2 --anchor 2 --num-envs 2 \\
         --horizon 2 --image-size 16 --warmup 1 --iters 1 --out /tmp/population.json
 """
@@ -42,7 +44,7 @@ def member_configs(job: dict, args) -> list:
         out.append(SHACConfig(task=job["task"], mode=mode, raster_model=raster, seed=i // len(ARMS),
                               num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
                               iters=10_000, cosine_every=0, compile=args.device != "cpu" or args.compile,
-                              eval_every=0))
+                              eval_every=0, precision=job.get("precision", "fp32")))
     return out
 
 
@@ -56,13 +58,15 @@ def child(args) -> None:
     """One job: build the trainer, warm up (compile, capture), meet the others, time, print one JSON row."""
     import torch
 
-    from gradlab import SHAC
+    from gradlab import SHAC, precision
 
     job = json.loads(args.child)
     cfgs = member_configs(job, args)
     row = {**job, "status": "ok"}
     try:
         t0 = time.perf_counter()
+        # process-wide, before the trainer is built (on the CPU a dry run: no TF32 there, bf16 emulated)
+        precision.use(cfgs[0].precision, args.device, allow_cpu=True)
         trainer = SHAC(cfgs if job["members"] > 1 else cfgs[0], device=args.device, batching=job["batching"])
         for _ in range(args.warmup):
             trainer.train_iteration()
@@ -160,6 +164,8 @@ def main() -> None:
     p.add_argument("--memory-gb", type=float, default=70.0, help="GPU memory a wave of jobs may use")
     p.add_argument("--member-gb", type=float, default=3.5, help="estimated GPU memory per member")
     p.add_argument("--compile-threads", type=int, default=4, help="inductor compile threads per process")
+    p.add_argument("--precision", nargs="+", choices=["fp32", "tf32", "bf16"], default=["fp32"],
+                   help="SHACConfig.precision: every job (anchor processes included) at each")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, default=Path("population.json"))
     args = p.parse_args()
@@ -167,8 +173,9 @@ def main() -> None:
     if args.child is not None:
         child(args)
         return
-    jobs = [{"kind": "population", "task": t, "members": n, "batching": b}
-            for t in args.tasks for n in args.members for b in args.batchings if n > 1 or b == args.batchings[0]]
+    jobs = [{"kind": "population", "task": t, "members": n, "batching": b, "precision": pr}
+            for pr in args.precision for t in args.tasks for n in args.members for b in args.batchings
+            if n > 1 or b == args.batchings[0]]
     doc = {"commit": commit(), "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv),
            "device": args.device, "rows": [], "complete": False}
     if args.device != "cpu":
@@ -178,11 +185,12 @@ def main() -> None:
         doc["torch"] = torch.__version__
     # the file is rewritten after every wave: a call cut short by its time limit keeps the waves it finished
     plan = [(wave, True) for wave in waves(jobs, args.memory_gb, args.member_gb)]
-    for task in args.tasks:
-        for n in args.anchor:
-            # the anchor: the members of an N-population as N single runs, all at once
-            plan.append(([{"kind": "separate", "task": task, "members": 1, "batching": "grouped", "arm": i % len(ARMS),
-                           "processes": n} for i in range(n)], False))
+    for pr in args.precision:
+        for task in args.tasks:
+            for n in args.anchor:
+                # the anchor: the members of an N-population as N single runs, all at once
+                plan.append(([{"kind": "separate", "task": task, "members": 1, "batching": "grouped",
+                               "arm": i % len(ARMS), "processes": n, "precision": pr} for i in range(n)], False))
     for wave, timed_alone in plan:
         doc["rows"] += run_wave(wave, args, timed_alone=timed_alone)
         write_json(args.out, doc)
@@ -196,24 +204,24 @@ def print_table(rows: list[dict], args) -> None:
     separate processes at once (their median iteration, their summed throughput)."""
     print(f"\npopulations ({args.num_envs} envs per member, horizon {args.horizon}, {args.image_size} px; "
           f"members cycle {', '.join(m + ('-' + r if r else '') for m, r in ARMS)})")
-    print(f"{'task':8} {'N':>3} {'batching':9} {'iter ms':>9} {'x single':>9} {'steps/s':>9} {'reserved MB':>12} "
-          f"{'sep. iter ms':>13} {'sep. steps/s':>13} {'gain':>6}")
+    print(f"{'task':8} {'prec':5} {'N':>3} {'batching':9} {'iter ms':>9} {'x single':>9} {'steps/s':>9} "
+          f"{'reserved MB':>12} {'sep. iter ms':>13} {'sep. steps/s':>13} {'gain':>6}")
     ok = [r for r in rows if r["status"] == "ok"]
     for r in rows:
         if r["kind"] != "population":
             continue
+        pr = r.get("precision", "fp32")
         if r["status"] != "ok":
-            print(f"{r['task']:8} {r['members']:>3} {r['batching']:9} {r['status']}: {r.get('error', '')[:70]}")
+            print(f"{r['task']:8} {pr:5} {r['members']:>3} {r['batching']:9} {r['status']}: {r.get('error', '')[:70]}")
             continue
-        single = next((x for x in ok if x["kind"] == "population" and x["task"] == r["task"] and x["members"] == 1),
-                      None)
-        apart = [x for x in ok if x["kind"] == "separate" and x["task"] == r["task"]
-                 and x["processes"] == r["members"]]
+        same = [x for x in ok if x["task"] == r["task"] and x.get("precision", "fp32") == pr]
+        single = next((x for x in same if x["kind"] == "population" and x["members"] == 1), None)
+        apart = [x for x in same if x["kind"] == "separate" and x["processes"] == r["members"]]
         ratio = f"{r['iter_ms'] / single['iter_ms']:.2f}" if single else "-"
         sep_ms = f"{statistics.median(x['iter_ms'] for x in apart):.1f}" if apart else "-"
         sep_rate = sum(x["env_steps_per_s"] for x in apart)
         gain = f"{r['env_steps_per_s'] / sep_rate:.2f}" if apart else "-"
-        print(f"{r['task']:8} {r['members']:>3} {r['batching']:9} {r['iter_ms']:>9.1f} {ratio:>9} "
+        print(f"{r['task']:8} {pr:5} {r['members']:>3} {r['batching']:9} {r['iter_ms']:>9.1f} {ratio:>9} "
               f"{r['env_steps_per_s']:>9} {r.get('max_reserved_mb', r['peak_reserved_mb']):>12} {sep_ms:>13} "
               f"{sep_rate if apart else '-':>13} {gain:>6}")
 

@@ -14,6 +14,7 @@ from typing import Literal
 
 from diffrender.settings import RASTER_MODELS
 from gradlab.config_checks import check_integers, check_number, flag
+from gradlab.precision import PRECISIONS
 from gradlab.presets import PRESET_FIELDS, PRESETS, preset_values
 from tasks import TASKS
 from tasks.vision import RENDERERS
@@ -183,6 +184,13 @@ class SHACConfig:
     kinematics, camera, the fused rasterizer's per-face setup) and, on a CUDA device, capture the window
     (forward and backward; plain and probe iterations separately) and the critic fit as CUDA graphs
     replayed every iteration. The first iterations pay the compilation; worth it on a GPU."""
+    precision: Literal[PRECISIONS] = "fp32"
+    """Numeric precision on a CUDA device (gradlab/precision.py): fp32, float32 with PyTorch's defaults (matmuls
+    in full float32; cuDNN may run the encoder's float32 convolutions in TF32, its default); tf32, TF32 tensor
+    cores for every float32 matmul and convolution, a process-wide switch that also reaches the simulator, the
+    renderer and the critic; bf16, the encoder's convolutions under bfloat16 autocast, their output cast back to
+    float32 for the trunk, everything else exactly as fp32. One value for a whole population (the TF32 switches
+    are the process's). The CPU trains in fp32 only: tf32 and bf16 are refused there."""
     overlap_critic: bool = True
     """With CUDA graphs (--compile on a GPU), fit the critic on a second stream while the actor's backward
     replays: the fit reads only the window's buffers and the backward never reads the critic, so the numbers
@@ -225,6 +233,8 @@ class SHACConfig:
         if self.renderer == "warp" and plan.grad_through_images:
             raise ValueError(f"--renderer warp renders without gradient, but --mode {self.mode} backpropagates "
                              "through the images: use --renderer soft (the differentiable rasterizer)")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"--precision: unknown precision {self.precision!r}; valid: {', '.join(PRECISIONS)}")
         check_integers(self, ("iters", "horizon", "critic_iterations", "critic_batches", "image_size", "frames",
                               "render_detail", "eval_envs"), minimum=1)
         check_integers(self, ("num_envs", "lr_decay_iters", "trunk_dim", "episode_length"), minimum=1,

@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from gradlab import precision as _precision
+
 __all__ = ["MLP", "PixelEncoder", "StateActor", "VisualActor", "Critic", "MemberStack", "orthogonal_init"]
 
 
@@ -63,10 +65,14 @@ class PixelEncoder(nn.Module):
         in_channels: stacked channels (3 frames x RGB = 9).
         height, width: image size in pixels.
         trunk_dim: output features.
+        precision: what the convolutions run in (:mod:`gradlab.precision`): ``"bf16"`` runs them under bfloat16
+            autocast and casts their output back to float32 before the trunk; None: the process's
+            (``gradlab.precision.current()``, which ``gradlab.precision.use`` sets before the trainer is built).
     """
 
-    def __init__(self, in_channels: int, height: int, width: int, trunk_dim: int):
+    def __init__(self, in_channels: int, height: int, width: int, trunk_dim: int, *, precision: str | None = None):
         super().__init__()
+        self.precision = _precision.check(_precision.current() if precision is None else precision)
         self.convs = nn.Sequential(
             nn.Conv2d(in_channels, 32, 3, stride=2), nn.ReLU(),
             nn.Conv2d(32, 32, 3, stride=1), nn.ReLU(),
@@ -88,7 +94,11 @@ class PixelEncoder(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """images: (B, C, H, W) in [0, 1] (any memory layout) -> (B, trunk_dim)."""
-        h = self.convs((images - 0.5).contiguous(memory_format=torch.channels_last))
+        x = (images - 0.5).contiguous(memory_format=torch.channels_last)
+        with _precision.encoder_autocast(x.device.type, self.precision):
+            h = self.convs(x)
+        if self.precision == "bf16":
+            h = h.float()  # the trunk (Linear, LayerNorm) in float32
         return self.trunk(h.flatten(1))  # flatten in (C, H, W) order whatever the layout
 
 
@@ -144,13 +154,14 @@ class StateActor(_GaussianTanhPolicy):
 class VisualActor(_GaussianTanhPolicy):
     """Actor on stacked frames: DrQ-v2 encoder + MLP head.
 
-    obs: (B, 3 * frames, H, W) in [0, 1] -> action (B, act_dim) in [-1, 1].
+    obs: (B, 3 * frames, H, W) in [0, 1] -> action (B, act_dim) in [-1, 1]. ``precision``: the encoder's
+    (:class:`PixelEncoder`).
     """
 
     def __init__(self, in_channels: int, height: int, width: int, act_dim: int, trunk_dim: int,
-                 hidden: Sequence[int], *, init: str = "orthogonal"):
+                 hidden: Sequence[int], *, init: str = "orthogonal", precision: str | None = None):
         super().__init__(trunk_dim, hidden, act_dim, init=init)
-        self.encoder = PixelEncoder(in_channels, height, width, trunk_dim)
+        self.encoder = PixelEncoder(in_channels, height, width, trunk_dim, precision=precision)
 
     def features(self, obs: torch.Tensor) -> torch.Tensor:
         return self.encoder(obs)
@@ -204,6 +215,9 @@ class MemberStack:
             raise ValueError("MemberStack: the members' parameter shapes differ")
         if batching not in self.BATCHINGS:
             raise ValueError(f"unknown member batching {batching!r}; valid: {', '.join(self.BATCHINGS)}")
+        precisions = {m.encoder.precision for m in members if isinstance(m, VisualActor)}
+        if len(precisions) > 1:  # one batched convolution runs in one precision
+            raise ValueError(f"MemberStack: the members' encoders differ in precision: {sorted(precisions)}")
         self.members = list(members)
         self.n = len(self.members)
         self.batching = batching
@@ -243,8 +257,18 @@ class MemberStack:
         """(N * B, C, H, W) in [0, 1] -> (N, B, trunk_dim), as :class:`PixelEncoder` per member."""
         n = self.n
         x = (images - 0.5).unflatten(0, (n, -1))  # (N, B, C, H, W)
+        encoder = self._template.encoder
+        with _precision.encoder_autocast(x.device.type, encoder.precision):
+            flat = self._convolutions(params, x, encoder.convs)
+        if encoder.precision == "bf16":
+            flat = flat.float()  # the trunk (Linear, LayerNorm) in float32, as PixelEncoder.forward
+        return self._sequential(encoder.trunk, "encoder.trunk.", params, flat)
+
+    def _convolutions(self, params: dict[str, torch.Tensor], x: torch.Tensor, convs: nn.Sequential) -> torch.Tensor:
+        """The encoder's convolutions per member: x (N, B, C, H, W) -> (N, B, C' H' W'), each member's features in
+        (C, H, W) order."""
+        n = self.n
         b, c, h, w = x.shape[1:]
-        convs = self._template.encoder.convs
         if self.batching == "grouped":
             # the members side by side on the channel axis: group m of every convolution sees member m alone
             y = x.transpose(0, 1).reshape(b, n * c, h, w).contiguous(memory_format=torch.channels_last)
@@ -255,20 +279,18 @@ class MemberStack:
                                  padding=layer.padding, groups=n)
                 else:
                     y = layer(y)
-            flat = y.reshape(b, n, -1).transpose(0, 1)  # (N, B, C' H' W'), each member's (C, H, W) order
-        else:
-            outs = []
-            for m in range(n):
-                y = x[m].contiguous(memory_format=torch.channels_last)
-                for i, layer in enumerate(convs):
-                    if isinstance(layer, nn.Conv2d):
-                        y = F.conv2d(y, params[f"encoder.convs.{i}.weight"][m], params[f"encoder.convs.{i}.bias"][m],
-                                     stride=layer.stride, padding=layer.padding)
-                    else:
-                        y = layer(y)
-                outs.append(y.flatten(1))
-            flat = torch.stack(outs)
-        return self._sequential(self._template.encoder.trunk, "encoder.trunk.", params, flat)
+            return y.reshape(b, n, -1).transpose(0, 1)  # (N, B, C' H' W'), each member's (C, H, W) order
+        outs = []
+        for m in range(n):
+            y = x[m].contiguous(memory_format=torch.channels_last)
+            for i, layer in enumerate(convs):
+                if isinstance(layer, nn.Conv2d):
+                    y = F.conv2d(y, params[f"encoder.convs.{i}.weight"][m], params[f"encoder.convs.{i}.bias"][m],
+                                 stride=layer.stride, padding=layer.padding)
+                else:
+                    y = layer(y)
+            outs.append(y.flatten(1))
+        return torch.stack(outs)
 
     def _sequential(self, seq: nn.Sequential, prefix: str, params: dict[str, torch.Tensor],
                     x: torch.Tensor) -> torch.Tensor:

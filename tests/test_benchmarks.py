@@ -307,3 +307,40 @@ def test_run_progress_says_where_each_run_stands_and_thins_copies_with_the_popul
     assert "--- pop.log (last lines)" in out and "ValueError: boom" in out
     assert (tmp_path / "keep" / "pop" / "population.json").read_text() == '{"members": ["a"]}'
     assert [r["iter"] for r in read_metrics(tmp_path / "keep" / "pop" / "a")] == [10, 20, 30]
+
+
+def test_precision_compares_each_candidate_with_the_float32_run_from_the_same_state(tmp_path, capsys):
+    """``precision.py``: at each point the candidates start from the float32 run's state; a second float32 trainer
+    reproduces its gradient exactly on the CPU (so the snapshot carries parameters, states and noise), bf16 is close
+    but not equal, and the output says that the CPU measures nothing."""
+    precision = _load("precision")
+    out = tmp_path / "precision.json"
+    try:
+        doc = precision.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "full", "--iters", "2",
+                              "--candidates", "fp32", "bf16", "--num-envs", "2", "--horizon", "2", "--image-size", "16",
+                              "--parts", "agreement", "--out", str(out)])
+    finally:
+        from gradlab import precision as process_precision
+
+        process_precision.use("fp32", "cpu")
+    assert json.loads(out.read_text()) == doc and doc["complete"] and doc["points"] == [0, 1, 2]
+    rows = {(r["iteration"], r["candidate"]): r for r in doc["agreement"]}
+    assert set(rows) == {(i, c) for i in (0, 1, 2) for c in ("fp32", "bf16")}
+    for i in (0, 1, 2):
+        same, bf16 = rows[i, "fp32"], rows[i, "bf16"]
+        assert same["status"] == bf16["status"] == "ok"
+        assert same["norm_ratio"] == 1.0 and same["loss_rel_diff"] == 0.0 and same["cos"] > 1 - 1e-12
+        assert 0.99 < bf16["cos"] < 1 and bf16["cos_encoder"] > 0.99 and bf16["norm_ratio"] != 1.0
+    assert [s["candidate"] for s in doc["agreement_summary"]] == ["fp32", "bf16"]
+    printed = capsys.readouterr().out
+    assert "NOTE on the CPU: no TF32" in printed and "median cos" in printed
+
+
+@pytest.mark.slow
+def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path):
+    precision = _load("precision")
+    doc = precision.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled", "--candidates", "bf16",
+                          "--num-envs", "2", "--horizon", "2", "--image-size", "16", "--parts", "time",
+                          "--time-warmup", "1", "--time-iters", "1", "--out", str(tmp_path / "p.json")])
+    assert [(r["precision"], r["status"]) for r in doc["time"]] == [("fp32", "ok"), ("bf16", "ok")], doc["time"]
+    assert all(r["iter_ms"] > 0 for r in doc["time"])

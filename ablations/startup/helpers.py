@@ -349,6 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     from ablations.startup.ahead import compile_physics_ahead
     from ablations.startup.cache import CompileCache, start_compile_workers
     from ablations.startup.stats import CompileWatch
+    from gradlab import precision
     from gradlab.shac import SHAC
     from tasks import PHYSICS_PARTS
 
@@ -360,6 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     seconds["cache"], mark = time.perf_counter() - mark, time.perf_counter()
     cfg = spec["config"]
     horizon = min(cfg.horizon, max(HORIZON, -(-cfg.critic_batches // cfg.num_envs)))
+    precision.use(cfg.precision, device)  # as the run does: the same graphs, so the same cache entries
     trainer = SHAC(dataclasses.replace(cfg, horizon=horizon), device=device)
     trainer.compile(parts=parts)
     watch = CompileWatch()
