@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# The encoder-precision evidence on one four-GPU machine (benchmarks/precision.py, docs/design.md "Numeric
+# precision"), in stages, each a device call. Usage, from the repo root: bash benchmarks/precision_session.sh STAGE
+#   launch    install the carried wheels, copy the tree to /tmp/pg and start, detached (setsid):
+#             GPUs 0-3: the seeded comparison, hopper, 5 seeds, 2000 iterations, one population each:
+#             fp32 decoupled, fp32 full, bf16 decoupled, bf16 full (the same arm set at both precisions, so
+#             grouped kernels round alike); and, beside them, the gradient agreement of hopper (GPU 2) and
+#             ant (GPU 3), which measures cosines, not time
+#   progress  the last line of every log
+#   time      on idle GPUs, one process a GPU: precision.py's times (GPU 0), population.py ant (1) and hopper (2)
+#   collect   the thinned, compacted run folders and every JSON and log as one tarball under $OUT
+set -u
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
+[ -f /tmp/site/.installed ] || { python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
+  .gpu/*.whl >/dev/null 2>&1 && touch /tmp/site/.installed; } || { echo "wheel install failed"; exit 1; }
+export PYTHONPATH=/tmp/site:/tmp/pg PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+R=/tmp/pgruns; mkdir -p $R
+case ${1:?stage} in
+  launch)
+    rm -rf /tmp/pg; mkdir -p /tmp/pg; cp -r ablations gradlab tasks diffrender benchmarks pyproject.toml /tmp/pg/
+    git rev-parse HEAD > $R/commit.txt 2>/dev/null || true
+    nvidia-smi --query-gpu=index,name,memory.total --format=csv > $R/gpus.txt
+    common="--task hopper --seed 0 1 2 3 4 --iters 2000 --eval-every 250 --cosine-every 100 --compile --video-every 0
+            --checkpoint-every 1000 --time-limit-min 21 --device cuda --no-progress --out $R"
+    gpu=0
+    for p in fp32 bf16; do for m in decoupled full; do
+      (cd /tmp/pg && CUDA_VISIBLE_DEVICES=$gpu setsid python3 -m ablations ablate $common --mode $m --precision $p \
+        --name hopper_${m}_$p > $R/hopper_${m}_$p.log 2>&1 < /dev/null &)
+      gpu=$((gpu + 1)); done; done
+    for t in hopper:2 ant:3; do
+      (cd /tmp/pg && CUDA_VISIBLE_DEVICES=${t#*:} setsid python3 benchmarks/precision.py --device cuda --compile \
+        --tasks ${t%%:*} --iters 200 --parts agreement --candidates fp32 tf32 bf16 \
+        --out $R/precision_agreement_${t%%:*}.json > $R/agreement_${t%%:*}.log 2>&1 < /dev/null &)
+    done
+    sleep 45; tail -n 3 $R/*.log;;
+  progress)
+    for f in $R/*.log; do echo "== $f"; tail -n 2 "$f" | cut -c1-300; done
+    nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv;;
+  time)
+    cd /tmp/pg
+    CUDA_VISIBLE_DEVICES=0 python3 benchmarks/precision.py --device cuda --compile --tasks hopper ant --parts time \
+      --candidates fp32 tf32 bf16 --out $R/precision_time.json > $R/time_single.log 2>&1 &
+    CUDA_VISIBLE_DEVICES=1 python3 benchmarks/population.py --tasks ant --members 1 4 12 --anchor --precision fp32 bf16 \
+      --out $R/population_ant_precision.json > $R/time_pop_ant.log 2>&1 &
+    CUDA_VISIBLE_DEVICES=2 python3 benchmarks/population.py --tasks hopper --members 1 4 12 --anchor --precision fp32 bf16 \
+      --out $R/population_hopper_precision.json > $R/time_pop_hopper.log 2>&1 &
+    wait; tail -n 25 $R/time_*.log;;
+  collect)
+    cd /tmp/pg && mkdir -p /tmp/thin
+    for d in $R/hopper_*_fp32 $R/hopper_*_bf16; do [ -d "$d" ] || continue
+      for run in "$d"/*/; do [ -f "$run/config.json" ] || continue
+        python3 -c "import sys; from ablations.run_folder import thin_copy; thin_copy(sys.argv[1], sys.argv[2], every=10)" \
+          "$run" "/tmp/thin/$(basename "$d")/$(basename "$run")"; done
+      cp "$d"/population.json "/tmp/thin/$(basename "$d")/" 2>/dev/null; done
+    python3 -m ablations.compact /tmp/thin 2>&1 | tail -n 2
+    cp $R/*.json $R/*.log $R/*.txt /tmp/thin/ 2>/dev/null
+    tar -C /tmp -cJf "$OUT/precision_runs.tar.xz" thin; ls -la "$OUT";;
+esac
