@@ -2,6 +2,14 @@
 
 from __future__ import annotations
 
+import os
+
+# MKL picks its code path per call from the processor and the operands' sizes and alignment; on some processors
+# (AMD EPYC with AVX-512) a member's matmuls inside a population's batch then round differently from its run alone.
+# The bit-for-bit tests check that members never mix, which needs one code path: MKL's conditional numerical
+# reproducibility mode. Set before torch (and MKL) load; subprocesses of the tests inherit it.
+os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+
 import pytest
 import torch
 
