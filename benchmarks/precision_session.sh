@@ -7,7 +7,8 @@
 #             grouped kernels round alike); and, beside them, the gradient agreement of hopper (GPU 2) and
 #             ant (GPU 3), which measures cosines, not time
 #   progress  the last line of every log
-#   time      on idle GPUs, one process a GPU: precision.py's times (GPU 0), population.py ant (1) and hopper (2)
+#   wait [S]  until every population has ended, at most S seconds (560), then progress
+#   time      on idle GPUs, one process a GPU: precision.py's times of the ant (GPU 0), population.py ant (1), hopper (2)
 #   collect   the thinned, compacted run folders and every JSON and log as one tarball under $OUT
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
@@ -38,13 +39,19 @@ case ${1:?stage} in
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv;;
   time)
     cd /tmp/pg
-    CUDA_VISIBLE_DEVICES=0 python3 benchmarks/precision.py --device cuda --compile --tasks hopper ant --parts time \
-      --candidates fp32 tf32 bf16 --out $R/precision_time.json > $R/time_single.log 2>&1 &
-    CUDA_VISIBLE_DEVICES=1 python3 benchmarks/population.py --tasks ant --members 1 4 12 --anchor --precision fp32 bf16 \
+    CUDA_VISIBLE_DEVICES=0 python3 benchmarks/precision.py --device cuda --compile --tasks ant --parts time \
+      --candidates fp32 bf16 --out $R/precision_time_ant.json > $R/time_single.log 2>&1 &
+    CUDA_VISIBLE_DEVICES=1 python3 benchmarks/population.py --tasks ant --members 1 12 --anchor --precision fp32 bf16 \
       --out $R/population_ant_precision.json > $R/time_pop_ant.log 2>&1 &
-    CUDA_VISIBLE_DEVICES=2 python3 benchmarks/population.py --tasks hopper --members 1 4 12 --anchor --precision fp32 bf16 \
+    CUDA_VISIBLE_DEVICES=2 python3 benchmarks/population.py --tasks hopper --members 1 12 --anchor --precision fp32 bf16 \
       --out $R/population_hopper_precision.json > $R/time_pop_hopper.log 2>&1 &
     wait; tail -n 25 $R/time_*.log;;
+  wait)  # until every population has ended (its summary written), at most ${2:-560} s; then progress
+    end=$((SECONDS + ${2:-560}))
+    while [ $SECONDS -lt $end ] && [ "$(ls $R/hopper_*/population.json 2>/dev/null | wc -l)" -gt 0 ] && \
+          [ "$(grep -l '"status": "running"' $R/hopper_*/*/summary.json 2>/dev/null | wc -l)" -gt 0 -o \
+            "$(ls $R/hopper_*/*/summary.json 2>/dev/null | wc -l)" -lt 20 ]; do sleep 10; done
+    bash "$0" progress;;
   collect)
     cd /tmp/pg && mkdir -p /tmp/thin
     for d in $R/hopper_*_fp32 $R/hopper_*_bf16; do [ -d "$d" ] || continue
