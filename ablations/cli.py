@@ -20,7 +20,7 @@ T = TypeVar("T")
 #: panel names is shown in the last panel ("more").
 ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
     "essentials": ("task", "mode", "seed", "iters", "num_envs", "device", "threads", "compile", "out", "name",
-                   "resume", "time_limit_min", "progress", "member"),
+                   "resume", "restart", "time_limit_min", "progress", "member"),
     "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every"),
     "training": ("preset", "horizon", "gamma", "lam", "actor_lr", "critic_lr", "lr_decay_iters", "lr_warmup_iters",
                  "encoder_lr_scale", "betas", "grad_clip", "abort_grad_norm", "critic_iterations", "critic_batches",
@@ -98,20 +98,26 @@ def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[s
 
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
-    from ablations.startup import Startup
-
-    startup = Startup.before_torch(sys.argv[1:] if argv is None else argv)  # first: torch is not imported yet
     try:
-        _ablate(argv, startup)
-    finally:
-        startup.close()
+        from ablations.startup import Startup
+
+        startup = Startup.before_torch(sys.argv[1:] if argv is None else argv)  # first: torch is not imported yet
+        try:
+            _ablate(argv, startup)
+        finally:
+            startup.close()
+    except KeyboardInterrupt as e:  # a signal while starting (imports, settings, folders): nothing trained yet
+        args = sys.argv[1:] if argv is None else argv
+        where = ("the run folder is as it was" if "--resume" in args
+                 else "nothing was written")
+        print(f"{e or 'interrupted'}: stopped while starting, before training; {where}", file=sys.stderr)
+        raise SystemExit(130) from None
 
 
 def _ablate(argv: list[str] | None, startup) -> None:
     from ablations import population
     from ablations.run_folder import RunFolder
-    from ablations.runs import closing_lines, run
-    from gradlab.probes import NonFiniteError
+    from ablations.runs import NothingToDo, RunFailed, closing_lines, describe_error, run
 
     cfg = parse(population.AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
     try:
@@ -119,18 +125,34 @@ def _ablate(argv: list[str] | None, startup) -> None:
         run_dir = run(members[0] if len(members) == 1 else members, startup=startup)
     except ValueError as e:
         _fail(str(e))
-    except NonFiniteError as e:
-        _fail(f"{e} (the last good checkpoint is kept; see summary.json)")
-    except KeyboardInterrupt as e:
-        print(f"{e or 'interrupted'}: stopped before the run recorded its settings; nothing to resume",
-              file=sys.stderr)
+    except NothingToDo as e:
+        print(e)
+        return
+    except RunFailed as e:  # recorded in summary.json, the last finished iteration checkpointed where it could be
+        if e.status == "failed":  # not a known way to fail: where it happened matters
+            import traceback
+
+            traceback.print_exception(e.__cause__, file=sys.stderr)
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2 if e.status == "nonfinite" else 1) from None
+    except Exception as e:  # before training started (building the trainer): no iteration to lose
+        status, text = describe_error(e, where="while building the trainer")
+        if status == "failed":
+            raise
+        where = "the run folder is as it was" if cfg.resume is not None else "nothing was written"
+        print(f"error: {text}; {where}", file=sys.stderr)
+        raise SystemExit(1) from None
+    try:
+        if population.is_population(run_dir):
+            print("\n".join(population.closing_lines(run_dir)))
+            statuses = {(f.read_summary() or {}).get("status")
+                        for f in population.PopulationFolder(run_dir).members()}
+        else:
+            print("\n".join(closing_lines(run_dir)))
+            statuses = {(RunFolder(run_dir).read_summary() or {}).get("status")}
+    except KeyboardInterrupt as e:  # the run has ended and is recorded; only this summing up is cut short
+        print(f"{e or 'interrupted'}: the run has ended; see {run_dir}", file=sys.stderr)
         raise SystemExit(130) from None
-    if population.is_population(run_dir):
-        print("\n".join(population.closing_lines(run_dir)))
-        statuses = {(f.read_summary() or {}).get("status") for f in population.PopulationFolder(run_dir).members()}
-    else:
-        print("\n".join(closing_lines(run_dir)))
-        statuses = {(RunFolder(run_dir).read_summary() or {}).get("status")}
     if "interrupted" in statuses:
         raise SystemExit(130)
 

@@ -446,9 +446,10 @@ def test_run_files_are_readable_as_the_umask_allows(tmp_path, mask):
         assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask, path
 
 
-def test_a_folder_with_its_config_but_no_checkpoint_resumes_from_the_first_iteration(tmp_path):
-    """A run stopped during its first iteration (a second Ctrl-C) recorded its settings but no checkpoint: the
-    resume trains it from the start in the same folder."""
+def test_a_resume_without_a_checkpoint_is_refused_unless_restart_which_keeps_the_old_metrics(tmp_path, capsys):
+    """A run stopped before its first checkpoint (killed, say) recorded iterations a resume cannot continue: the
+    resume says so and starts nothing; --restart trains it from the first iteration in the same folder, with the
+    old metrics kept beside."""
     common = ["--task", "cartpole", "--mode", "decoupled", "--iters", "3", "--cosine-every", "2",
               "--video-every", "0", "--out", str(tmp_path), *TINY]
     ablate(*common, "--name", "whole")
@@ -456,9 +457,25 @@ def test_a_folder_with_its_config_but_no_checkpoint_resumes_from_the_first_itera
     cut = tmp_path / "cut"
     for p in (cut / "checkpoints").iterdir():
         p.unlink()
-    (cut / "metrics.jsonl").write_text(json.dumps(read_metrics(cut)[0]) + "\n")
-    ablate("--resume", str(cut), "--no-progress")
+    old = json.dumps(read_metrics(cut)[0]) + "\n"
+    (cut / "metrics.jsonl").write_text(old)  # killed (SIGKILL) during its second iteration: no summary either
+    (cut / "summary.json").unlink()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        ablate("--resume", str(cut), "--no-progress")
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith(f"error: --resume {cut}: no checkpoint to resume from") and \
+        "add --restart" in err and err.count("\n") == 1
+    assert (cut / "metrics.jsonl").read_text() == old
+    ablate("--resume", str(cut), "--restart", "--no-progress")
     assert strip_timing(read_metrics(cut)) == strip_timing(read_metrics(tmp_path / "whole"))
+    kept = list(cut.glob("metrics.jsonl.before-restart-*"))
+    assert len(kept) == 1 and kept[0].read_text() == old
+    assert f"note: --restart: {cut / 'metrics.jsonl'} kept as {kept[0].name}" in capsys.readouterr().err
+    # finished: a resume without --iters says so, and how to train it longer
+    ablate("--resume", str(cut), "--no-progress")
+    assert capsys.readouterr().out == (f"{cut} is finished at iteration 3 (--iters 3): nothing to do; to train it "
+                                       f"longer: ablate --resume {cut} --iters M  (M > 3)\n")
 
 
 @pytest.mark.parametrize("sig", ["SIGINT", pytest.param("SIGTERM", marks=pytest.mark.slow)])
