@@ -177,7 +177,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
                         continue
                     new = {k: info[k] for k in ("node", "host", "attempts", "resumed") if k in info}
                     new.update({k: v for k, v in (info.get("runs") or {}).get(run_id, {}).items()
-                                if k in ("iteration", "latest_return")})
+                                if k in ("iteration", "latest_return", "wall_s")})
                     if info.get("status") == "running" and rec["status"] == "queued":
                         new["status"] = "running"
                     if any(rec.get(k) != v for k, v in new.items()):

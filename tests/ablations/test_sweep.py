@@ -148,6 +148,16 @@ def test_every_task_and_mode_is_a_grid_value(monkeypatch, capsys):
     assert "--tasks {" + ",".join(TASKS) + "}" in text and "--modes {" + ",".join(MODES) + "}" in text
 
 
+def test_progress_of_a_time_limited_run_is_its_time_budget():
+    """ablate-paper's runs end on --time-limit-min with --iters a ceiling: their progress is time, not 31/100000."""
+    from ablations.sweep.table import progress_text
+
+    rec = {"iteration": 31, "iters": 100000, "wall_s": 192.0}
+    assert progress_text({**rec, "args": ["--task", "hopper"]}) == "it 31/100000"
+    assert progress_text({**rec, "args": ["--time-limit-min", "60", "--iters", "100000"]}) == \
+        "time 3.2/60 min (it 31)"
+
+
 def test_attempt_command_names_no_folder_of_the_worker_node():
     """An attempt runs in its scratch folder with relative paths, so the run's config.json records none of the
     node's folders (reports show the recorded command)."""
