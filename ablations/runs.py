@@ -258,8 +258,10 @@ def run(cfg: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None)
     """Train (or resume) a run, or a population (several configs: the members, trained in one process); returns
     its folder (a population's: the folder that holds its members' run folders), whose summary.json (each
     member's) says how it ended (``interrupted``: by a signal, after checkpointing its last finished iteration).
-    Raises ValueError on bad input before any work, and KeyboardInterrupt for a signal that came before the run
-    recorded its settings (its folder is then removed). ``startup``: this process's start-up
+    Raises ValueError on bad input before any work, NothingToDo for a resume of a finished run, RunFailed for an
+    error once training started (recorded, the last finished iteration checkpointed where it could be), and
+    KeyboardInterrupt for a signal that came before the run recorded its settings (its folder is then removed;
+    a resumed one is left as it was). ``startup``: this process's start-up
     (``Startup.before_torch``: the bytecode folder, compile helpers on standby); None: one that started nothing
     before torch was imported."""
     from ablations import population
@@ -507,14 +509,14 @@ def describe_error(e: BaseException, device=None, where: str = "") -> tuple[str,
     if isinstance(e, NonFiniteError):
         return "nonfinite", first
     if is_oom(e):
-        on = "CUDA" if "cuda" in first.lower() or getattr(device, "type", device) == "cuda" else "CPU"
-        size = re.search(r"tried to allocate ([0-9.]+) ?(bytes|[KMGT]i?B)", first)
+        on = "GPU" if "cuda" in first.lower() or getattr(device, "type", device) == "cuda" else "CPU"
+        size = re.search(r"tried to allocate ([0-9.]+) ?(bytes|[KMGT]i?B)", first, re.IGNORECASE)
         if size and size.group(2) == "bytes":
             what = f"an allocation of {int(size.group(1)) / 2**30:.3g} GiB failed"
         elif size:
             what = f"an allocation of {size.group(1)} {size.group(2)} failed"
         else:
-            what = first[:200]
+            what = first[:200] or type(e).__name__
         return "oom", f"out of memory on the {on}{at} ({what}; fewer --num-envs or a smaller --image-size need less)"
     return "failed", f"{type(e).__name__}{at}: {first}"[:500]
 
