@@ -463,9 +463,7 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
         stop.finishing()
         where = (f"during iteration {done + 1}" if not between else f"before iteration {done + 1}"
                  if first_iter_s is None else f"after iteration {done}")
-        status, text = describe_error(e, device, where)
-        if status == "nonfinite":
-            text = f"{text} ({where})"
+        status, text = describe_error(e, device, where)  # a NonFiniteError names its iteration itself
         kept, lost = _rescue(trainer, folders, between, held, done, checkpointed, cfg.keep_checkpoints)
         checkpointed = kept
         home = folders[0].path if single else population.path

@@ -637,6 +637,19 @@ def test_out_of_memory_on_the_cpu_is_one_error_line_and_a_final_status(tmp_path)
     assert summary["status"] == "oom" and summary["error"] == last.removeprefix("error: ")
 
 
+def test_a_run_stopped_by_an_error_records_it_and_says_what_it_keeps(tmp_path, capsys):
+    """An error inside an iteration (here the abort guard): summary.json ends in its final status, and the last
+    line says what the run folder keeps."""
+    with pytest.raises(SystemExit) as e:
+        ablate("--task", "cartpole", "--mode", "state", "--iters", "3", "--abort-grad-norm", "1e-12",
+               "--video-every", "0", "--out", str(tmp_path), "--name", "run", *TINY)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "abort_grad_norm" in err[0], err
+    assert err[0].startswith("error: ") and err[0].endswith("; no iteration finished, nothing to resume")
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["status"] == "nonfinite" and summary["error"] == err[0].removeprefix("error: ")
+
+
 def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path):
     """SIGINT while ablate is still importing (torch takes seconds): a short line, no traceback, nothing
     written."""
