@@ -353,8 +353,10 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
             shac_fields = dataclasses.fields(SHACConfig)
             resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name)
                                                           for f in shac_fields})
+            config = dataclasses.asdict(resolved)
+            del config["restart"]  # what this start did, not a setting of the run (arms compare the settings)
             record = {
-                "config": dataclasses.asdict(resolved),
+                "config": config,
                 # which values the preset supplied and which flags overrode it (flag and preset value side by side)
                 "preset": preset_record(shac_part(member_cfg), members[i].cfg),
                 "started_utc": _utc(started),
@@ -474,6 +476,13 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
                        if kept else "; no iteration finished, nothing to resume")
         statuses = [s if stopped[i] else (status, line) for i, s in enumerate(statuses)]
         raise RunFailed(status, line) from e
+    except BaseException as e:  # SystemExit and its like: the summary says so rather than "running"
+        stop.finishing()
+        kept, lost = _rescue(trainer, folders, between, held, done, checkpointed, cfg.keep_checkpoints)
+        checkpointed = kept
+        statuses = [s if stopped[i] else ("failed", f"{type(e).__name__} after iteration {done}")
+                    for i, s in enumerate(statuses)]
+        raise
     finally:
         stop.finishing()
         startup.close()
