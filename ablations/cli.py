@@ -98,20 +98,59 @@ def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[s
 
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
-    try:
+    args = sys.argv[1:] if argv is None else argv
+    where = "the run folder is as it was" if "--resume" in args else "nothing was written"
+    with _SignalsWhileImporting() as importing:
         from ablations.startup import Startup
 
-        startup = Startup.before_torch(sys.argv[1:] if argv is None else argv)  # first: torch is not imported yet
+        startup = Startup.before_torch(args)  # first: torch is not imported yet
+        import ablations.population  # noqa: F401  (torch, the simulator, the renderer)
+    if importing.signal is not None:
+        startup.close()
+        print(f"{importing.signal}: stopped while starting, before training; {where}", file=sys.stderr)
+        raise SystemExit(130)
+    try:
         try:
             _ablate(argv, startup)
         finally:
             startup.close()
-    except KeyboardInterrupt as e:  # a signal while starting (imports, settings, folders): nothing trained yet
-        args = sys.argv[1:] if argv is None else argv
-        where = ("the run folder is as it was" if "--resume" in args
-                 else "nothing was written")
-        print(f"{e or 'interrupted'}: stopped while starting, before training; {where}", file=sys.stderr)
+    except KeyboardInterrupt as e:  # a signal while preparing (settings, folders): nothing trained yet
+        print(f"{str(e) or 'SIGINT'}: stopped while starting, before training; {where}", file=sys.stderr)
         raise SystemExit(130) from None
+
+
+class _SignalsWhileImporting:
+    """SIGINT and SIGTERM while ablate imports torch and its own packages: noted, and acted on once the imports are
+    done. A KeyboardInterrupt raised inside the import of a compiled extension (torch's) cannot be caught: the
+    process aborts. A second signal ends the process at once (nothing has been written yet)."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None
+        self._previous: dict = {}
+
+    def __enter__(self) -> _SignalsWhileImporting:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import signal
+
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+    def _handle(self, signum: int, frame) -> None:
+        import os
+        import signal
+
+        name = signal.Signals(signum).name
+        if self.signal is not None:
+            print(f"{name}: stopped while starting, before training; nothing was written", file=sys.stderr)
+            os._exit(130)
+        self.signal = name
 
 
 def _ablate(argv: list[str] | None, startup) -> None:
@@ -151,7 +190,7 @@ def _ablate(argv: list[str] | None, startup) -> None:
             print("\n".join(closing_lines(run_dir)))
             statuses = {(RunFolder(run_dir).read_summary() or {}).get("status")}
     except KeyboardInterrupt as e:  # the run has ended and is recorded; only this summing up is cut short
-        print(f"{e or 'interrupted'}: the run has ended; see {run_dir}", file=sys.stderr)
+        print(f"{str(e) or 'SIGINT'}: the run has ended; see {run_dir}", file=sys.stderr)
         raise SystemExit(130) from None
     if "interrupted" in statuses:
         raise SystemExit(130)

@@ -453,7 +453,7 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
         statuses = [s if stopped[i] else (status, error) for i, s in enumerate(statuses)]
     except KeyboardInterrupt as e:  # a second signal (or one before the loop): stopped at once
         stop.finishing()
-        name = str(e) or "KeyboardInterrupt"
+        name = str(e) or "SIGINT"  # Python's own handler raises it without one
         kept, lost = _rescue(trainer, folders, between, held, done, checkpointed, cfg.keep_checkpoints)
         checkpointed = kept
         if not between:
@@ -565,7 +565,7 @@ def _rescue(trainer, folders: list[RunFolder], between: bool, held, done: int, c
         _checkpoint(states, folders, done, keep)
         return done, None
     except BaseException as e:  # a third signal, a full disk, a device that failed: say what is lost
-        why = describe_error(e)[1] if not isinstance(e, KeyboardInterrupt) else f"{e or 'KeyboardInterrupt'} again"
+        why = describe_error(e)[1] if not isinstance(e, KeyboardInterrupt) else f"{str(e) or 'SIGINT'} again"
         since = f"since the checkpoint of iteration {checkpointed}" if checkpointed else "(no checkpoint yet)"
         span = f"iteration {done}" if done == checkpointed + 1 else f"iterations {checkpointed + 1}..{done}"
         return checkpointed, f"lost {span} {since}: checkpointing iteration {done} failed ({why})"
