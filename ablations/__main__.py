@@ -20,7 +20,12 @@ def main() -> None:
         print(f"usage: python -m ablations {{{','.join(COMMANDS)}}} [--help | args...]", file=sys.stderr)
         raise SystemExit(2)
     module, function = COMMANDS[sys.argv[1]].split(":")
-    getattr(importlib.import_module(module), function)(sys.argv[2:])
+    try:
+        entry = getattr(importlib.import_module(module), function)
+    except KeyboardInterrupt:  # Ctrl-C while the command's module is imported: nothing has started
+        print(f"interrupted while starting {sys.argv[1]}; nothing was written", file=sys.stderr)
+        raise SystemExit(130) from None
+    entry(sys.argv[2:])
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ T = TypeVar("T")
 #: panel names is shown in the last panel ("more").
 ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
     "essentials": ("task", "mode", "seed", "iters", "num_envs", "device", "threads", "compile", "out", "name",
-                   "resume", "time_limit_min", "progress", "member"),
+                   "resume", "restart", "time_limit_min", "progress", "member"),
     "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every"),
     "training": ("preset", "horizon", "gamma", "lam", "actor_lr", "critic_lr", "lr_decay_iters", "lr_warmup_iters",
                  "encoder_lr_scale", "betas", "grad_clip", "abort_grad_norm", "critic_iterations", "critic_batches",
@@ -108,20 +108,65 @@ def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[s
 
 def ablate_main(argv: list[str] | None = None) -> None:
     """``ablate --mode full|decoupled|state --task ant ...``: train and measure one run."""
-    from ablations.startup import Startup
+    args = sys.argv[1:] if argv is None else argv
+    where = "the run folder is as it was" if "--resume" in args else "nothing was written"
+    with _SignalsWhileImporting() as importing:
+        from ablations.startup import Startup
 
-    startup = Startup.before_torch(sys.argv[1:] if argv is None else argv)  # first: torch is not imported yet
-    try:
-        _ablate(argv, startup)
-    finally:
+        startup = Startup.before_torch(args)  # first: torch is not imported yet
+        import ablations.population  # noqa: F401  (torch, the simulator, the renderer)
+    if importing.signal is not None:
         startup.close()
+        print(f"{importing.signal}: stopped while starting, before training; {where}", file=sys.stderr)
+        raise SystemExit(130)
+    try:
+        try:
+            _ablate(argv, startup)
+        finally:
+            startup.close()
+    except KeyboardInterrupt as e:  # a signal while preparing (settings, folders): nothing trained yet
+        print(f"{str(e) or 'SIGINT'}: stopped while starting, before training; {where}", file=sys.stderr)
+        raise SystemExit(130) from None
+
+
+class _SignalsWhileImporting:
+    """SIGINT and SIGTERM while ablate imports torch and its own packages: noted, and acted on once the imports are
+    done. A KeyboardInterrupt raised inside the import of a compiled extension (torch's) cannot be caught: the
+    process aborts. A second signal ends the process at once (nothing has been written yet)."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None
+        self._previous: dict = {}
+
+    def __enter__(self) -> _SignalsWhileImporting:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import signal
+
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+    def _handle(self, signum: int, frame) -> None:
+        import os
+        import signal
+
+        name = signal.Signals(signum).name
+        if self.signal is not None:
+            print(f"{name}: stopped while starting, before training; nothing was written", file=sys.stderr)
+            os._exit(130)
+        self.signal = name
 
 
 def _ablate(argv: list[str] | None, startup) -> None:
     from ablations import population
     from ablations.run_folder import RunFolder
-    from ablations.runs import closing_lines, run
-    from gradlab.probes import NonFiniteError
+    from ablations.runs import NothingToDo, RunFailed, closing_lines, describe_error, run
 
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse(population.AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
@@ -130,18 +175,34 @@ def _ablate(argv: list[str] | None, startup) -> None:
         run_dir = run(members[0] if len(members) == 1 else members, startup=startup)
     except ValueError as e:
         _fail(str(e))
-    except NonFiniteError as e:
-        _fail(f"{e} (the last good checkpoint is kept; see summary.json)")
-    except KeyboardInterrupt as e:
-        print(f"{e or 'interrupted'}: stopped before the run recorded its settings; nothing to resume",
-              file=sys.stderr)
+    except NothingToDo as e:
+        print(e)
+        return
+    except RunFailed as e:  # recorded in summary.json, the last finished iteration checkpointed where it could be
+        if e.status == "failed":  # not a known way to fail: where it happened matters
+            import traceback
+
+            traceback.print_exception(e.__cause__, file=sys.stderr)
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2 if e.status == "nonfinite" else 1) from None
+    except Exception as e:  # before training started (building the trainer): no iteration to lose
+        status, text = describe_error(e, where="while building the trainer")
+        if status == "failed":
+            raise
+        where = "the run folder is as it was" if cfg.resume is not None else "nothing was written"
+        print(f"error: {text}; {where}", file=sys.stderr)
+        raise SystemExit(1) from None
+    try:
+        if population.is_population(run_dir):
+            print("\n".join(population.closing_lines(run_dir)))
+            statuses = {(f.read_summary() or {}).get("status")
+                        for f in population.PopulationFolder(run_dir).members()}
+        else:
+            print("\n".join(closing_lines(run_dir)))
+            statuses = {(RunFolder(run_dir).read_summary() or {}).get("status")}
+    except KeyboardInterrupt as e:  # the run has ended and is recorded; only this summing up is cut short
+        print(f"{str(e) or 'SIGINT'}: the run has ended; see {run_dir}", file=sys.stderr)
         raise SystemExit(130) from None
-    if population.is_population(run_dir):
-        print("\n".join(population.closing_lines(run_dir)))
-        statuses = {(f.read_summary() or {}).get("status") for f in population.PopulationFolder(run_dir).members()}
-    else:
-        print("\n".join(closing_lines(run_dir)))
-        statuses = {(RunFolder(run_dir).read_summary() or {}).get("status")}
     if "interrupted" in statuses:
         raise SystemExit(130)
 

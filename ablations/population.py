@@ -221,8 +221,14 @@ def prepare(cfg) -> tuple[list[RunConfig], list[RunFolder], object, list[dict] |
     device = resolve_device(members[0].device)
     precision.check(members[0].precision, device)  # a refusal before any folder is made
     if home is not None:
+        from ablations.runs import check_resume
+
         folders = [folders[i] for i in order]
-        return members, folders, device, _common_checkpoint(folders, device), home
+        states = _common_checkpoint(folders, device)
+        check_resume(folders, members[0], None if states is None else states[0])
+        return members, folders, device, states, home
+    if members[0].restart:
+        raise ValueError("--restart goes with --resume RUN_FOLDER (a folder that holds no checkpoint)")
     first = members[0]
     names = [member_name(m, members) for m in members]
     name = first.name or f"{first.task}_population{len(members)}_{time.strftime('%Y%m%d-%H%M%S')}"
@@ -241,7 +247,7 @@ def _check_members(members: list[RunConfig]) -> None:
     """Run options (not trainer settings) that a population's members must share, named as flags."""
     trainer_fields = {f.name for f in dataclasses.fields(SHACConfig)}
     for name in (f.name for f in dataclasses.fields(RunConfig)):
-        if name in trainer_fields or name in ("resume", "name"):
+        if name in trainer_fields or name in ("resume", "name", "restart"):
             continue
         values = {repr(getattr(m, name)) for m in members}
         if len(values) > 1:
@@ -251,7 +257,8 @@ def _check_members(members: list[RunConfig]) -> None:
 
 def _common_checkpoint(folders: list[RunFolder], device) -> list[dict] | None:
     """Every member's state at the newest iteration all of them have a readable checkpoint of; None where no
-    member has one (the population starts over in its folders); ValueError naming the folders otherwise."""
+    member has one (the population starts over in its folders, with --restart where it trained before); ValueError
+    naming the folders otherwise."""
     from gradlab.checkpoint import checkpoint_path, load_checkpoint
 
     have = [f.checkpoint_iterations() for f in folders]
@@ -293,4 +300,6 @@ def closing_lines(path: str | Path, *, floors=None) -> list[str]:
         lines.append(f"  floors: {', '.join(parts)}  ({floors.source})")
     interrupted = any(s.get("status") == "interrupted" for _, s in rows)
     lines.append(f"  resume: ablate --resume {home.path}" + ("" if interrupted else " --iters N  (to train longer)"))
+    lost = sorted({s["lost"] for _, s in rows if s.get("lost")})
+    lines += [f"  lost: {text} (every member)" if len(rows) > 1 else f"  lost: {text}" for text in lost]
     return lines

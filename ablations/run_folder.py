@@ -5,7 +5,9 @@ A run folder holds:
                      and which flags overrode it, the start time (UTC), the command and the environment (device,
                      versions, CPU threads)
     git.txt          commit, branch, dirty status and diff stat of the code that ran (git.diff: the full diff)
-    metrics.jsonl    one JSON object per training iteration, appended as the run goes
+    metrics.jsonl    one JSON object per training iteration, appended as the run goes (a resume sets lines it
+                     cannot keep aside in metrics.jsonl.redone-<time> and .damaged-<time>, a --restart the old
+                     records in *.before-restart-<time>: nothing is deleted)
     summary.json     written at the end (or when the run stops on an error or a signal): its status, final and best
                      training and evaluation returns, medians without warm-up, peaks, start-up seconds
     checkpoints/     ckpt_<iter>.pt (the newest few), written atomically; a resume starts from the newest that loads
@@ -23,6 +25,7 @@ record import it when they are called.
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import os
@@ -45,7 +48,7 @@ if TYPE_CHECKING:
 
 __all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
-           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "COMPACTED", "read_text"]
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "COMPACTED", "read_text", "read_bytes"]
 
 CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
 CHECKPOINTS, VIDEOS = "checkpoints", "videos"
@@ -73,12 +76,12 @@ def check_writable(folder: str | os.PathLike) -> None:
         raise ValueError(f"output folder {folder} is not writable: {e}") from None
 
 
-def read_text(path: str | os.PathLike) -> str:
-    """The text of ``path``, or of its compacted copy (``path`` + :data:`COMPACTED`, xz) where only that exists;
+def read_bytes(path: str | os.PathLike) -> bytes:
+    """The bytes of ``path``, or of its compacted copy (``path`` + :data:`COMPACTED`, xz) where only that exists;
     FileNotFoundError without either, OSError naming the copy when it does not decompress."""
     path = Path(path)
     try:
-        return path.read_text()
+        return path.read_bytes()
     except FileNotFoundError:
         packed = path.with_name(path.name + COMPACTED)
         if not packed.exists():
@@ -86,25 +89,69 @@ def read_text(path: str | os.PathLike) -> str:
     import lzma
 
     try:
-        return lzma.decompress(packed.read_bytes()).decode()
+        return lzma.decompress(packed.read_bytes())
     except lzma.LZMAError as e:
         raise OSError(f"{packed} does not decompress: {e}") from None
 
 
+def read_text(path: str | os.PathLike) -> str:
+    """The text of ``path`` or of its compacted copy (:func:`read_bytes`)."""
+    return read_bytes(path).decode()
+
+
 def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
-    """The parsed lines of a run folder's metrics.jsonl, or of its compacted copy ([] without either); a torn last
-    line (a run killed mid-write) is ignored."""
-    rows = []
+    """The parsed lines of a run folder's metrics.jsonl, or of its compacted copy ([] without either): every line
+    that reads as an iteration's record; a torn last line (a run killed mid-write) or a damaged one in the middle
+    is left out, the lines after it kept (``ablate --resume`` names and sets aside such lines:
+    :meth:`RunFolder.settle_metrics`)."""
     try:
-        text = read_text(Path(run_dir) / METRICS)
+        data = read_bytes(Path(run_dir) / METRICS)
     except FileNotFoundError:
-        return rows
-    for line in text.splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return rows
+        return []
+    return [row for _, _, row in _metrics_lines(data)[0] if row is not None]
+
+
+def _metrics_lines(data: bytes) -> tuple[list[tuple[int, str, dict | None]], str | None]:
+    """(the complete lines of metrics.jsonl's bytes as (line number, text, record or None where it does not read
+    as one), the last line when it is torn: cut off before its newline and not a record)."""
+    text = data.decode(errors="replace")
+    lines = text.split("\n")
+    tail = lines.pop()  # "" when the file ends with a newline
+    out = []
+    for n, line in enumerate(lines, 1):
+        out.append((n, line, _record(line)))
+    torn = None
+    if tail:
+        row = _record(tail)
+        if row is None:
+            torn = tail
+        else:  # complete but for its newline
+            out.append((len(lines) + 1, tail, row))
+    return out, torn
+
+
+def _record(line: str) -> dict | None:
+    try:
+        row = json.loads(line)
+    except ValueError:
+        return None
+    return row if isinstance(row, dict) and isinstance(row.get("iter"), int) else None
+
+
+def _spans(its: list[int]) -> str:
+    """Sorted iterations as ranges: [2, 5, 6, 7] -> '2, 5..7'."""
+    parts: list[list[int]] = []
+    for it in sorted(its):
+        if parts and it == parts[-1][1] + 1:
+            parts[-1][1] = it
+        else:
+            parts.append([it, it])
+    return ", ".join(str(a) if a == b else f"{a}..{b}" for a, b in parts)
+
+
+def _stamp() -> str:
+    """The UTC time in the names of the files a resume sets aside (sorting as they were made)."""
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
 
 
 def evaluation_of(row: dict) -> tuple[float, float] | None:
@@ -212,12 +259,61 @@ class RunFolder:
             with open(self.metrics_path, "rb") as f:
                 os.fsync(f.fileno())
 
-    def truncate_metrics(self, upto_iter: int) -> None:
-        """Keep the metrics lines of iterations <= ``upto_iter`` (a resume recomputes those after its checkpoint)."""
+    def settle_metrics(self, upto_iter: int) -> list[str]:
+        """Before a resume from the checkpoint of iteration ``upto_iter``: metrics.jsonl keeps every readable line
+        of an iteration up to it, as it was written; the lines after it (iterations the resume trains again) go to
+        metrics.jsonl.redone-<time>, lines that do not read as a record to metrics.jsonl.damaged-<time> (both
+        written before metrics.jsonl is replaced: a kill in between loses nothing); a torn last line is dropped.
+        Returns one line per thing done or found (for stderr): each damaged line, the lines set aside, the torn
+        line, a missing file and iterations up to ``upto_iter`` with no line."""
         from gradlab.checkpoint import atomic_write_text
 
-        rows = [r for r in self.read_metrics() if r["iter"] <= upto_iter]
-        atomic_write_text(self.metrics_path, "".join(json.dumps(r) + "\n" for r in rows))
+        path, notes = self.metrics_path, []
+        if not path.exists():
+            if upto_iter:
+                notes.append(f"warning: {path} is missing: iterations 1..{upto_iter} have no metrics (plots and "
+                             f"reports of this run start at iteration {upto_iter + 1})")
+            return notes
+        lines, torn = _metrics_lines(path.read_bytes())
+        kept = [(n, line, row) for n, line, row in lines if row is not None and row["iter"] <= upto_iter]
+        later = [(n, line, row) for n, line, row in lines if row is not None and row["iter"] > upto_iter]
+        damaged = [(n, line) for n, line, row in lines if row is None]
+        stamp = _stamp()
+        if damaged:
+            aside = path.with_name(f"{METRICS}.damaged-{stamp}")
+            atomic_write_text(aside, "".join(line + "\n" for _, line in damaged))
+            for n, line in damaged[:5]:
+                notes.append(f"warning: {path} line {n} is damaged (not a JSON record: {line[:60]!r}); moved to "
+                             f"{aside.name}")
+            if len(damaged) > 5:
+                notes.append(f"warning: {path}: {len(damaged) - 5} more damaged lines moved to {aside.name}")
+        if later:
+            aside = path.with_name(f"{METRICS}.redone-{stamp}")
+            atomic_write_text(aside, "".join(line + "\n" for _, line, _ in later))
+            notes.append(f"note: {path}: the lines of iteration(s) {_spans([r['iter'] for _, _, r in later])} come "
+                         f"after the checkpoint of iteration {upto_iter} and are trained again; the old lines are "
+                         f"kept in {aside.name}")
+        if torn is not None:
+            notes.append(f"note: {path}: its last line was cut off mid-write (the run was killed while writing it); "
+                         f"dropped: {torn[:60]!r}")
+        missing = sorted(set(range(1, upto_iter + 1)) - {row["iter"] for _, _, row in kept})
+        if missing:
+            notes.append(f"warning: {path} has no line for iteration(s) {_spans(missing)} (plots and reports of "
+                         f"this run show a gap there)")
+        if damaged or later or torn is not None:
+            atomic_write_text(path, "".join(line + "\n" for _, line, _ in kept))
+        return notes
+
+    def set_aside_for_restart(self) -> list[str]:
+        """Before a run trains again from iteration 1 in this folder (``--restart``: it has no checkpoint): its
+        metrics.jsonl, summary.json and videos/ renamed to <name>.before-restart-<time>; one line per name."""
+        stamp, notes = _stamp(), []
+        for path in (self.metrics_path, self.summary_path, self.video_dir):
+            if path.exists() and (path.is_dir() or path.stat().st_size):
+                aside = path.with_name(f"{path.name}.before-restart-{stamp}")
+                os.replace(path, aside)
+                notes.append(f"note: --restart: {path} kept as {aside.name}")
+        return notes
 
     def write_summary(self, summary: dict) -> None:
         self.sync_metrics()  # the lines it sums up first

@@ -3,16 +3,22 @@
 A run trains in a run folder (``ablations.run_folder``: config.json, git.txt, metrics.jsonl, summary.json,
 checkpoints/, videos/) that a researcher can trust, resume and plot. Bad input is a ValueError naming its flag
 before the folder exists. SIGINT or SIGTERM lets the running iteration finish, checkpoints it and marks the
-summary ``interrupted`` (a second signal stops at once); ``ablate --resume`` then repeats nothing.
+summary ``interrupted``; a second signal stops at once and checkpoints the last finished iteration, which the loop
+holds a copy of when it is not on disk already. An error (out of memory on either device included) does the same
+before it is reported, so every way a run stops leaves its last finished iteration resumable, or says in the
+summary and the last line it prints which iterations are lost and why. ``ablate --resume`` then repeats nothing
+(docs/design.md, "Run folders and resume").
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import datetime
 import math
 import os
+import re
 import signal
 import sys
 import threading
@@ -36,7 +42,7 @@ from gradlab.seeding import resolve_device
 from gradlab.timing import median
 
 __all__ = ["RunConfig", "run", "prepare", "closing_lines", "default_threads", "use_threads", "shac_part",
-           "REQUIRED_KEYS", "PROBE_KEYS", "TIMING_KEYS", "RESUMABLE"]
+           "describe_error", "RunFailed", "NothingToDo", "REQUIRED_KEYS", "PROBE_KEYS", "TIMING_KEYS", "RESUMABLE"]
 
 #: Keys every metrics line has.
 REQUIRED_KEYS = ("iter", "env_steps", "wall_s", "return_mean", "actor_loss", "critic_loss", "grad_norm",
@@ -69,11 +75,19 @@ class RunConfig(SHACConfig):
     name: str | None = None
     """Run folder name; None: <task>_<mode>_seed<seed>_<date>-<time>."""
     resume: Path | None = None
-    """Continue the run in this folder from its last checkpoint (from its first iteration if it has none). Its
-    config.json wins over other flags except --device, --iters, --time-limit-min, --compile-cache and --threads,
-    which a resume may change (e.g. to train the same run longer)."""
+    """Continue the run in this folder from its newest readable checkpoint. Its config.json wins over other flags
+    except --device, --iters, --time-limit-min, --compile-cache and --threads, which a resume may change (e.g. to
+    train the same run longer). metrics.jsonl keeps every readable line up to the checkpoint's iteration; lines
+    after it (iterations the resume trains again) and damaged lines are moved to metrics.jsonl.redone-<time> and
+    metrics.jsonl.damaged-<time> beside it, each named in one line (a last line cut off mid-write is dropped).
+    A folder without a checkpoint is refused unless --restart is given."""
+    restart: bool = False
+    """With --resume of a folder that holds no checkpoint (the run stopped before its first one): train it again
+    from iteration 1 in that folder, its old metrics.jsonl, summary.json and videos/ kept beside under the suffix
+    .before-restart-<time>. A folder with a checkpoint resumes from it either way."""
     checkpoint_every: int = 50
-    """Iterations between checkpoints (and always at the end, and when a signal stops the run)."""
+    """Iterations between checkpoints (and always at the end, and when a signal or an error stops the run: the
+    last finished iteration is checkpointed then, from a copy the run holds in memory)."""
     keep_checkpoints: int = 2
     """Checkpoints kept on disk (oldest deleted); more than one lets a resume survive a damaged newest one."""
     video_every: int = 100
@@ -163,7 +177,7 @@ def _stored_config(folder: RunFolder, overrides: RunConfig) -> RunConfig:
               file=sys.stderr)
         stored["preset"] = RunConfig.preset
     stored["out"] = Path(stored.get("out", folder.path.parent))
-    stored.update(resume=folder.path, progress=overrides.progress)
+    stored.update(resume=folder.path, progress=overrides.progress, restart=overrides.restart)
     defaults = RunConfig()
     for k in RESUMABLE:
         if getattr(overrides, k) != getattr(defaults, k):
@@ -193,7 +207,10 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, RunFolder, torch.device, LoadedC
             resume_from = folder.load_checkpoint(device)
         except ValueError as e:
             raise ValueError(f"--resume {folder.path}: {e}") from None
+        check_resume([folder], cfg, None if resume_from is None else resume_from.state)
     else:
+        if cfg.restart:
+            raise ValueError("--restart goes with --resume RUN_FOLDER (a folder that holds no checkpoint)")
         cfg.validate()
         device = resolve_device(cfg.device)
         precision.check(cfg.precision, device)  # a refusal before the folder is made
@@ -204,13 +221,49 @@ def prepare(cfg: RunConfig) -> tuple[RunConfig, RunFolder, torch.device, LoadedC
     return cfg, folder, device, resume_from
 
 
+class NothingToDo(Exception):
+    """A resume of a run that has nothing left to train (its message: one line saying so and how to extend it)."""
+
+
+def check_resume(folders: list[RunFolder], cfg: RunConfig, state: dict | None) -> None:
+    """What a resume of ``folders`` (a run's, or a population's members') from the checkpoint ``state`` (one
+    member's; None: none of them has one) would do, decided before any work: NothingToDo when the run is finished
+    (its iterations done or its time budget spent); ValueError when there is no checkpoint but there are
+    iterations a start from iteration 1 would train again, unless --restart asks for it."""
+    where = folders[0].path if len(folders) == 1 else folders[0].path.parent
+    if state is not None:
+        it = state["iteration"]
+        if it >= cfg.iters:
+            raise NothingToDo(f"{where} is finished at iteration {it} (--iters {cfg.iters}): nothing to do; to train "
+                              f"it longer: ablate --resume {where} --iters M  (M > {it})")
+        if cfg.time_limit_min is not None and state["wall_s"] >= 60.0 * cfg.time_limit_min:
+            raise NothingToDo(f"{where} has used its --time-limit-min {cfg.time_limit_min:g} at iteration {it} "
+                              f"({state['wall_s'] / 60:.2f} min of training): nothing to do; to train it longer: "
+                              f"ablate --resume {where} --time-limit-min M  (M > {state['wall_s'] / 60:.2f})")
+        return
+    trained = max((max([r["iter"] for r in f.read_metrics()] or [0]) for f in folders), default=0)
+    summaries = [f.read_summary() or {} for f in folders]
+    trained = max([trained] + [s.get("iterations") or 0 for s in summaries if isinstance(s.get("iterations"), int)])
+    if trained == 0 or cfg.restart:
+        return
+    if all(s.get("status") in ("finished", "time_limit") for s in summaries):
+        raise NothingToDo(f"{where} is finished at iteration {trained} and keeps no checkpoint (deleted since): "
+                          f"nothing to resume from; --restart trains it again from iteration 1")
+    raise ValueError(f"--resume {where}: no checkpoint to resume from, but {trained} iteration(s) trained (it "
+                     f"stopped before its first checkpoint, --checkpoint-every {cfg.checkpoint_every}); add --restart "
+                     f"to train it again from iteration 1 in this folder (the old metrics.jsonl, summary.json and "
+                     f"videos are kept beside it as *.before-restart-<time>)")
+
+
 # ---------------------------------------------------------------------------------------------- running
 def run(cfg: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None) -> Path:
     """Train (or resume) a run, or a population (several configs: the members, trained in one process); returns
     its folder (a population's: the folder that holds its members' run folders), whose summary.json (each
     member's) says how it ended (``interrupted``: by a signal, after checkpointing its last finished iteration).
-    Raises ValueError on bad input before any work, and KeyboardInterrupt for a signal that came before the run
-    recorded its settings (its folder is then removed). ``startup``: this process's start-up
+    Raises ValueError on bad input before any work, NothingToDo for a resume of a finished run, RunFailed for an
+    error once training started (recorded, the last finished iteration checkpointed where it could be), and
+    KeyboardInterrupt for a signal that came before the run recorded its settings (its folder is then removed;
+    a resumed one is left as it was). ``startup``: this process's start-up
     (``Startup.before_torch``: the bytecode folder, compile helpers on standby); None: one that started nothing
     before torch was imported."""
     from ablations import population
@@ -219,6 +272,11 @@ def run(cfg: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None)
     startup = startup or Startup()
     folders: list[RunFolder] = []
     with StopOnSignal() as stop, plain_warnings():
+        from diffrender import BinCapacityWarning
+
+        # the renderer grows its automatic bin capacity as the robot moves and still renders every frame
+        # completely (diffrender.BinCapacityWarning): nothing a run's user has to act on
+        warnings.filterwarnings("ignore", category=BinCapacityWarning)
         try:
             single = isinstance(cfg, RunConfig) and not (cfg.resume is not None and population.is_member(cfg.resume))
             if single:
@@ -267,44 +325,63 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
     if states is not None:
         trainer.load_state_dict(states)
         del states  # not kept alive for the whole run (optimizer states can be large)
-    members = [trainer.members[i] for i in range(len(cfgs))]
-    for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
-        if folder.config_path.exists():
-            folder.truncate_metrics(trainer.iteration)  # lines after the checkpoint are computed again
-            continue
-        shac_fields = dataclasses.fields(SHACConfig)
-        resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name) for f in shac_fields})
-        record = {
-            "config": dataclasses.asdict(resolved),
-            # which values the preset supplied and which flags overrode it (flag and preset value side by side)
-            "preset": preset_record(shac_part(member_cfg), members[i].cfg),
-            "started_utc": _utc(started),
-            "environment": environment_info(device),
-            "command": sys.argv,
-        }
-        if not single:  # the process it trained in: one of these members, in this folder
-            record["population"] = {"folder": population.path.name, "members": [f.path.name for f in folders],
-                                    "index": i}
-        folder.write_config(record)
-        folder.write_git()
-
-    writer = None
-    if cfg.tensorboard:
+        resuming = True
+    else:
+        resuming = False
+    if cfg.tensorboard:  # bad input: said before the run records anything
         try:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError as e:
             raise ValueError("--tensorboard needs the tensorboard package: pip install tensorboard") from e
-        writer = SummaryWriter(str(folders[0].path / "tb"))
-
-    base = f"{cfg.task}/{cfg.mode}" if single else f"{cfg.task}/{len(cfgs)} members"
-    bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=base, unit="it",
-               dynamic_ncols=True)
-    first_iter_s = None
+    members = [trainer.members[i] for i in range(len(cfgs))]
     statuses: list[tuple[str, str | None]] = [("running", None)] * len(cfgs)
     stopped = [m.failed is not None for m in members]  # a resumed population's failed members stay stopped
-    eval_text = "-"
-    startup_s["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
+    # The loop's bookkeeping of what a stop would keep: ``done`` is the newest iteration whose metrics every
+    # member's folder holds, ``checkpointed`` the newest one on disk, ``held`` (iteration, state) a copy of the
+    # newest finished iteration that is not on disk yet, and ``between`` whether the live trainer is at a finished
+    # iteration (not inside one), so that its own state is that iteration's.
+    done = checkpointed = trainer.iteration
+    held: tuple[int, object] | None = None
+    between = True
+    lost: str | None = None
+    first_iter_s = None
+    bar = writer = None
     try:
+        for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
+            if folder.config_path.exists():
+                # a resume: the metrics lines after the checkpoint are trained again, damaged ones set aside (each
+                # named); a restart (no checkpoint) keeps the old records beside the new
+                notes = folder.settle_metrics(trainer.iteration) if resuming else folder.set_aside_for_restart()
+                for note in notes:
+                    print(note, file=sys.stderr)
+                continue
+            shac_fields = dataclasses.fields(SHACConfig)
+            resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name)
+                                                          for f in shac_fields})
+            config = dataclasses.asdict(resolved)
+            del config["restart"]  # what this start did, not a setting of the run (arms compare the settings)
+            record = {
+                "config": config,
+                # which values the preset supplied and which flags overrode it (flag and preset value side by side)
+                "preset": preset_record(shac_part(member_cfg), members[i].cfg),
+                "started_utc": _utc(started),
+                "environment": environment_info(device),
+                "command": sys.argv,
+            }
+            if not single:  # the process it trained in: one of these members, in this folder
+                record["population"] = {"folder": population.path.name, "members": [f.path.name for f in folders],
+                                        "index": i}
+            folder.write_config(record)
+            folder.write_git()
+
+        if cfg.tensorboard:
+            writer = SummaryWriter(str(folders[0].path / "tb"))
+
+        base = f"{cfg.task}/{cfg.mode}" if single else f"{cfg.task}/{len(cfgs)} members"
+        bar = tqdm(total=cfg.iters, initial=trainer.iteration, disable=not cfg.progress, desc=base, unit="it",
+                   dynamic_ncols=True)
+        eval_text = "-"
+        startup_s["run_folder"] = (cache_opened - started) + (time.time() - trainer_done)
         # The first iterations wait for the compiler: the bar says which part it compiles or captures, then its name.
         ahead_s = startup.before_first_iteration(
             lambda text: bar.set_description(base if text is None else f"{base}: {text}"))
@@ -317,10 +394,10 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
         # the same training time as one that ran through, so that return-against-time curves stay comparable.
         budget_s = None if cfg.time_limit_min is None else 60.0 * cfg.time_limit_min
         spent = budget_s is not None and trainer.wall_s >= budget_s  # a resumed run whose budget is used up
-        checkpointed = trainer.iteration
         ended = spent
         stop.defer_to_iteration_end()  # from here a first signal lets the iteration finish
         while not ended and trainer.iteration < cfg.iters and not stop.requested:
+            between = False
             out = trainer.train_iteration()
             rows = [out] if single else out
             live = [r for r in rows if r is not None]
@@ -351,13 +428,19 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
                     stopped[i] = True
                     statuses[i] = ("nonfinite", members[i].failed)
                     folder.write_summary(_summary(folder.read_metrics(), cfgs[i], *statuses[i], started))
+            done, between = it, True
             if writer is not None:
                 for k, v in live[0].items():
                     if isinstance(v, (int, float)) and not isinstance(v, bool):
                         writer.add_scalar(k, v, it)
-            if it % cfg.checkpoint_every == 0 or ended:
-                _checkpoint(trainer, folders, it, cfg.keep_checkpoints)
-                checkpointed = it
+            if it % cfg.checkpoint_every == 0 or ended or stop.requested:
+                _checkpoint(trainer.state_dict(), folders, it, cfg.keep_checkpoints)
+                checkpointed, held = it, None
+            else:
+                held = None  # the older copy first: two at once would double what it holds
+                held = (it, _copy_state(trainer.state_dict()))
+                if device.type == "cuda":  # waited for here, outside the next iteration's measured time
+                    torch.cuda.synchronize(device)
             evals = [ev for r in live if (ev := evaluation_of(r)) is not None]
             if evals:
                 eval_text = f"{sum(e[0] for e in evals) / len(evals):.1f}"
@@ -367,37 +450,135 @@ def _train(cfgs: list[RunConfig], folders: list[RunFolder], device: torch.device
             bar.update(1)
         if stop.requested and not ended:
             if checkpointed != trainer.iteration:
-                _checkpoint(trainer, folders, trainer.iteration, cfg.keep_checkpoints)
+                _checkpoint(trainer.state_dict(), folders, trainer.iteration, cfg.keep_checkpoints)
+                checkpointed = trainer.iteration
             status, error = "interrupted", f"{stop.requested} after iteration {trainer.iteration}"
         else:
             status, error = ("finished" if trainer.iteration >= cfg.iters else "time_limit"), None
         statuses = [s if stopped[i] else (status, error) for i, s in enumerate(statuses)]
-    except NonFiniteError as e:
-        statuses = [s if stopped[i] else ("nonfinite", str(e)) for i, s in enumerate(statuses)]
-        raise
-    except KeyboardInterrupt as e:  # a second signal: stopped mid-iteration, the last checkpoint is the state
-        why = f"{e or 'KeyboardInterrupt'} during iteration {trainer.iteration + 1}"
+    except KeyboardInterrupt as e:  # a second signal (or one before the loop): stopped at once
+        stop.finishing()
+        name = str(e) or "SIGINT"  # Python's own handler raises it without one
+        kept, lost = _rescue(trainer, folders, between, held, done, checkpointed, cfg.keep_checkpoints)
+        checkpointed = kept
+        if not between:
+            why = f"{name} during iteration {done + 1}: stopped at once, iteration {done + 1} is lost"
+        elif first_iter_s is None:  # building, recording, compiling ahead: no iteration had started
+            why = f"{name} before iteration {done + 1}: stopped at once"
+        else:
+            why = f"{name} after iteration {done}: stopped at once"
+        why += f"; {lost}" if lost else (f"; resumes from iteration {kept}" if kept else "")
         statuses = [s if stopped[i] else ("interrupted", why) for i, s in enumerate(statuses)]
-    except torch.OutOfMemoryError as e:
-        statuses = [s if stopped[i] else ("oom", str(e).splitlines()[0]) for i, s in enumerate(statuses)]
+    except Exception as e:  # every error: recorded, the last finished iteration kept, then raised
+        stop.finishing()
+        where = (f"during iteration {done + 1}" if not between else f"before iteration {done + 1}"
+                 if first_iter_s is None else f"after iteration {done}")
+        status, text = describe_error(e, device, where)  # a NonFiniteError names its iteration itself
+        kept, lost = _rescue(trainer, folders, between, held, done, checkpointed, cfg.keep_checkpoints)
+        checkpointed = kept
+        home = folders[0].path if single else population.path
+        line = text + (f"; {lost}" if lost else f"; the run resumes from iteration {kept}: ablate --resume {home}"
+                       if kept else "; no iteration finished, nothing to resume")
+        statuses = [s if stopped[i] else (status, line) for i, s in enumerate(statuses)]
+        raise RunFailed(status, line) from e
+    except BaseException as e:  # SystemExit and its like: the summary says so rather than "running"
+        stop.finishing()
+        kept, lost = _rescue(trainer, folders, between, held, done, checkpointed, cfg.keep_checkpoints)
+        checkpointed = kept
+        statuses = [s if stopped[i] else ("failed", f"{type(e).__name__} after iteration {done}")
+                    for i, s in enumerate(statuses)]
         raise
     finally:
+        stop.finishing()
         startup.close()
-        bar.close()
+        if bar is not None:
+            bar.close()
         if writer is not None:
             writer.close()
         for i, folder in enumerate(folders):
-            if not (stopped[i] and folder.summary_path.exists()):
+            if folder.config_path.exists() and not (stopped[i] and folder.summary_path.exists()):
                 folder.write_summary(_summary(folder.read_metrics(), cfgs[i], *statuses[i], started,
                                               first_iter_s=first_iter_s, compiled=startup.record(),
-                                              startup_s=startup_s))
+                                              startup_s=startup_s, resumes_from=checkpointed or None, lost=lost))
     return folders[0].path if single else population.path
 
 
-def _checkpoint(trainer, folders: list[RunFolder], iteration: int, keep: int) -> None:
-    """Every member's checkpoint of ``iteration`` into its folder (a stopped member's too, recording why it
-    stopped: a population resumes from an iteration every member has)."""
-    states = trainer.state_dict()
+class RunFailed(RuntimeError):
+    """A run stopped on an error, after recording it in its summary.json (``status``: nonfinite, oom or failed)
+    and checkpointing its last finished iteration where it could; the message is one line: what went wrong, and
+    what the run folder keeps or which iterations are lost."""
+
+    def __init__(self, status: str, line: str):
+        super().__init__(line)
+        self.status = status
+
+
+def describe_error(e: BaseException, device=None, where: str = "") -> tuple[str, str]:
+    """(summary status, one line) of an error that stopped a run ``where`` (e.g. "during iteration 3"): ``oom``
+    for running out of memory on either device (torch's OutOfMemoryError, MemoryError, or the CPU allocator's
+    RuntimeError), ``nonfinite`` for a NonFiniteError, ``failed`` for any other."""
+    from ablations.memory.worker import is_oom
+
+    first = (str(e).strip().splitlines() or [""])[0]
+    at = f" {where}" if where else ""
+    if isinstance(e, NonFiniteError):
+        return "nonfinite", first
+    if is_oom(e):
+        on = "GPU" if "cuda" in first.lower() or getattr(device, "type", device) == "cuda" else "CPU"
+        size = re.search(r"tried to allocate ([0-9.]+) ?(bytes|[KMGT]i?B)", first, re.IGNORECASE)
+        if size and size.group(2) == "bytes":
+            what = f"an allocation of {int(size.group(1)) / 2**30:.3g} GiB failed"
+        elif size:
+            what = f"an allocation of {size.group(1)} {size.group(2)} failed"
+        else:
+            what = first[:200] or type(e).__name__
+        return "oom", f"out of memory on the {on}{at} ({what}; fewer --num-envs or a smaller --image-size need less)"
+    return "failed", f"{type(e).__name__}{at}: {first}"[:500]
+
+
+def _copy_state(state):
+    """A copy of a trainer's state_dict() that the next iteration does not change (its tensors are the live
+    ones): CUDA tensors copied to (pinned) host memory without waiting for them, the rest cloned or deep-copied.
+    Host memory, not the device's: the copy must not change a run's measured peak memory. Its cost is mostly the
+    encoder's first linear layer and its two Adam moments (hopper, 64 environments: 74 MB a run, about 10 ms on
+    the CPU; a few ms over PCIe), paid between iterations."""
+    if isinstance(state, torch.Tensor):
+        return state.detach().to("cpu", non_blocking=True) if state.is_cuda else state.detach().clone()
+    if isinstance(state, dict):
+        return {k: _copy_state(v) for k, v in state.items()}
+    if type(state) in (list, tuple):
+        return type(state)(_copy_state(v) for v in state)
+    return copy.deepcopy(state)
+
+
+def _rescue(trainer, folders: list[RunFolder], between: bool, held, done: int, checkpointed: int,
+            keep: int) -> tuple[int, str | None]:
+    """After a stop mid-run: checkpoint the last finished iteration (``done``) when it is not on disk, from the
+    live trainer when it stopped between iterations, else from the copy ``held``. Returns (the iteration the run
+    folder now resumes from, 0 for none; None, or what is lost and why when that is not ``done``)."""
+    if done <= checkpointed:
+        return checkpointed, None
+    try:
+        if between:
+            states = trainer.state_dict()
+        elif held is not None and held[0] == done:
+            states = held[1]
+            if torch.cuda.is_available() and torch.cuda.is_initialized():
+                torch.cuda.synchronize()  # the copies to host memory were not waited for
+        else:
+            raise RuntimeError("no copy of it was held")
+        _checkpoint(states, folders, done, keep)
+        return done, None
+    except BaseException as e:  # a third signal, a full disk, a device that failed: say what is lost
+        why = describe_error(e)[1] if not isinstance(e, KeyboardInterrupt) else f"{str(e) or 'SIGINT'} again"
+        since = f"since the checkpoint of iteration {checkpointed}" if checkpointed else "(no checkpoint yet)"
+        span = f"iteration {done}" if done == checkpointed + 1 else f"iterations {checkpointed + 1}..{done}"
+        return checkpointed, f"lost {span} {since}: checkpointing iteration {done} failed ({why})"
+
+
+def _checkpoint(states, folders: list[RunFolder], iteration: int, keep: int) -> None:
+    """Every member's checkpoint of ``iteration`` (``states``: the trainer's state_dict()) into its folder (a
+    stopped member's too, recording why it stopped: a population resumes from an iteration every member has)."""
     for folder, state in zip(folders, [states] if len(folders) == 1 and isinstance(states, dict) else states):
         folder.save_checkpoint(iteration, state, keep=keep)
 
@@ -408,7 +589,9 @@ class StopOnSignal:
     Before :meth:`defer_to_iteration_end` (building the trainer, compiling ahead) a signal raises
     KeyboardInterrupt at once; after it the first signal only sets :attr:`requested` (its name), so that the
     training loop finishes the iteration it is in, checkpoints it and stops; a second one raises
-    KeyboardInterrupt. Outside the main thread (where Python delivers signals) it does nothing.
+    KeyboardInterrupt. After :meth:`finishing` (the run is writing its last checkpoint and summary) a signal is
+    only answered: those writes are what keeps the run resumable. Outside the main thread (where Python delivers
+    signals) it does nothing.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -416,6 +599,7 @@ class StopOnSignal:
     def __init__(self) -> None:
         self.requested: str | None = None
         self._deferring = False
+        self._finishing = False
         self._previous: dict = {}
 
     def __enter__(self) -> StopOnSignal:
@@ -430,15 +614,22 @@ class StopOnSignal:
     def defer_to_iteration_end(self) -> None:
         self._deferring = True
 
+    def finishing(self) -> None:
+        self._finishing = True
+
     def _handle(self, signum: int, frame) -> None:
         name = signal.Signals(signum).name
+        from tqdm import tqdm
+
+        if self._finishing:
+            tqdm.write(f"{name}: already stopping; writing the last checkpoint and summary.json first (SIGKILL stops "
+                       f"at once, without them)", file=sys.stderr)
+            return
         if not self._deferring or self.requested is not None:
             raise KeyboardInterrupt(name)
         self.requested = name
-        from tqdm import tqdm
-
         tqdm.write(f"{name}: stopping once this iteration has finished and is checkpointed (send it again to stop "
-                   f"at once, losing this iteration)", file=sys.stderr)
+                   f"at once: this iteration is then lost, the one before it checkpointed)", file=sys.stderr)
 
 
 @contextlib.contextmanager
@@ -485,7 +676,7 @@ def _process_started() -> float:
 
 def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, started: float, *,
              first_iter_s: float | None = None, compiled: dict | None = None,
-             startup_s: dict | None = None) -> dict:
+             startup_s: dict | None = None, resumes_from: int | None = None, lost: str | None = None) -> dict:
     timed = [r for r in rows if r["iter"] > cfg.warmup_iters]
     plain = [r for r in timed if not r.get("probed")]
     probed = [r for r in timed if r.get("probed")]
@@ -511,6 +702,9 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
         "iterations": rows[-1]["iter"] if rows else 0,
         "env_steps": rows[-1]["env_steps"] if rows else 0,
         "wall_s": rows[-1]["wall_s"] if rows else 0.0,
+        # the iteration of the newest checkpoint, where ablate --resume starts (None: none); what a stop lost
+        "resumes_from": resumes_from,
+        "lost": lost,
         "final_return": returns[-1] if returns else None,
         "best_return": max(returns) if returns else None,
         # the deterministic policy's return (metrics eval_return_mean, or eval_return on video iterations): the
@@ -584,4 +778,6 @@ def closing_lines(run_dir: str | os.PathLike, *, floors=None) -> list[str]:
     lines.append(f"  run folder         {folder.path}")
     more = "" if status == "interrupted" else " --iters N  (to train longer)"
     lines.append(f"  resume             ablate --resume {folder.path}{more}")
+    if s.get("lost"):  # last, where it is seen: what the resume will train again, and why
+        lines.append(f"  lost               {s['lost']}")
     return lines

@@ -22,7 +22,7 @@ __all__ = ["SweepConfig", "parse_args", "parse_set", "parse_vary", "norm_key", "
 #: Each run compiles in its own process (--no-compile-helper): a sweep's concurrent runs already use the cores that
 #: a helper process would (ablations/startup/helpers.py).
 RESERVED = {"task": "--tasks", "mode": "--modes", "seed": "--seeds", "out": "--out", "name": None,
-            "resume": None, "progress": None, "compile_helper": None, "threads": "--cpus-per-run"}
+            "resume": None, "restart": None, "progress": None, "compile_helper": None, "threads": "--cpus-per-run"}
 
 # --help shows the valid values of the two named axes (the lists every command shares).
 _TaskList = Annotated[tuple[str, ...], tyro.conf.arg(metavar="{" + ",".join(TASKS) + "} [...]")]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -122,11 +123,12 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
     set_table = parse_set(cfg.set) if set_table is None else set_table
     vary_table = parse_vary(cfg.vary) if vary_table is None else vary_table
     out = Path(cfg.out).resolve()
+    created = not out.exists()
     check_writable(out)
     manifest, todo = prepare_manifest(cfg, specs, set_table, vary_table, None if command is None else list(command),
                                       arms)
-    write_manifest(out, manifest)
     if not todo:
+        write_manifest(out, manifest)
         return manifest
 
     import ray
@@ -135,8 +137,17 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
     started_here = _ray_init(cfg)
     table = None
     pending: dict = {}
+    accepted = False  # sweep.json is written once the cluster can run the sweep: a refused start leaves none
     try:
-        _check_resources(cfg)
+        try:
+            _check_resources(cfg)
+        except ValueError:
+            if created:
+                with contextlib.suppress(OSError):
+                    out.rmdir()  # made for this sweep, still empty
+            raise
+        accepted = True
+        write_manifest(out, manifest)
         runs = manifest["runs"]
         store = ray.remote(RunStore).options(
             num_cpus=0, max_concurrency=1,
@@ -166,7 +177,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
                         continue
                     new = {k: info[k] for k in ("node", "host", "attempts", "resumed") if k in info}
                     new.update({k: v for k, v in (info.get("runs") or {}).get(run_id, {}).items()
-                                if k in ("iteration", "latest_return")})
+                                if k in ("iteration", "latest_return", "wall_s")})
                     if info.get("status") == "running" and rec["status"] == "queued":
                         new["status"] = "running"
                     if any(rec.get(k) != v for k, v in new.items()):
@@ -209,7 +220,8 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
     finally:
         if table is not None:
             table.close()
-        write_manifest(out, manifest)
+        if accepted:
+            write_manifest(out, manifest)
         if started_here:
             ray.shutdown()
     return manifest

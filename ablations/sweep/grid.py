@@ -55,13 +55,16 @@ def attempt_command(args: Sequence[str], run_id: str, *, resume: bool, threads: 
                     program: Sequence[str] | None = None) -> list[str]:
     """The command line of one attempt of a run, started in the attempt's scratch folder.
 
-    A fresh start writes the run folder ``./<run_id>``; a resume continues it (the folder unpacked there).
+    A fresh start writes the run folder ``./<run_id>``; a resume continues it (the folder unpacked there) from
+    its checkpoint, or from the first iteration where it has none.
     Paths are relative so that the run's recorded command and config name no folder of the worker node.
     ``threads``: the run's torch CPU threads (``--threads``; the sweep's --cpus-per-run, rounded down).
     ``program`` replaces ``python -m ablations ablate`` (a test seam: a stand-in that takes ablate's arguments).
     """
     program = [sys.executable, *ABLATE] if program is None else list(program)
-    where = ["--resume", run_id] if resume else [*args, "--out", ".", "--name", run_id]
+    # --restart: a run retried after it died before its first checkpoint trains again from its first iteration
+    # (its old metrics kept beside); one with a checkpoint resumes from it
+    where = ["--resume", run_id, "--restart"] if resume else [*args, "--out", ".", "--name", run_id]
     return [*program, *where, *RUN_ARGS, "--threads", str(threads)]
 
 

@@ -8,16 +8,35 @@ from typing import Any
 from ablations.sweep.manifest import status_counts
 from ablations.sweep.packing import Job
 
-__all__ = ["LiveTable"]
+__all__ = ["LiveTable", "progress_text", "time_limit_min"]
 
 
 def _fmt_return(value: Any) -> str:
     return "-" if value is None else f"{value:.4g}"
 
 
+def time_limit_min(args: Any) -> float | None:
+    """The --time-limit-min of a run's ablate arguments, None without one: such a run ends on its training
+    wall-clock, which its progress then shows (its --iters is only a ceiling)."""
+    args = list(args or ())
+    try:
+        return float(args[args.index("--time-limit-min") + 1])
+    except (ValueError, IndexError):
+        return None
+
+
+def progress_text(rec: dict) -> str:
+    """How far a run is: 'it 31/100' or, for a time-limited run, 'time 3.2/60 min (it 31)'."""
+    limit = time_limit_min(rec.get("args"))
+    if limit is None:
+        return f"it {rec.get('iteration') or 0}/{rec.get('iters')}"
+    return f"time {(rec.get('wall_s') or 0.0) / 60:.1f}/{limit:g} min (it {rec.get('iteration') or 0})"
+
+
 class LiveTable:
     """A tqdm bar of finished runs (counts by status in its postfix) and one bar per running job: a run's
-    iteration and latest return, or a population's (its members' lowest iteration and mean latest return).
+    iteration (a time-limited run's training minutes of its budget) and latest return, or a population's (its
+    members' lowest, and their mean latest return).
 
     Without ``enabled`` there are no bars; the status lines are printed either way.
     """
@@ -52,20 +71,24 @@ class LiveTable:
                 self.last_status[run_id] = status
                 if before is not None or status in ("done", "failed"):
                     extra = f"  error: {rec['error']}" if rec.get("error") else ""
-                    it = f"{rec.get('iteration') or 0}/{rec.get('iters')}"
-                    self._print(f"{status:8s} {run_id}  it {it}  return {_fmt_return(rec.get('latest_return'))}"
-                                f"  attempts {rec.get('attempts')}{extra}")
+                    self._print(f"{status:8s} {run_id}  {progress_text(rec)}  return "
+                                f"{_fmt_return(rec.get('latest_return'))}  attempts {rec.get('attempts')}{extra}")
         for job_id, job in self.jobs.items() if self.enabled else ():
             recs = [runs[r] for r in job.run_ids]
             bar = self.bars.get(job_id)
             if any(rec["status"] == "running" for rec in recs):
+                limit = time_limit_min(job.args)  # a time-limited run's bar: training minutes of its budget
                 if bar is None:
                     pos = self.free.pop(0) if self.free else len(self.bars) + 1
                     desc = f"{job_id} ({len(recs)} runs)" if job.population else job_id
-                    bar = self.bars[job_id] = self.tqdm(total=job.iters, desc=desc, unit="it", position=pos,
+                    bar = self.bars[job_id] = self.tqdm(total=job.iters if limit is None else limit, desc=desc,
+                                                        unit="it" if limit is None else "min", position=pos,
                                                         leave=False, dynamic_ncols=True)
                     bar.pos_ = pos
-                bar.n = min(rec.get("iteration") or 0 for rec in recs)
+                if limit is None:
+                    bar.n = min(rec.get("iteration") or 0 for rec in recs)
+                else:
+                    bar.n = round(min((rec.get("wall_s") or 0.0) / 60 for rec in recs), 1)
                 returns = [r["latest_return"] for r in recs if r.get("latest_return") is not None]
                 bar.set_postfix(ret=_fmt_return(sum(returns) / len(returns) if returns else None), refresh=False)
                 bar.refresh()

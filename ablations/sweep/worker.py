@@ -102,7 +102,8 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
                 last = tail.poll()
                 if last is not None and last.get("iter") != reported.get(run_id):
                     reported[run_id] = last.get("iter")
-                    rows[run_id] = {"iteration": last.get("iter"), "latest_return": last.get("return_mean")}
+                    rows[run_id] = {"iteration": last.get("iter"), "latest_return": last.get("return_mean"),
+                                    "wall_s": last.get("wall_s")}  # what a time-limited run's progress shows
             if rows:
                 store.report.remote(job_id, attempt, {"runs": rows})
             common = common_checkpoint(folders)

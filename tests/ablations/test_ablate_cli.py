@@ -446,9 +446,10 @@ def test_run_files_are_readable_as_the_umask_allows(tmp_path, mask):
         assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask, path
 
 
-def test_a_folder_with_its_config_but_no_checkpoint_resumes_from_the_first_iteration(tmp_path):
-    """A run stopped during its first iteration (a second Ctrl-C) recorded its settings but no checkpoint: the
-    resume trains it from the start in the same folder."""
+def test_a_resume_without_a_checkpoint_is_refused_unless_restart_which_keeps_the_old_metrics(tmp_path, capsys):
+    """A run stopped before its first checkpoint (killed, say) recorded iterations a resume cannot continue: the
+    resume says so and starts nothing; --restart trains it from the first iteration in the same folder, with the
+    old metrics kept beside."""
     common = ["--task", "cartpole", "--mode", "decoupled", "--iters", "3", "--cosine-every", "2",
               "--video-every", "0", "--out", str(tmp_path), *TINY]
     ablate(*common, "--name", "whole")
@@ -456,9 +457,25 @@ def test_a_folder_with_its_config_but_no_checkpoint_resumes_from_the_first_itera
     cut = tmp_path / "cut"
     for p in (cut / "checkpoints").iterdir():
         p.unlink()
-    (cut / "metrics.jsonl").write_text(json.dumps(read_metrics(cut)[0]) + "\n")
-    ablate("--resume", str(cut), "--no-progress")
+    old = json.dumps(read_metrics(cut)[0]) + "\n"
+    (cut / "metrics.jsonl").write_text(old)  # killed (SIGKILL) during its second iteration: no summary either
+    (cut / "summary.json").unlink()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        ablate("--resume", str(cut), "--no-progress")
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith(f"error: --resume {cut}: no checkpoint to resume from") and \
+        "add --restart" in err and err.count("\n") == 1
+    assert (cut / "metrics.jsonl").read_text() == old
+    ablate("--resume", str(cut), "--restart", "--no-progress")
     assert strip_timing(read_metrics(cut)) == strip_timing(read_metrics(tmp_path / "whole"))
+    kept = list(cut.glob("metrics.jsonl.before-restart-*"))
+    assert len(kept) == 1 and kept[0].read_text() == old
+    assert f"note: --restart: {cut / 'metrics.jsonl'} kept as {kept[0].name}" in capsys.readouterr().err
+    # finished: a resume without --iters says so, and how to train it longer
+    ablate("--resume", str(cut), "--no-progress")
+    assert capsys.readouterr().out == (f"{cut} is finished at iteration 3 (--iters 3): nothing to do; to train it "
+                                       f"longer: ablate --resume {cut} --iters M  (M > 3)\n")
 
 
 @pytest.mark.parametrize("sig", ["SIGINT", pytest.param("SIGTERM", marks=pytest.mark.slow)])
@@ -496,6 +513,157 @@ def test_a_signal_checkpoints_the_last_iteration_and_the_resume_repeats_nothing(
     rows = read_metrics(cut)
     assert [r["iter"] for r in rows] == list(range(1, iters + 1))
     assert strip_timing(rows) == strip_timing(read_metrics(tmp_path / "whole"))
+
+
+def start_ablate(*args: str, **popen) -> subprocess.Popen:
+    """A child ``python -m ablations ablate`` of this checkout, its output in pipes."""
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    return subprocess.Popen([sys.executable, "-m", "ablations", "ablate", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **popen)
+
+
+def wait_for_lines(proc: subprocess.Popen, run: Path, n: int, timeout: float = 120) -> None:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while len(read_metrics(run)) < n and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert proc.poll() is None, "the run ended before the signal: give it more iterations"
+
+
+@pytest.mark.parametrize("second", ["SIGINT", pytest.param("SIGTERM", marks=pytest.mark.slow)])
+def test_a_second_signal_stops_at_once_and_the_last_finished_iteration_resumes(tmp_path, second):
+    """Two signals to a child ablate once it has written its first metrics line, with --checkpoint-every far
+    away: it stops at once, checkpoints its last finished iteration from the copy it holds and says so; the
+    resume from there equals a run that went through. SIGINT then SIGTERM are both pending before either is
+    handled: the second lands inside the iteration the first let finish. SIGINT twice (Ctrl-C, Ctrl-C): the
+    second follows the first's message, wherever the run is then; the outcome is resumable either way."""
+    import signal
+    import time
+
+    iters = 6
+    # a horizon of 8: iterations of a few hundred milliseconds, against the few the run spends between them
+    common = ["--task", "cartpole", "--mode", "decoupled", "--iters", str(iters), "--cosine-every", "3",
+              "--video-every", "0", "--checkpoint-every", "1000", "--out", str(tmp_path), *TINY, "--threads", "1",
+              "--horizon", "8"]
+    cut = tmp_path / "cut"
+    proc = start_ablate(*common, "--name", "cut")
+    wait_for_lines(proc, cut, 1)
+    time.sleep(0.05)  # past the end of the first iteration's records: into the second iteration
+    proc.send_signal(signal.SIGINT)
+    if second == "SIGINT":
+        err_first = ""
+        while "stopping once this iteration" not in err_first and proc.poll() is None:
+            err_first += proc.stderr.readline()
+        time.sleep(0.005)
+    else:
+        err_first = ""
+    proc.send_signal(getattr(signal, second))
+    out, err = proc.communicate(timeout=120)
+    err = err_first + err
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err
+    summary = json.loads((cut / "summary.json").read_text())
+    done = summary["iterations"]
+    assert summary["status"] == "interrupted" and 1 <= done < iters and summary["lost"] is None
+    assert summary["resumes_from"] == done
+    assert [r["iter"] for r in read_metrics(cut)] == list(range(1, done + 1))
+    assert [p.name for p in (cut / "checkpoints").iterdir()] == [f"ckpt_{done:06d}.pt"]
+    if second == "SIGTERM":
+        assert summary["error"] == (f"SIGTERM during iteration {done + 1}: stopped at once, iteration {done + 1} is "
+                                    f"lost; resumes from iteration {done}")
+    elif "stopped at once" in summary["error"]:
+        assert summary["error"].startswith(f"SIGINT during iteration {done + 1}: stopped at once") or \
+            summary["error"].startswith(f"SIGINT after iteration {done}: stopped at once")
+    else:  # the iteration had ended: the second signal came while the run was writing its records
+        assert summary["error"] == f"SIGINT after iteration {done}"
+    assert out.rstrip("\n").splitlines()[-1] == f"  resume             ablate --resume {cut.resolve()}"
+
+    ablate("--resume", str(cut), "--no-progress")
+    ablate(*common, "--name", "whole")
+    rows = read_metrics(cut)
+    assert [r["iter"] for r in rows] == list(range(1, iters + 1))
+    assert strip_timing(rows) == strip_timing(read_metrics(tmp_path / "whole"))
+
+
+def test_a_resume_keeps_every_readable_metrics_line_and_names_what_it_could_not(tmp_path, capsys):
+    """A damaged line in the middle of metrics.jsonl: the resume keeps every other line (the ones after it too)
+    and names the damaged one; a deleted metrics.jsonl is named, and the resume goes on from its checkpoint."""
+    common = ["--task", "cartpole", "--mode", "state", "--video-every", "0", "--checkpoint-every", "2",
+              "--out", str(tmp_path), "--name", "run", *TINY]
+    ablate(*common, "--iters", "4")
+    run = tmp_path / "run"
+    lines = (run / "metrics.jsonl").read_text().splitlines(keepends=True)
+    lines[1] = "{garbage\n"
+    (run / "metrics.jsonl").write_text("".join(lines))
+    capsys.readouterr()
+    ablate("--resume", str(run), "--iters", "5", "--no-progress")
+    err = capsys.readouterr().err
+    assert [r["iter"] for r in read_metrics(run)] == [1, 3, 4, 5]
+    damaged = next(run.glob("metrics.jsonl.damaged-*"))
+    assert damaged.read_text() == "{garbage\n"
+    assert f"warning: {run / 'metrics.jsonl'} line 2 is damaged (not a JSON record: '{{garbage'); moved to " \
+           f"{damaged.name}\n" in err
+    assert f"warning: {run / 'metrics.jsonl'} has no line for iteration(s) 2 (plots and reports" in err
+
+    (run / "metrics.jsonl").unlink()
+    ablate("--resume", str(run), "--iters", "6", "--no-progress")
+    err = capsys.readouterr().err
+    assert f"warning: {run / 'metrics.jsonl'} is missing: iterations 1..5 have no metrics" in err
+    assert [r["iter"] for r in read_metrics(run)] == [6]
+
+
+def test_out_of_memory_on_the_cpu_is_one_error_line_and_a_final_status(tmp_path):
+    """A real allocation that fails: the child's address space is limited (as a batch system's memory limit
+    does), so that the first large tensor of --num-envs 50000 cannot be had; no traceback, one error line,
+    summary.json says oom."""
+    import resource
+
+    limit = 5 * 2**30
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    proc = start_ablate("--task", "cartpole", "--num-envs", "50000", "--iters", "3", "--device", "cpu",
+                        "--threads", "1", "--no-progress", "--out", str(tmp_path), "--name", "oom",
+                        preexec_fn=limited)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 1, err[-3000:]
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("error: out of memory on the CPU during iteration 1 (an allocation of "), err
+    assert last.endswith("; no iteration finished, nothing to resume")
+    summary = json.loads((tmp_path / "oom" / "summary.json").read_text())
+    assert summary["status"] == "oom" and summary["error"] == last.removeprefix("error: ")
+
+
+def test_a_run_stopped_by_an_error_records_it_and_says_what_it_keeps(tmp_path, capsys):
+    """An error inside an iteration (here the abort guard): summary.json ends in its final status, and the last
+    line says what the run folder keeps."""
+    with pytest.raises(SystemExit) as e:
+        ablate("--task", "cartpole", "--mode", "state", "--iters", "3", "--abort-grad-norm", "1e-12",
+               "--video-every", "0", "--out", str(tmp_path), "--name", "run", *TINY)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "abort_grad_norm" in err[0], err
+    assert err[0].startswith("error: ") and err[0].endswith("; no iteration finished, nothing to resume")
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["status"] == "nonfinite" and summary["error"] == err[0].removeprefix("error: ")
+
+
+def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path):
+    """SIGINT while ablate is still importing (torch takes seconds): a short line, no traceback, nothing
+    written."""
+    import signal
+    import time
+
+    proc = start_ablate("--task", "cartpole", "--iters", "3", "--device", "cpu", "--no-progress",
+                        "--out", str(tmp_path / "runs"))
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "nothing was written" in err and not (tmp_path / "runs").exists()
 
 
 def test_python_m_ablations_runs_every_ablations_console_script(tmp_path):

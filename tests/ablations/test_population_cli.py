@@ -81,9 +81,12 @@ def test_members_that_cannot_make_a_population_are_one_clear_line(tmp_path, args
     assert not any(tmp_path.iterdir())  # nothing was created
 
 
-def test_a_signal_stops_a_population_and_its_resume_repeats_nothing(tmp_path):
+@pytest.mark.parametrize("signals", [("SIGINT",), pytest.param(("SIGINT", "SIGTERM"), marks=pytest.mark.slow)])
+def test_a_signal_stops_a_population_and_its_resume_repeats_nothing(tmp_path, signals):
     """A real SIGINT to a child ablate training a population: every member checkpoints the last finished
-    iteration; the resumed population's members equal those of one that ran through."""
+    iteration; the resumed population's members equal those of one that ran through. A second signal landing in
+    the same iteration (both pending at once) stops it there: every member's last finished iteration is
+    checkpointed from the copy the run holds."""
     iters = 30
     common = [*TINY, *MEMBERS, "--iters", str(iters), "--cosine-every", "3", "--video-every", "0",
               "--eval-every", "10", "--checkpoint-every", "1000", "--out", str(tmp_path)]
@@ -95,15 +98,23 @@ def test_a_signal_stops_a_population_and_its_resume_repeats_nothing(tmp_path):
     deadline = time.monotonic() + 300
     while len(read_metrics(first)) < 3 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
-    proc.send_signal(signal.SIGINT)
+    if len(signals) > 1:
+        time.sleep(0.02)  # into the next iteration
+    for name in signals:
+        proc.send_signal(getattr(signal, name))
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 130, err[-3000:]
     assert "Traceback" not in err and f"ablate --resume {cut.resolve()}" in out
     done = {name: len(rows) for name, rows in members_of(cut).items()}
     assert len(set(done.values())) == 1 and 3 <= next(iter(done.values())) < iters
+    it = next(iter(done.values()))
     for name in done:
         summary = json.loads((cut / name / "summary.json").read_text())
-        assert summary["status"] == "interrupted"
+        assert summary["status"] == "interrupted" and summary["resumes_from"] == it and summary["lost"] is None
+        assert [p.name for p in (cut / name / "checkpoints").iterdir()] == [f"ckpt_{it:06d}.pt"]
+        if len(signals) > 1:
+            assert summary["error"].startswith((f"SIGTERM during iteration {it + 1}: stopped at once",
+                                                f"SIGTERM after iteration {it}: stopped at once")), summary
     ablate("--resume", str(cut / "cartpole_full_seed1"), "--no-progress")  # a member's folder resumes them all
     ablate(*common, "--name", "whole")
     resumed, whole = members_of(cut), members_of(tmp_path / "whole")

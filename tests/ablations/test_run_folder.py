@@ -58,16 +58,45 @@ def test_create_refuses_a_folder_with_files_and_existing_needs_a_config(tmp_path
     assert not empty.path.exists() and folder.path.exists()
 
 
-def test_metrics_lines_append_truncate_and_a_torn_line_is_ignored(tmp_path):
+def test_a_resume_keeps_every_readable_metrics_line_and_sets_the_rest_aside_named(tmp_path):
+    """settle_metrics (what --resume does to metrics.jsonl): lines up to the checkpoint stay as written, a damaged
+    line in the middle and the lines after the checkpoint go to files beside it, each named in one line; only a
+    torn last line is dropped (said too); a missing file and iterations without a line are named."""
     folder = RunFolder.create(tmp_path, "r")
-    for it in (1, 2, 3):
+    for it in (1, 2, 3, 4, 5):
         folder.append_metrics({"iter": it, "return_mean": float(it)})
-    with open(folder.metrics_path, "a") as f:
-        f.write('{"iter": 4, "ret')  # a run killed mid-write
-    assert [r["iter"] for r in read_metrics(folder.path)] == [1, 2, 3]
-    folder.truncate_metrics(2)
-    assert folder.metrics_path.read_text() == '{"iter": 1, "return_mean": 1.0}\n{"iter": 2, "return_mean": 2.0}\n'
+    text = folder.metrics_path.read_text().splitlines(keepends=True)
+    text[1] = '{"iter": 2, "ret\x00\x00\n'  # damaged in place (a disk fault)
+    folder.metrics_path.write_text("".join(text) + '{"iter": 6, "ret')  # and a run killed mid-write
+    # readers keep every readable line, the ones after the damaged one included
+    assert [r["iter"] for r in read_metrics(folder.path)] == [1, 3, 4, 5]
+    notes = folder.settle_metrics(4)
+    assert [r["iter"] for r in read_metrics(folder.path)] == [1, 3, 4]
+    assert folder.metrics_path.read_text() == "".join(text[i] for i in (0, 2, 3))
+    damaged = next(tmp_path.glob("r/metrics.jsonl.damaged-*"))
+    redone = next(tmp_path.glob("r/metrics.jsonl.redone-*"))
+    assert damaged.read_text() == text[1] and redone.read_text() == text[4]
+    assert len(notes) == 4, notes
+    assert notes[0].startswith(f"warning: {folder.metrics_path} line 2 is damaged") and damaged.name in notes[0]
+    assert "iteration(s) 5 come after the checkpoint of iteration 4" in notes[1] and redone.name in notes[1]
+    assert "last line was cut off mid-write" in notes[2] and "dropped" in notes[2]
+    assert notes[3].endswith("has no line for iteration(s) 2 (plots and reports of this run show a gap there)")
+    assert folder.settle_metrics(4) == [notes[3]]  # settled: nothing more to move
+    folder.metrics_path.unlink()
+    assert folder.settle_metrics(4) == [f"warning: {folder.metrics_path} is missing: iterations 1..4 have no "
+                                        f"metrics (plots and reports of this run start at iteration 5)"]
     assert RunFolder(tmp_path / "none").read_metrics() == []
+
+
+def test_a_restart_keeps_the_old_records_beside(tmp_path):
+    folder = RunFolder.create(tmp_path, "r")
+    folder.append_metrics({"iter": 1})
+    folder.write_summary({"status": "interrupted"})
+    folder.write_video(1, [np.zeros((8, 8, 3), np.uint8)])
+    notes = folder.set_aside_for_restart()
+    assert len(notes) == 3 and not folder.metrics_path.exists() and not folder.summary_path.exists()
+    assert sorted(p.name.split(".before-restart-")[0] for p in folder.path.glob("*.before-restart-*")) == \
+        ["metrics.jsonl", "summary.json", "videos"]
 
 
 def test_checkpoints_are_pruned_listed_and_a_damaged_newest_is_set_aside(tmp_path, capsys):
@@ -167,7 +196,7 @@ def test_metrics_tail_reads_only_what_was_appended(tmp_path):
     with open(folder.metrics_path, "a") as f:
         f.write("}\n")
     assert tail.poll() == {"iter": 2}
-    folder.truncate_metrics(1)  # a resume rewrites the file
+    folder.settle_metrics(1)  # a resume rewrites the file
     assert tail.poll() == {"iter": 1}
 
 

@@ -148,6 +148,16 @@ def test_every_task_and_mode_is_a_grid_value(monkeypatch, capsys):
     assert "--tasks {" + ",".join(TASKS) + "}" in text and "--modes {" + ",".join(MODES) + "}" in text
 
 
+def test_progress_of_a_time_limited_run_is_its_time_budget():
+    """ablate-paper's runs end on --time-limit-min with --iters a ceiling: their progress is time, not 31/100000."""
+    from ablations.sweep.table import progress_text
+
+    rec = {"iteration": 31, "iters": 100000, "wall_s": 192.0}
+    assert progress_text({**rec, "args": ["--task", "hopper"]}) == "it 31/100000"
+    assert progress_text({**rec, "args": ["--time-limit-min", "60", "--iters", "100000"]}) == \
+        "time 3.2/60 min (it 31)"
+
+
 def test_attempt_command_names_no_folder_of_the_worker_node():
     """An attempt runs in its scratch folder with relative paths, so the run's config.json records none of the
     node's folders (reports show the recorded command)."""
@@ -157,7 +167,7 @@ def test_attempt_command_names_no_folder_of_the_worker_node():
                      "--no-progress", "--no-compile-helper", "--threads", "1"]
     # the run's torch threads are the CPUs it was given, on a fresh start and a resume alike
     assert attempt_command(spec.args, spec.run_id, resume=True, program=["fake"], threads=2) == [
-        "fake", "--resume", spec.run_id, "--no-progress", "--no-compile-helper", "--threads", "2"]
+        "fake", "--resume", spec.run_id, "--restart", "--no-progress", "--no-compile-helper", "--threads", "2"]
     with pytest.raises(ValueError, match="the sweep sets --threads itself; use --cpus-per-run"):
         plan(SweepConfig(modes=("state",), set=("threads=4",)))
 
@@ -403,6 +413,14 @@ def test_sweep_recovers_a_killed_worker_then_a_rerun_skips_everything(ray_cluste
     assert {k: (r["status"], r["attempts"]) for k, r in again["runs"].items()} == {
         killed: ("done", 2), "cartpole_state_seed0": ("done", 1)}
     assert {p.name for p in (out / "logs").iterdir()} == logs
+
+
+def test_a_sweep_the_cluster_cannot_run_is_refused_leaving_no_sweep_json(ray_cluster, tmp_path):
+    """A refused start writes nothing: no sweep.json, and no sweep folder made for it."""
+    out = tmp_path / "sweep"
+    with pytest.raises(ValueError, match="no node of the cluster has that many GPUs"):
+        run_sweep(tiny_sweep(out, gpus_per_run=1.0), program=["unused"])
+    assert not out.exists()
 
 
 def test_failed_run_is_recorded_and_a_rerun_resumes_it(ray_cluster, tmp_path):
