@@ -5,8 +5,9 @@ in training, ``eval_envs`` in evaluation) and its own networks, optimisers, obse
 abort guard (docs/design.md, "Populations"). This module holds what the training window and the evaluation both
 do with the members' rows, so that the two share it: the task of E environments per member, the renderers and
 the images (one renderer call per run of adjacent members of one raster model), the actor's input, the members'
-observation statistics and action noise laid out on their rows, the per-member sums of a loss; and what the
-population must agree on (:func:`check_population`) and the order its members train in.
+observation statistics and action noise laid out on their rows, the per-member sums of a loss; what the
+population must agree on (:func:`check_population`) and the order its members train in; and a member's
+checkpoint, a single run's format holding the member's rows of the trainer's state.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import os
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import nn
@@ -27,12 +29,13 @@ from gradlab.config import ModePlan, SHACConfig, resolve_config
 from gradlab.networks import Critic, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
 from gradlab.presets import SILHOUETTE_RASTER_MODEL
-from gradlab.seeding import seed_everything
+from gradlab.seeding import rng_state, seed_everything
 from tasks.vision import FrameStack, TaskRenderer
 
 __all__ = ["MEMBER_FIELDS", "Member", "actor_input", "alt_raster", "blank_images", "build_member", "check_memory",
-           "check_population", "images", "input_kind", "make_renderers", "make_task", "member_sums",
-           "population_order", "render_order", "sample", "stacked_stats", "window_bytes"]
+           "check_population", "images", "input_kind", "joined_state", "make_renderers", "make_task", "match_states",
+           "member_state", "member_sums", "population_order", "render_order", "restore_member", "sample",
+           "stacked_stats", "window_bytes"]
 
 #: Settings the members of one population may differ in: what they train with and how (mode, seed, image
 #: model, preset and the learning-rate schedule, initialisation and update settings the preset fills). Every
@@ -293,3 +296,82 @@ def sample(members: Sequence[Member], mu: torch.Tensor, per_member: int) -> torc
 def member_sums(x: torch.Tensor, n: int) -> torch.Tensor:
     """(N * B,) -> (N,), each member's sum of its rows."""
     return x.view(n, -1).sum(1)
+
+
+# ---------------------------------------------------------------------- checkpoints: a member's is a run's
+def member_state(m: Member, *, iteration: int, wall_s: float, started: bool, task: dict, frames: dict,
+                 episode_return: torch.Tensor, episode_length: torch.Tensor) -> dict:
+    """Everything that determines the future of member ``m`` (resume == uninterrupted on the CPU), in a single
+    run's checkpoint format: the trainer's clock and iteration, the member's own parts and its rows of the
+    trainer's task state (``Task.get_state()``: its reset seed with the shared counter), frame stack
+    (``FrameStack.state_dict()``) and episode counters; torch's global random state, and the member's noise
+    generator where it has its own (``generator``)."""
+    seeds, counter = task["rng"][:-1], task["rng"][-1:]
+    own_task = {k: v[m.rows] for k, v in task.items() if k != "rng"}
+    own_task["rng"] = torch.cat([seeds[m.index:m.index + 1], counter])
+    state = {
+        "config": dataclasses.asdict(m.cfg),
+        "iteration": iteration,
+        "wall_s": wall_s,
+        "started": started,
+        "actor": m.actor.state_dict(),
+        "critic": m.critic.state_dict(),
+        "target_critic": m.target_critic.state_dict(),
+        "actor_opt": m.actor_opt.state_dict(),
+        "critic_opt": m.critic_opt.state_dict(),
+        "obs_rms": m.obs_rms.state_dict(),
+        "task": own_task,
+        "frames": dict(frames, frames=[f[m.rows] for f in frames["frames"]]),
+        "episode_return": episode_return[m.rows].clone(),
+        "episode_length": episode_length[m.rows].clone(),
+        "recent_returns": list(m.recent_returns),
+        "recent_lengths": list(m.recent_lengths),
+        "rng": rng_state(),
+    }
+    if m.generator is not None:
+        state["generator"] = m.generator.get_state()
+    if m.failed is not None:
+        state["failed"] = m.failed
+    return state
+
+
+def _config_key(config: dict[str, Any]) -> tuple:
+    return tuple(repr(config.get(name)) for name in MEMBER_FIELDS)
+
+
+def match_states(members: Sequence[Member], states: Sequence[dict]) -> list[dict]:
+    """Checkpoints of a population's members, given in any order, in the order of ``members`` (matched by their
+    member settings); raises ValueError where they are of other members or of different iterations."""
+    by_config = {_config_key(s["config"]): s for s in states}
+    ordered = [by_config.get(_config_key(dataclasses.asdict(m.cfg))) for m in members]
+    if any(s is None for s in ordered):
+        raise ValueError("the checkpoints are of other members than this population's")
+    return ordered
+
+
+def restore_member(m: Member, state: dict) -> None:
+    """A member's own parts from its checkpoint (:func:`member_state`)."""
+    m.actor.load_state_dict(state["actor"])
+    m.critic.load_state_dict(state["critic"])
+    m.target_critic.load_state_dict(state["target_critic"])
+    m.actor_opt.load_state_dict(state["actor_opt"])
+    m.critic_opt.load_state_dict(state["critic_opt"])
+    m.obs_rms.load_state_dict(state["obs_rms"])
+    m.recent_returns = deque(state["recent_returns"], maxlen=100)
+    m.recent_lengths = deque(state["recent_lengths"], maxlen=100)
+    if m.generator is not None:
+        m.generator.set_state(state["generator"])
+
+
+def joined_state(ordered: Sequence[dict]) -> tuple[dict, dict, torch.Tensor, torch.Tensor]:
+    """The trainer's shared state from its members' checkpoints, in member order: the task state (each member's
+    rows and reset seed, the one counter they must share), the frame stack and the episode return and length."""
+    task = {k: torch.cat([s["task"][k] for s in ordered]) for k in ("qpos", "qvel", "progress", "prev_actions")}
+    counters = {int(s["task"]["rng"][-1]) for s in ordered}
+    if len(counters) != 1:
+        raise ValueError("the members' checkpoints are of different reset counters")
+    task["rng"] = torch.cat([s["task"]["rng"][:-1] for s in ordered] + [ordered[0]["task"]["rng"][-1:]])
+    frames = dict(ordered[0]["frames"])
+    frames["frames"] = [torch.cat(fs) for fs in zip(*(s["frames"]["frames"] for s in ordered))]
+    return (task, frames, torch.cat([s["episode_return"] for s in ordered]),
+            torch.cat([s["episode_length"] for s in ordered]))

@@ -38,11 +38,9 @@ population: the member) with the iteration, the horizon step and the tensor name
 
 from __future__ import annotations
 
-import dataclasses
 import time
-from collections import deque
 from collections.abc import Callable, Collection, Sequence
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -58,7 +56,7 @@ from gradlab.members import MEMBER_FIELDS, Member, check_population, population_
 from gradlab.networks import MemberStack
 from gradlab.normalizer import RunningMeanStd
 from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad, group_norms, image_sensitivity
-from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_state
+from gradlab.seeding import resolve_device, seed_everything, set_rng_state
 from gradlab.timing import RegionTimer
 from tasks.vision import FrameStack
 
@@ -592,89 +590,35 @@ class SHAC:
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict | list[dict]:
         """Everything that determines the future of the run (resume == uninterrupted on the CPU): a single run's
-        dict, or one per member of a population, each in a single run's format with the member's rows of the
-        task state and frames and its own noise generator (``generator``)."""
-        states = [self._member_state(m) for m in self.members]
+        dict, or one per member of a population, each in a single run's format (``members.member_state``)."""
+        states = [members.member_state(m, iteration=self.iteration, wall_s=self.wall_s, started=self._started,
+                                       task=self.task.get_state(), frames=self.frames.state_dict(),
+                                       episode_return=self.episode_return, episode_length=self.episode_length)
+                  for m in self.members]
         return states[0] if self.single else states
-
-    def _member_state(self, m: Member) -> dict:
-        task = self.task.get_state()
-        seeds, counter = task["rng"][:-1], task["rng"][-1:]
-        task = {k: v[m.rows] for k, v in task.items() if k != "rng"}
-        task["rng"] = torch.cat([seeds[m.index:m.index + 1], counter])
-        frames = self.frames.state_dict()
-        frames["frames"] = [f[m.rows] for f in frames["frames"]]
-        state = {
-            "config": dataclasses.asdict(m.cfg),
-            "iteration": self.iteration,
-            "wall_s": self.wall_s,
-            "started": self._started,
-            "actor": m.actor.state_dict(),
-            "critic": m.critic.state_dict(),
-            "target_critic": m.target_critic.state_dict(),
-            "actor_opt": m.actor_opt.state_dict(),
-            "critic_opt": m.critic_opt.state_dict(),
-            "obs_rms": m.obs_rms.state_dict(),
-            "task": task,
-            "frames": frames,
-            "episode_return": self.episode_return[m.rows].clone(),
-            "episode_length": self.episode_length[m.rows].clone(),
-            "recent_returns": list(m.recent_returns),
-            "recent_lengths": list(m.recent_lengths),
-            "rng": rng_state(),
-        }
-        if m.generator is not None:
-            state["generator"] = m.generator.get_state()
-        if m.failed is not None:
-            state["failed"] = m.failed
-        return state
 
     def load_state_dict(self, state: dict | Sequence[dict]) -> None:
         """Restore :meth:`state_dict` (a population: one dict per member, in any order, matched by config)."""
         states = [state] if self.single else list(state)
         if len(states) != self.n:
             raise ValueError(f"{len(states)} member states for a population of {self.n}")
-        if self.single:
-            ordered = states
-        else:
-            by_config = {self._config_key(s["config"]): s for s in states}
-            ordered = [by_config.get(self._config_key(dataclasses.asdict(m.cfg))) for m in self.members]
-            if any(s is None for s in ordered):
-                raise ValueError("the checkpoints are of other members than this population's")
+        # a run's own checkpoint is its own whatever its config says; a population's are matched by config
+        ordered = states if self.single else members.match_states(self.members, states)
         iterations = {s["iteration"] for s in ordered}
         if len(iterations) != 1:
             raise ValueError(f"the members' checkpoints are of different iterations: {sorted(iterations)}")
         first = ordered[0]
         self.iteration, self.wall_s, self._started = first["iteration"], first["wall_s"], first["started"]
         for m, s in zip(self.members, ordered):
-            m.actor.load_state_dict(s["actor"])
-            m.critic.load_state_dict(s["critic"])
-            m.target_critic.load_state_dict(s["target_critic"])
-            m.actor_opt.load_state_dict(s["actor_opt"])
-            m.critic_opt.load_state_dict(s["critic_opt"])
-            m.obs_rms.load_state_dict(s["obs_rms"])
-            m.recent_returns = deque(s["recent_returns"], maxlen=100)
-            m.recent_lengths = deque(s["recent_lengths"], maxlen=100)
-            if m.generator is not None:
-                m.generator.set_state(s["generator"])
+            members.restore_member(m, s)
             if s.get("failed"):
                 self._stopped(m, s["failed"])
-        task = {k: torch.cat([s["task"][k] for s in ordered]) for k in ("qpos", "qvel", "progress", "prev_actions")}
-        counters = {int(s["task"]["rng"][-1]) for s in ordered}
-        if len(counters) != 1:
-            raise ValueError("the members' checkpoints are of different reset counters")
-        task["rng"] = torch.cat([s["task"]["rng"][:-1] for s in ordered] + [ordered[0]["task"]["rng"][-1:]])
+        task, frames, episode_return, episode_length = members.joined_state(ordered)
         self.task.set_state(task)
-        frames = dict(first["frames"])
-        frames["frames"] = [torch.cat(fs) for fs in zip(*(s["frames"]["frames"] for s in ordered))]
         self.frames.load_state_dict(frames, device=self.device)
         # in place: graphs read these tensors
-        self.episode_return.copy_(torch.cat([s["episode_return"] for s in ordered]))
-        self.episode_length.copy_(torch.cat([s["episode_length"] for s in ordered]))
+        self.episode_return.copy_(episode_return)
+        self.episode_length.copy_(episode_length)
         set_rng_state(first["rng"])
         if self._started:
             self._commit_state()
-
-    @staticmethod
-    def _config_key(config: dict[str, Any]) -> tuple:
-        return tuple(repr(config.get(name)) for name in MEMBER_FIELDS)
