@@ -1,8 +1,11 @@
-"""Critic targets and updates of SHAC: TD(lambda) over one window, minibatch regression, Polyak target."""
+"""Critic targets and updates of SHAC: TD(lambda) over one window, minibatch regression, Polyak target; a
+population's members' critics fitted in groups (:func:`critic_groups`, :func:`fit_member_critics`)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -10,7 +13,11 @@ from torch.optim.adam import adam as adam_step
 
 from gradlab.networks import MemberStack
 
-__all__ = ["td_lambda_targets", "fit_critic", "fit_critics", "polyak_update"]
+if TYPE_CHECKING:
+    from gradlab.members import Member
+
+__all__ = ["td_lambda_targets", "fit_critic", "fit_critics", "polyak_update", "CriticGroup", "critic_groups",
+           "fit_member_critics"]
 
 
 @torch.no_grad()
@@ -211,3 +218,71 @@ def polyak_update(target: nn.Module, source: nn.Module, alpha: float) -> None:
     targets, sources = list(target.parameters()), list(source.parameters())
     torch._foreach_mul_(targets, alpha)
     torch._foreach_add_(targets, sources, alpha=1.0 - alpha)
+
+
+@dataclass(eq=False)
+class CriticGroup:
+    """Members whose critics fit in one pass: their critics stacked (None: a member alone, fitted by
+    :func:`fit_critic`), their indices as a tensor (None: every member, in order), their gradient bound (a float,
+    or an (N,) tensor where they differ) and which of them step their Adam together (``fit_critics``'
+    adam_groups, indices into ``members``)."""
+
+    members: list[Member]
+    stack: MemberStack | None
+    index: torch.Tensor | None
+    grad_clip: float | torch.Tensor
+    adam_groups: list[list[int]] | None = None
+
+
+def critic_groups(members: Sequence[Member], batching: str, device: torch.device) -> list[CriticGroup]:
+    """The members whose critics fit together: with batched kernels, those of equal ``critic_iterations`` and
+    ``critic_batches`` (one pass of minibatch steps), each group with its critics stacked and its members'
+    gradient bounds (one float where they agree, else a tensor, made here: a captured fit cannot copy from the
+    host); members of one critic learning rate, decay and betas step their Adam together (the trainer gives them
+    the same rate at every iteration). With ``"modules"`` batching, and for a member alone in its group, each
+    member fits alone (a run's exact arithmetic)."""
+    by_shape: dict[tuple, list[Member]] = {}
+    for m in members:
+        key = (m.index,) if batching == "modules" else (m.cfg.critic_iterations, m.cfg.critic_batches)
+        by_shape.setdefault(key, []).append(m)
+    groups = []
+    for group in by_shape.values():
+        if len(group) == 1:
+            groups.append(CriticGroup(group, None, None, group[0].cfg.grad_clip))
+            continue
+        index = None if len(group) == len(members) else torch.tensor([m.index for m in group], device=device)
+        clips = [m.cfg.grad_clip for m in group]
+        grad_clip = clips[0] if len(set(clips)) == 1 else torch.tensor(clips, device=device)
+        by_schedule: dict[tuple, list[int]] = {}
+        for i, m in enumerate(group):
+            by_schedule.setdefault((m.cfg.critic_lr, m.cfg.lr_decay_iters, tuple(m.cfg.betas)), []).append(i)
+        groups.append(CriticGroup(group, MemberStack([m.critic for m in group], batching=batching), index,
+                                  grad_clip, list(by_schedule.values())))
+    return groups
+
+
+def fit_member_critics(groups: Sequence[CriticGroup], buf: dict, *, gamma: float, lam: float) -> torch.Tensor:
+    """TD(lambda) targets of one window's (T, N * B) buffers and each member's critic fitted on its own rows, group
+    by group; returns (N,) each member's critic loss. The targets' recursion is elementwise over the columns, so
+    one recursion over every member's columns gives each member its own targets."""
+    n = sum(len(g.members) for g in groups)
+    targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=gamma, lam=lam)
+    # member-major rows, each member's in the order fit_critic reads them alone (step, then environment)
+    obs = buf["critic_obs"].unflatten(1, (n, -1)).movedim(1, 0).flatten(1, 2)  # (N, T * B, obs_dim)
+    targets = targets.unflatten(1, (n, -1)).movedim(1, 0).flatten(1, 2)  # (N, T * B)
+    losses = [None] * n
+    for group in groups:
+        c = group.members[0].cfg
+        if group.stack is None:
+            m = group.members[0]
+            losses[m.index] = fit_critic(m.critic, m.critic_opt, obs[m.index], targets[m.index],
+                                         iterations=c.critic_iterations, batches=c.critic_batches,
+                                         grad_clip=c.grad_clip)
+            continue
+        rows = slice(None) if group.index is None else group.index
+        fitted = fit_critics(group.stack, [m.critic_opt for m in group.members], obs[rows], targets[rows],
+                             iterations=c.critic_iterations, batches=c.critic_batches, grad_clip=group.grad_clip,
+                             adam_groups=group.adam_groups)
+        for m, loss in zip(group.members, fitted.unbind(0)):
+            losses[m.index] = loss
+    return torch.stack(losses)

@@ -18,12 +18,14 @@ One iteration, top to bottom (docs/design.md, "A SHAC window"):
 5. Critic fit on TD(lambda) targets of the window; Polyak-update the target critic. The fit is independent of
    the actor's gradient, so with CUDA graphs it runs alongside the backward of step 3 (``overlap_critic``).
 
-A **population** (``SHAC([cfg, ...])``) trains several runs in one process as one batched simulation
-(docs/design.md, "Populations"): member ``m`` owns environments ``m * B .. (m + 1) * B`` of one task, and its own
-actor, critic, target critic, optimisers, observation statistics, action-noise generator, learning-rate schedule,
-gradient clipping and abort guard; the members' networks run as batched kernels (``MemberStack``), their losses
-are summed (no member's loss reaches another member's parameters) and each member's metrics are its own. One
-config is a single run, exactly as a population of one.
+The trainer always trains **members** (docs/design.md, "Populations"): ``SHAC([cfg, ...])`` several runs in one
+process as one batched simulation, ``SHAC(cfg)`` a population of one. Member ``m`` owns environments
+``m * B .. (m + 1) * B`` of one task, and its own actor, critic, target critic, optimisers, observation
+statistics, action noise, learning-rate schedule, gradient clipping and abort guard (``gradlab.members``); the
+members' networks run as batched kernels (``MemberStack``), their losses are summed (no member's loss reaches
+another member's parameters) and each member's metrics are its own. Only where results are handed out does a
+single run differ: its caller gets one run's dict, not a list of one, and a failure raises instead of stopping a
+member. Evaluation (``gradlab.evaluation``) and the critics' fit in groups (``gradlab.critic``) live beside.
 
 With ``--compile`` the parts in :meth:`SHAC.compile_table` run through ``torch.compile``, and on a CUDA device the
 window (steps 1-3) and the critic fit are CUDA graphs replayed every iteration; ``gradlab.graphs`` holds that
@@ -36,31 +38,27 @@ population: the member) with the iteration, the horizon step and the tensor name
 
 from __future__ import annotations
 
-import copy
-import dataclasses
-import itertools
-import os
 import time
-from collections import deque
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 import torch
 from torch import nn
 
 import tasks
+from gradlab import members
 from gradlab.config import ModePlan, SHACConfig, resolve_config
-from gradlab.critic import fit_critic, fit_critics, polyak_update, td_lambda_targets
+from gradlab.critic import critic_groups, fit_member_critics, polyak_update
+from gradlab.evaluation import EVAL_SEED, EvaluationState, Evaluator
 from gradlab.graphs import WARMUP_ITERS, GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
-from gradlab.networks import Critic, MemberStack, StateActor, VisualActor
+from gradlab.members import MEMBER_FIELDS, Member, check_population, population_order, window_bytes
+from gradlab.networks import MemberStack
 from gradlab.normalizer import RunningMeanStd
-from gradlab.presets import SILHOUETTE_RASTER_MODEL
 from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad, group_norms, image_sensitivity
-from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_state
+from gradlab.seeding import resolve_device, seed_everything, set_rng_state
 from gradlab.timing import RegionTimer
-from tasks.vision import FrameStack, TaskRenderer
+from tasks.vision import FrameStack
 
 __all__ = ["COMPILE_PARTS", "EVAL_SEED", "MEMBER_FIELDS", "SHAC", "Member", "NonFiniteError", "check_population",
            "population_order", "window_bytes"]
@@ -70,156 +68,11 @@ __all__ = ["COMPILE_PARTS", "EVAL_SEED", "MEMBER_FIELDS", "SHAC", "Member", "Non
 #: (tasks.PHYSICS_PARTS), the renderer's PyTorch work, and the actor with the critic.
 COMPILE_PARTS = (*tasks.PHYSICS_PARTS, "renderer", "networks")
 
-#: The reset seed of every evaluation: each evaluation of every run starts its episodes from the same states.
-EVAL_SEED = 1_000_003
-
-#: Settings the members of one population may differ in: what they train with and how (mode, seed, image
-#: model, preset and the learning-rate schedule, initialisation and update settings the preset fills). Every
-#: other setting is the population's: one task, batch, horizon, image and network shape, one probe schedule.
-MEMBER_FIELDS = ("mode", "seed", "raster_model", "preset", "actor_lr", "critic_lr", "lr_decay_iters",
-                 "target_alpha", "actor_init", "betas", "grad_clip", "critic_iterations", "critic_batches",
-                 "abort_grad_norm", "encoder_lr_scale", "lr_warmup_iters")
-
 _FLAG_NAMES = ["state_obs", "reward", "terminal_value", "image", "action", "qpos", "qvel"]
 
 
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-def check_population(cfgs: Sequence[SHACConfig]) -> None:
-    """Raise ValueError, naming the flag, unless the resolved configs can train as one population: the same value
-    of every setting outside :data:`MEMBER_FIELDS`, all of them on the state vector or none (a state actor has
-    no encoder to batch with a visual one), and no member twice."""
-    if not cfgs:
-        raise ValueError("a population needs at least one member")
-    first = dataclasses.asdict(cfgs[0])
-    for cfg in cfgs[1:]:
-        for name, value in dataclasses.asdict(cfg).items():
-            if name not in MEMBER_FIELDS and value != first[name]:
-                raise ValueError(f"the members of one population share {_flag(name)}, got {first[name]!r} and "
-                                 f"{value!r}")
-    on_state = {ModePlan.of(c.mode).actor_input == "state" for c in cfgs}
-    if len(on_state) > 1:
-        raise ValueError("--mode state trains on the state vector and cannot share a population with the pixel "
-                         "modes (full, decoupled, blind): train it as a population of its own")
-    seen = set()
-    for cfg in cfgs:
-        key = tuple(getattr(cfg, name) for name in MEMBER_FIELDS)
-        if key in seen:
-            raise ValueError(f"member --mode {cfg.mode} --seed {cfg.seed} --raster-model {cfg.raster_model} "
-                             f"--preset {cfg.preset} appears twice in the population")
-        seen.add(key)
-
-
-def window_bytes(cfgs: Sequence[SHACConfig]) -> int:
-    """An estimate of what one window of these members keeps for its backward [bytes]: the bulk of a visual
-    run's memory, its frame stacks and encoder activations at every step (each convolution's output and its
-    ReLU's) and, for full members, the rasterizer's per-pixel state. State runs keep little."""
-    total = 0
-    for cfg in cfgs:
-        plan = ModePlan.of(cfg.mode)
-        if plan.actor_input == "state":
-            continue
-        h = w = cfg.image_size
-        per_step = cfg.num_envs * 3 * cfg.frames * h * w  # the frame stack the first convolution keeps
-        h, w = (h - 3) // 2 + 1, (w - 3) // 2 + 1
-        for _ in range(4):
-            per_step += 2 * cfg.num_envs * 32 * h * w
-            h, w = h - 2, w - 2
-        if plan.grad_through_images:
-            per_step += 2 * cfg.num_envs * cfg.image_size**2 * (7 + 3)  # blend state and image, two raster models
-        total += 4 * per_step * cfg.horizon
-    return total
-
-
-def _memory_of(device: torch.device) -> int:
-    """The device's memory [bytes]: a GPU's, or the machine's for the CPU."""
-    if device.type == "cuda":
-        return torch.cuda.mem_get_info(device)[1]
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-def _render_order(cfg: SHACConfig) -> tuple:
-    """Members sorted by this key render in as few calls as possible: one per raster model (and gradient)."""
-    plan = ModePlan.of(cfg.mode)
-    return plan.actor_input == "blank", cfg.raster_model or "", not plan.grad_through_images
-
-
-def population_order(cfgs: Sequence[SHACConfig]) -> list[int]:
-    """The order of :attr:`SHAC.members` for these configs: indices into ``cfgs`` (resolved or not)."""
-    resolved = [resolve_config(c) for c in cfgs]
-    return sorted(range(len(cfgs)), key=lambda i: _render_order(resolved[i]))
-
-
-def _alt_raster(raster_model: str) -> str:
-    """The other image model whose gradient a full run's probe also takes: the hard one for a soft model (the
-    paper's baseline estimator), the default soft one for the hard model."""
-    return SILHOUETTE_RASTER_MODEL if raster_model == "hard" else "hard"
-
-
-@dataclass(eq=False)
-class Member:
-    """One run of a (population) trainer: what it owns alone. ``rows``: its environments in the batch;
-    ``generator``: its action noise (None: torch's default generator, a run alone); ``failed``: why it stopped,
-    where it did (it then trains no more and its environments only keep the batch's shape)."""
-
-    index: int
-    cfg: SHACConfig
-    plan: ModePlan
-    rows: slice
-    actor: nn.Module
-    critic: Critic
-    target_critic: Critic
-    actor_opt: torch.optim.Optimizer
-    critic_opt: torch.optim.Optimizer
-    obs_rms: RunningMeanStd
-    generator: torch.Generator | None
-    recent_returns: deque = field(default_factory=lambda: deque(maxlen=100))
-    recent_lengths: deque = field(default_factory=lambda: deque(maxlen=100))
-    failed: str | None = None
-
-    @property
-    def params(self) -> list[nn.Parameter]:
-        return list(self.actor.parameters())
-
-
-@dataclass(eq=False)
-class _Evaluation:
-    """The evaluation task's state in tensors that every evaluation reuses, in place: what a captured evaluation
-    step reads and writes (``obs``, ``stats``, ``params`` are made at the first evaluation)."""
-
-    task: Any
-    renderers: dict
-    live: LiveState
-    frames: FrameStack
-    blank: torch.Tensor | None
-    total: torch.Tensor
-    length: torch.Tensor
-    alive: torch.Tensor
-    obs: torch.Tensor | None = None
-    stats: tuple = ()
-    params: dict = field(default_factory=dict)
-    graph: Any = None
-    warm: int = 0
-
-
-@dataclass(eq=False)
-class _CriticGroup:
-    """Members whose critics fit in one pass (:meth:`SHAC._critic_fit_groups`): their critics stacked (None: a
-    member alone), their indices as a tensor (None: every member, in order), their gradient bound (a float, or
-    an (N,) tensor where they differ) and which of them step their Adam together (``fit_critics``' adam_groups,
-    indices into ``members``)."""
-
-    members: list[Member]
-    stack: MemberStack | None
-    index: torch.Tensor | None
-    grad_clip: float | torch.Tensor
-    adam_groups: list[list[int]] | None = None
-
-
 class SHAC:
-    """The SHAC / D.Va trainer, for one run or a population of runs.
+    """The SHAC / D.Va trainer of one run or a population of runs.
 
     Args:
         cfg: the configuration (None fields are resolved to the task's reference values), or one per member of a
@@ -244,39 +97,33 @@ class SHAC:
 
     def __init__(self, cfg: SHACConfig | Sequence[SHACConfig], *, device: str | torch.device = "auto",
                  batching: str = "grouped"):
+        # the API's edge: a single run's caller gets one run's values, not lists of one (and a failure raises)
         self.single = isinstance(cfg, SHACConfig)
         cfgs = [resolve_config(c) for c in ([cfg] if self.single else cfg)]
         check_population(cfgs)
-        cfgs.sort(key=_render_order)
+        cfgs.sort(key=members.render_order)
         self.n = n = len(cfgs)
         self.cfg = cfg = cfgs[0]  # the population's shared settings (a single run's config)
         self.plan = ModePlan.of(cfg.mode)
         self.device = device if isinstance(device, torch.device) else resolve_device(device)
-        if n > 1:
-            need, have = window_bytes(cfgs), _memory_of(self.device)
-            if need > have:
-                raise ValueError(f"a population of {n} members keeps about {need / 2**30:.1f} GiB for one window's "
-                                 f"backward (estimated), more than the {have / 2**30:.1f} GiB of {self.device}: "
-                                 "train fewer members per process (fewer --seed/--mode values, or --pack)")
+        members.check_memory(cfgs, self.device)
         B = cfg.num_envs
         seed_everything(cfg.seed)
 
-        overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
-        seeds = cfg.seed if n == 1 else [c.seed for c in cfgs]
-        self.task = tasks.make(cfg.task, n * B, device=self.device, seed=seeds, **overrides)
+        self.task = members.make_task(cfg, [c.seed for c in cfgs], B, self.device)
         # one renderer per image model a member trains on or probes with (the population renders each in one call)
         plans = [ModePlan.of(c.mode) for c in cfgs]
         rasters = [c.raster_model for c, p in zip(cfgs, plans) if p.renders]
-        rasters += [_alt_raster(c.raster_model) for c, p in zip(cfgs, plans) if p.grad_through_images]
-        self.renderers = {r: TaskRenderer(self.task, height=cfg.image_size, width=cfg.image_size,
-                                          **self._render_options(r))
-                          for r in dict.fromkeys(rasters)}
+        rasters += [members.alt_raster(c.raster_model) for c, p in zip(cfgs, plans) if p.grad_through_images]
+        self.renderers = members.make_renderers(self.task, cfg, rasters)
         self.renderer = self.renderers.get(cfg.raster_model) if self.plan.renders else None
 
         self.graphs = cfg.compile and self.device.type == "cuda"
-        self.members = [self._member(i, c, p, slice(i * B, (i + 1) * B)) for i, (c, p) in enumerate(zip(cfgs, plans))]
+        # several members draw their noise from generators of their own; one draws from torch's, as a run alone
+        self.members = [members.build_member(i, c, self.task, self.device, own_generator=n > 1,
+                                             capturable=self.graphs) for i, c in enumerate(cfgs)]
         m0 = self.members[0]
-        # a single run's parts by their old names
+        # the first member's parts by a single run's names
         self.actor, self.critic, self.target_critic = m0.actor, m0.critic, m0.target_critic
         self.actor_opt, self.critic_opt, self.obs_rms = m0.actor_opt, m0.critic_opt, m0.obs_rms
         self.actors = MemberStack([m.actor for m in self.members], batching=batching)
@@ -288,11 +135,12 @@ class SHAC:
         self.on_status: Callable[[str], None] | None = None
         self.alive = torch.ones(n, dtype=torch.bool, device=self.device)  # members still training (graphs read it)
 
-        self.sees = any(p.renders for p in plans)  # some member's actor sees rendered images
-        self.on_state = plans[0].actor_input == "state"
+        self.input_kind = members.input_kind(self.members)  # what the actors see: "images", "state" or "blank"
+        self.sees = self.input_kind == "images"  # some member's actor sees rendered images
+        self.on_state = self.input_kind == "state"
         self.frames = FrameStack(cfg.frames)
         # A blind actor's input: one fixed tensor (a captured window reads it at a fixed address).
-        self.blank_images = None if self.sees or self.on_state else self._blank_images(n * B)
+        self.blank_images = members.blank_images(cfg, n * B, self.device) if self.input_kind == "blank" else None
         self.gate = ImageGate(members=n, rows=B, device=self.device)
         self._routes = self._probe_routes()
         for route in self._routes.values():  # each route's masks now, outside any CUDA graph capture
@@ -306,70 +154,16 @@ class SHAC:
         self.episode_length = torch.zeros(n * B, device=self.device, dtype=torch.long)
         self._started = False
         self.start_s: float | None = None  # seconds of the first reset and render (the first render compiles)
-        self._evaluator: tuple[tasks.Task, dict] | None = None  # built at the first evaluation
-        self._evaluation: _Evaluation | None = None
-        self._eval_rng: torch.Tensor | None = None
+        self.evaluator = Evaluator(self.members, self.actors, cfg, self.device)  # its task made at first use
         self.live = LiveState()
-        self._critic_groups = None if n == 1 or batching == "modules" else self._critic_fit_groups(batching)
-        critics = m0.critic if n == 1 else nn.ModuleList([m.critic for m in self.members])
-        self.critic_fit = (GraphedCriticPhase(self._fit_critic, critics, self.device) if self.graphs
-                           else self._fit_critic)
+        self._critic_groups = critic_groups(self.members, batching, self.device)
+        self.critic_fit = (GraphedCriticPhase(self._fit_critic, nn.ModuleList([m.critic for m in self.members]),
+                                              self.device) if self.graphs else self._fit_critic)
         self.window = WindowGraphs(forward=self._window_forward, backward=self._backward, commit=self._commit_state,
                                    params=[p for m in self.members for p in m.params], timer=self.timer,
                                    device=self.device, capture=self.graphs,
                                    critic=self.critic_fit if self.graphs and cfg.overlap_critic else None,
                                    generators=[m.generator for m in self.members if m.generator is not None])
-
-    def _member(self, index: int, cfg: SHACConfig, plan: ModePlan, rows: slice) -> Member:
-        """A member's own parts, built as a run of its own builds them: its seed, then its networks (whose
-        initialisation draws from torch's generator), then its noise generator from where that left off."""
-        seed_everything(cfg.seed)
-        task = self.task
-        if plan.actor_input == "state":
-            actor = StateActor(task.num_obs, task.num_act, cfg.actor_hidden, init=cfg.actor_init)
-        else:
-            actor = VisualActor(3 * cfg.frames, cfg.image_size, cfg.image_size, task.num_act, cfg.trunk_dim,
-                                cfg.actor_hidden, init=cfg.actor_init)
-        critic = Critic(task.num_obs, cfg.critic_hidden)
-        actor.to(self.device)
-        critic.to(self.device)
-        target_critic = copy.deepcopy(critic)
-        for p in target_critic.parameters():
-            p.requires_grad_(False)
-        generator = None
-        if self.n > 1:
-            generator = torch.Generator(device=self.device)
-            generator.set_state(torch.cuda.get_rng_state(self.device) if self.device.type == "cuda"
-                                else torch.get_rng_state())
-        if cfg.encoder_lr_scale != 1.0 and isinstance(actor, VisualActor):
-            encoder = list(actor.encoder.parameters())
-            rest = [p for p in actor.parameters() if all(p is not q for q in encoder)]
-            groups = [{"params": encoder, "lr_scale": cfg.encoder_lr_scale}, {"params": rest, "lr_scale": 1.0}]
-        else:
-            groups = [{"params": list(actor.parameters()), "lr_scale": 1.0}]
-        actor_opt = torch.optim.Adam(groups, lr=cfg.actor_lr, betas=cfg.betas)
-        # CUDA graphs (compile on a CUDA device) capture the critic fit too, so its Adam must be capturable and
-        # read its learning rate from a tensor that the decay updates in place.
-        critic_lr = torch.tensor(cfg.critic_lr, device=self.device) if self.graphs else cfg.critic_lr
-        critic_opt = torch.optim.Adam(critic.parameters(), lr=critic_lr, betas=cfg.betas, capturable=self.graphs)
-        return Member(index, cfg, plan, rows, actor, critic, target_critic, actor_opt, critic_opt,
-                      RunningMeanStd(task.num_obs, device=self.device), generator)
-
-    def _render_options(self, raster_model: str) -> dict:
-        cfg = self.cfg
-        # save_blend_state: a full-mode window keeps 7 numbers per pixel per frame (flat in faces) so that each
-        # render backward skips a second forward pass (fused backend)
-        options = dict(detail=cfg.render_detail, extra_meshes=cfg.extra_meshes, extra_mesh_verts=cfg.extra_mesh_verts,
-                       sigma=cfg.sigma, gamma=cfg.render_gamma, raster_model=raster_model,
-                       renderer=cfg.renderer, save_blend_state=True)
-        if raster_model == "alpha":
-            options["cull_backfaces"] = False  # alpha coverage sums over all faces, hidden ones included
-        return options
-
-    def _blank_images(self, n: int) -> torch.Tensor:
-        """A blind actor's input for ``n`` environments: an all-black stack, zeros (n, 3 * frames, H, W)."""
-        cfg = self.cfg
-        return torch.zeros(n, 3 * cfg.frames, cfg.image_size, cfg.image_size, device=self.device)
 
     def _probe_routes(self) -> dict[str, tuple[str | None, ...]]:
         """Where each backward pass sends each member's image gradient (``ImageGate.set_route``): ``train``, the
@@ -420,35 +214,10 @@ class SHAC:
 
     # ------------------------------------------------------------------ state the windows hand on
     def _render(self, grad: Sequence[bool], *, alt: bool = False) -> torch.Tensor:
-        """Images of every member's environments, (N * B, 3, H, W) in [0, 1]: member m's from its raster model
-        (``alt``: the other one of a full member's probe; the others' rows are then zeros), differentiable in its
-        qpos where ``grad[m]`` (always through the rasterizer: the ray tracer of ``--renderer warp`` has no
-        gradient); a blind member's rows are zeros (its actor sees no image)."""
-        qpos = self.task.qpos
-        if self.n == 1 and not alt:
-            if grad[0]:
-                return self.renderer.soft(qpos)
-            with torch.no_grad():
-                return self.renderer(qpos)
-        blocks = []
-        for (raster, g), group in itertools.groupby(self.members, key=lambda m: self._render_key(m, grad, alt)):
-            group = list(group)
-            rows = slice(group[0].rows.start, group[-1].rows.stop)
-            if raster is None:
-                blocks.append(torch.zeros(rows.stop - rows.start, 3, self.cfg.image_size, self.cfg.image_size,
-                                          device=self.device))
-            elif g:
-                blocks.append(self.renderers[raster].soft(qpos[rows]))
-            else:
-                with torch.no_grad():
-                    blocks.append(self.renderers[raster](qpos[rows]))
-        return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
-
-    @staticmethod
-    def _render_key(member: Member, grad: Sequence[bool], alt: bool) -> tuple[str | None, bool]:
-        if alt:
-            return (_alt_raster(member.cfg.raster_model), True) if member.plan.grad_through_images else (None, False)
-        return (member.cfg.raster_model, grad[member.index]) if member.plan.renders else (None, False)
+        """Images of every member's environments, (N * B, 3, H, W) (``gradlab.members.images``): member m's
+        differentiable where ``grad[m]``; ``alt``: the other raster model of a full member's probe."""
+        return members.images(self.members, self.renderers, self.task.qpos, self.cfg.num_envs,
+                              self.cfg.image_size, grad=grad, alt=alt)
 
     def _start(self) -> None:
         """First reset: state, frame stack tiled with the first image, running stats seeded."""
@@ -483,35 +252,12 @@ class SHAC:
             return info["invalid"] | (info["terminated"] & ~info["time_limit"])
         return info["terminated"]
 
-    def _window_stats(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The observation statistics every step of a window normalises with: (mean, std) of shape (obs,) for
-        one run, (N * B, obs) with each member's own on its rows for a population."""
-        if self.n == 1:
-            return self.obs_rms.snapshot()
-        stats = [m.obs_rms.snapshot() for m in self.members]
-        B = self.cfg.num_envs
-        return tuple(torch.stack(s).repeat_interleave(B, 0) for s in zip(*stats))
-
-    def _member_sum(self, x: torch.Tensor) -> torch.Tensor:
-        """(N * B,) -> each member's sum: 0-d for one run (as a run alone sums), (N,) for a population."""
-        return x.sum() if self.n == 1 else x.view(self.n, -1).sum(1)
-
-    def _sample(self, mu: torch.Tensor) -> torch.Tensor:
-        """mu (N * B, act) -> ``tanh(mu + std * eps)``, each member's noise from its own generator and std."""
-        if self.n == 1:
-            return self.actor.sample(mu)
-        B = self.cfg.num_envs
-        eps = torch.cat([torch.randn(B, mu.shape[1], device=mu.device, dtype=mu.dtype, generator=m.generator)
-                         for m in self.members])
-        std = torch.stack([m.actor.log_std for m in self.members]).exp().repeat_interleave(B, 0)
-        return torch.tanh(mu + std * eps)
-
     def _rollout(self, *, render_grad: Sequence[bool], alt: bool = False) -> tuple[torch.Tensor, dict]:
-        """One SHAC window. Returns the actor loss (0-d, differentiable; a population's: (N,), one per member) and
-        the window's (T, N * B) buffers."""
+        """One SHAC window. Returns the actor loss, (N,) one per member (differentiable), and the window's
+        (T, N * B) buffers."""
         cfg, task = self.cfg, self.task
         T, B = cfg.horizon, self.n * cfg.num_envs
-        stats = self._window_stats()
+        stats = members.stacked_stats(self.members, cfg.num_envs)  # every step of a window normalises with these
         # SHAC's truncation. Compiled, the cut state requires grad (a leaf): the window's first step then shares
         # the later steps' compiled graphs instead of compiling its own (Task.detach).
         task.detach(requires_grad=cfg.compile)
@@ -524,7 +270,7 @@ class SHAC:
         actor_params = self.actors.stack()
         with torch.no_grad():
             target_params = self.target_critics.stack()
-        render_any_grad = any(render_grad)
+        gated = self.sees and any(render_grad)
 
         critic_obs = torch.empty(T, B, task.num_obs, device=self.device)
         raw_obs = torch.empty(T, B, task.num_obs, device=self.device)
@@ -537,21 +283,17 @@ class SHAC:
 
         rew_acc = torch.zeros(B, device=self.device)
         discount = torch.ones(B, device=self.device)
-        loss = torch.zeros(() if self.n == 1 else (self.n,), device=self.device)
+        loss = torch.zeros(self.n, device=self.device)
         self.flags.reset()
         for t in range(T):
             with torch.no_grad():
                 critic_obs[t] = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
-            if self.sees:
-                actor_in = self.frames.stacked()
-                if render_any_grad:
-                    actor_in = self.gate(actor_in, None if alt_frames is None else alt_frames.stacked())
-                    self.flags.watch_grad(t, "image", actor_in)
-            elif self.on_state:
-                actor_in = RunningMeanStd.apply(obs, stats, cfg.obs_clip)
-            else:
-                actor_in = self.blank_images
-            action = self._sample(self._actor_mean(actor_params, actor_in))
+            actor_in = members.actor_input(self.input_kind, frames=self.frames, obs=obs, stats=stats,
+                                           blank=self.blank_images, clip=cfg.obs_clip)
+            if gated:
+                actor_in = self.gate(actor_in, None if alt_frames is None else alt_frames.stacked())
+                self.flags.watch_grad(t, "image", actor_in)
+            action = members.sample(self.members, self._actor_mean(actor_params, actor_in), cfg.num_envs)
             self.flags.watch_grad(t, "action", action)
 
             obs, reward, done, info = task.step(action)
@@ -568,8 +310,8 @@ class SHAC:
 
             rew_acc = rew_acc + discount * reward
             ends = done if t < T - 1 else torch.ones_like(done)
-            loss = loss - self._member_sum(
-                torch.where(ends, rew_acc + cfg.gamma * discount * v_next, torch.zeros_like(v_next)))
+            loss = loss - members.member_sums(
+                torch.where(ends, rew_acc + cfg.gamma * discount * v_next, torch.zeros_like(v_next)), self.n)
             discount = torch.where(done, torch.ones_like(discount), discount * cfg.gamma)
             rew_acc = torch.where(done, torch.zeros_like(rew_acc), rew_acc)
 
@@ -599,14 +341,14 @@ class SHAC:
     def _backward(self, loss: torch.Tensor, probe: bool) -> dict:
         """Actor gradients into ``.grad`` for the training mode; on probes, both estimators of one rollout.
 
-        Returns the probe's metrics as 0-d tensors (empty on plain iterations; keys in ``SHACConfig.cosine_every``;
-        a population's keyed ``(member index, key)``): computed here, they are part of a captured backward graph
-        and rewritten by every replay.
+        Returns the probe's metrics as 0-d tensors keyed ``(member index, key)`` (empty on plain iterations; keys
+        in ``SHACConfig.cosine_every``): computed here, they are part of a captured backward graph and rewritten
+        by every replay.
         """
         params = self.window.params
         zero_grads_(params)
         # a stopped member's loss takes no part (its gradient, possibly non-finite, is never read)
-        total = loss if self.n == 1 else torch.where(self.alive, loss, torch.zeros_like(loss)).sum()
+        total = torch.where(self.alive, loss, torch.zeros_like(loss)).sum()
         if not probe:
             self.gate.set_route(self._routes["train"])
             total.backward()
@@ -637,7 +379,7 @@ class SHAC:
                 out.update(grad_norm_full_hard=hard.norm(), grad_norm_full_soft=soft.norm(),
                            cos_hard_soft=cosine(hard, soft), cos_hard_decoupled=cosine(hard, g_dec),
                            cos_soft_decoupled=cosine(soft, g_dec))
-            metrics.update(out if self.n == 1 else {(m.index, k): v for k, v in out.items()})
+            metrics.update({(m.index, k): v for k, v in out.items()})
         return metrics
 
     def _probe_metrics(self, member: Member, g_full: torch.Tensor, g_dec: torch.Tensor) -> dict:
@@ -659,70 +401,15 @@ class SHAC:
 
     # ------------------------------------------------------------------ critic fit
     def _fit_critic(self, buf: dict) -> torch.Tensor:
-        """TD(lambda) targets of the window and each member's critic fit on its own rows; returns the critic loss
-        (0-d; a population's (N,)). It reads only the window's buffers and writes only the critics and their
+        """TD(lambda) targets of the window and each member's critic fit on its own rows; returns (N,) the
+        members' critic losses. It reads only the window's buffers and writes only the critics and their
         optimisers, so it may run alongside the actor's backward (``SHACConfig.overlap_critic``); the target
         critics' update waits for both. Overlapped, a window whose actor step then aborts (non-finite or runaway
         gradient) has fitted the critic already; the run stops there either way and keeps no checkpoint of it.
-
-        A single run and ``"modules"`` batching fit member after member (:func:`fit_critic`); batched kernels fit
-        the members that share iterations and minibatches in one pass (:func:`fit_critics`)."""
-        if self._critic_groups is None:
-            losses = []
-            for m in self.members:
-                c, rows = m.cfg, m.rows
-                targets = td_lambda_targets(buf["rewards"][:, rows], buf["next_values"][:, rows],
-                                            buf["dones"][:, rows], gamma=c.gamma, lam=c.lam)
-                losses.append(fit_critic(m.critic, m.critic_opt, buf["critic_obs"][:, rows].flatten(0, 1),
-                                         targets.flatten(), iterations=c.critic_iterations,
-                                         batches=c.critic_batches, grad_clip=c.grad_clip))
-            return losses[0] if self.n == 1 else torch.stack(losses)
-        cfg, n = self.cfg, self.n
-        # gamma and lam are the population's: one recursion over every member's columns
-        targets = td_lambda_targets(buf["rewards"], buf["next_values"], buf["dones"], gamma=cfg.gamma, lam=cfg.lam)
-        # member-major rows, each member's in the order fit_critic reads them alone (step, then environment)
-        obs = buf["critic_obs"].unflatten(1, (n, -1)).movedim(1, 0).flatten(1, 2)  # (N, T * B, obs_dim)
-        targets = targets.unflatten(1, (n, -1)).movedim(1, 0).flatten(1, 2)  # (N, T * B)
-        losses = [None] * n
-        for group in self._critic_groups:
-            c = group.members[0].cfg
-            if group.stack is None:  # a member alone in its group fits as it would alone
-                m = group.members[0]
-                losses[m.index] = fit_critic(m.critic, m.critic_opt, obs[m.index], targets[m.index],
-                                             iterations=c.critic_iterations, batches=c.critic_batches,
-                                             grad_clip=c.grad_clip)
-                continue
-            rows = slice(None) if group.index is None else group.index
-            fitted = fit_critics(group.stack, [m.critic_opt for m in group.members], obs[rows], targets[rows],
-                                 iterations=c.critic_iterations, batches=c.critic_batches, grad_clip=group.grad_clip,
-                                 adam_groups=group.adam_groups)
-            for m, loss in zip(group.members, fitted.unbind(0)):
-                losses[m.index] = loss
-        return torch.stack(losses)
-
-    def _critic_fit_groups(self, batching: str) -> list[_CriticGroup]:
-        """The members whose critics fit together: those of equal ``critic_iterations`` and ``critic_batches``
-        (one pass of minibatch steps), each group with its critics stacked and its members' gradient bounds (one
-        float where they agree, else a tensor, made here: a captured fit cannot copy from the host). Members of
-        one critic learning rate, decay and betas step their Adam together: :meth:`_set_learning_rates` gives
-        them the same rate at every iteration."""
-        by_shape: dict[tuple[int, int], list[Member]] = {}
-        for m in self.members:
-            by_shape.setdefault((m.cfg.critic_iterations, m.cfg.critic_batches), []).append(m)
-        groups = []
-        for members in by_shape.values():
-            if len(members) == 1:
-                groups.append(_CriticGroup(members, None, None, members[0].cfg.grad_clip))
-                continue
-            index = None if len(members) == self.n else torch.tensor([m.index for m in members], device=self.device)
-            clips = [m.cfg.grad_clip for m in members]
-            grad_clip = clips[0] if len(set(clips)) == 1 else torch.tensor(clips, device=self.device)
-            by_schedule: dict[tuple, list[int]] = {}
-            for i, m in enumerate(members):
-                by_schedule.setdefault((m.cfg.critic_lr, m.cfg.lr_decay_iters, tuple(m.cfg.betas)), []).append(i)
-            groups.append(_CriticGroup(members, MemberStack([m.critic for m in members], batching=batching), index,
-                                       grad_clip, list(by_schedule.values())))
-        return groups
+        Members fit in the groups of ``gradlab.critic.critic_groups``: batched kernels fit those that share
+        iterations and minibatches in one pass; a member alone (a single run) and ``"modules"`` batching fit
+        member by member."""
+        return fit_member_critics(self._critic_groups, buf, gamma=self.cfg.gamma, lam=self.cfg.lam)
 
     # ------------------------------------------------------------------ one training iteration
     def _lr(self, cfg: SHACConfig, base: float) -> float:
@@ -789,22 +476,16 @@ class SHAC:
         live = [m for m in self.members if m.failed is None]
         norms = {m.index: nn.utils.clip_grad_norm_(m.params, m.cfg.grad_clip) for m in live}
         clipped = {m.index: flat_grad(m.params).norm() for m in live}
-        if self.n == 1:
-            self.flags.raise_if_bad(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": norms[0]})
-        else:
-            gn = torch.stack([norms.get(i, torch.zeros((), device=self.device)) for i in range(self.n)])
-            failures = self.flags.failures(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": gn})
-            for m in live:
-                if m.index in failures:
-                    self._stop(m, failures[m.index])
+        gn = torch.stack([norms.get(i, torch.zeros((), device=self.device)) for i in range(self.n)])
+        failures = self.flags.failures(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": gn})
+        for m in live:
+            if m.index in failures:
+                self._stop(m, failures[m.index])
         values = {i: float(v) for i, v in norms.items() if self.members[i].failed is None}
         for m in live:
             if m.failed is None and values[m.index] > m.cfg.abort_grad_norm:
-                why = (f"iteration {self.iteration}: actor gradient norm {values[m.index]:.3g} exceeds "
-                       f"abort_grad_norm {m.cfg.abort_grad_norm:.3g} (the reference stops here too)")
-                if self.n == 1:
-                    raise NonFiniteError(why)
-                self._stop(m, why)
+                self._stop(m, f"iteration {self.iteration}: actor gradient norm {values[m.index]:.3g} exceeds "
+                              f"abort_grad_norm {m.cfg.abort_grad_norm:.3g} (the reference stops here too)")
         live = [m for m in live if m.failed is None]
         if not live:
             raise NonFiniteError("every member of the population stopped: " +
@@ -846,8 +527,7 @@ class SHAC:
             "peak_reserved_mb": window.memory.peak_reserved_mb,
             "saved_mb": window.saved_bytes / 2**20,
         }
-        losses = [loss] if self.n == 1 else loss.detach().cpu().unbind(0)
-        critic_losses = [critic_loss] if self.n == 1 else critic_loss.detach().cpu().unbind(0)
+        losses, critic_losses = loss.detach().cpu().unbind(0), critic_loss.detach().cpu().unbind(0)
         out: list[dict | None] = []
         for m in self.members:
             if m.failed is not None:
@@ -860,7 +540,7 @@ class SHAC:
                 "return_mean": float(np.mean(m.recent_returns)) if m.recent_returns else None,
                 "episode_length_mean": float(np.mean(m.recent_lengths)) if m.recent_lengths else None,
                 "episodes": len(m.recent_returns),
-                "actor_loss": float(losses[m.index].detach()),
+                "actor_loss": float(losses[m.index]),
                 "critic_loss": float(critic_losses[m.index]),
                 "grad_norm": values[m.index],
                 "grad_norm_clipped": float(clipped[m.index]),
@@ -871,263 +551,74 @@ class SHAC:
                 "probed": probe and m.plan.probes,
                 "graph": window.replayed,
             }
-            if self.n == 1:
-                metrics.update({k: float(v) for k, v in window.probe_metrics.items()})
-            else:
-                metrics.update({k: float(v) for (i, k), v in window.probe_metrics.items() if i == m.index})
+            metrics.update({k: float(v) for (i, k), v in window.probe_metrics.items() if i == m.index})
             out.append(metrics)
         return out[0] if self.single else out
 
     def _stop(self, member: Member, why: str) -> None:
-        """A population member stops training (the others go on): no more optimiser steps, its loss out of the
-        backward; its environments keep the batch's shape (CUDA graphs replay fixed shapes)."""
+        """A member stops training (the others go on): no more optimiser steps, its loss out of the backward;
+        its environments keep the batch's shape (CUDA graphs replay fixed shapes). A single run stops by
+        raising ``NonFiniteError`` with the reason, its caller's contract."""
+        if self.single:
+            raise NonFiniteError(why)
+        self._stopped(member, why)
+
+    def _stopped(self, member: Member, why: str) -> None:
         member.failed = why
         self.alive[member.index] = False
 
-    # ------------------------------------------------------------------ evaluation and video
-    @torch.no_grad()
+    # ------------------------------------------------------------------ evaluation
     def evaluate(self, *, video_steps: int = 0, video_size: int = 256) -> dict | list[dict | None]:
         """The deterministic policy (``tanh`` of its mean action) of every member, on a separate task of
         ``eval_envs`` environments per member started from the fixed seed :data:`EVAL_SEED` (the same initial
         states at every evaluation, for every run), each for one whole episode; the training state and random
-        streams are untouched.
+        streams are untouched (``gradlab.evaluation``).
 
         Returns per member (a single run: one dict) ``eval_return_mean``, ``eval_return_std`` (undiscounted
         return over the episodes), ``eval_length_mean`` (steps) and ``frames``: with ``video_steps``, RGB uint8
         frames (H, W, 3) of the member's first environment from the task camera at ``video_size`` pixels, for its
         first ``video_steps`` steps (else empty). None for a member that has stopped.
         """
-        cfg, n, E = self.cfg, self.n, self.cfg.eval_envs
-        ev = self._evaluation_state()
-        task, renderers = ev.task, ev.renderers
-        task.rng.set_state(self._eval_rng)  # every evaluation from the same initial states
-        obs = task.reset()
-        if self.sees:
-            ev.frames.reset(self._eval_images(task, renderers, E))
-        ev.live.commit(task, ev.frames if self.sees else None)
-        stats = [m.obs_rms.snapshot() for m in self.members]
-        stats = stats[0] if n == 1 else tuple(torch.stack(s).repeat_interleave(E, 0) for s in zip(*stats))
-        params = self.actors.stack()
-        if ev.obs is None:  # the first evaluation makes the tensors every later one (and a captured step) reuses
-            ev.obs, ev.stats = obs, tuple(t.clone() for t in stats)
-            ev.params = {k: v.detach() for k, v in params.items()}
-        else:
-            with torch.no_grad():
-                ev.obs.copy_(obs)
-                for fixed, now in [*zip(ev.stats, stats), *((ev.params[k], params[k]) for k in ev.params)]:
-                    fixed.copy_(now)
-        ev.total.zero_()
-        ev.length.zero_()
-        ev.alive.fill_(True)
-        video = None
-        if video_steps:
-            video = renderers.get(("video", video_size))
-            if video is None:
-                video = renderers[("video", video_size)] = TaskRenderer(
-                    task, height=video_size, width=video_size, detail=max(cfg.render_detail, 2), sigma=None,
-                    gamma=None, renderer=cfg.renderer)
-        recorded: list[list[np.ndarray]] = [[] for _ in range(n)]
-        steps = 0
-        for step in range(task.episode_length):
-            if video is not None and step < video_steps:
-                first = torch.arange(n, device=self.device) * E
-                shots = video(task.qpos[first]).clamp(0, 1).mul(255).byte().permute(0, 2, 3, 1).cpu().numpy()
-                for i in range(n):
-                    recorded[i].append(shots[i])
-                self._eval_step(ev)
-            elif self.graphs:
-                self._eval_step_captured(ev)
-            else:
-                self._eval_step(ev)
-            steps = step + 1
-            # one host sync every few steps: the episodes' ends (and videos') are read in batches
-            if step % 16 == 15 and not bool(ev.alive.any()) and (video is None or step + 1 >= video_steps):
-                break
-        out: list[dict | None] = []
-        for m in self.members:
-            if m.failed is not None:
-                out.append(None)
-                continue
-            rows = slice(m.index * E, (m.index + 1) * E)
-            returns = ev.total[rows].double()
-            out.append({"eval_return_mean": float(returns.mean()),
-                        "eval_return_std": float(returns.std(unbiased=False)),
-                        "eval_length_mean": float(ev.length[rows].mean()),
-                        "eval_steps": steps,
-                        "frames": recorded[m.index]})
+        out = self.evaluator(capture=self.graphs, video_steps=video_steps, video_size=video_size)
         return out[0] if self.single else out
 
-    def _eval_step(self, ev: _Evaluation) -> None:
-        """One step of every evaluation environment, in place on ``ev``'s tensors (what a captured graph of it
-        replays): the deterministic action, the step, the returns of the episodes still running, the frames."""
-        task = ev.task
-        if self.sees:
-            actor_in = ev.frames.stacked()
-        elif self.on_state:
-            actor_in = RunningMeanStd.apply(ev.obs, ev.stats, self.cfg.obs_clip)
-        else:
-            actor_in = ev.blank
-        action = torch.tanh(self.actors.mean(ev.params, actor_in))
-        obs, reward, done, _ = task.step(action)
-        ev.total.add_(reward * ev.alive)
-        ev.length.add_(ev.alive.to(ev.length.dtype))
-        ev.alive.logical_and_(~done)
-        if self.sees:
-            ev.frames.push(self._eval_images(task, ev.renderers, self.cfg.eval_envs), reset=done)
-        ev.live.commit(task, ev.frames if self.sees else None)
-        ev.obs.copy_(obs)
-
-    def _eval_step_captured(self, ev: _Evaluation) -> None:
-        """:meth:`_eval_step` replayed from a CUDA graph where the trainer captures (``--compile`` on a GPU): an
-        evaluation step runs as one launch instead of the hundreds of kernels of the physics, the renderer and
-        the actors. Its first ``WARMUP_ITERS`` calls run eagerly (compiling, library warm-up), then one is
-        captured and every call replays it (capturing records without running: the captured step is replayed
-        at once, so it counts)."""
-        if ev.graph is None:
-            if ev.warm < WARMUP_ITERS:
-                ev.warm += 1
-                self._eval_step(ev)
-                return
-            ev.graph = torch.cuda.CUDAGraph()
-            torch.cuda.synchronize(self.device)
-            with torch.cuda.graph(ev.graph, stream=torch.cuda.Stream(self.device)):
-                self._eval_step(ev)
-        ev.graph.replay()
-
-    def _evaluation_state(self) -> _Evaluation:
-        if self._evaluation is None:
-            cfg, n = self.cfg, self.n
-            task, renderers = self._evaluation_task()
-            rows = n * cfg.eval_envs
-            self._evaluation = _Evaluation(
-                task=task, renderers=renderers, live=LiveState(), frames=FrameStack(cfg.frames),
-                blank=self._blank_images(rows) if not (self.sees or self.on_state) else None,
-                total=torch.zeros(rows, device=self.device), length=torch.zeros(rows, device=self.device),
-                alive=torch.ones(rows, device=self.device, dtype=torch.bool))
-        return self._evaluation
-
-    def _evaluation_task(self) -> tuple[tasks.Task, dict]:
-        """The evaluation task (``eval_envs`` environments per member, reset seed :data:`EVAL_SEED`) and its
-        renderers by raster model, built once: kept between evaluations, a compiled one compiles once."""
-        if self._evaluator is None:
-            cfg, n = self.cfg, self.n
-            overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
-            task = tasks.make(cfg.task, n * cfg.eval_envs, device=self.device,
-                              seed=EVAL_SEED if n == 1 else [EVAL_SEED] * n, **overrides)
-            renderers = {r: TaskRenderer(task, height=cfg.image_size, width=cfg.image_size, **self._render_options(r))
-                         for r in dict.fromkeys(m.cfg.raster_model for m in self.members if m.plan.renders)}
-            if cfg.compile:
-                # an eager episode is episode_length x substeps unfused substeps, and every frame hundreds of small
-                # rendering kernels: compiled for the evaluation's own shapes once, at the first evaluation
-                task.compile()
-                for renderer in renderers.values():
-                    renderer.compile()
-            self._evaluator, self._eval_rng = (task, renderers), task.rng.get_state()
-        return self._evaluator
-
-    def _eval_images(self, task, renderers: dict[str, TaskRenderer], per_member: int) -> torch.Tensor:
-        """An evaluation task's images, (N * E, 3, H, W): each seeing member's from its raster model, blind
-        members' zeros; one renderer call for each run of adjacent members of one raster model (the population
-        order keeps them adjacent), as the training window renders: a call a member costs hundreds of small
-        kernels a member and step (BENCHMARKS.md, section 7)."""
-        blocks = []
-        for raster, group in itertools.groupby(self.members,
-                                               key=lambda m: m.cfg.raster_model if m.plan.renders else None):
-            group = list(group)
-            rows = slice(group[0].index * per_member, (group[-1].index + 1) * per_member)
-            if raster is None:
-                blocks.append(torch.zeros(rows.stop - rows.start, 3, self.cfg.image_size, self.cfg.image_size,
-                                          device=self.device))
-            else:
-                blocks.append(renderers[raster](task.qpos[rows]))
-        return blocks[0] if len(blocks) == 1 else torch.cat(blocks)
+    @property
+    def _evaluation(self) -> EvaluationState | None:
+        """The evaluation's task and tensors, once an evaluation made them."""
+        return self.evaluator.state
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict | list[dict]:
         """Everything that determines the future of the run (resume == uninterrupted on the CPU): a single run's
-        dict, or one per member of a population, each in a single run's format with the member's rows of the
-        task state and frames and its own noise generator (``generator``)."""
-        states = [self._member_state(m) for m in self.members]
+        dict, or one per member of a population, each in a single run's format (``members.member_state``)."""
+        states = [members.member_state(m, iteration=self.iteration, wall_s=self.wall_s, started=self._started,
+                                       task=self.task.get_state(), frames=self.frames.state_dict(),
+                                       episode_return=self.episode_return, episode_length=self.episode_length)
+                  for m in self.members]
         return states[0] if self.single else states
-
-    def _member_state(self, m: Member) -> dict:
-        task = self.task.get_state()
-        seeds, counter = task["rng"][:-1], task["rng"][-1:]
-        task = {k: v[m.rows] for k, v in task.items() if k != "rng"}
-        task["rng"] = torch.cat([seeds[m.index:m.index + 1], counter])
-        frames = self.frames.state_dict()
-        frames["frames"] = [f[m.rows] for f in frames["frames"]]
-        state = {
-            "config": dataclasses.asdict(m.cfg),
-            "iteration": self.iteration,
-            "wall_s": self.wall_s,
-            "started": self._started,
-            "actor": m.actor.state_dict(),
-            "critic": m.critic.state_dict(),
-            "target_critic": m.target_critic.state_dict(),
-            "actor_opt": m.actor_opt.state_dict(),
-            "critic_opt": m.critic_opt.state_dict(),
-            "obs_rms": m.obs_rms.state_dict(),
-            "task": task,
-            "frames": frames,
-            "episode_return": self.episode_return[m.rows].clone(),
-            "episode_length": self.episode_length[m.rows].clone(),
-            "recent_returns": list(m.recent_returns),
-            "recent_lengths": list(m.recent_lengths),
-            "rng": rng_state(),
-        }
-        if m.generator is not None:
-            state["generator"] = m.generator.get_state()
-        if m.failed is not None:
-            state["failed"] = m.failed
-        return state
 
     def load_state_dict(self, state: dict | Sequence[dict]) -> None:
         """Restore :meth:`state_dict` (a population: one dict per member, in any order, matched by config)."""
         states = [state] if self.single else list(state)
         if len(states) != self.n:
             raise ValueError(f"{len(states)} member states for a population of {self.n}")
-        if self.single:
-            ordered = states
-        else:
-            by_config = {self._config_key(s["config"]): s for s in states}
-            ordered = [by_config.get(self._config_key(dataclasses.asdict(m.cfg))) for m in self.members]
-            if any(s is None for s in ordered):
-                raise ValueError("the checkpoints are of other members than this population's")
+        # a run's own checkpoint is its own whatever its config says; a population's are matched by config
+        ordered = states if self.single else members.match_states(self.members, states)
         iterations = {s["iteration"] for s in ordered}
         if len(iterations) != 1:
             raise ValueError(f"the members' checkpoints are of different iterations: {sorted(iterations)}")
         first = ordered[0]
         self.iteration, self.wall_s, self._started = first["iteration"], first["wall_s"], first["started"]
         for m, s in zip(self.members, ordered):
-            m.actor.load_state_dict(s["actor"])
-            m.critic.load_state_dict(s["critic"])
-            m.target_critic.load_state_dict(s["target_critic"])
-            m.actor_opt.load_state_dict(s["actor_opt"])
-            m.critic_opt.load_state_dict(s["critic_opt"])
-            m.obs_rms.load_state_dict(s["obs_rms"])
-            m.recent_returns = deque(s["recent_returns"], maxlen=100)
-            m.recent_lengths = deque(s["recent_lengths"], maxlen=100)
-            if m.generator is not None:
-                m.generator.set_state(s["generator"])
+            members.restore_member(m, s)
             if s.get("failed"):
-                self._stop(m, s["failed"])
-        task = {k: torch.cat([s["task"][k] for s in ordered]) for k in ("qpos", "qvel", "progress", "prev_actions")}
-        counters = {int(s["task"]["rng"][-1]) for s in ordered}
-        if len(counters) != 1:
-            raise ValueError("the members' checkpoints are of different reset counters")
-        task["rng"] = torch.cat([s["task"]["rng"][:-1] for s in ordered] + [ordered[0]["task"]["rng"][-1:]])
+                self._stopped(m, s["failed"])
+        task, frames, episode_return, episode_length = members.joined_state(ordered)
         self.task.set_state(task)
-        frames = dict(first["frames"])
-        frames["frames"] = [torch.cat(fs) for fs in zip(*(s["frames"]["frames"] for s in ordered))]
         self.frames.load_state_dict(frames, device=self.device)
         # in place: graphs read these tensors
-        self.episode_return.copy_(torch.cat([s["episode_return"] for s in ordered]))
-        self.episode_length.copy_(torch.cat([s["episode_length"] for s in ordered]))
+        self.episode_return.copy_(episode_return)
+        self.episode_length.copy_(episode_length)
         set_rng_state(first["rng"])
         if self._started:
             self._commit_state()
-
-    @staticmethod
-    def _config_key(config: dict[str, Any]) -> tuple:
-        return tuple(repr(config.get(name)) for name in MEMBER_FIELDS)

@@ -187,7 +187,8 @@ def test_evaluation_renders_each_raster_model_once_a_step_with_each_members_own_
             for seed in (0, 1) for mode, raster in (("decoupled", None), ("full", "hard"), ("full", None),
                                                      ("blind", None))]
     trainer = SHAC(cfgs, device="cpu")
-    task, renderers = trainer._evaluation_task()
+    evaluation = trainer.evaluator.build()
+    task, renderers = evaluation.task, evaluation.renderers
     task.reset()
     # every member starts from the same evaluation states: a distinct pose a row, so that no row passes for another
     task.qpos = task.qpos + 0.1 * torch.arange(task.qpos.shape[0], dtype=task.qpos.dtype).unsqueeze(1)
@@ -195,7 +196,7 @@ def test_evaluation_renders_each_raster_model_once_a_step_with_each_members_own_
     for raster, renderer in renderers.items():
         renderer_call = renderer.__call__
         renderers[raster] = lambda q, r=raster, f=renderer_call: (calls.append((r, q.shape[0])), f(q))[1]
-    images = trainer._eval_images(task, renderers, 2)
+    images = trainer.evaluator.images(task, renderers)
     # population order puts members of one raster model side by side: softmax, hard, then the blind ones
     assert sorted(calls) == sorted({(raster, 2 * sum(m.cfg.raster_model == raster and m.plan.renders
                                                      for m in trainer.members)) for raster, _ in calls})
@@ -208,16 +209,16 @@ def test_evaluation_renders_each_raster_model_once_a_step_with_each_members_own_
 
 
 def test_a_population_too_large_for_the_devices_memory_is_refused(monkeypatch):
-    import gradlab.shac as shac
+    import gradlab.members as members
 
-    need = shac.window_bytes(MIXED)
-    assert need == sum(shac.window_bytes([c]) for c in MIXED)
-    full, decoupled = (shac.window_bytes([c]) for c in MIXED[1::-1])
+    need = members.window_bytes(MIXED)
+    assert need == sum(members.window_bytes([c]) for c in MIXED)
+    full, decoupled = (members.window_bytes([c]) for c in MIXED[1::-1])
     assert full > decoupled  # a full member also keeps the rasterizer's state
-    monkeypatch.setattr(shac, "_memory_of", lambda device: need - 1)
+    monkeypatch.setattr(members, "_memory_of", lambda device: need - 1)
     with pytest.raises(ValueError, match="fewer --seed/--mode values"):
         SHAC(MIXED, device="cpu")
-    monkeypatch.setattr(shac, "_memory_of", lambda device: need)
+    monkeypatch.setattr(members, "_memory_of", lambda device: need)
     SHAC(MIXED, device="cpu")
 
 
