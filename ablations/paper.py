@@ -1,8 +1,9 @@
 """``ablate-paper``: the D.Va paper's experiment set as one ``ablate-sweep``, and one report of it.
 
-Per task (default cartpole-swingup, hopper and ant) and seed, every arm of :data:`ARMS` runs under a wall-clock
-budget (``--time-limit-min``); an arm is a named set of ``ablate`` flags. The runs that can share a process train
-as populations (``--pack auto``: up to 12 per GPU process, one run per process on the CPU; ablate-sweep --pack).
+Per task (default cartpole-swingup, hopper and ant) and seed, every arm of ``--arms`` (:data:`vocabulary.ARMS`)
+runs under a wall-clock budget (``--time-limit-min``); an arm is a named set of ``ablate`` flags. The runs that
+can share a process train as populations (``--pack auto``: up to 12 per GPU process, one run per process on the
+CPU; ablate-sweep --pack).
 The report (``<out>/report/report.md``, figures beside it; ``--report-only DIR`` redraws it from an existing sweep
 folder) has:
 
@@ -58,35 +59,10 @@ from ablations.report import (
 )
 from ablations.run_folder import Run, RunFolder, is_number, load_run
 from ablations.seeds import NOT_RANKING, iteration_times, not_ranking_reason
+from vocabulary import ARMS, DEFAULT_ARMS
 
-__all__ = ["ARMS", "DEFAULT_ARMS", "PaperConfig", "sweep_config", "gpus_per_run", "build_paper_report", "main"]
+__all__ = ["PaperConfig", "sweep_config", "gpus_per_run", "build_paper_report", "main"]
 
-#: The arms: name -> mode, extra ablate flags, what it stands for, and the paper's method it reproduces.
-ARMS: dict[str, dict] = {
-    "decoupled": {"mode": "decoupled", "flags": {}, "paper": "dva",
-                  "about": "D.Va: the actor's image input is detached; the dva preset"},
-    "full-hard": {"mode": "full", "flags": {"preset": "shac-diffrender"}, "paper": "shac-diffrender",
-                  "about": "the paper's full-APG baseline: gradients through the hard rasterizer (silhouettes "
-                           "carry none), the baseline's learning-rate decay length"},
-    "full-hard-dva": {"mode": "full", "flags": {"raster-model": "hard"}, "paper": None,
-                      "about": "full-hard's estimator (the hard rasterizer) on the dva preset's learning-rate "
-                               "schedule (decoupled's): beside full-hard only the schedule differs, beside "
-                               "decoupled only the gradient estimator"},
-    "full-soft": {"mode": "full", "flags": {}, "paper": None,
-                  "about": "full APG through this toolkit's default soft raster model (silhouettes carry "
-                           "gradient); the dva preset"},
-    "full-alpha": {"mode": "full", "flags": {"raster-model": "alpha"}, "paper": None,
-                   "about": "full APG through coverage compositing over floor and sky (the other raster model "
-                            "whose silhouettes carry gradient); the dva preset"},
-    "state": {"mode": "state", "flags": {}, "paper": None,
-              "about": "the actor sees the state vector: the upper bound of learning from pixels"},
-    "blind": {"mode": "blind", "flags": {}, "paper": None,
-              "about": "the actor sees a constant black image: the floor of a policy that cannot see"},
-}
-#: The arms run unless --arms names others: one full arm per kind of image gradient (none at silhouettes, the
-#: default soft model's), the hard one also on D.Va's schedule (estimator and schedule apart), the two controls
-#: and D.Va.
-DEFAULT_ARMS = ("decoupled", "full-hard", "full-hard-dva", "full-soft", "state", "blind")
 #: The tasks run unless --tasks names others. D.Va's cartpole stays available; its report marks it as not ranking
 #: arms (its zero action scores above the paper's final return, docs/floors.json).
 DEFAULT_TASKS = ("cartpole-swingup", "hopper", "ant")
@@ -162,8 +138,7 @@ def _arm_table(names: tuple[str, ...]) -> dict[str, dict]:
         raise ValueError(f"--arms {' '.join(unknown) or '(none)'}: choose from {', '.join(ARMS)}")
     if len(set(names)) != len(names):
         raise ValueError(f"--arms lists an arm twice: {list(names)}")
-    return {n: {"mode": ARMS[n]["mode"], "flags": dict(ARMS[n]["flags"]), "about": ARMS[n]["about"]}
-            for n in names}
+    return {n: {"mode": ARMS[n].mode, "flags": dict(ARMS[n].flags), "about": ARMS[n].about} for n in names}
 
 
 def cuda_gpus() -> int:
@@ -290,7 +265,7 @@ def _comparison(runs: list[Run], arm_of: dict[str, str], arms: list[str], tasks:
         out += ["Packed runs' wall-clock times are their populations' (section 2 says why).", ""]
     if not_ranking:
         out += [f"Tasks marked `(does not rank arms)`: {', '.join(not_ranking)} (see the top of this report).", ""]
-    method_of = {a: ARMS[a]["paper"] for a in arms}
+    method_of = {a: ARMS[a].paper for a in arms}
     by = {(t, a): [r for r in runs if r.task == t and arm_of.get(r.path.name) == a] for t in tasks for a in arms}
     rows = []
     for task in tasks:
@@ -479,7 +454,7 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
         if a in counts:
             counts[a][rec.get("status")] = counts[a].get(rec.get("status"), 0) + 1
     rows = [[a, spec.get("mode"), " ".join(f"--{k.replace('_', '-')} {v}" for k, v in spec.get("flags", {}).items())
-             or "-", spec.get("about") or ARMS.get(a, {}).get("about", ""),
+             or "-", spec.get("about") or (ARMS[a].about if a in ARMS else ""),
              ", ".join(f"{n} {s}" for s, n in sorted(counts[a].items())) or "-"] for a, spec in arm_specs.items()]
     lines += markdown_table(["arm", "mode", "extra ablate flags", "what it is", "runs"], rows)
     shared = sweep.get("set") or {}

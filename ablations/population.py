@@ -20,14 +20,13 @@ from typing import Literal
 
 from ablations.run_folder import RunFolder, check_writable
 from ablations.runs import RunConfig
-from diffrender.settings import RASTER_MODELS
-from gradlab.config import MODES, SHACConfig
-from gradlab.presets import PRESETS
+from gradlab.config import SHACConfig
+from vocabulary import MODES, POPULATION_RECORD, PRESETS, RASTER_MODELS
 
 __all__ = ["AblateConfig", "POPULATION", "PopulationFolder", "member_name", "is_population"]
 
 #: The record a population folder holds beside its members' run folders.
-POPULATION = "population.json"
+POPULATION = POPULATION_RECORD
 
 _PRODUCT = ("mode", "raster_model", "preset", "seed")
 

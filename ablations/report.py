@@ -67,8 +67,8 @@ from ablations.paper_numbers import load_paper_numbers
 from ablations.plot import FIGURES, Floors, PlotResult, group_runs, load_floors, make_plots
 from ablations.run_folder import Run, RunFolder, find_runs, is_number
 
-__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms", "run_median_ms",
-           "run_device", "is_population_member", "read_benchmark_json",
+__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TABLE1_TASKS", "run_bwd_ms",
+           "run_median_ms", "run_device", "is_population_member", "read_benchmark_json",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
            "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN",
            "figure_lines", "runs_table", "report_path", "command_text"]
@@ -78,7 +78,7 @@ _PAPER = load_paper_numbers()
 #: SHAC with rendering = full); from ablations/paper_numbers.json, which cites it.
 PAPER_TABLE1_MS = _PAPER.table1_ms()
 #: The tasks of the paper's Table 1, in its order: Table 1 here has a row for each (and for any other task measured).
-TASKS = tuple(PAPER_TABLE1_MS)
+TABLE1_TASKS = tuple(PAPER_TABLE1_MS)
 PAPER_DEVICE = _PAPER.table1_device()
 NOT_RUN = "not run"
 
@@ -320,14 +320,14 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
               f"paper ({PAPER_DEVICE}): D.Va [ms]", f"paper ({PAPER_DEVICE}): SHAC with rendering [ms]",
               "paper: ratio"]
     rows = []
-    extra = sorted({t for t, _ in cells if t not in TASKS})
+    extra = sorted({t for t, _ in cells if t not in TABLE1_TASKS})
 
     def of_mode(task: str, mode: str) -> list[tuple[str, Cell]]:
         found = [(lab, c) for (t, lab), c in cells.items() if t == task and (c.mode or lab) == mode]
         # The plain mode first (a benchmark's, or runs without variants), then the variants by label.
         return sorted(found, key=lambda lc: (lc[0] != mode, lc[0]))
 
-    for task in (*TASKS, *extra):
+    for task in (*TABLE1_TASKS, *extra):
         decs = of_mode(task, "decoupled")
         dec_label, dec = decs[0] if decs else ("decoupled", None)
         paper = PAPER_TABLE1_MS.get(task)

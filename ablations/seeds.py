@@ -6,7 +6,7 @@ what the gradient probes say while the policy looks at its image.
 * :func:`arm_names` / :func:`arm_label`: each run's arm. Runs are grouped by mode, raster model, preset and any
   other setting that differs between the given runs and changes what is trained (a population member's
   ``encoder_lr_scale``, a flag that overrides the preset); an arm whose mode, raster model and preset are one of
-  ablate-paper's is named like it (:data:`PAPER_ARMS`), others by their mode and what sets them apart.
+  ablate-paper's is named like it (:data:`vocabulary.ARMS`), others by their mode and what sets them apart.
 * :func:`iteration_times`: per task, each arm's iteration time measured alone, for the equal-wall-clock view:
   ``--benchmark`` files (``benchmarks/iteration.py`` rows of (task, mode, raster model, iter_ms);
   ``benchmarks/population.py`` single runs, a population of one) when they hold every arm of the task, else
@@ -47,44 +47,25 @@ from ablations.report import (
     run_median_ms,
 )
 from ablations.run_folder import Run, is_number
+from vocabulary import (
+    ARM_ORDER,
+    ARMS,
+    CONTROL_ARM,
+    IMAGELESS_MODES,
+    MEMBER_DEFAULTS,
+    NOT_ARM_SETTINGS,
+    POPULATION_BENCHMARK_ARMS,
+    PRESET_RASTER_MODEL,
+    REFERENCE_ARM,
+    arm_of,
+)
 
-__all__ = ["PAPER_ARMS", "REFERENCE_ARM", "CONTROL_ARM", "IMAGELESS_MODES", "NOT_RANKING", "NOT_ARM_SETTINGS",
-           "MEMBER_DEFAULTS",
-           "SEED_FIGURES", "PROBE_FIGURES", "PROBE_KEYS", "arm_names", "arm_label", "in_arm_order", "ArmTime",
-           "IterationTimes", "benchmark_iteration_rows", "iteration_times", "TaskSeeds", "seed_statistics",
+__all__ = ["NOT_RANKING", "SEED_FIGURES", "PROBE_FIGURES", "PROBE_KEYS", "arm_names", "arm_label", "in_arm_order",
+           "ArmTime", "IterationTimes", "benchmark_iteration_rows", "iteration_times", "TaskSeeds", "seed_statistics",
            "seed_section", "ArmProbes", "arm_probes", "probe_section"]
 
-#: (mode, raster model, preset) -> the ablate-paper arm of that name, in the order tables list arms (other
-#: arms follow by mode: decoupled, full, state, blind); modes that train without rendering take None for the
-#: raster model.
-PAPER_ARMS = {
-    ("decoupled", "softmax", "dva"): "decoupled",
-    ("full", "softmax", "dva"): "full-soft",
-    ("full", "hard", "shac-diffrender"): "full-hard",
-    ("full", "hard", "dva"): "full-hard-dva",
-    ("full", "alpha", "dva"): "full-alpha",
-    ("state", None, "dva"): "state",
-    ("blind", None, "dva"): "blind",
-}
-#: The arm every other is held against (D.Va), and the control it must beat before any arm is ranked: the
-#: visual actor fed a constant black image.
-REFERENCE_ARM, CONTROL_ARM = "decoupled", "blind"
-#: Modes that render nothing while training: their raster model names no difference.
-IMAGELESS_MODES = ("state", "blind")
 #: Tasks whose returns rank no arms, and why (the zero-action floor from the floors file is quoted beside it).
 NOT_RANKING = {"cartpole": "D.Va's cartpole (with springs) ranks no arms: doing nothing already scores high"}
-#: config.json settings that do not change what a run trains (where it writes, how often it measures, how long
-#: it may run, how it is compiled and on what), besides those an arm is named by (mode, raster_model, preset)
-#: and the seed: runs that differ only in these are one arm.
-NOT_ARM_SETTINGS = frozenset({
-    "task", "seed", "mode", "raster_model", "preset", "name", "out", "resume", "progress", "tensorboard",
-    "checkpoint_every", "keep_checkpoints", "video_every", "video_steps", "compile", "compile_cache",
-    "compile_helper", "threads", "device", "time_limit_min", "iters", "cosine_every", "eval_every", "eval_envs",
-    "warmup_iters", "overlap_critic"})
-#: The trainer's defaults (gradlab.SHACConfig's, which imports torch) of the settings a population member may set
-#: (gradlab.shac.MEMBER_FIELDS) that no preset supplies: a run at its default is named without it.
-MEMBER_DEFAULTS = {"betas": [0.7, 0.95], "grad_clip": 1.0, "critic_iterations": 16, "critic_batches": 4,
-                   "abort_grad_norm": 1e8, "encoder_lr_scale": 1.0, "lr_warmup_iters": 0}
 _DEFAULT = "<default>"
 #: make_plots figures shown by the seed section and by the probe section (the other sections leave them out).
 SEED_FIGURES = ("eval_return_vs_iter.png",)
@@ -98,10 +79,6 @@ PROBE_KEYS = {
     "cos_soft_decoupled": "cos(soft, decoupled)",
     "grad_norm_full_hard/grad_norm_full_soft": "norm hard / norm soft",
 }
-#: benchmarks/population.py's members, in its order (its ARMS): (mode, raster model; None: the preset's).
-_POPULATION_BENCHMARK_ARMS = (("decoupled", None), ("full", None), ("full", "hard"), ("blind", None))
-#: The raster model of the dva preset (gradlab.presets.SILHOUETTE_RASTER_MODEL; imported there with torch).
-_PRESET_RASTER = "softmax"
 #: Settings a benchmark row and the runs must agree on for the row's time to stand for the arm's.
 _TIMED_SETTINGS = ("num_envs", "horizon", "image_size", "compile")
 
@@ -131,7 +108,7 @@ def _own_settings(run: Run) -> dict[str, str]:
 
 def arm_names(runs: Sequence[Run]) -> dict[Path, str]:
     """Run folder -> arm name. The arm is (mode, raster model (None for IMAGELESS_MODES), preset) named by
-    PAPER_ARMS where listed, else ``mode (raster model[, preset])`` (the preset where it is not dva); then, in
+    vocabulary.ARMS where listed, else ``mode (raster model[, preset])`` (the preset where it is not dva); then, in
     brackets, every other setting whose value differs between the runs that record it, as ``key=value``, on the
     runs where it is not the default (the preset's, or MEMBER_DEFAULTS'; a setting with neither is named on
     every run): ``decoupled (encoder_lr_scale=0.1)`` beside ``decoupled``."""
@@ -142,7 +119,7 @@ def arm_names(runs: Sequence[Run]) -> dict[Path, str]:
     for r, o in zip(runs, own):
         raster = None if r.mode in IMAGELESS_MODES else r.config.get("raster_model")
         preset = r.setting("preset")
-        head = PAPER_ARMS.get((r.mode, raster, preset))
+        head = arm_of(r.mode, raster, preset)
         parts = []
         if head is None:
             head = r.mode
@@ -154,14 +131,14 @@ def arm_names(runs: Sequence[Run]) -> dict[Path, str]:
 
 
 def _arm_order(arm: str, mode: str) -> tuple:
-    known = list(PAPER_ARMS.values())
+    known = list(ARM_ORDER)
     modes = ("decoupled", "full", "state", "blind")
     return (known.index(arm) if arm in known else len(known), modes.index(mode) if mode in modes else len(modes),
             arm)
 
 
 def in_arm_order(runs: Sequence[Run], label: Callable[[Run], str]) -> list[Run]:
-    """The runs sorted by arm (PAPER_ARMS' order, then the other arms by mode and name), then seed."""
+    """The runs sorted by arm (vocabulary.ARM_ORDER, then the other arms by mode and name), then seed."""
     return sorted(runs, key=lambda r: (*_arm_order(label(r), r.mode), str(r.seed), str(r.path)))
 
 
@@ -217,9 +194,11 @@ def benchmark_iteration_rows(path: str | os.PathLike) -> tuple[str, list[dict]]:
             if not (isinstance(r, dict) and r.get("kind") == "population" and r.get("members") == 1
                     and r.get("status", "ok") == "ok" and is_number(r.get("iter_ms"))):
                 continue
+            arm = ARMS[POPULATION_BENCHMARK_ARMS[int(r.get("arm", 0)) % len(POPULATION_BENCHMARK_ARMS)]]
             mode, raster = ((r["mode"], r.get("raster_model")) if isinstance(r.get("mode"), str) else
-                            _POPULATION_BENCHMARK_ARMS[int(r.get("arm", 0)) % len(_POPULATION_BENCHMARK_ARMS)])
-            rows.append({"task": r.get("task"), "mode": mode, "raster_model": raster or _PRESET_RASTER,
+                            (arm.mode, arm.raster_flag))
+            # the benchmark's members train on the default preset: no raster model given is that preset's
+            rows.append({"task": r.get("task"), "mode": mode, "raster_model": raster or PRESET_RASTER_MODEL["dva"],
                          "iter_ms": float(r["iter_ms"]), "compile": meta.get("device") != "cpu", **sizes})
         return device, rows
     results = data if isinstance(data, list) else meta.get("results")

@@ -12,8 +12,7 @@ from typing import Annotated, Any
 
 import tyro
 
-from gradlab.config import MODES
-from tasks import TASKS
+from vocabulary import MODES, TASKS
 
 __all__ = ["SweepConfig", "parse_args", "parse_set", "parse_vary", "norm_key", "flag_args", "slug", "RESERVED",
            "AUTO_PACK_GPU"]

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import tyro
 
 from ablations.sweep.config import SweepConfig, flag_args, norm_key, parse_set, parse_vary, slug
-from gradlab.config import MODES
+from vocabulary import MODES
 
 __all__ = ["RunSpec", "plan", "attempt_command", "RUN_ARGS", "ABLATE"]
 

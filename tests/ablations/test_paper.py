@@ -10,11 +10,12 @@ from pathlib import Path
 import pytest
 
 from ablations import paper
-from ablations.paper import ARMS, DEFAULT_ARMS, PaperConfig, build_paper_report, main, sweep_config
+from ablations.paper import PaperConfig, build_paper_report, main, sweep_config
 from ablations.paper_numbers import format_value, load_paper_numbers
 from ablations.sweep import pack_runs, plan
 from tests.ablations.conftest import write_run
 from tests.ablations.test_report import write_sweep
+from vocabulary import ARMS, DEFAULT_ARMS
 
 #: Ten minutes of wall clock per iteration: twelve iterations span two hours, past the paper's 55-minute mark.
 WALL = 600.0
@@ -111,7 +112,7 @@ def test_bad_options_are_one_line_errors(tmp_path, capsys, argv, message):
 
 def paper_sweep(folder: Path, *, seeds=(0, 1)) -> Path:
     """A finished ablate-paper folder: sweep.json and hopper runs of every arm (one run queued, no folder)."""
-    arms = {n: {"mode": a["mode"], "flags": a["flags"], "about": a["about"]} for n, a in ARMS.items()}
+    arms = {n: {"mode": a.mode, "flags": a.flags, "about": a.about} for n, a in ARMS.items()}
     runs = {}
     for arm, spec in arms.items():
         for seed in seeds:
@@ -327,7 +328,7 @@ def test_recorded_command_reruns_as_written_and_the_report_holds_relative_paths(
 def packed_sweep(folder: Path) -> Path:
     """An ablate-paper folder whose hopper and cartpole runs trained packed: per task one population of the
     decoupled, full-hard and full-hard-dva arms (two seeds) and one of the state runs."""
-    arms = {n: {"mode": ARMS[n]["mode"], "flags": ARMS[n]["flags"], "about": ARMS[n]["about"]}
+    arms = {n: {"mode": ARMS[n].mode, "flags": ARMS[n].flags, "about": ARMS[n].about}
             for n in ("decoupled", "full-hard", "full-hard-dva", "state")}
     runs, jobs = {}, {}
     for task in ("cartpole", "hopper"):

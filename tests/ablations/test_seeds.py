@@ -87,44 +87,6 @@ def test_arms_are_named_like_ablate_papers(tmp_path):
     assert order[8] == "blind"
 
 
-def test_member_defaults_and_paper_arms_match_the_trainer_and_ablate_paper():
-    import dataclasses
-
-    from ablations.paper import ARMS
-    from gradlab.config import SHACConfig
-    from gradlab.presets import PRESET_FIELDS, SILHOUETTE_RASTER_MODEL
-    from gradlab.shac import MEMBER_FIELDS
-
-    defaults = {f.name: f.default for f in dataclasses.fields(SHACConfig)}
-    assert set(seeds.MEMBER_DEFAULTS) == set(MEMBER_FIELDS) - set(PRESET_FIELDS) - {"mode", "seed", "preset"}
-    for k, v in seeds.MEMBER_DEFAULTS.items():
-        assert json.dumps(v) == json.dumps(list(defaults[k]) if isinstance(defaults[k], tuple) else defaults[k]), k
-    assert seeds._PRESET_RASTER == SILHOUETTE_RASTER_MODEL
-    ours = {name: key for key, name in seeds.PAPER_ARMS.items()}
-    for name, spec in ARMS.items():
-        if name not in ours:
-            continue
-        mode, raster, preset = ours[name]
-        flags = spec["flags"]
-        assert spec["mode"] == mode and flags.get("preset", "dva") == preset, name
-        if raster is not None:
-            expected = flags.get("raster-model", "hard" if preset == "shac-diffrender" else SILHOUETTE_RASTER_MODEL)
-            assert expected == raster, name
-
-
-def test_the_population_benchmarks_members_are_its_arms():
-    import sys
-
-    from tests.ablations.conftest import ROOT
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import population
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    assert population.ARMS == seeds._POPULATION_BENCHMARK_ARMS
-
-
 # ---------------------------------------------------------------------------------------- iteration times
 def _two_arms(parent, *, members=None, dec_ms=40.0, full_ms=100.0, device="GPU-A"):
     for s in (0, 1):
