@@ -221,7 +221,7 @@ def memory_main(argv: list[str] | None = None) -> None:
 
 def plot_main(argv: list[str] | None = None) -> None:
     """``ablate-plot RUN_DIR... --out DIR``: training curves, mean +- std across seeds, as PNG files."""
-    from ablations.plot import PlotConfig, plot_runs
+    from ablations.reports import PlotConfig, plot_runs
 
     cfg = parse(PlotConfig, argv, prog="ablate-plot")
     try:
@@ -238,7 +238,7 @@ def plot_main(argv: list[str] | None = None) -> None:
 
 def report_main(argv: list[str] | None = None) -> None:
     """``ablate-report RUN_DIR... [--memory DIR...] [--benchmark FILE...] --out report.md``."""
-    from ablations.report import ReportConfig, build_report
+    from ablations.reports import ReportConfig, build_report
 
     cfg = parse(ReportConfig, argv, prog="ablate-report")
     try:

@@ -13,7 +13,7 @@ folder) has:
     3. the paper's Fig. 3: the full and the decoupled gradient norms and their cosine over training, from the
        probe iterations (both gradients of the same rollout), with the render term by parameter group and the
        per-frame image sensitivity, and a table of their medians;
-    4. our numbers beside the paper's (ablations/paper_numbers.json, each with its citation; "~" marks values
+    4. our numbers beside the paper's (ablations/reports/paper_numbers.json, each with its citation; "~" marks values
        read off a plot): final return, return at the paper's comparison time, wall-clock time to the paper's
        return at that time, backward time per iteration;
     5. Table 1 (backward time per iteration) from a ``benchmarks/iteration.py`` JSON (``--benchmark``), else
@@ -37,28 +37,30 @@ from pathlib import Path
 
 import numpy as np
 
-from ablations.paper_numbers import PaperNumbers, format_value, load_paper_numbers
-from ablations.plot import load_floors, make_plots
-from ablations.report import (
+from ablations.reports import iteration_times, load_floors, make_plots
+from ablations.reports.paper_numbers import PaperNumbers, format_value, load_paper_numbers
+from ablations.reports.parts import (
     NOT_RUN,
-    collect_bwd,
-    command_text,
     figure_lines,
-    floors_section,
     is_population_member,
-    load_benchmark,
-    load_memory_sweeps,
     markdown_table,
-    memory_section,
-    provenance_section,
     read_benchmark_json,
     report_path,
     run_median_ms,
+)
+from ablations.reports.report import (
+    collect_bwd,
+    command_text,
+    floors_section,
+    load_benchmark,
+    load_memory_sweeps,
+    memory_section,
+    provenance_section,
     runs_table,
     table1_section,
 )
+from ablations.reports.seeds import NOT_RANKING, not_ranking_reason
 from ablations.run_folder import Run, RunFolder, is_number, load_run
-from ablations.seeds import NOT_RANKING, iteration_times, not_ranking_reason
 from vocabulary import ARMS, DEFAULT_ARMS
 
 __all__ = ["PaperConfig", "sweep_config", "gpus_per_run", "build_paper_report", "main"]
@@ -232,7 +234,7 @@ def _time_to(run: Run, threshold: float) -> float | None:
 
 
 def _not_ranking(task: str, floors, paper: PaperNumbers) -> str:
-    """Why a task of ``ablations.seeds.NOT_RANKING`` ranks no arms, with its zero-action floor and the paper's
+    """Why a task of ``ablations.reports.seeds.NOT_RANKING`` ranks no arms, with its zero-action floor and the paper's
     final return there, where known."""
     finals = [format_value(e) for e in paper.final_return if e["task"] == task]
     return not_ranking_reason(task, floors, facts=[f"the paper's final return {', '.join(finals)}"] if finals else [])
@@ -344,7 +346,7 @@ def _population_comparison(paths) -> list[list]:
 
 
 def _iteration_time_section(runs: list[Run], label, manifest: dict, folder: Path, benchmarks) -> list[str]:
-    """Section 6: per task and arm, its iteration time alone (a benchmark: ``ablations.seeds.iteration_times``)
+    """Section 6: per task and arm, its iteration time alone (a benchmark: ``ablations.reports.arms.iteration_times``)
     beside its runs' median and how they trained (alone, or in populations of N); the benchmark's populations
     against separate processes; and, for packed arms without a time alone, that their wall-clock is not theirs."""
     out = ["## 6. Iteration time: each arm alone, and as its runs trained here", "",

@@ -268,7 +268,7 @@ def _common_checkpoint(folders: list[RunFolder], device) -> list[dict] | None:
 def closing_lines(path: str | Path, *, floors=None) -> list[str]:
     """What ``ablate`` prints when a population ends: per member its status, final training return and last
     deterministic evaluation return, the task's floors, the population folder and the command that resumes it."""
-    from ablations.plot import load_floors
+    from ablations.reports import load_floors
 
     home = PopulationFolder(Path(path).resolve())
     rows = [(f.path.name, f.read_summary() or {}) for f in home.members()]

@@ -65,7 +65,8 @@ POPULATION_RECORD = "population.json"
 @dataclass(frozen=True)
 class Arm:
     """A named way to train: a mode, a preset and, where the preset's is not wanted, a raster model; ``paper``:
-    the D.Va paper's method it reproduces (a key of ablations/paper_numbers.json), ``about``: what it stands for."""
+    the D.Va paper's method it reproduces (a key of ablations/reports/paper_numbers.json), ``about``: what it
+    stands for."""
 
     name: str
     mode: str

@@ -11,7 +11,7 @@ import pytest
 
 from ablations import paper
 from ablations.paper import PaperConfig, build_paper_report, main, sweep_config
-from ablations.paper_numbers import format_value, load_paper_numbers
+from ablations.reports.paper_numbers import format_value, load_paper_numbers
 from ablations.sweep import pack_runs, plan
 from tests.ablations.conftest import write_run
 from tests.ablations.test_report import write_sweep

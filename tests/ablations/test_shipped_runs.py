@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from ablations.reports.arms import arm_label, arm_names, iteration_times
 from ablations.run_folder import COMPACTED, CONFIG, METRICS, SUMMARY, evaluation_of, find_runs
-from ablations.seeds import arm_label, arm_names, iteration_times
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
