@@ -68,3 +68,23 @@ def test_no_other_module_defines_the_lists_or_arms():
             found.append(f"{rel}: {m.group(0).strip()}")
     # benchmarks/sim.py's MODES are its own timing modes (eager, compiled, graph), not the training modes
     assert found == ["benchmarks/sim.py: MODES ="], found
+
+
+def test_a_command_line_is_checked_before_torch_loads():
+    """tasks/__init__ loads its torch-bound names at first use: the flag checker every command parses with, and
+    ablate-report's refusal of a bad flag, load no torch."""
+    code = ("import sys, tasks.command_line, ablations.cli, ablations.reports; "
+            "assert 'torch' not in sys.modules, 'torch was imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+    code = ("import sys, ablations.cli\ntry:\n    ablations.cli.report_main(['--bogus'])\nexcept SystemExit as e:\n"
+            "    assert e.code == 2\nassert 'torch' not in sys.modules, 'torch was imported'")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stderr.startswith("error: --bogus: no such flag")
+
+
+def test_the_lazy_tasks_package_gives_every_public_name():
+    import tasks
+
+    assert set(tasks.__all__) <= set(dir(tasks))
+    for name in tasks.__all__:
+        assert getattr(tasks, name) is not None
