@@ -34,6 +34,9 @@ def test_the_torch_bound_code_takes_its_lists_from_it():
     assert ablations.population.POPULATION is vocabulary.POPULATION_RECORD
     for preset, raster in vocabulary.PRESET_RASTER_MODEL.items():
         assert gradlab.presets.preset_values(preset, "hopper", "full")["raster_model"] == raster
+    import gradlab.shac
+
+    assert gradlab.shac.MEMBER_FIELDS == vocabulary.MEMBER_FIELDS
     defaults = gradlab.config.SHACConfig()
     assert {k: getattr(defaults, k) for k in vocabulary.MEMBER_DEFAULTS} == dict(vocabulary.MEMBER_DEFAULTS)
     # the settings a member may hold of its own that no preset fills are those with a trainer default here

@@ -69,7 +69,7 @@ class SweepConfig:
     0: the run sees no GPU (CUDA_VISIBLE_DEVICES is emptied) and trains on the CPU."""
     pack: _Pack = "1"
     """Grid cells that can share a process (the same task and every setting but a member's own: mode, seed,
-    raster model, preset and the other gradlab.shac.MEMBER_FIELDS) train as populations of at most N members,
+    raster model, preset and the other vocabulary.MEMBER_FIELDS) train as populations of at most N members,
     each one `ablate --member ...` process and one Ray task with the resources of one run (--cpus-per-run,
     --gpus-per-run); the members' run folders are runs/<population>/<member>. 1: one run per process. auto: 12
     on GPU runs (--gpus-per-run > 0; what the population benchmark measured at that size: BENCHMARKS.md
