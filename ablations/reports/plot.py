@@ -56,20 +56,20 @@ import tyro
 
 from ablations.reports.stats import LOOKING_FRACTION, PerformanceProfile, looking_probes
 from ablations.reports.style import (
-    _FLOOR_LINES,
-    _MARKERS,
+    FLOOR_LINES,
+    MARKERS,
     Aggregate,
     ArmStyle,
     FigureSet,
     Floors,
     PlotResult,
-    _draw_band,
-    _floor_lines,
-    _save,
     aggregate,
     arm_styles,
+    draw_band,
+    draw_floor_lines,
     group_runs,
     load_floors,
+    save_figure,
 )
 from ablations.run_folder import Run, find_runs, is_number
 
@@ -156,8 +156,8 @@ def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathL
         for arm, b in bands.items():
             band = b.get(kind)
             if band is not None and band.x.size:
-                _draw_band(ax, band, (styles or {}).get(arm), f"{arm} (n={int(band.n.max())})")
-        _floor_lines(ax, floors)
+                draw_band(ax, band, (styles or {}).get(arm), f"{arm} (n={int(band.n.max())})")
+        draw_floor_lines(ax, floors)
         ax.set_xlabel("iteration")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
@@ -171,7 +171,7 @@ def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathL
     if handles:
         fig.legend(handles, labels, loc="outside right upper", fontsize=8)
     path = Path(path)
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -213,7 +213,7 @@ def draw_difference_curves(task: str, curves: dict[tuple[str, str], object], pat
     if handles:
         fig.legend(handles, labels, loc="outside right upper", fontsize=8)
     path = Path(path)
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -363,7 +363,7 @@ class _Drawer:
         floors = self.floors.of(task) or {}
         top = max((s["mean"] for s in floors.values()), default=0.0)
         for policy, stats in floors.items():
-            style, name = _FLOOR_LINES[policy]
+            style, name = FLOOR_LINES[policy]
             y = stats["mean"]
             ax.axhline(y, color="0.15", ls=style, lw=1.0, zorder=1.5, label=f"{name} floor ({y:.4g})",
                        gid=f"floor:{policy}")
@@ -477,7 +477,7 @@ class _Drawer:
             self.out.skipped[name] = why
             return
         colors = dict(zip(present, _QUANTITY_COLORS * len(present)))
-        markers = dict(zip(present, _MARKERS * len(present)))
+        markers = dict(zip(present, MARKERS * len(present)))
         self.figure = name
         fig, axes = self.panels()
         drawn: dict[str, dict[str, int]] = {}
@@ -653,7 +653,7 @@ def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None
     try:
         out.mkdir(parents=True, exist_ok=True)
         for name, fig in figures.figures.items():
-            _save(fig, out / name)
+            save_figure(fig, out / name)
             result.files[name] = out / name
     finally:
         figures.close()
@@ -689,5 +689,5 @@ def plot_performance_profiles(profile: PerformanceProfile, path: str | Path, *,
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     path = Path(path)
-    _save(fig, path)
+    save_figure(fig, path)
     return path

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 
 __all__ = ["group_runs", "run_labels", "ArmStyle", "arm_styles", "MODE_COLORS", "VARIANT_KEYS", "Floors",
            "load_floors", "DEFAULT_FLOORS", "Aggregate", "aggregate", "PlotResult", "FigureSet", "PNG_METADATA",
-           "FIGURE_DPI", "png_bytes"]
+           "FIGURE_DPI", "png_bytes", "save_figure", "MARKERS", "FLOOR_LINES", "draw_floor_lines", "draw_band"]
 
 
 MODE_COLORS = {"full": "tab:red", "decoupled": "tab:blue", "state": "tab:green", "blind": "tab:gray"}
@@ -33,13 +33,13 @@ _OTHER_COLORS = ("tab:purple", "tab:brown", "tab:olive", "tab:cyan", "tab:pink",
 _LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1.5)), (0, (6, 2, 1.5, 2)), (0, (2.5, 1.5)), (0, (8, 2, 1.5, 2, 1.5, 2)),
                (0, (11, 3)), (0, (3, 1.5, 1, 1.5, 1, 1.5)), (0, (1.5, 3.5)), (0, (8, 1.5, 3, 1.5)))
 #: Markers of the arms (hollow, so a marker under another shows); the evaluation star is none of them.
-_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "h")
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "h")
 #: config.json settings that tell runs of one mode apart in labels, when the given runs differ in them.
 VARIANT_KEYS = ("preset", "raster_model", "renderer")
 #: The return floors of this checkout (written by ``task-floors``).
 DEFAULT_FLOORS = Path(__file__).resolve().parents[2] / "docs" / "floors.json"
 #: Floor policy -> (line style, name on the line).
-_FLOOR_LINES = {"zero": (":", "zero action"), "random": ("-.", "random action")}
+FLOOR_LINES = {"zero": (":", "zero action"), "random": ("-.", "random action")}
 
 
 def run_labels(runs: list[Run]) -> list[str]:
@@ -117,7 +117,7 @@ def arm_styles(groups: dict[tuple[str, str], list[Run]]) -> dict[str, ArmStyle]:
         base = MODE_COLORS.get(mode) or next(others)
         colors.update({lab: _shade(base, i) for i, lab in enumerate(labs)})
     n = len(_LINESTYLES)
-    return {lab: ArmStyle(colors[lab], _LINESTYLES[i % n], _MARKERS[(i + i // n) % len(_MARKERS)])
+    return {lab: ArmStyle(colors[lab], _LINESTYLES[i % n], MARKERS[(i + i // n) % len(MARKERS)])
             for i, lab in enumerate(labels)}
 
 
@@ -133,7 +133,7 @@ class Floors:
     def of(self, task: str) -> dict[str, dict] | None:
         """{policy: stats} of the task's floors, or None when the file has no entry for it."""
         entry = self.tasks.get(task)
-        return {k: entry[k] for k in _FLOOR_LINES if k in entry} if entry else None
+        return {k: entry[k] for k in FLOOR_LINES if k in entry} if entry else None
 
     def missing_message(self, task: str) -> str:
         where = str(self.source) if self.source else "no floors file"
@@ -158,8 +158,8 @@ def load_floors(path: str | os.PathLike | None = None) -> Floors:
     if not isinstance(tasks, dict):
         raise ValueError(f"--floors {path}: expected a 'tasks' object as task-floors writes it")
     for task, entry in tasks.items():
-        ok = isinstance(entry, dict) and any(k in entry for k in _FLOOR_LINES) and all(
-            isinstance(entry[k], dict) and is_number(entry[k].get("mean")) for k in _FLOOR_LINES if k in entry)
+        ok = isinstance(entry, dict) and any(k in entry for k in FLOOR_LINES) and all(
+            isinstance(entry[k], dict) and is_number(entry[k].get("mean")) for k in FLOOR_LINES if k in entry)
         if not ok:
             raise ValueError(f"--floors {path}: task {task!r} needs zero/random objects with a numeric 'mean'")
     return Floors(source=path, tasks=tasks)
@@ -264,21 +264,22 @@ def png_bytes(fig, *, dpi: int = FIGURE_DPI) -> bytes:
     return out.getvalue()
 
 
-def _save(fig, path: Path) -> None:
+def save_figure(fig, path: Path) -> None:
     """The figure as a PNG at ``path`` (:func:`png_bytes`), written atomically; the figure is closed."""
     from gradlab.checkpoint import atomic_write_bytes
 
     atomic_write_bytes(path, png_bytes(fig))
 
 
-def _floor_lines(ax, floors: dict[str, dict] | None) -> None:
+def draw_floor_lines(ax, floors: dict[str, dict] | None) -> None:
+    """The task's return floors (policy -> its statistics) as labelled horizontal lines on ``ax``."""
     for policy, st in (floors or {}).items():
-        style, name = _FLOOR_LINES[policy]
+        style, name = FLOOR_LINES[policy]
         ax.axhline(st["mean"], color="0.15", ls=style, lw=1.0, zorder=1.5, label=f"{name} floor ({st['mean']:.4g})",
                    gid=f"floor:{policy}")
 
 
-def _draw_band(ax, band, style: ArmStyle | None, label: str, *, lw: float = 1.6) -> None:
+def draw_band(ax, band, style: ArmStyle | None, label: str, *, lw: float = 1.6) -> None:
     """A band's mean line (solid where 2 or more runs have the point, thin dotted where only one does) and its
     interval shaded where it exists."""
     look = {"color": style.color} if style is not None else {}

@@ -11,7 +11,15 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ablations.reports.stats.curves import FINAL_EVALS, Curve, _check_unique, _number, auc, collapse_rate, final_return
+from ablations.reports.stats.curves import (
+    FINAL_EVALS,
+    Curve,
+    auc,
+    check_unique,
+    collapse_rate,
+    final_return,
+    is_finite_number,
+)
 from ablations.reports.stats.estimates import (
     ALPHA,
     DEFAULT_REPS,
@@ -19,11 +27,11 @@ from ablations.reports.stats.estimates import (
     EXACT_BOOTSTRAP_MAX_N,
     MIN_SEEDS,
     Estimate,
-    _improvement_estimate,
-    _multisets,
     holm,
+    improvement_estimate,
     iqm_estimate,
     mean_estimate,
+    multisets,
     percentile_interval,
     sign_flip_p,
 )
@@ -161,7 +169,7 @@ def paired_difference(arm: str, reference: str, a: Mapping[int, float], b: Mappi
     d = np.array(list(diff.values()))
     sign = np.sign(d.mean())
     return PairedDifference(arm=arm, reference=reference, diff=diff, mean=mean_estimate(d, **kw),
-                            improvement=_improvement_estimate([a[s] for s in seeds], [b[s] for s in seeds], **kw),
+                            improvement=improvement_estimate([a[s] for s in seeds], [b[s] for s in seeds], **kw),
                             missing=missing, agree=int(np.sum(np.sign(d) == sign)) if sign else 0,
                             p_value=sign_flip_p(d, seed=seed))
 
@@ -181,7 +189,7 @@ def compare(curves: Sequence[Curve], *, reference: str | None = "decoupled", fin
     tasks = sorted({c.task for c in curves})
     if len(tasks) != 1:
         raise ValueError(f"compare takes the curves of one task, got {tasks or 'none'}")
-    _check_unique(curves)
+    check_unique(curves)
     by_arm: dict[str, list[Curve]] = {}
     for c in curves:
         by_arm.setdefault(c.arm, []).append(c)
@@ -237,7 +245,7 @@ def _iter_ms(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float]) -> dic
             raise ValueError(f"iter_ms_alone has no iteration time for arm {arm!r} (give every compared arm's "
                              f"milliseconds per iteration measured alone)")
         v = iter_ms_alone[arm]
-        if not _number(v) or v <= 0:
+        if not is_finite_number(v) or v <= 0:
             raise ValueError(f"iter_ms_alone[{arm!r}] must be a positive number of milliseconds, got {v!r}")
         ms[arm] = float(v)
     return ms
@@ -470,7 +478,7 @@ def mean_band(series: Sequence[tuple[np.ndarray, np.ndarray]], *, reps: int = DE
         rows = np.flatnonzero(n == k)
         vals = np.sort(np.array([table[xs[i]] for i in rows]), axis=1)
         if k <= EXACT_BOOTSTRAP_MAX_N:
-            idx, w = _multisets(k)
+            idx, w = multisets(k)
             stat = vals[:, idx].mean(axis=2)
         else:
             draws = np.random.default_rng(seed).integers(0, k, size=(reps, k))

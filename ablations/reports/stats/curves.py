@@ -19,7 +19,8 @@ FINAL_EVALS = 3
 EVAL_KEYS = ("eval_return_mean", "eval_return")
 
 
-def _number(v) -> bool:
+def is_finite_number(v) -> bool:
+    """A finite int or float (not a bool): a metrics value a statistic can use."""
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
@@ -56,8 +57,8 @@ def curve_of(run, arm: str) -> Curve:
         if k not in cfg:
             raise ValueError(f"{run.path}: config.json's config has no {k!r}")
     rows = run.metrics
-    key = next((k for k in EVAL_KEYS if any(_number(r.get(k)) for r in rows)), None)
-    pts = sorted((r["iter"], r[key]) for r in rows if key is not None and _number(r.get(key)))
+    key = next((k for k in EVAL_KEYS if any(is_finite_number(r.get(k)) for r in rows)), None)
+    pts = sorted((r["iter"], r[key]) for r in rows if key is not None and is_finite_number(r.get(key)))
     return Curve(task=str(cfg["task"]), arm=arm, seed=int(cfg["seed"]), path=str(run.path),
                  iters=np.array([p[0] for p in pts], dtype=np.int64),
                  returns=np.array([p[1] for p in pts], dtype=np.float64),
@@ -68,11 +69,12 @@ def load_arms(arms: Mapping[str, Iterable[str | Path]]) -> list[Curve]:
     """Arm name -> run folders (a folder holding run folders stands for all of them) -> their curves, in the
     given order. Raises ValueError for a folder that is not a run, or two runs of one task, arm and seed."""
     curves = [curve_of(run, arm) for arm, paths in arms.items() for run in find_runs(list(paths))]
-    _check_unique(curves)
+    check_unique(curves)
     return curves
 
 
-def _check_unique(curves: Sequence[Curve]) -> None:
+def check_unique(curves: Sequence[Curve]) -> None:
+    """ValueError naming both runs where two curves are of one task, arm and seed (a seed would count twice)."""
     seen: dict[tuple[str, str, int], str] = {}
     for c in curves:
         k = (c.task, c.arm, c.seed)

@@ -52,7 +52,7 @@ class Estimate:
 
 
 @functools.cache
-def _multisets(n: int) -> tuple[np.ndarray, np.ndarray]:
+def multisets(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Every distinct bootstrap resample of n >= 1 values as a sorted index tuple (M, n)
     (``combinations_with_replacement``: M = C(2n - 1, n)) with its probability n! / (prod of the index
     multiplicities!) / n^n: the n^n ordered resamples grouped by the multiset they draw. The rows are sorted,
@@ -73,7 +73,7 @@ def bootstrap_distribution(values: Sequence[float], statistic: Callable[[np.ndar
     x = np.sort(np.asarray(values, dtype=np.float64))
     n = x.size
     if n <= EXACT_BOOTSTRAP_MAX_N:
-        idx, w = _multisets(n)
+        idx, w = multisets(n)
         return np.asarray(statistic(x[idx]), dtype=np.float64), w, True
     if reps < 1:
         raise ValueError(f"reps must be a positive number of bootstrap resamples, got {reps}")
@@ -136,7 +136,7 @@ def _improvement(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return gt + 0.5 * eq
 
 
-def _improvement_estimate(x: Sequence[float], y: Sequence[float], *, reps: int, seed: int,
+def improvement_estimate(x: Sequence[float], y: Sequence[float], *, reps: int, seed: int,
                           confidence: float) -> Estimate:
     """The probability of improvement P(X > Y) with a percentile bootstrap CI, each sample resampled
     independently (``reps`` draws, ``numpy.random.default_rng(seed)``), as rliable resamples it."""

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ablations.reports.stats.curves import _number
+from ablations.reports.stats.curves import is_finite_number
 
 #: A probe counts as looking when its image sensitivity exceeds this fraction of the run's first probe's (the
 #: untrained policy's): the blind phase drops it by orders of magnitude, so the bar needs no precision.
@@ -63,14 +63,14 @@ def looking_probes(metrics: Sequence[Mapping], *, fraction: float = LOOKING_FRAC
     the looking probes; None: every ``cos_*`` and ``grad_norm_*`` key those probes carry (the cosine of full
     and decoupled, the gradient norms, the render term and its groups), except ``grad_norm_clipped``.
     """
-    if not (_number(fraction) and fraction >= 0):
+    if not (is_finite_number(fraction) and fraction >= 0):
         raise ValueError(f"fraction must be a number >= 0, got {fraction!r}")
     if reduce not in ("sum", "mean"):
         raise ValueError(f"reduce must be 'sum' or 'mean', got {reduce!r}")
     probes = []
     for row in sorted(metrics, key=lambda r: r["iter"]):
         frames = [v for k, v in row.items() if _SENSITIVITY_KEY.match(k)]
-        if frames and all(_number(v) for v in frames):
+        if frames and all(is_finite_number(v) for v in frames):
             probes.append((row, float(np.sum(frames) if reduce == "sum" else np.mean(frames))))
     initial = probes[0][1] if probes else None
     looking = [row for row, s in probes if s > fraction * initial] if probes else []
@@ -78,7 +78,7 @@ def looking_probes(metrics: Sequence[Mapping], *, fraction: float = LOOKING_FRAC
         keys = sorted({k for row in looking for k in row if _is_probe_statistic(k)})
     medians, counts, values = {}, {}, {}
     for k in keys:
-        vals = [float(row[k]) for row in looking if _number(row.get(k))]
+        vals = [float(row[k]) for row in looking if is_finite_number(row.get(k))]
         medians[k] = float(np.median(vals)) if vals else None
         counts[k] = len(vals)
         values[k] = tuple(vals)
