@@ -11,8 +11,7 @@ Its modules import one way, each only those above it in this list:
     arms           each run's arm, each arm's iteration time alone
     seeds          the seed-statistics and probe sections
     report         ``ablate-report``
-
-``ablate-paper`` (``ablations.paper``) builds its report from these.
+    paper          ``ablate-paper``'s report of its sweep folder (the command is ``ablations.paper``)
 """
 
 from ablations.reports.arms import arm_label, arm_names, iteration_times

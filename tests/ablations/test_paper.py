@@ -10,7 +10,9 @@ from pathlib import Path
 import pytest
 
 from ablations import paper
-from ablations.paper import PaperConfig, build_paper_report, main, sweep_config
+from ablations.paper import PaperConfig, main, sweep_config
+from ablations.reports import paper as paper_report
+from ablations.reports.paper import build_paper_report
 from ablations.reports.paper_numbers import format_value, load_paper_numbers
 from ablations.sweep import pack_runs, plan
 from tests.ablations.conftest import write_run
@@ -149,14 +151,14 @@ def rows_of(text: str, prefix: str) -> list[list[str]]:
 def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
     folder = paper_sweep(tmp_path / "p")
     seen = []
-    real = paper.make_plots
+    real = paper_report.make_plots
 
     def spy(runs, out, **kw):
         res = real(runs, out, **kw)
         seen.append(res)
         return res
 
-    monkeypatch.setattr(paper, "make_plots", spy)
+    monkeypatch.setattr(paper_report, "make_plots", spy)
     out = build_paper_report(folder, floors=floors, memory=(write_sweep(tmp_path / "mem"),))
     assert out == folder / "report" / "report.md"
     text = out.read_text()
@@ -264,11 +266,11 @@ def test_report_only_regenerates_from_the_command_line(tmp_path, floors, capsys)
 
 
 def test_wall_clock_helpers(tmp_path):
-    run = paper.load_run(write_run(tmp_path, task="hopper", mode="decoupled", seed=1, wall_per_iter=WALL))
-    assert paper._time_to(run, 50.0) == 5 * WALL  # return 10 * iter + 1 first reaches 50 at iteration 5
-    assert paper._time_to(run, 1e6) is None
-    assert paper._return_at(run, 3300.0) == pytest.approx(56.0)
-    assert paper._return_at(run, 12 * WALL + 1) is None  # the run stopped before
+    run = paper_report.load_run(write_run(tmp_path, task="hopper", mode="decoupled", seed=1, wall_per_iter=WALL))
+    assert paper_report._time_to(run, 50.0) == 5 * WALL  # return 10 * iter + 1 first reaches 50 at iteration 5
+    assert paper_report._time_to(run, 1e6) is None
+    assert paper_report._return_at(run, 3300.0) == pytest.approx(56.0)
+    assert paper_report._return_at(run, 12 * WALL + 1) is None  # the run stopped before
 
 
 def test_paper_numbers_say_where_they_come_from_and_how():
