@@ -13,6 +13,8 @@ import sys
 from collections.abc import Sequence
 from typing import Annotated, Any, NoReturn, TypeVar
 
+from tasks.command_line import check_argv, tyro_one_line
+
 __all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "parse", "ABLATE_GROUPS"]
 
 T = TypeVar("T")
@@ -93,9 +95,6 @@ def parse(cls: type[T], argv: Sequence[str] | None, *, groups: dict[str, tuple[s
             return spec.instantiate(**{k: v for values in by_panel.values() for k, v in values.items()})
 
         return StructConstructorSpec(instantiate=instantiate, fields=tuple(panel_fields))
-
-    # not at the top: importing tasks imports torch, and ablate starts before torch is imported
-    from tasks.command_line import check_argv, tyro_one_line
 
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -282,7 +281,7 @@ def memory_main(argv: list[str] | None = None) -> None:
 
 def plot_main(argv: list[str] | None = None) -> None:
     """``ablate-plot RUN_DIR... --out DIR``: training curves, mean +- std across seeds, as PNG files."""
-    from ablations.plot import PlotConfig, plot_runs
+    from ablations.reports import PlotConfig, plot_runs
 
     cfg = parse(PlotConfig, argv, prog="ablate-plot")
     try:
@@ -299,7 +298,7 @@ def plot_main(argv: list[str] | None = None) -> None:
 
 def report_main(argv: list[str] | None = None) -> None:
     """``ablate-report RUN_DIR... [--memory DIR...] [--benchmark FILE...] --out report.md``."""
-    from ablations.report import ReportConfig, build_report
+    from ablations.reports import ReportConfig, build_report
 
     cfg = parse(ReportConfig, argv, prog="ablate-report")
     try:

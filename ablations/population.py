@@ -20,14 +20,13 @@ from typing import Literal
 
 from ablations.run_folder import RunFolder, check_writable
 from ablations.runs import RunConfig
-from diffrender.settings import RASTER_MODELS
-from gradlab.config import MODES, SHACConfig
-from gradlab.presets import PRESETS
+from gradlab.config import SHACConfig
+from vocabulary import MEMBER_FIELDS, MODES, POPULATION_RECORD, PRESETS, RASTER_MODELS
 
 __all__ = ["AblateConfig", "POPULATION", "PopulationFolder", "member_name", "is_population"]
 
 #: The record a population folder holds beside its members' run folders.
-POPULATION = "population.json"
+POPULATION = POPULATION_RECORD
 
 _PRODUCT = ("mode", "raster_model", "preset", "seed")
 
@@ -54,7 +53,7 @@ class AblateConfig(RunConfig):
     population."""
     member: tuple[str, ...] = ()
     """Population members one by one instead of a product: each 'mode=full,seed=0[,raster_model=hard][,preset=P]
-    [,other=V]' with settings a member may have of its own (gradlab.shac.MEMBER_FIELDS); the other flags are the
+    [,other=V]' with settings a member may have of its own (vocabulary.MEMBER_FIELDS); the other flags are the
     population's. Not with several values of --mode, --seed, --raster-model or --preset."""
 
     def members(self) -> list[RunConfig]:
@@ -79,8 +78,6 @@ class AblateConfig(RunConfig):
 
 def _member_settings(spec: str) -> dict:
     """'mode=full,seed=0,...' -> {"mode": "full", "seed": 0, ...}, values typed as their settings are."""
-    from gradlab.shac import MEMBER_FIELDS
-
     out = {}
     for part in filter(None, (p.strip() for p in spec.split(","))):
         key, sep, raw = part.partition("=")
@@ -114,8 +111,6 @@ def member_name(cfg: RunConfig, members: list[RunConfig]) -> str:
     (a raster model or preset by its name, another setting as name-value), seed; e.g. ``hopper_full_hard_seed0``
     beside ``hopper_full_seed0``."""
     from ablations.sweep.config import slug
-    from gradlab.shac import MEMBER_FIELDS
-
     varying = [k for k in MEMBER_FIELDS if k not in ("mode", "seed")
                and len({repr(getattr(c, k)) for c in members}) > 1 and getattr(cfg, k) is not None]
     # values as the sweep writes them into folder names (a tuple such as betas: "betas0.5-0.9", not "(0.5, 0.9)")
@@ -278,7 +273,7 @@ def _common_checkpoint(folders: list[RunFolder], device) -> list[dict] | None:
 def closing_lines(path: str | Path, *, floors=None) -> list[str]:
     """What ``ablate`` prints when a population ends: per member its status, final training return and last
     deterministic evaluation return, the task's floors, the population folder and the command that resumes it."""
-    from ablations.plot import load_floors
+    from ablations.reports import load_floors
 
     home = PopulationFolder(Path(path).resolve())
     rows = [(f.path.name, f.read_summary() or {}) for f in home.members()]

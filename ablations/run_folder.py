@@ -19,7 +19,7 @@ lines, saves and prunes checkpoints and writes videos through it; several runs o
 each hold their own. :class:`Run` is a folder's records parsed (:func:`load_run`, :func:`find_runs`) for plots,
 reports and statistics.
 
-Reading imports no torch (``ablations.stats`` reads run folders without it); checkpoints and the environment
+Reading imports no torch (``ablations.reports`` reads run folders without it); checkpoints and the environment
 record import it when they are called.
 """
 
@@ -522,7 +522,7 @@ def environment_info(device: torch.device) -> dict:
         info["float32_matmul_precision"] = torch.get_float32_matmul_precision()
         info["cudnn_benchmark"] = torch.backends.cudnn.benchmark
     versions = package_versions()
-    # the keys reports read (ablations.report: "mujoco", "pytorch_kinematics"), then every package by its name
+    # the keys reports read (ablations.reports.report: "mujoco", "pytorch_kinematics"), then every package by its name
     info["mujoco"] = versions.get("mujoco", "not installed")
     info["pytorch_kinematics"] = versions.get("pytorch-kinematics", "not installed")
     info["packages"] = versions

@@ -739,9 +739,9 @@ def _summary(rows: list[dict], cfg: RunConfig, status: str, error: str | None, s
 
 def closing_lines(run_dir: str | os.PathLike, *, floors=None) -> list[str]:
     """What ``ablate`` prints when a run ends: how it ended, its final training return and last deterministic
-    evaluation return beside the task's zero- and random-action floors (``floors``: an ``ablations.plot.Floors``;
+    evaluation return beside the task's zero- and random-action floors (``floors``: an ``ablations.reports.Floors``;
     default docs/floors.json of this checkout), the absolute run folder and the command that resumes it."""
-    from ablations.plot import load_floors
+    from ablations.reports import load_floors
 
     folder = RunFolder(Path(run_dir).resolve())
     s = folder.read_summary() or {}

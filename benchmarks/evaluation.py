@@ -22,7 +22,10 @@ from pathlib import Path
 
 from _common import commit, write_json
 
-ARMS = (("decoupled", None), ("full", None), ("full", "hard"), ("blind", None))
+from vocabulary import ARMS, POPULATION_BENCHMARK_ARMS
+
+#: The members' arms, cycled in this order (a row's ``arm`` indexes it).
+MEMBER_ARMS = tuple(ARMS[name] for name in POPULATION_BENCHMARK_ARMS)
 
 
 def timed_evaluation(trainer, device) -> tuple[float, list[dict]]:
@@ -44,8 +47,9 @@ def measure(task: str, members: int, args) -> list[dict]:
 
     base = SHACConfig(task=task, num_envs=args.num_envs, eval_envs=args.eval_envs, image_size=args.image_size,
                       compile=args.device == "cuda", eval_every=0, cosine_every=0)
-    cfgs = [dataclasses.replace(base, mode=ARMS[i % len(ARMS)][0], raster_model=ARMS[i % len(ARMS)][1], seed=i)
-            for i in range(members)]
+    arms = [MEMBER_ARMS[i % len(MEMBER_ARMS)] for i in range(members)]
+    cfgs = [dataclasses.replace(base, mode=a.mode, raster_model=a.raster_flag, preset=a.preset, seed=i)
+            for i, a in enumerate(arms)]
     trainer = SHAC(cfgs if members > 1 else cfgs[0], device=args.device)
     device = trainer.device
     first_s, reference = timed_evaluation(trainer, device)  # compiles the evaluation's shapes, then captures

@@ -31,17 +31,22 @@ from pathlib import Path
 
 from _common import commit, write_json
 
-ARMS = (("decoupled", None), ("full", None), ("full", "hard"), ("blind", None))
+from vocabulary import ARMS, POPULATION_BENCHMARK_ARMS
+
+#: The members' arms, cycled in this order (a row's ``arm`` indexes it).
+MEMBER_ARMS = tuple(ARMS[name] for name in POPULATION_BENCHMARK_ARMS)
 
 
 def member_configs(job: dict, args) -> list:
-    """The job's members: arms cycling through :data:`ARMS` (a separate run: its own arm), seeds 0, 1, ..."""
+    """The job's members: arms cycling through :data:`MEMBER_ARMS` (a separate run: its own arm), seeds 0, 1,
+    ..."""
     from gradlab.config import SHACConfig
 
     out = []
     for i in range(job["members"]):
-        mode, raster = ARMS[job.get("arm", i) % len(ARMS)]
-        out.append(SHACConfig(task=job["task"], mode=mode, raster_model=raster, seed=i // len(ARMS),
+        arm = MEMBER_ARMS[job.get("arm", i) % len(MEMBER_ARMS)]
+        out.append(SHACConfig(task=job["task"], mode=arm.mode, raster_model=arm.raster_flag, preset=arm.preset,
+                              seed=i // len(MEMBER_ARMS),
                               num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
                               iters=10_000, cosine_every=0, compile=args.device != "cpu" or args.compile,
                               eval_every=0, precision=job.get("precision", "fp32")))
@@ -190,7 +195,8 @@ def main() -> None:
             for n in args.anchor:
                 # the anchor: the members of an N-population as N single runs, all at once
                 plan.append(([{"kind": "separate", "task": task, "members": 1, "batching": "grouped",
-                               "arm": i % len(ARMS), "processes": n, "precision": pr} for i in range(n)], False))
+                               "arm": i % len(MEMBER_ARMS), "processes": n, "precision": pr} for i in range(n)],
+                             False))
     for wave, timed_alone in plan:
         doc["rows"] += run_wave(wave, args, timed_alone=timed_alone)
         write_json(args.out, doc)
@@ -203,7 +209,7 @@ def print_table(rows: list[dict], args) -> None:
     """Per task and N: the population's iteration and throughput, against its single run (N = 1) and against N
     separate processes at once (their median iteration, their summed throughput)."""
     print(f"\npopulations ({args.num_envs} envs per member, horizon {args.horizon}, {args.image_size} px; "
-          f"members cycle {', '.join(m + ('-' + r if r else '') for m, r in ARMS)})")
+          f"members cycle {', '.join(a.name for a in MEMBER_ARMS)})")
     print(f"{'task':8} {'prec':5} {'N':>3} {'batching':9} {'iter ms':>9} {'x single':>9} {'steps/s':>9} "
           f"{'reserved MB':>12} {'sep. iter ms':>13} {'sep. steps/s':>13} {'gain':>6}")
     ok = [r for r in rows if r["status"] == "ok"]

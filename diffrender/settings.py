@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Literal
+
+from vocabulary import RASTER_MODELS
 
 __all__ = ["RASTER_MODELS", "FloorSettings", "RasterModel", "RasterSettings"]
 
-RasterModel = Literal["hard", "softmax", "alpha"]
-#: the image models of :class:`RasterSettings` (``raster_model``)
-RASTER_MODELS: tuple[str, ...] = get_args(RasterModel)
+#: the image models of :class:`RasterSettings` (``raster_model``), named in vocabulary.RASTER_MODELS
+RasterModel = Literal[RASTER_MODELS]
 
 _RGB = tuple[float, float, float]
 

@@ -12,12 +12,10 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
-from diffrender.settings import RASTER_MODELS
 from gradlab.config_checks import check_integers, check_number, flag
 from gradlab.precision import PRECISIONS
-from gradlab.presets import PRESET_FIELDS, PRESETS, preset_values
-from tasks import TASKS
-from tasks.vision import RENDERERS
+from gradlab.presets import preset_values
+from vocabulary import MEMBER_DEFAULTS, MODES, PRESET_FIELDS, PRESETS, RASTER_MODELS, RENDERERS, TASKS
 
 __all__ = ["SHACConfig", "MODES", "ModePlan", "resolve_config", "check_as_given"]
 
@@ -75,7 +73,8 @@ _MODE_PLANS = {
     "state": ModePlan(actor_input="state", grad_through_images=False),
     "blind": ModePlan(actor_input="blank", grad_through_images=False),
 }
-MODES = tuple(_MODE_PLANS)
+if tuple(_MODE_PLANS) != MODES:  # the names are vocabulary's: a mode without its plan is refused here
+    raise ImportError(f"gradlab.config plans the modes {tuple(_MODE_PLANS)}, vocabulary.MODES names {MODES}")
 
 
 @dataclass
@@ -115,13 +114,13 @@ class SHACConfig:
     """Actor learning rate (decays linearly to 1e-5); None: the preset's (2e-3; SHAC's state cartpole 1e-2)."""
     critic_lr: float | None = None
     """Critic learning rate; None: the preset's (2e-4 cartpole/hopper, 2e-3 ant, 5e-4 humanoid)."""
-    betas: tuple[float, float] = (0.7, 0.95)
+    betas: tuple[float, float] = MEMBER_DEFAULTS["betas"]
     """Adam betas (actor and critic)."""
-    grad_clip: float = 1.0
+    grad_clip: float = MEMBER_DEFAULTS["grad_clip"]
     """Gradient-norm clipping for actor and critic."""
-    critic_iterations: int = 16
+    critic_iterations: int = MEMBER_DEFAULTS["critic_iterations"]
     """Critic passes over each window's data."""
-    critic_batches: int = 4
+    critic_batches: int = MEMBER_DEFAULTS["critic_batches"]
     """Minibatches per critic pass."""
     target_alpha: float | None = None
     """Target critic Polyak factor (target = a*target + (1-a)*critic); None: 0.2, humanoid 0.995."""
@@ -196,7 +195,7 @@ class SHACConfig:
     replays: the fit reads only the window's buffers and the backward never reads the critic, so the numbers
     are the same and the fit's time hides behind the backward's. critic_ms is then the fit's own time, not
     added to the iteration's. False: fit after the backward (the phases' times add up)."""
-    abort_grad_norm: float = 1e8
+    abort_grad_norm: float = MEMBER_DEFAULTS["abort_grad_norm"]
     """Stop (as D.Va does) when the actor's pre-clip gradient norm exceeds this."""
     eval_every: int = 250
     """Every K-th iteration (and at the last), evaluate the deterministic policy (its mean action) on eval_envs
@@ -206,10 +205,10 @@ class SHACConfig:
     whole episodes, 4-5 % of 250 iterations, plus about 40 s compiling at the first evaluation."""
     eval_envs: int = 16
     """Environments (whole episodes) per evaluation."""
-    encoder_lr_scale: float = 1.0
+    encoder_lr_scale: float = MEMBER_DEFAULTS["encoder_lr_scale"]
     """Scale of the visual encoder's learning rate against the actor's (an ablation of the early blind phase,
     where the first Adam steps on the large trunk layer saturate it; the reference: 1)."""
-    lr_warmup_iters: int = 0
+    lr_warmup_iters: int = MEMBER_DEFAULTS["lr_warmup_iters"]
     """Iterations over which the actor's learning rate ramps linearly from 0 to its schedule (an ablation of
     the early blind phase; the reference: 0, none)."""
 

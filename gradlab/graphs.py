@@ -53,10 +53,9 @@ class LiveState:
         self.tensors: dict[str, torch.Tensor] = {}
 
     def commit(self, task, frames=None) -> None:
-        """task: the Task whose ``qpos, qvel, progress, prev_actions`` carry over; frames: its FrameStack, or
+        """task: the Task whose state tensors (``Task.STATE_TENSORS``) carry over; frames: its FrameStack, or
         None where the trainer does not render."""
-        current = {"qpos": task.qpos, "qvel": task.qvel, "progress": task.progress,
-                   "prev_actions": task.prev_actions}
+        current = task.state_tensors()
         if frames is not None:
             current.update({f"frame{i}": f for i, f in enumerate(frames.frames)})
         live = self.tensors
@@ -66,8 +65,7 @@ class LiveState:
                     live[k] = v.detach().clone()
                 elif v is not live[k]:
                     live[k].copy_(v)
-        task.qpos, task.qvel = live["qpos"], live["qvel"]
-        task.progress, task.prev_actions = live["progress"], live["prev_actions"]
+        task.use_state_tensors(live)
         if frames is not None:
             frames.frames = [live[f"frame{i}"] for i in range(len(frames.frames))]
 

@@ -31,19 +31,12 @@ from gradlab.normalizer import RunningMeanStd
 from gradlab.presets import SILHOUETTE_RASTER_MODEL
 from gradlab.seeding import rng_state, seed_everything
 from tasks.vision import FrameStack, TaskRenderer
+from vocabulary import MEMBER_FIELDS
 
 __all__ = ["MEMBER_FIELDS", "Member", "actor_input", "alt_raster", "blank_images", "build_member", "check_memory",
            "check_population", "images", "input_kind", "joined_state", "make_renderers", "make_task", "match_states",
            "member_state", "member_sums", "population_order", "render_order", "restore_member", "sample",
            "stacked_stats", "window_bytes"]
-
-#: Settings the members of one population may differ in: what they train with and how (mode, seed, image
-#: model, preset and the learning-rate schedule, initialisation and update settings the preset fills). Every
-#: other setting is the population's: one task, batch, horizon, image and network shape, one probe schedule.
-MEMBER_FIELDS = ("mode", "seed", "raster_model", "preset", "actor_lr", "critic_lr", "lr_decay_iters",
-                 "target_alpha", "actor_init", "betas", "grad_clip", "critic_iterations", "critic_batches",
-                 "abort_grad_norm", "encoder_lr_scale", "lr_warmup_iters")
-
 
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
@@ -366,7 +359,7 @@ def restore_member(m: Member, state: dict) -> None:
 def joined_state(ordered: Sequence[dict]) -> tuple[dict, dict, torch.Tensor, torch.Tensor]:
     """The trainer's shared state from its members' checkpoints, in member order: the task state (each member's
     rows and reset seed, the one counter they must share), the frame stack and the episode return and length."""
-    task = {k: torch.cat([s["task"][k] for s in ordered]) for k in ("qpos", "qvel", "progress", "prev_actions")}
+    task = {k: torch.cat([s["task"][k] for s in ordered]) for k in tasks.Task.STATE_TENSORS}
     counters = {int(s["task"]["rng"][-1]) for s in ordered}
     if len(counters) != 1:
         raise ValueError("the members' checkpoints are of different reset counters")

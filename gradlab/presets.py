@@ -29,16 +29,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from vocabulary import PRESET_FIELDS, PRESET_RASTER_MODEL, PRESETS, SILHOUETTE_RASTER_MODEL
+
 __all__ = ["PRESETS", "PRESET_FIELDS", "SILHOUETTE_RASTER_MODEL", "preset_values", "preset_record"]
 
-#: The soft raster model whose silhouettes carry gradient: what ``--mode full`` uses unless told otherwise.
-#: softmax and alpha pass the same share of the image's change at silhouettes to the gradient (BENCHMARKS.md,
-#: renderer); softmax also lets the floor hide parts below it and keeps back-face culling (half the work).
-SILHOUETTE_RASTER_MODEL = "softmax"
-
-#: Config fields a preset sets (every one of them defaults to None in SHACConfig).
-PRESET_FIELDS = ("num_envs", "actor_lr", "critic_lr", "target_alpha", "trunk_dim", "actor_hidden", "critic_hidden",
-                 "lr_decay_iters", "actor_init", "obs_clip", "bootstrap_last_step", "raster_model")
+# The names (the presets, the fields they set, each one's raster model) are vocabulary's; the values are here.
 
 # D.Va examples/cfg/dva/<task>.yaml (cartpole-swingup: the spring-free variant takes D.Va's cartpole networks).
 _DVA_TASKS: dict[str, dict[str, Any]] = {
@@ -67,8 +62,6 @@ _SHAC_STATE = {
 
 _REFERENCE_TRAINER = dict(num_envs=64, actor_lr=2e-3, actor_init="default", obs_clip=0.0, bootstrap_last_step=True)
 
-PRESETS = ("dva", "shac-diffrender")
-
 
 def preset_values(preset: str, task: str, mode: str) -> dict[str, Any]:
     """The values ``preset`` gives every field of :data:`PRESET_FIELDS` for ``task`` trained in ``mode``.
@@ -81,11 +74,11 @@ def preset_values(preset: str, task: str, mode: str) -> dict[str, Any]:
         raise ValueError(f"no preset values for task {task!r}; tasks with presets: {', '.join(_DVA_TASKS)}")
     base = _DVA_TASKS[task]
     values: dict[str, Any] = {**_REFERENCE_TRAINER, **base, "trunk_dim": base["actor_hidden"][0],
-                              "raster_model": SILHOUETTE_RASTER_MODEL}
+                              "raster_model": PRESET_RASTER_MODEL[preset]}
     if preset == "dva" and mode == "state":
         values.update(_SHAC_STATE[task])
     elif preset == "shac-diffrender":
-        values.update(lr_decay_iters=_DIFFRENDER_DECAY[task], raster_model="hard")
+        values.update(lr_decay_iters=_DIFFRENDER_DECAY[task])
     return values
 
 

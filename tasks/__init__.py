@@ -13,11 +13,17 @@ static shapes and no host synchronisation, so a whole SHAC iteration can be capt
 dynamics that equals MuJoCo's ``qacc``.
 """
 
-from .device import resolve_device
-from .dynamics import ContactParams, LimitParams, Simulator
-from .model import ArticulatedModel, UnsupportedModelError, load_model
-from .registry import TASKS, make
-from .task import PHYSICS_PARTS, CameraSpec, CompiledCall, Task, TaskConfig
+import importlib
+
+# The names below are loaded at first use (PEP 562): the submodules that define them import torch, and a
+# torch-free submodule (tasks.command_line, which every command parses its flags with) can then be imported
+# alone, so that a command line is refused before torch is loaded.
+_WHERE = {
+    "resolve_device": ".device", "ContactParams": ".dynamics", "LimitParams": ".dynamics", "Simulator": ".dynamics",
+    "ArticulatedModel": ".model", "UnsupportedModelError": ".model", "load_model": ".model", "TASKS": ".registry",
+    "make": ".registry", "PHYSICS_PARTS": ".task", "CameraSpec": ".task", "CompiledCall": ".task", "Task": ".task",
+    "TaskConfig": ".task",
+}
 
 __all__ = [
     "PHYSICS_PARTS",
@@ -35,3 +41,15 @@ __all__ = [
     "make",
     "resolve_device",
 ]
+
+
+def __getattr__(name: str):
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name], __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

@@ -5,7 +5,8 @@ twice as its last value without a word. :func:`check_argv` finds those mistakes 
 types; :func:`cli` runs it, then tyro, and folds whatever tyro still refuses into one line. Every command of the
 toolkit reads its flags through :func:`cli`; it lives here, in ``tasks``, because ``task-floors`` and
 ``robot-snapshots`` are commands too and imports point one way (ablations -> gradlab -> tasks). The module itself
-needs no torch, but importing it runs ``tasks/__init__`` (which does): ``ablate`` imports it after its start.
+needs no torch, and ``tasks/__init__`` loads its torch-bound names at first use, so importing it loads none: a
+command's flags are checked before torch is imported.
 """
 
 from __future__ import annotations

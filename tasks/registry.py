@@ -7,6 +7,8 @@ from collections.abc import Sequence
 
 import torch
 
+from vocabulary import TASKS
+
 from .ant import AntTask
 from .cartpole import CartpoleSwingUpTask, CartpoleTask
 from .hopper import HopperTask
@@ -22,7 +24,8 @@ _REGISTRY: dict[str, type[Task]] = {
     "ant": AntTask,
     "humanoid": HumanoidTask,
 }
-TASKS: tuple[str, ...] = tuple(_REGISTRY)
+if tuple(_REGISTRY) != TASKS:  # the names are vocabulary's; a task class without its name there is refused here
+    raise ImportError(f"tasks/registry.py registers {tuple(_REGISTRY)}, vocabulary.TASKS names {TASKS}")
 
 
 def make(

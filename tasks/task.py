@@ -18,7 +18,7 @@ import dataclasses
 import functools
 import math
 import os
-from collections.abc import Callable, Collection, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -178,6 +178,10 @@ class Task(abc.ABC):
     num_obs: ClassVar[int]
     noise_dim: ClassVar[int]  # uniforms per environment consumed by one reset draw
     dt: ClassVar[float] = 1.0 / 60.0
+    #: The attributes that are the environments' state: what one control step hands to the next, and so what a
+    #: snapshot (:meth:`get_state`), a checkpoint and the CUDA graphs' fixed tensors (gradlab.graphs.LiveState)
+    #: hold. The reset RNG's counter is state too; it keeps its own (``rng.get_state``).
+    STATE_TENSORS: ClassVar[tuple[str, ...]] = ("qpos", "qvel", "progress", "prev_actions")
 
     def __init__(
         self,
@@ -352,35 +356,31 @@ class Task(abc.ABC):
             self.qvel.requires_grad_(True)
         self.prev_actions = self.prev_actions.detach()
 
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        """The state (:data:`STATE_TENSORS`) by name: the task's own tensors, not copies."""
+        return {k: getattr(self, k) for k in self.STATE_TENSORS}
+
+    def use_state_tensors(self, tensors: Mapping[str, torch.Tensor]) -> None:
+        """Point the task at these tensors (every :data:`STATE_TENSORS` name, taken as they are: no copy)."""
+        for k in self.STATE_TENSORS:
+            setattr(self, k, tensors[k])
+
     def get_state(self) -> dict[str, torch.Tensor]:
-        """Copies of qpos, qvel, progress, prev_actions and the reset RNG state (``rng``)."""
-        return {
-            "qpos": self.qpos.detach().clone(),
-            "qvel": self.qvel.detach().clone(),
-            "progress": self.progress.clone(),
-            "prev_actions": self.prev_actions.detach().clone(),
-            "rng": self.rng.get_state(),
-        }
+        """Copies of the state tensors (:data:`STATE_TENSORS`) and the reset RNG state (``rng``)."""
+        return {**{k: v.detach().clone() for k, v in self.state_tensors().items()}, "rng": self.rng.get_state()}
 
     def set_state(self, state: dict[str, torch.Tensor]) -> None:
-        """Restore a :meth:`get_state` dict (tensors are copied to this task's device and dtype)."""
-        expected = {
-            "qpos": (self.num_envs, self.model.nq),
-            "qvel": (self.num_envs, self.model.nv),
-            "progress": (self.num_envs,),
-            "prev_actions": (self.num_envs, self.num_act),
-            "rng": (self.rng.groups + 1,),
-        }
+        """Restore a :meth:`get_state` dict (tensors are copied to this task's device, each state tensor taking the
+        dtype of the one it replaces)."""
+        current = self.state_tensors()
+        expected = {**{k: tuple(v.shape) for k, v in current.items()}, "rng": (self.rng.groups + 1,)}
         missing = set(expected) - set(state)
         if missing:
             raise KeyError(f"set_state: missing keys {sorted(missing)}")
         for k, shape in expected.items():
             if tuple(state[k].shape) != shape:
                 raise ValueError(f"set_state: {k} has shape {tuple(state[k].shape)}, expected {shape}")
-        self.qpos = state["qpos"].to(self.device, self.dtype).clone()
-        self.qvel = state["qvel"].to(self.device, self.dtype).clone()
-        self.progress = state["progress"].to(self.device, torch.long).clone()
-        self.prev_actions = state["prev_actions"].to(self.device, self.dtype).clone()
+        self.use_state_tensors({k: state[k].to(self.device, v.dtype).clone() for k, v in current.items()})
         self.rng.set_state(state["rng"])
 
     def compile_table(self) -> dict[str, CompiledCall]:

@@ -11,11 +11,10 @@ import dataclasses
 import torch
 
 import diffrender
+from vocabulary import RENDERERS  # the differentiable soft rasterizer and the forward-only ray tracer
 
 __all__ = ["RENDERERS", "FrameStack", "TaskRenderer"]
 
-#: Image sources of :class:`TaskRenderer`: the differentiable soft rasterizer and the forward-only ray tracer.
-RENDERERS = ("soft", "warp")
 
 
 class TaskRenderer:

@@ -231,7 +231,7 @@ def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypa
 def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path, monkeypatch):
     """``--modes decoupled full blind --raster-model softmax hard``: every rendering mode with each raster model and
     blind once, each row naming its raster model, so that a report finds each arm's time alone in the file."""
-    from ablations.seeds import benchmark_iteration_rows
+    from ablations.reports.arms import benchmark_iteration_rows
 
     iteration = _load("iteration")
     out = tmp_path / "iter.json"

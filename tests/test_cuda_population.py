@@ -10,14 +10,15 @@ import pytest
 import torch
 
 from gradlab import SHAC, SHACConfig
+from vocabulary import ARMS, POPULATION_BENCHMARK_ARMS
 
 pytestmark = [pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
 BASE = SHACConfig(task="hopper", num_envs=8, horizon=4, iters=100, cosine_every=3, critic_iterations=2, image_size=48,
                   eval_every=0)
-ARMS = [("decoupled", None), ("full", None), ("full", "hard"), ("blind", None)]
-MIXED = [dataclasses.replace(BASE, mode=mode, raster_model=raster, seed=seed) for seed in (0, 1)
-         for mode, raster in ARMS]
+# the population benchmark's members (decoupled, full with either raster model, blind), two seeds each
+MIXED = [dataclasses.replace(BASE, mode=arm.mode, raster_model=arm.raster_flag, preset=arm.preset, seed=seed)
+         for seed in (0, 1) for arm in (ARMS[name] for name in POPULATION_BENCHMARK_ARMS)]
 
 
 def _key(member) -> tuple:

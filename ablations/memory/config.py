@@ -6,6 +6,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from vocabulary import RENDERERS, TASKS
+
 __all__ = ["MemoryConfig", "SWEPT_MODES", "point_id"]
 
 #: Gradient modes a sweep can compare (state mode renders nothing, so it has no rendering cost to sweep).
@@ -27,8 +29,7 @@ class MemoryConfig:
 
     # Each field's docstring (its --help) is one source line: tyro breaks the help text where a line ends.
 
-    # The tasks and renderers are those of tasks.TASKS and tasks.vision.RENDERERS, checked in validate(): this
-    # module imports only the standard library (see the package docstring), so they are not Literal types here.
+    # The tasks and renderers are vocabulary's (torch-free), checked in validate().
     task: str = "cartpole"
     """Task, as ablate's --task: cartpole, cartpole-swingup, hopper, ant or humanoid."""
     modes: tuple[Literal["full", "decoupled"], ...] = ("decoupled", "full")
@@ -66,9 +67,6 @@ class MemoryConfig:
 
     def validate(self) -> None:
         """Clear errors for bad values, each naming its flag, before any work."""
-        from tasks import TASKS
-        from tasks.vision import RENDERERS
-
         if self.task not in TASKS:
             raise ValueError(f"--task: unknown task {self.task!r}; valid tasks: {', '.join(TASKS)}")
         if not self.modes:

@@ -31,7 +31,7 @@ def _spans_decade(values) -> bool:
 def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
     """memory_peak.png and memory_bwd.png (:func:`sweep_figures`) written into ``out``; returns the files
     written (none without ok rows)."""
-    from ablations.plot import png_bytes
+    from ablations.reports.style import png_bytes
     from gradlab.checkpoint import atomic_write_bytes
 
     written = []

@@ -12,8 +12,7 @@ from typing import Annotated, Any
 
 import tyro
 
-from gradlab.config import MODES
-from tasks import TASKS
+from vocabulary import MODES, TASKS
 
 __all__ = ["SweepConfig", "parse_args", "parse_set", "parse_vary", "norm_key", "flag_args", "slug", "RESERVED",
            "AUTO_PACK_GPU"]
@@ -70,7 +69,7 @@ class SweepConfig:
     0: the run sees no GPU (CUDA_VISIBLE_DEVICES is emptied) and trains on the CPU."""
     pack: _Pack = "1"
     """Grid cells that can share a process (the same task and every setting but a member's own: mode, seed,
-    raster model, preset and the other gradlab.shac.MEMBER_FIELDS) train as populations of at most N members,
+    raster model, preset and the other vocabulary.MEMBER_FIELDS) train as populations of at most N members,
     each one `ablate --member ...` process and one Ray task with the resources of one run (--cpus-per-run,
     --gpus-per-run); the members' run folders are runs/<population>/<member>. 1: one run per process. auto: 12
     on GPU runs (--gpus-per-run > 0; what the population benchmark measured at that size: BENCHMARKS.md

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import tyro
 
 from ablations.sweep.config import SweepConfig, flag_args, norm_key, parse_set, parse_vary, slug
-from gradlab.config import MODES
+from vocabulary import MEMBER_FIELDS, MODES
 
 __all__ = ["RunSpec", "plan", "attempt_command", "RUN_ARGS", "ABLATE"]
 
@@ -41,7 +41,7 @@ class RunSpec:
     iters: int = 0
     #: The arm this run belongs to (see :func:`plan`), or None in a tasks x modes grid.
     arm: str | None = None
-    #: The settings of this run that are a population member's own (gradlab.shac.MEMBER_FIELDS: mode, seed and
+    #: The settings of this run that are a population member's own (vocabulary.MEMBER_FIELDS: mode, seed and
     #: those its arm or --vary sets), by ablate field name: its ``--member`` entry in a population.
     own: dict = field(default_factory=dict)
     #: ``args`` without the member's own settings: what the members of its population share.
@@ -100,7 +100,6 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     """
     from ablations.runs import RunConfig
     from gradlab.config import ModePlan, check_as_given
-    from gradlab.shac import MEMBER_FIELDS
     from tasks.command_line import check_argv
 
     cfg.validate()

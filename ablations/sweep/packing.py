@@ -20,11 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ablations.sweep.grid import RUN_ARGS, RunSpec
+from vocabulary import POPULATION_RECORD
 
 __all__ = ["Job", "pack_runs", "assign_jobs", "member_entry", "POPULATION_RECORD"]
-
-#: The record a population folder holds (``ablations.population.POPULATION``, which imports the trainer).
-POPULATION_RECORD = "population.json"
 
 
 @dataclass(frozen=True)

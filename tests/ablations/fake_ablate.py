@@ -32,10 +32,12 @@ import sys
 import time
 from pathlib import Path
 
+from vocabulary import POPULATION_RECORD
+
 #: Seconds a run waits for the sweep folder to receive its checkpoint before it gives up killing its worker.
 WAIT_FOR_STORE_S = 120.0
-#: A population folder's record (ablations.population.POPULATION).
-POPULATION = "population.json"
+#: A population folder's record.
+POPULATION = POPULATION_RECORD
 
 
 def _value(args: list[str], flag: str) -> str | None:

@@ -362,7 +362,7 @@ def test_the_summary_has_the_final_and_best_evaluation_return_in_either_form():
 
 
 def test_closing_lines_set_the_returns_against_the_floors(tmp_path):
-    from ablations.plot import load_floors
+    from ablations.reports import load_floors
     from ablations.runs import closing_lines
     from tests.ablations.conftest import write_run
 
@@ -433,7 +433,7 @@ def test_run_files_are_readable_as_the_umask_allows(tmp_path, mask):
     try:
         ablate("--task", "cartpole", "--mode", "decoupled", "--iters", "2", "--video-every", "2", "--video-steps",
                "3", "--cosine-every", "0", "--out", str(tmp_path), "--name", "m", *TINY)
-        from ablations.plot import PlotConfig, plot_runs
+        from ablations.reports import PlotConfig, plot_runs
 
         pngs = list(plot_runs(PlotConfig(runs=(tmp_path / "m",), out=tmp_path / "plots")).files.values())
     finally:

@@ -175,8 +175,7 @@ def test_no_console_scripts_default_output_is_a_shipped_file():
 
     from ablations.memory import MemoryConfig
     from ablations.paper import PaperConfig
-    from ablations.plot import PlotConfig
-    from ablations.report import ReportConfig
+    from ablations.reports import PlotConfig, ReportConfig
     from ablations.runs import RunConfig
     from ablations.sweep import SweepConfig
     from tasks.floors import FloorsConfig

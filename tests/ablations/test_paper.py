@@ -10,11 +10,14 @@ from pathlib import Path
 import pytest
 
 from ablations import paper
-from ablations.paper import ARMS, DEFAULT_ARMS, PaperConfig, build_paper_report, main, sweep_config
-from ablations.paper_numbers import format_value, load_paper_numbers
+from ablations.paper import PaperConfig, main, sweep_config
+from ablations.reports import paper as paper_report
+from ablations.reports.paper import build_paper_report
+from ablations.reports.paper_numbers import format_value, load_paper_numbers
 from ablations.sweep import pack_runs, plan
 from tests.ablations.conftest import write_run
 from tests.ablations.test_report import write_sweep
+from vocabulary import ARMS, DEFAULT_ARMS
 
 #: Ten minutes of wall clock per iteration: twelve iterations span two hours, past the paper's 55-minute mark.
 WALL = 600.0
@@ -111,7 +114,7 @@ def test_bad_options_are_one_line_errors(tmp_path, capsys, argv, message):
 
 def paper_sweep(folder: Path, *, seeds=(0, 1)) -> Path:
     """A finished ablate-paper folder: sweep.json and hopper runs of every arm (one run queued, no folder)."""
-    arms = {n: {"mode": a["mode"], "flags": a["flags"], "about": a["about"]} for n, a in ARMS.items()}
+    arms = {n: {"mode": a.mode, "flags": a.flags, "about": a.about} for n, a in ARMS.items()}
     runs = {}
     for arm, spec in arms.items():
         for seed in seeds:
@@ -148,14 +151,14 @@ def rows_of(text: str, prefix: str) -> list[list[str]]:
 def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
     folder = paper_sweep(tmp_path / "p")
     seen = []
-    real = paper.make_plots
+    real = paper_report.make_plots
 
     def spy(runs, out, **kw):
         res = real(runs, out, **kw)
         seen.append(res)
         return res
 
-    monkeypatch.setattr(paper, "make_plots", spy)
+    monkeypatch.setattr(paper_report, "make_plots", spy)
     out = build_paper_report(folder, floors=floors, memory=(write_sweep(tmp_path / "mem"),))
     assert out == folder / "report" / "report.md"
     text = out.read_text()
@@ -263,11 +266,11 @@ def test_report_only_regenerates_from_the_command_line(tmp_path, floors, capsys)
 
 
 def test_wall_clock_helpers(tmp_path):
-    run = paper.load_run(write_run(tmp_path, task="hopper", mode="decoupled", seed=1, wall_per_iter=WALL))
-    assert paper._time_to(run, 50.0) == 5 * WALL  # return 10 * iter + 1 first reaches 50 at iteration 5
-    assert paper._time_to(run, 1e6) is None
-    assert paper._return_at(run, 3300.0) == pytest.approx(56.0)
-    assert paper._return_at(run, 12 * WALL + 1) is None  # the run stopped before
+    run = paper_report.load_run(write_run(tmp_path, task="hopper", mode="decoupled", seed=1, wall_per_iter=WALL))
+    assert paper_report._time_to(run, 50.0) == 5 * WALL  # return 10 * iter + 1 first reaches 50 at iteration 5
+    assert paper_report._time_to(run, 1e6) is None
+    assert paper_report._return_at(run, 3300.0) == pytest.approx(56.0)
+    assert paper_report._return_at(run, 12 * WALL + 1) is None  # the run stopped before
 
 
 def test_paper_numbers_say_where_they_come_from_and_how():
@@ -327,7 +330,7 @@ def test_recorded_command_reruns_as_written_and_the_report_holds_relative_paths(
 def packed_sweep(folder: Path) -> Path:
     """An ablate-paper folder whose hopper and cartpole runs trained packed: per task one population of the
     decoupled, full-hard and full-hard-dva arms (two seeds) and one of the state runs."""
-    arms = {n: {"mode": ARMS[n]["mode"], "flags": ARMS[n]["flags"], "about": ARMS[n]["about"]}
+    arms = {n: {"mode": ARMS[n].mode, "flags": ARMS[n].flags, "about": ARMS[n].about}
             for n in ("decoupled", "full-hard", "full-hard-dva", "state")}
     runs, jobs = {}, {}
     for task in ("cartpole", "hopper"):

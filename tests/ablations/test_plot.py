@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from matplotlib.colors import to_rgb
 
-from ablations import plot
-from ablations.plot import FIGURES, aggregate, build_figures, group_runs, load_floors, make_plots
+from ablations.reports import plot, style
+from ablations.reports.plot import FIGURES, aggregate, build_figures, make_plots
+from ablations.reports.style import group_runs, load_floors
 from ablations.run_folder import find_runs, load_run
 from tests.ablations.conftest import write_run
 
@@ -150,16 +151,16 @@ def test_blind_has_a_colour_and_variants_get_labels(tmp_path):
     write_run(parent, task="hopper", mode="decoupled", seed=0, settings={"preset": "dva", "raster_model": "alpha"})
     write_run(parent, task="hopper", mode="blind", seed=0, probe_every=0)
     runs = find_runs([parent])
-    assert plot.MODE_COLORS["blind"] not in {c for m, c in plot.MODE_COLORS.items() if m != "blind"}
+    assert style.MODE_COLORS["blind"] not in {c for m, c in style.MODE_COLORS.items() if m != "blind"}
     groups = group_runs(runs)
     # Only the settings that differ within a mode make it into its label.
     assert list(groups) == [("hopper", "full (dva, alpha)"), ("hopper", "full (shac-diffrender, hard)"),
                             ("hopper", "decoupled"), ("hopper", "blind")]
     assert [r.path.name for r in groups[("hopper", "full (shac-diffrender, hard)")]] == ["hard0", "hard1"]
-    styles = plot.arm_styles(groups)
+    styles = style.arm_styles(groups)
     full_a, full_h = styles["full (dva, alpha)"], styles["full (shac-diffrender, hard)"]
     # Variants of a mode share its hue (the first has the mode's colour itself) but no two arms look alike.
-    assert full_a.color == to_rgb(plot.MODE_COLORS["full"]) and full_h.color != full_a.color
+    assert full_a.color == to_rgb(style.MODE_COLORS["full"]) and full_h.color != full_a.color
     assert full_h.color[0] == max(full_h.color), "a shade of the mode's red"
     for part in ("color", "linestyle", "marker"):
         assert len({getattr(st, part) for st in styles.values()}) == len(styles), part
@@ -204,8 +205,8 @@ def test_floors_are_drawn_beside_every_return_curve(runs_dir, tmp_path):
 
 def test_default_floors_are_this_checkouts(tmp_path):
     floors = load_floors()
-    assert floors.source == plot.DEFAULT_FLOORS
-    assert floors.of("hopper")["zero"]["mean"] == json.loads(plot.DEFAULT_FLOORS.read_text())[
+    assert floors.source == style.DEFAULT_FLOORS
+    assert floors.of("hopper")["zero"]["mean"] == json.loads(style.DEFAULT_FLOORS.read_text())[
         "tasks"]["hopper"]["zero"]["mean"]
     assert floors.of("no-such-task") is None
 
@@ -233,7 +234,7 @@ def test_probe_figures_are_skipped_without_probe_metrics(tmp_path):
 
 
 def test_plot_runs_reads_the_floors_flag(runs_dir, tmp_path):
-    from ablations.plot import PlotConfig, plot_runs
+    from ablations.reports import PlotConfig, plot_runs
 
     floors = floors_file(tmp_path / "f.json", {"cartpole": (1.0, 2.0), "hopper": (3.0, 4.0)})
     res = plot_runs(PlotConfig(runs=(runs_dir,), out=tmp_path / "p", floors=floors))
@@ -293,7 +294,7 @@ def arm_figures(arms_dir, tmp_path):
     floors = load_floors(floors_file(tmp_path / "floors.json", {"hopper": (150.0, -40.0)}))
     runs = find_runs([arms_dir])
     figs = build_figures(runs, floors=floors)
-    yield figs, plot.arm_styles(group_runs(runs))
+    yield figs, style.arm_styles(group_runs(runs))
     figs.close()
 
 
@@ -538,7 +539,8 @@ def test_runs_sharing_a_seed_are_not_averaged_as_seeds(tmp_path, capsys):
 
 
 def test_figures_are_byte_identical_when_their_data_is(runs_dir, tmp_path):
-    from ablations.stats import PerformanceProfile, ProfileCurve, plot_performance_profiles
+    from ablations.reports.plot import plot_performance_profiles
+    from ablations.reports.stats import PerformanceProfile, ProfileCurve
 
     runs = find_runs([runs_dir])
     first = make_plots(runs, tmp_path / "one", floors=load_floors())

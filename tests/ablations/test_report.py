@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from ablations.memory import COLUMNS, csv_text
-from ablations.report import PAPER_TABLE1_MS, ReportConfig, build_report, load_benchmark
+from ablations.reports.report import PAPER_TABLE1_MS, ReportConfig, build_report, load_benchmark
 from tests.ablations.conftest import write_run
 
 
@@ -206,7 +206,7 @@ def test_benchmark_points_that_failed_are_left_out(tmp_path):
 
 
 def test_paper_numbers_come_from_the_cited_file():
-    from ablations.paper_numbers import load_paper_numbers
+    from ablations.reports.paper_numbers import load_paper_numbers
 
     numbers = load_paper_numbers()
     assert PAPER_TABLE1_MS == {r["task"]: (1000 * r["dva"], 1000 * r["shac-diffrender"]) for r in numbers.backward_s}
@@ -292,7 +292,7 @@ def test_report_of_evaluated_seeds_and_a_population_benchmark(tmp_path):
 
 def test_population_members_times_are_not_their_arms(tmp_path):
     """A member's logged times are its whole population's: Table 1 leaves members out and says so."""
-    from ablations.report import collect_bwd, runs_table, table1_section
+    from ablations.reports.report import collect_bwd, runs_table, table1_section
     from ablations.run_folder import find_runs
 
     runs = tmp_path / "runs"

@@ -28,10 +28,10 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_reading_run_folders_and_their_statistics_imports_no_torch(tmp_path):
-    """ablations.stats reads run folders through this module and must stay usable without torch."""
+    """ablations.reports.stats reads run folders through this module and must stay usable without torch."""
     for seed in (0, 1):
         write_run(tmp_path, task="hopper", mode="decoupled", seed=seed)
-    code = ("import sys\nfrom ablations.run_folder import find_runs\nimport ablations.stats as stats\n"
+    code = ("import sys\nfrom ablations.run_folder import find_runs\nimport ablations.reports.stats as stats\n"
             f"runs = find_runs([{str(tmp_path)!r}])\n"
             f"curves = stats.load_arms({{'decoupled': [{str(tmp_path)!r}]}})\n"
             "assert len(runs) == 2 and len(curves) == 2\n"

@@ -1,5 +1,5 @@
-"""ablations.seeds: arms named from run folders, iteration times measured alone, the seed-statistics section with
-its verdict, and the probe statistics over looking probes, on synthetic runs whose answers are known."""
+"""ablations.reports.arms and .seeds: arms named from run folders, iteration times measured alone, the seed-statistics
+section with its verdict, and the probe statistics over looking probes, on synthetic runs whose answers are known."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ablations import seeds
-from ablations.plot import load_floors
+from ablations.reports import arms, load_floors, seeds
 from ablations.run_folder import Run, find_runs, load_run
 
 #: Few bootstrap resamples keep these tests fast; the intervals they check are far from their bounds.
@@ -73,7 +72,7 @@ def test_arms_are_named_like_ablate_papers(tmp_path):
         write_run(p, "dec_decay", task=task, overridden={"lr_decay_iters": (2000, 30000)})
         write_run(p, "dec_decay_as_preset", task=task, seed=2, overridden={"lr_decay_iters": (30000, 30000)})
     runs = find_runs([tmp_path / "hopper", tmp_path / "ant"])
-    names = {(r.task, r.path.name): n for r, n in zip(runs, seeds.arm_names(runs).values())}
+    names = {(r.task, r.path.name): n for r, n in zip(runs, arms.arm_names(runs).values())}
     assert set(names.values()) == {"decoupled", "full-soft", "full-hard", "full-hard-dva", "full-alpha", "blind",
                                    "state", "decoupled (hard)", "decoupled (encoder_lr_scale=0.1)",
                                    "decoupled (lr_decay_iters=2000)"}
@@ -81,48 +80,10 @@ def test_arms_are_named_like_ablate_papers(tmp_path):
         assert names[(task, "dec")] == names[(task, "dec_other_folder")] == "decoupled"
         assert names[(task, "dec_decay_as_preset")] == "decoupled"  # a flag at the preset's own value
         assert names[(task, "hard")] == "full-hard" and names[(task, "hard_dva")] == "full-hard-dva"
-    label = seeds.arm_label(runs)
-    order = [label(r) for r in seeds.in_arm_order([r for r in runs if r.task == "hopper"], label)]
+    label = arms.arm_label(runs)
+    order = [label(r) for r in arms.in_arm_order([r for r in runs if r.task == "hopper"], label)]
     assert order[:8] == ["decoupled"] * 3 + ["full-soft", "full-hard", "full-hard-dva", "full-alpha", "state"]
     assert order[8] == "blind"
-
-
-def test_member_defaults_and_paper_arms_match_the_trainer_and_ablate_paper():
-    import dataclasses
-
-    from ablations.paper import ARMS
-    from gradlab.config import SHACConfig
-    from gradlab.presets import PRESET_FIELDS, SILHOUETTE_RASTER_MODEL
-    from gradlab.shac import MEMBER_FIELDS
-
-    defaults = {f.name: f.default for f in dataclasses.fields(SHACConfig)}
-    assert set(seeds.MEMBER_DEFAULTS) == set(MEMBER_FIELDS) - set(PRESET_FIELDS) - {"mode", "seed", "preset"}
-    for k, v in seeds.MEMBER_DEFAULTS.items():
-        assert json.dumps(v) == json.dumps(list(defaults[k]) if isinstance(defaults[k], tuple) else defaults[k]), k
-    assert seeds._PRESET_RASTER == SILHOUETTE_RASTER_MODEL
-    ours = {name: key for key, name in seeds.PAPER_ARMS.items()}
-    for name, spec in ARMS.items():
-        if name not in ours:
-            continue
-        mode, raster, preset = ours[name]
-        flags = spec["flags"]
-        assert spec["mode"] == mode and flags.get("preset", "dva") == preset, name
-        if raster is not None:
-            expected = flags.get("raster-model", "hard" if preset == "shac-diffrender" else SILHOUETTE_RASTER_MODEL)
-            assert expected == raster, name
-
-
-def test_the_population_benchmarks_members_are_its_arms():
-    import sys
-
-    from tests.ablations.conftest import ROOT
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import population
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    assert population.ARMS == seeds._POPULATION_BENCHMARK_ARMS
 
 
 # ---------------------------------------------------------------------------------------- iteration times
@@ -131,19 +92,19 @@ def _two_arms(parent, *, members=None, dec_ms=40.0, full_ms=100.0, device="GPU-A
         write_run(parent, f"dec{s}", seed=s, evals=[1.0], iter_ms=dec_ms, members=members, iters=20, device=device)
         write_run(parent, f"full{s}", seed=s, mode="full", evals=[1.0], iter_ms=full_ms, members=members, iters=20)
     runs = find_runs([parent])
-    return runs, seeds.arm_label(runs)
+    return runs, arms.arm_label(runs)
 
 
 def test_iteration_times_of_single_runs_come_from_the_runs(tmp_path):
     runs, label = _two_arms(tmp_path / "runs")
-    t = seeds.iteration_times(runs, label)["hopper"]
+    t = arms.iteration_times(runs, label)["hopper"]
     assert t.ms == {"decoupled": 40.0, "full-soft": 100.0}
     assert t.found["decoupled"].source == "runs" and t.found["decoupled"].n == 2 and "GPU-A" in t.why
 
 
 def test_population_members_need_a_benchmark(tmp_path):
     runs, label = _two_arms(tmp_path / "pop", members=["a", "b", "c", "d"])
-    t = seeds.iteration_times(runs, label)["hopper"]
+    t = arms.iteration_times(runs, label)["hopper"]
     assert t.ms is None and "population members" in t.why and "decoupled, full-soft" in t.why
     # benchmarks/iteration.py rows: the compiled rows of the runs' setting are the arms' times
     bench = tmp_path / "iteration.json"
@@ -156,7 +117,7 @@ def test_population_members_need_a_benchmark(tmp_path):
             {"task": "hopper", "mode": "full", "raster_model": "hard", "iter_ms": 700.0, "bwd_ms": 60.0},
             {"task": "hopper", "mode": "full", "status": "oom", "iter_ms": None, "bwd_ms": None}]
     bench.write_text(json.dumps({"gpu": "GPU-B", "results": rows}))
-    t = seeds.iteration_times(runs, label, [bench])["hopper"]
+    t = arms.iteration_times(runs, label, [bench])["hopper"]
     assert t.ms == {"decoupled": 90.0, "full-soft": 115.0} and "iteration.json on GPU-B" in t.why
     # benchmarks/population.py: only its population of one, a decoupled run alone, counts
     pop = tmp_path / "population.json"
@@ -166,18 +127,18 @@ def test_population_members_need_a_benchmark(tmp_path):
         {"kind": "population", "task": "hopper", "members": 1, "status": "ok", "iter_ms": 93.0},
         {"kind": "separate", "task": "hopper", "members": 1, "arm": 1, "processes": 4, "status": "ok",
          "iter_ms": 300.0}]}))
-    assert seeds.benchmark_iteration_rows(pop) == ("GPU-B", [
+    assert arms.benchmark_iteration_rows(pop) == ("GPU-B", [
         {"task": "hopper", "mode": "decoupled", "raster_model": "softmax", "iter_ms": 93.0, "compile": True,
          "num_envs": 64, "horizon": 32}])  # the sizes its command gave
-    t = seeds.iteration_times(runs, label, [pop])["hopper"]
+    t = arms.iteration_times(runs, label, [pop])["hopper"]
     assert t.ms is None and t.found["decoupled"].ms == 93.0 and "full-soft: trained as population members" in t.why
-    t = seeds.iteration_times(runs, label, [pop, bench])["hopper"]  # the first file with a matching row wins
+    t = arms.iteration_times(runs, label, [pop, bench])["hopper"]  # the first file with a matching row wins
     assert t.found["decoupled"].ms == 93.0 and t.ms == {"decoupled": 93.0, "full-soft": 115.0}
 
 
 def test_times_measured_on_different_devices_are_not_set_side_by_side(tmp_path):
     runs, label = _two_arms(tmp_path / "runs", device="GPU-X")  # decoupled on GPU-X, full on GPU-A
-    t = seeds.iteration_times(runs, label)["hopper"]
+    t = arms.iteration_times(runs, label)["hopper"]
     assert t.ms is None and "different devices (GPU-A, GPU-X)" in t.why
 
 
@@ -326,7 +287,7 @@ def test_the_training_return_collapse_rate_counts_falls_below_half_the_best_so_f
 
 
 def test_the_blind_phase_table_says_what_it_could_not_tell():
-    from ablations.stats import BlindPhase
+    from ablations.reports.stats import BlindPhase
 
     phases = {0: BlindPhase(500, 2, 0, None, None),  # a first probe of 0: no bar
               1: BlindPhase(500, 4, 4, 0.01, None, 401),  # blind on every probe of the window

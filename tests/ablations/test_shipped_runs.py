@@ -7,12 +7,13 @@ from pathlib import Path
 
 import pytest
 
+from ablations.reports.arms import arm_label, arm_names, iteration_times
 from ablations.run_folder import COMPACTED, CONFIG, METRICS, SUMMARY, evaluation_of, find_runs
-from ablations.seeds import arm_label, arm_names, iteration_times
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
-ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
+#: The arms of the shipped runs (names from vocabulary.ARMS).
+SHIPPED_ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
 
 
 def _last_evaluated_iteration(run) -> int:
@@ -29,8 +30,8 @@ def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_20
     assert all(r.config["compile"] and r.task == "hopper" for r in runs)
     assert all(r.environment["device"] == "cuda" for r in runs)
     arms = arm_names(runs)
-    assert Counter(arms.values()) == {a: 3 for a in ARMS}
-    assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in ARMS for s in range(3)}
+    assert Counter(arms.values()) == {a: 3 for a in SHIPPED_ARMS}
+    assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in SHIPPED_ARMS for s in range(3)}
     assert {_last_evaluated_iteration(r) for r in runs} == {2000}
 
 
@@ -40,7 +41,7 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
     ant = [r for r in runs if r.task == "ant"]
     assert len(ant) == 12  # no (arm, seed) twice
     arms = arm_names(ant)
-    assert {(arms[r.path], r.seed) for r in ant} == {(a, s) for a in ARMS for s in range(3)}
+    assert {(arms[r.path], r.seed) for r in ant} == {(a, s) for a in SHIPPED_ARMS for s in range(3)}
     assert all(r.summary["status"] in ("finished", "time_limit") and r.summary["iterations"] >= 2000 for r in ant)
     assert all(_last_evaluated_iteration(r) == r.summary["iterations"] for r in ant)
 
@@ -55,7 +56,7 @@ def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_
     runs = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == task]
     assert len(runs) == 20  # no (arm, seed) twice
     arms = arm_names(runs)
-    assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in ARMS for s in range(5)}
+    assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in SHIPPED_ARMS for s in range(5)}
     assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 3000)}
     assert {_last_evaluated_iteration(r) for r in runs} == {3000}
     assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in runs)
@@ -70,7 +71,7 @@ def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alon
     times = iteration_times(runs, arm_label(runs), [bench])
     assert set(times) == {"ant", "hopper", "cartpole-swingup"}
     for task, t in times.items():
-        assert t.ms is not None and set(t.ms) == ARMS, (task, t.why)
+        assert t.ms is not None and set(t.ms) == SHIPPED_ARMS, (task, t.why)
         assert {a.source for a in t.found.values()} == {f"benchmark {bench.name}"}
         # blind renders nothing, decoupled renders without a backward through the image, full does both
         assert t.ms["blind"] < t.ms["decoupled"] < min(t.ms["full-soft"], t.ms["full-hard-dva"])

@@ -1,4 +1,4 @@
-"""ablations.stats on synthetic run folders whose answers are known by hand."""
+"""ablations.reports.stats on synthetic run folders whose answers are known by hand."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import sys
 import numpy as np
 import pytest
 
-from ablations import stats
-from ablations.stats import Curve
+from ablations.reports import plot, stats
+from ablations.reports.stats import Curve
 
 #: Few resamples keep the tests fast; the intervals they check are wide of their bounds at any count.
 REPS = 200
@@ -75,7 +75,7 @@ def test_two_runs_of_one_seed_in_an_arm_are_an_error(tmp_path):
 
 
 def test_module_imports_without_torch():
-    code = "import sys, ablations.stats; assert 'torch' not in sys.modules, 'torch was imported'"
+    code = "import sys, ablations.reports.stats; assert 'torch' not in sys.modules, 'torch was imported'"
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
 
 
@@ -219,7 +219,7 @@ def test_performance_profile_fractions_and_plot(tmp_path):
     assert prof.arms["decoupled"].ci_low[1] < 0.5 < prof.arms["decoupled"].ci_high[1]
     auto = stats.performance_profiles(curves, points=11, reps=FEW)["hopper"]
     assert auto.thresholds.shape == (11,) and auto.thresholds[0] < 1.0 and auto.thresholds[-1] > 6.0
-    png = stats.plot_performance_profiles(prof, tmp_path / "profile.png")
+    png = plot.plot_performance_profiles(prof, tmp_path / "profile.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -377,7 +377,7 @@ def test_profiles_take_the_arms_styles(tmp_path, monkeypatch):
     from matplotlib.axes import Axes
     from matplotlib.colors import to_rgb
 
-    from ablations.plot import ArmStyle
+    from ablations.reports.style import ArmStyle
 
     prof = stats.performance_profiles(_arm("decoupled", [1.0, 2.0]) + _arm("blind", [0.0, 0.5]), reps=FEW)["hopper"]
     seen = {}
@@ -389,7 +389,7 @@ def test_profiles_take_the_arms_styles(tmp_path, monkeypatch):
 
     monkeypatch.setattr(Axes, "plot", spy)
     styles = {"decoupled": ArmStyle((0.1, 0.2, 0.7), (0, (5, 2)), "o")}
-    stats.plot_performance_profiles(prof, tmp_path / "p.png", styles=styles)
+    plot.plot_performance_profiles(prof, tmp_path / "p.png", styles=styles)
     assert to_rgb(seen["decoupled (n=2)"][0]) == (0.1, 0.2, 0.7) and seen["decoupled (n=2)"][1] == (0, (5, 2))
     assert seen["blind (n=2)"] == (None, None)  # not named: matplotlib's next colour
 
@@ -501,8 +501,8 @@ def test_difference_curves_say_where_the_sign_holds():
 def test_the_statistics_work_where_the_resampling_libraries_cannot_import():
     # arch (rliable's bootstrap) fails to import under pandas 3: blocked here, the statistics still compute
     code = ("import sys; sys.modules.update(dict.fromkeys(['rliable', 'arch', 'pandas'])); "
-            "import ablations.stats as s; "
-            "c = [s.Curve('t', a, i, '', s.np.array([10, 20]), s.np.array([v, v + i]), 20) "
+            "import numpy as np, ablations.reports.stats as s; "
+            "c = [s.Curve('t', a, i, '', np.array([10, 20]), np.array([v, v + i]), 20) "
             "for a, v in (('decoupled', 5.0), ('full', 1.0)) for i in range(4)]; "
             "d = s.compare(c).differences['full']; s.performance_profiles(c); "
             "print(d.mean.value, d.p_value, sorted({m.split('.')[0] for m in sys.modules if sys.modules[m]} "

@@ -259,6 +259,19 @@ def test_get_set_state_resumes_bit_identically(name):
     assert all(torch.equal(x, y) for x, y in zip(first, second))
 
 
+def test_the_state_tensors_are_named_once():
+    """get_state, set_state and state_tensors all follow Task.STATE_TENSORS."""
+    env = tasks.make("hopper", 3)
+    assert list(env.state_tensors()) == list(tasks.Task.STATE_TENSORS)
+    assert all(env.state_tensors()[k] is getattr(env, k) for k in env.STATE_TENSORS)
+    assert list(env.get_state()) == [*env.STATE_TENSORS, "rng"]
+    fresh = {k: v.clone() + 1 for k, v in env.state_tensors().items()}
+    env.use_state_tensors(fresh)
+    assert all(getattr(env, k) is fresh[k] for k in env.STATE_TENSORS)
+    with pytest.raises(ValueError, match="qvel has shape"):
+        env.set_state({**env.get_state(), "qvel": torch.zeros(2, 2)})
+
+
 def test_detach_cuts_the_graph():
     env = tasks.make("cartpole", 2)
     env.reset()

@@ -34,37 +34,47 @@ data is skipped and the reason returned):
     image_sensitivity.png (the policy's sensitivity to each frame of its stack)
     eval_return_vs_iter.png (the deterministic evaluation return, every seed and the mean)
     exploration_noise.png (mean exp(log_std))  looking.png (image sensitivity relative to the first probe, with
-    the bar above which the policy counts as looking: ``ablations.stats.LOOKING_FRACTION``)
+    the bar above which the policy counts as looking: ``ablations.reports.stats.LOOKING_FRACTION``)
     timing.png (forward and backward ms per iteration)  memory.png (peak allocated MB; CPU: saved for backward)
 
 :func:`build_figures` returns the matplotlib Figures without writing them (to inspect or restyle them);
 :func:`make_plots` writes them.
 """
 
+
 from __future__ import annotations
 
-import io
-import json
 import math
 import os
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import tyro
 
+from ablations.reports.stats import LOOKING_FRACTION, PerformanceProfile, looking_probes
+from ablations.reports.style import (
+    FLOOR_LINES,
+    MARKERS,
+    Aggregate,
+    ArmStyle,
+    FigureSet,
+    Floors,
+    PlotResult,
+    aggregate,
+    arm_styles,
+    draw_band,
+    draw_floor_lines,
+    group_runs,
+    load_floors,
+    save_figure,
+)
 from ablations.run_folder import Run, find_runs, is_number
 
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
-
-__all__ = ["PlotConfig", "group_runs", "run_labels", "aggregate", "make_plots",
-           "build_figures", "FigureSet", "PlotResult", "Floors", "load_floors", "FIGURES", "MODE_COLORS",
-           "VARIANT_KEYS", "DEFAULT_FLOORS", "RENDER_TERM_GROUPS", "ArmStyle", "arm_styles", "plot_runs",
-           "PNG_METADATA", "png_bytes", "draw_learning_curves", "draw_difference_curves"]
+__all__ = ["PlotConfig", "make_plots", "build_figures", "FIGURES", "RENDER_TERM_GROUPS", "plot_runs",
+           "draw_learning_curves", "draw_difference_curves", "plot_performance_profiles"]
 
 _EVAL = ("Stars: the deterministic evaluation return of each run (bar: +- std over its evaluation episodes, "
          "where recorded); dotted and dash-dotted lines: the zero- and random-action return floors.")
@@ -100,14 +110,7 @@ FIGURES = {
                    "line the policy does not look at its image (the blind phase); probe statistics marked "
                    "'looking' count only the probes above it.",
 }
-MODE_COLORS = {"full": "tab:red", "decoupled": "tab:blue", "state": "tab:green", "blind": "tab:gray"}
-#: Colours of modes MODE_COLORS does not name, in the order they appear.
-_OTHER_COLORS = ("tab:purple", "tab:brown", "tab:olive", "tab:cyan", "tab:pink", "tab:orange")
-#: Line styles of the arms, in group order: dash patterns (on, off, ... in line widths) told apart at a glance.
-_LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1.5)), (0, (6, 2, 1.5, 2)), (0, (2.5, 1.5)), (0, (8, 2, 1.5, 2, 1.5, 2)),
-               (0, (11, 3)), (0, (3, 1.5, 1, 1.5, 1, 1.5)), (0, (1.5, 3.5)), (0, (8, 1.5, 3, 1.5)))
-#: Markers of the arms (hollow, so a marker under another shows); the evaluation star is none of them.
-_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "h")
+
 _EVAL_MARKER = "*"
 #: Series with at most this many points are marked at every point (probe iterations); denser ones about every
 #: ``len / _MARKS``-th point.
@@ -115,14 +118,8 @@ _MARK_ALL = 30
 _MARKS = 12
 #: 1 - cos below float64's resolution near 1 (rounding can even make it negative) is drawn at this value.
 _COS_FLOOR = float(np.finfo(np.float64).eps)
-#: config.json settings that tell runs of one mode apart in labels, when the given runs differ in them.
-VARIANT_KEYS = ("preset", "raster_model", "renderer")
 #: The actor's parameter groups of the render-term probe (metrics keys grad_norm_render_term_<group>).
 RENDER_TERM_GROUPS = ("encoder", "mlp", "log_std")
-#: The return floors of this checkout (written by ``task-floors``).
-DEFAULT_FLOORS = Path(__file__).resolve().parents[1] / "docs" / "floors.json"
-#: Floor policy -> (line style, name on the line).
-_FLOOR_LINES = {"zero": (":", "zero action"), "random": ("-.", "random action")}
 
 
 @dataclass
@@ -138,255 +135,6 @@ class PlotConfig:
     """task-floors JSON with the zero- and random-action return floors; None: docs/floors.json of this checkout."""
 
 
-def run_labels(runs: list[Run]) -> list[str]:
-    """Each run's label: its mode, plus the ``VARIANT_KEYS`` values that differ among the runs of that mode.
-
-    E.g. ``full (hard)`` and ``full (alpha)`` when the full runs differ only in raster_model; a mode whose runs
-    agree on every variant key is just its name.
-    """
-    by_mode: dict[str, list[Run]] = {}
-    for r in runs:
-        by_mode.setdefault(r.mode, []).append(r)
-    varying = {mode: [k for k in VARIANT_KEYS if len({json.dumps(r.setting(k)) for r in rs}) > 1]
-               for mode, rs in by_mode.items()}
-    labels = []
-    for r in runs:
-        keys = varying[r.mode]
-        labels.append(f"{r.mode} ({', '.join(str(r.setting(k)) for k in keys)})" if keys else r.mode)
-    return labels
-
-
-def group_runs(runs: list[Run], *, label: Callable[[Run], str] | None = None) -> dict[tuple[str, str], list[Run]]:
-    """{(task, label): runs}, tasks in the order of ``tasks.TASKS``, then modes full, decoupled, state, blind.
-
-    ``label``: a run's group label; default :func:`run_labels` (the mode, with its variant where runs differ).
-    """
-    from tasks import TASKS  # here, not at the top: reading run folders for statistics needs no torch
-
-    labels = [label(r) for r in runs] if label is not None else run_labels(runs)
-    groups: dict[tuple[str, str], list[Run]] = {}
-    for r, lab in zip(runs, labels):
-        groups.setdefault((r.task, lab), []).append(r)
-
-    def order(k: tuple[str, str]) -> tuple:
-        t, lab = k
-        m = groups[k][0].mode
-        return (TASKS.index(t) if t in TASKS else 99, t,
-                list(MODE_COLORS).index(m) if m in MODE_COLORS else 99, m, lab)
-
-    return {k: sorted(groups[k], key=lambda r: (str(r.seed), str(r.path))) for k in sorted(groups, key=order)}
-
-
-class ArmStyle(NamedTuple):
-    """How one arm is drawn in every figure: an RGB colour, a matplotlib line style and a marker."""
-
-    color: tuple[float, float, float]
-    linestyle: str | tuple
-    marker: str
-
-
-def _shade(color, variant: int) -> tuple[float, float, float]:
-    """The mode's colour for its first variant; then alternately darker and lighter, further each time."""
-    from matplotlib.colors import to_rgb
-
-    rgb = np.array(to_rgb(color))
-    if variant == 0:
-        return tuple(float(c) for c in rgb)
-    step = (variant + 1) // 2
-    target, t = (0.0, min(0.3 * step, 0.7)) if variant % 2 else (1.0, min(0.4 * step, 0.75))
-    return tuple(float(c) for c in rgb + (target - rgb) * t)
-
-
-def arm_styles(groups: dict[tuple[str, str], list[Run]]) -> dict[str, ArmStyle]:
-    """label -> :class:`ArmStyle`, the same in every panel and figure, no two alike.
-
-    Colour: the mode's (MODE_COLORS; others get a colour of their own), shaded per variant of the mode. Line
-    style and marker: one per arm in group order; past ten arms the pairs still differ.
-    """
-    labels: list[str] = []
-    by_mode: dict[str, list[str]] = {}
-    for (_, lab), rs in groups.items():
-        if lab not in labels:
-            labels.append(lab)
-            by_mode.setdefault(rs[0].mode, []).append(lab)
-    others = iter(_OTHER_COLORS * (1 + len(by_mode) // len(_OTHER_COLORS)))
-    colors = {}
-    for mode, labs in by_mode.items():
-        base = MODE_COLORS.get(mode) or next(others)
-        colors.update({lab: _shade(base, i) for i, lab in enumerate(labs)})
-    n = len(_LINESTYLES)
-    return {lab: ArmStyle(colors[lab], _LINESTYLES[i % n], _MARKERS[(i + i // n) % len(_MARKERS)])
-            for i, lab in enumerate(labels)}
-
-
-# ---------------------------------------------------------------------------------------------- floors
-@dataclass
-class Floors:
-    """Zero- and random-action return floors per task, and the file they came from."""
-
-    source: Path | None
-    #: task -> {"zero": {"mean", "std", "episodes", ...}, "random": {...}}
-    tasks: dict[str, dict] = field(default_factory=dict)
-
-    def of(self, task: str) -> dict[str, dict] | None:
-        """{policy: stats} of the task's floors, or None when the file has no entry for it."""
-        entry = self.tasks.get(task)
-        return {k: entry[k] for k in _FLOOR_LINES if k in entry} if entry else None
-
-    def missing_message(self, task: str) -> str:
-        where = str(self.source) if self.source else "no floors file"
-        return (f"no return floor for task {task!r} ({where}): its return curves are drawn without the zero- and "
-                f"random-action lines; measure them with `task-floors --tasks {task}`")
-
-
-def load_floors(path: str | os.PathLike | None = None) -> Floors:
-    """The floors of a ``task-floors`` JSON file; None: docs/floors.json of this checkout (no floors, and no
-    error, when that file is missing). ValueError naming the file when a given one is missing or malformed."""
-    default = path is None
-    path = Path(DEFAULT_FLOORS if default else path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        if default:
-            return Floors(source=None)
-        raise ValueError(f"--floors {path}: no such file (write it with task-floors --out {path})") from None
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"--floors {path}: cannot be read ({e})") from None
-    tasks = data.get("tasks") if isinstance(data, dict) else None
-    if not isinstance(tasks, dict):
-        raise ValueError(f"--floors {path}: expected a 'tasks' object as task-floors writes it")
-    for task, entry in tasks.items():
-        ok = isinstance(entry, dict) and any(k in entry for k in _FLOOR_LINES) and all(
-            isinstance(entry[k], dict) and is_number(entry[k].get("mean")) for k in _FLOOR_LINES if k in entry)
-        if not ok:
-            raise ValueError(f"--floors {path}: task {task!r} needs zero/random objects with a numeric 'mean'")
-    return Floors(source=path, tasks=tasks)
-
-
-class Aggregate(NamedTuple):
-    """Several runs' curves on one x grid: ``centre`` +- ``low``/``high`` (one sample standard deviation; the
-    centre itself where fewer than 2 runs have the point) and ``n``, how many runs cover each x."""
-
-    x: np.ndarray
-    centre: np.ndarray
-    low: np.ndarray
-    high: np.ndarray
-    n: np.ndarray
-
-
-def aggregate(series: list[tuple[np.ndarray, np.ndarray]], *, log: bool = False) -> Aggregate | None:
-    """Mean and +-1 std band of several (x, y) curves over the range ANY of them covers, with the number of runs
-    at each point.
-
-    The grid is every x of every curve; at each, the curves whose own range [first x, last x] covers it are
-    linearly interpolated onto it (exact where a curve has a point) and averaged, so runs of different lengths
-    are each drawn over their own range and ``n`` says how many stand behind each point. None without any
-    point. ``log``: average log10(y) (y <= 0 dropped): geometric mean and geometric-std band.
-    """
-    clean = []
-    for x, y in series:
-        if log:
-            keep = y > 0
-            x, y = x[keep], np.log10(y[keep])
-        if len(x):
-            clean.append((x, y))
-    if not clean:
-        return None
-    grid = np.unique(np.concatenate([x for x, _ in clean]))
-    ys = np.stack([np.where((grid >= x[0]) & (grid <= x[-1]), np.interp(grid, x, y), np.nan) for x, y in clean])
-    n = np.sum(~np.isnan(ys), axis=0)
-    mean = np.nanmean(ys, axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # one run at a point: no spread there
-        std = np.where(n > 1, np.nanstd(ys, axis=0, ddof=1), 0.0)
-    low, high = mean - std, mean + std
-    if log:
-        return Aggregate(grid, 10**mean, 10**low, 10**high, n)
-    return Aggregate(grid, mean, low, high, n)
-
-
-@dataclass
-class PlotResult:
-    """What ``make_plots`` wrote, what it skipped (file name -> reason), what it warned about, and what it left
-    out (one line each: arms a figure could not draw, runs that share a seed)."""
-
-    files: dict[str, Path] = field(default_factory=dict)
-    skipped: dict[str, str] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-    left_out: list[str] = field(default_factory=list)
-
-
-@dataclass
-class FigureSet:
-    """The figures of :func:`build_figures` (file name -> matplotlib Figure, in drawing order), the figures
-    without data (file name -> reason), the warnings (tasks without floors), what was left out (one line each)
-    and what each figure drew (``drawn``). ``close()`` frees the figures."""
-
-    figures: dict[str, Figure] = field(default_factory=dict)
-    skipped: dict[str, str] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-    left_out: list[str] = field(default_factory=list)
-    #: file name -> {(task, arm): (first x, last x, most runs at a point)} of every arm line drawn
-    drawn: dict[str, dict[tuple[str, str], tuple[float, float, int]]] = field(default_factory=dict)
-
-    def close(self) -> None:
-        import matplotlib.pyplot as plt
-
-        for fig in self.figures.values():
-            plt.close(fig)
-
-
-#: PNG metadata of every figure: a fixed Software entry and no date, so that a figure whose data did not change
-#: is byte for byte the same file (matplotlib writes its version otherwise).
-PNG_METADATA = {"Software": "pixelgrad ablations"}
-#: Figures are line plots on a white ground: 80 dpi and a 256-colour palette keep them legible at a quarter of
-#: the bytes of a 110-dpi RGBA file, so that the shipped reports fit the repository's size budget
-#: (docs/design.md, "Shipped run data").
-FIGURE_DPI = 80
-
-
-def png_bytes(fig, *, dpi: int = FIGURE_DPI) -> bytes:
-    """``fig`` as palette PNG bytes, deterministic (no date, fixed Software entry, no dithering); closes ``fig``."""
-    import matplotlib.pyplot as plt
-    from PIL import Image, PngImagePlugin
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight", metadata=PNG_METADATA)
-    plt.close(fig)
-    image = Image.open(buf).convert("RGB").quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
-    info = PngImagePlugin.PngInfo()
-    for key, value in PNG_METADATA.items():
-        info.add_text(key, value)
-    out = io.BytesIO()
-    image.save(out, format="png", optimize=True, pnginfo=info)
-    return out.getvalue()
-
-
-def _save(fig, path: Path) -> None:
-    """The figure as a PNG at ``path`` (:func:`png_bytes`), written atomically; the figure is closed."""
-    from gradlab.checkpoint import atomic_write_bytes
-
-    atomic_write_bytes(path, png_bytes(fig))
-
-
-def _floor_lines(ax, floors: dict[str, dict] | None) -> None:
-    for policy, st in (floors or {}).items():
-        style, name = _FLOOR_LINES[policy]
-        ax.axhline(st["mean"], color="0.15", ls=style, lw=1.0, zorder=1.5, label=f"{name} floor ({st['mean']:.4g})",
-                   gid=f"floor:{policy}")
-
-
-def _draw_band(ax, band, style: ArmStyle | None, label: str, *, lw: float = 1.6) -> None:
-    """A band's mean line (solid where 2 or more runs have the point, thin dotted where only one does) and its
-    interval shaded where it exists."""
-    look = {"color": style.color} if style is not None else {}
-    many = band.n >= 2
-    (line,) = ax.plot(band.x, np.where(many, band.mean, np.nan), lw=lw, label=label, gid="mean",
-                      ls=style.linestyle if style is not None else "-", **look)
-    if not many.all():
-        ax.plot(band.x, np.where(~many, band.mean, np.nan), lw=0.8, ls=":", color=line.get_color(),
-                marker=".", ms=3, gid="single run", label=f"_{label} (1 run)")
-    ax.fill_between(band.x, band.ci_low, band.ci_high, where=many, color=line.get_color(), alpha=0.18, lw=0)
 
 
 def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathLike, *,
@@ -394,7 +142,7 @@ def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathL
                          confidence: float = 0.95, exact_max_n: int = 10) -> Path:
     """One task's learning curves per arm in two panels, the deterministic **evaluation return** and the
     **training return** (the exploring policy's last 100 episodes), against iterations: arm -> {"evaluation":
-    Band, "training": Band} (``ablations.stats.mean_band``), the band the mean's bootstrap interval over seeds
+    Band, "training": Band} (``ablations.reports.stats.mean_band``), the band the mean's bootstrap interval over seeds
     (shaded where 2 or more runs have the point; a single run's stretch dotted), the zero- and random-action
     floors as horizontal lines; the legend gives each arm's runs."""
     import matplotlib
@@ -408,8 +156,8 @@ def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathL
         for arm, b in bands.items():
             band = b.get(kind)
             if band is not None and band.x.size:
-                _draw_band(ax, band, (styles or {}).get(arm), f"{arm} (n={int(band.n.max())})")
-        _floor_lines(ax, floors)
+                draw_band(ax, band, (styles or {}).get(arm), f"{arm} (n={int(band.n.max())})")
+        draw_floor_lines(ax, floors)
         ax.set_xlabel("iteration")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
@@ -423,14 +171,14 @@ def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathL
     if handles:
         fig.legend(handles, labels, loc="outside right upper", fontsize=8)
     path = Path(path)
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
 def draw_difference_curves(task: str, curves: dict[tuple[str, str], object], path: str | os.PathLike, *,
                            styles: dict[str, ArmStyle] | None = None, reference: str = "decoupled") -> Path:
     """One task's paired differences against ``reference`` along the training budget
-    (``ablations.stats.difference_curves``: (arm, axis) -> DifferenceCurve): a panel in iterations and one in
+    (``ablations.reports.stats.difference_curves``: (arm, axis) -> DifferenceCurve): a panel in iterations and one in
     modelled wall-clock where given; per arm the mean difference (line), the median (thin, dashed) and the mean's
     interval at each evaluation (shaded), and zero."""
     import matplotlib
@@ -465,7 +213,7 @@ def draw_difference_curves(task: str, curves: dict[tuple[str, str], object], pat
     if handles:
         fig.legend(handles, labels, loc="outside right upper", fontsize=8)
     path = Path(path)
-    _save(fig, path)
+    save_figure(fig, path)
     return path
 
 
@@ -477,8 +225,6 @@ def _frame_keys(runs: list[Run]) -> list[str]:
 
 def _relative_sensitivity(run: Run) -> tuple[np.ndarray, np.ndarray]:
     """(probe iterations, image sensitivity summed over the frames / the first probe's) of a run."""
-    from ablations.stats import looking_probes
-
     look = looking_probes(run.metrics, keys=())
     if not look.n_probes or not look.initial:
         return np.array([]), np.array([])
@@ -617,7 +363,7 @@ class _Drawer:
         floors = self.floors.of(task) or {}
         top = max((s["mean"] for s in floors.values()), default=0.0)
         for policy, stats in floors.items():
-            style, name = _FLOOR_LINES[policy]
+            style, name = FLOOR_LINES[policy]
             y = stats["mean"]
             ax.axhline(y, color="0.15", ls=style, lw=1.0, zorder=1.5, label=f"{name} floor ({y:.4g})",
                        gid=f"floor:{policy}")
@@ -731,7 +477,7 @@ class _Drawer:
             self.out.skipped[name] = why
             return
         colors = dict(zip(present, _QUANTITY_COLORS * len(present)))
-        markers = dict(zip(present, _MARKERS * len(present)))
+        markers = dict(zip(present, MARKERS * len(present)))
         self.figure = name
         fig, axes = self.panels()
         drawn: dict[str, dict[str, int]] = {}
@@ -855,8 +601,6 @@ class _Drawer:
                     each_run=True, floors=True)
         self.curves("exploration_noise.png", "iter", "action_std", xlabel="iteration",
                     ylabel="exploration noise\n(mean exp(log_std))")
-        from ablations.stats import LOOKING_FRACTION
-
         self.curves("looking.png", "iter", "image_sensitivity", xlabel="iteration",
                     ylabel="image sensitivity /\nits first probe's", log=True, series_of=_relative_sensitivity,
                     hline=(LOOKING_FRACTION, f"looking bar: {LOOKING_FRACTION:g} x the first probe's"))
@@ -909,7 +653,7 @@ def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None
     try:
         out.mkdir(parents=True, exist_ok=True)
         for name, fig in figures.figures.items():
-            _save(fig, out / name)
+            save_figure(fig, out / name)
             result.files[name] = out / name
     finally:
         figures.close()
@@ -920,3 +664,30 @@ def plot_runs(cfg: PlotConfig) -> PlotResult:
     """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``; runs
     that share an arm and a seed are refused (one error line naming them), as the seed statistics refuse them."""
     return make_plots(find_runs(list(cfg.runs)), cfg.out, floors=load_floors(cfg.floors), shared_seed="refuse")
+
+
+def plot_performance_profiles(profile: PerformanceProfile, path: str | Path, *,
+                              styles: Mapping | None = None) -> Path:
+    """Draw one task's profiles (fraction of runs above each threshold, the CI shaded) to a PNG, written
+    atomically; the legend sits outside the axes. ``styles``: arm -> ``ablations.reports.style.ArmStyle`` (the arm's
+    colour and line style in every other figure); arms it does not name take matplotlib's next colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for arm, p in profile.arms.items():
+        style = (styles or {}).get(arm)
+        look = {"color": style.color, "ls": style.linestyle} if style is not None else {}
+        (line,) = ax.plot(profile.thresholds, p.fraction, label=f"{arm} (n={p.n})", lw=1.6, **look)
+        ax.fill_between(profile.thresholds, p.ci_low, p.ci_high, color=line.get_color(), alpha=0.2, linewidth=0)
+    ax.set_xlabel(f"final evaluation return (mean of the last {profile.final_evals})")
+    ax.set_ylabel("fraction of runs above")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(f"{profile.task}: performance profile (shaded: {profile.confidence:.0%} CI, "
+                 f"{profile.reps} bootstrap resamples)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+    path = Path(path)
+    save_figure(fig, path)
+    return path

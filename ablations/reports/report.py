@@ -3,13 +3,13 @@
 Sections:
     1. Backward time per iteration (the paper's Table 1): for cartpole, hopper, ant and humanoid, our median
        backward ms of decoupled (D.Va) and full (SHAC through the renderer) and their ratio, beside the
-       paper's numbers (ablations/paper_numbers.json, with its citation), labelled as the paper's. A task or
+       paper's numbers (ablations/reports/paper_numbers.json, with its citation), labelled as the paper's. A task or
        mode without a measurement says "not run"; nothing is estimated. Runs of one mode that differ in
        preset, raster model or renderer are told apart (``full (hard)``), one row per full variant.
     2. Training curves: the ``ablate-plot`` figures of the given runs (return curves with the zero- and
        random-action floors), the floors table, and a table of the runs. Runs are grouped by arm
-       (:func:`ablations.seeds.arm_label`: ``decoupled``, ``full-soft``, ``full-hard-dva``, ...).
-    3. Seed statistics (:func:`ablations.seeds.seed_section`): per task and arm the IQM of the final evaluation
+       (:func:`ablations.reports.arms.arm_label`: ``decoupled``, ``full-soft``, ``full-hard-dva``, ...).
+    3. Seed statistics (:func:`ablations.reports.seeds.seed_section`): per task and arm the IQM of the final evaluation
        return (every run over the same evaluation iterations) with 95 % CIs, paired differences against
        decoupled (per seed, seeds agreeing in sign, exact bootstrap interval, exact sign-flip p-value, Holm's
        correction over every comparison of the report) with the probability of improvement, AUC and collapse
@@ -17,7 +17,7 @@ Sections:
        the control rule (arms are ranked only where decoupled beats blind after correction); the paired
        differences along the budget, learning curves with intervals, performance profiles and the evaluation
        curves. Runs without deterministic evaluations are said to have none.
-    4. Gradient probes where the policy looks (:func:`ablations.seeds.probe_section`): medians of the cosines
+    4. Gradient probes where the policy looks (:func:`ablations.reports.seeds.probe_section`): medians of the cosines
        and norms over the probes whose image sensitivity shows the policy looking, how many counted, and the
        exploration-noise and image-sensitivity figures.
     5. Memory sweeps: the ``ablate-memory`` table(s) and plots.
@@ -27,7 +27,7 @@ Sections:
        changes those).
 
 The sections are functions (``table1_section``, ``curves_section`` = ``figure_lines`` + ``floors_section`` +
-``runs_table``, ``ablations.seeds.seed_section``, ``ablations.seeds.probe_section``, ``memory_section``,
+``runs_table``, ``ablations.reports.seeds.seed_section``, ``ablations.reports.seeds.probe_section``, ``memory_section``,
 ``provenance_section``) that ``ablate-paper`` composes into its report.
 
 Where our backward times come from, in order of precedence per (task, mode):
@@ -63,24 +63,36 @@ from statistics import median
 
 import tyro
 
-from ablations.paper_numbers import load_paper_numbers
-from ablations.plot import FIGURES, Floors, PlotResult, group_runs, load_floors, make_plots
-from ablations.run_folder import Run, RunFolder, find_runs, is_number
+from ablations.memory import plot_sweep, read_csv
+from ablations.reports.paper_numbers import load_paper_numbers
+from ablations.reports.parts import (
+    NOT_RUN,
+    figure_lines,
+    is_population_member,
+    markdown_table,
+    ms_text,
+    read_benchmark_json,
+    report_path,
+    run_device,
+    run_median_ms,
+)
+from ablations.reports.plot import FIGURES, make_plots
+from ablations.reports.seeds import PROBE_FIGURES, SEED_FIGURES, arm_label, probe_section, seed_section
+from ablations.reports.stats import check_at_iteration
+from ablations.reports.style import Floors, PlotResult, group_runs, load_floors
+from ablations.run_folder import Run, RunFolder, find_runs
 
-__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TASKS", "run_bwd_ms", "run_median_ms",
-           "run_device", "is_population_member", "read_benchmark_json",
+__all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TABLE1_TASKS", "run_bwd_ms",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
-           "memory_section", "provenance_section", "load_memory_sweeps", "markdown_table", "NOT_RUN",
-           "figure_lines", "runs_table", "report_path", "command_text"]
+           "memory_section", "provenance_section", "load_memory_sweeps", "runs_table", "command_text"]
 
 _PAPER = load_paper_numbers()
 #: The paper's Table 1: backward time per iteration, converted from seconds to ms: task -> (D.Va = decoupled,
-#: SHAC with rendering = full); from ablations/paper_numbers.json, which cites it.
+#: SHAC with rendering = full); from ablations/reports/paper_numbers.json, which cites it.
 PAPER_TABLE1_MS = _PAPER.table1_ms()
 #: The tasks of the paper's Table 1, in its order: Table 1 here has a row for each (and for any other task measured).
-TASKS = tuple(PAPER_TABLE1_MS)
+TABLE1_TASKS = tuple(PAPER_TABLE1_MS)
 PAPER_DEVICE = _PAPER.table1_device()
-NOT_RUN = "not run"
 
 
 @dataclass
@@ -100,42 +112,16 @@ class ReportConfig:
     title: str = "Policy gradients through pixels: full vs decoupled"
     """Title of the report."""
     reps: int = 2000
-    """Bootstrap resamples per confidence interval of the seed statistics (ablations.stats.DEFAULT_REPS)."""
+    """Bootstrap resamples per confidence interval of the seed statistics (ablations.reports.stats.DEFAULT_REPS)."""
     at_iteration: int | None = None
     """Read the seed statistics (section 3) as if every run had stopped at this iteration, e.g. to set longer
     runs beside shorter ones; None: at the fewest iterations any run of the task reached."""
 
 
 # ---------------------------------------------------------------------------------------------- inputs
-def run_median_ms(run: Run, key: str) -> float | None:
-    """A run's median ``key`` (``bwd_ms``, ``iter_ms``, ...) per iteration: summary.json's ``median_<key>``, else
-    recomputed from metrics.jsonl.
-
-    The recomputation matches ``ablations.runs``: iterations after ``warmup_iters``, probe iterations (which
-    differentiate twice) excluded.
-    """
-    if run.summary and is_number(run.summary.get(f"median_{key}")):
-        return float(run.summary[f"median_{key}"])
-    warm = run.config.get("warmup_iters", 2) or 0
-    vals = [m[key] for m in run.metrics if is_number(m.get(key)) and m.get("iter", 0) > warm and not m.get("probed")]
-    return median(vals) if vals else None
-
-
 def run_bwd_ms(run: Run) -> float | None:
     """A run's median backward ms per iteration (:func:`run_median_ms`)."""
     return run_median_ms(run, "bwd_ms")
-
-
-def read_benchmark_json(path: str | os.PathLike):
-    """The parsed JSON of a ``--benchmark`` file; ValueError naming the flag and file when it is missing or not
-    JSON."""
-    path = Path(path)
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"--benchmark {path}: no such file") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"--benchmark {path}: not valid JSON ({e})") from None
 
 
 def load_benchmark(path: str | os.PathLike) -> tuple[dict, list[dict]]:
@@ -145,7 +131,7 @@ def load_benchmark(path: str | os.PathLike) -> tuple[dict, list[dict]]:
     meta, results = ({}, data) if isinstance(data, list) else (data, data.get("results") if isinstance(data, dict)
                                                                else None)
     if isinstance(data, dict) and results is None and isinstance(data.get("rows"), list):
-        # benchmarks/population.py: iteration times of populations (ablations.seeds reads them); no Table 1 rows
+        # benchmarks/population.py: iteration times of populations (ablations.reports.arms reads them); no Table 1 rows
         return {k: v for k, v in meta.items() if k != "rows"}, []
     if not isinstance(results, list):
         raise ValueError(f"--benchmark {path}: expected a 'results' list of {{task, mode, bwd_ms}} objects")
@@ -169,12 +155,6 @@ def _setting(d: dict) -> str:
     return " ".join(parts) or "?"
 
 
-def run_device(run: Run) -> str:
-    """The device a run trained on, as config.json records it (the GPU's name on CUDA)."""
-    env = run.environment
-    return env.get("gpu") or env.get("device") or run.config.get("device") or "?"
-
-
 @dataclass
 class Cell:
     """Our backward time for one (task, label) and where it came from; ``mode`` is the label's mode."""
@@ -187,16 +167,10 @@ class Cell:
     mode: str = ""
 
 
-def is_population_member(run: Run) -> bool:
-    """Whether the run trained in a population of several members (config.json's "population" record): its
-    iteration's times are then the whole population's, not its own."""
-    return run.population is not None and len(run.population.get("members") or ()) > 1
-
-
 def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]], *, label=None
                 ) -> dict[tuple[str, str], Cell]:
     """Our backward-time cells keyed by (task, label): benchmarks first (label = mode), then runs grouped by
-    :func:`ablations.plot.group_runs` with ``label`` (see the module docstring), population members left out
+    :func:`ablations.reports.style.group_runs` with ``label`` (see the module docstring), population members left out
     (:func:`is_population_member`)."""
     cells: dict[tuple[str, str], Cell] = {}
     for path, meta, results in benchmarks:
@@ -231,27 +205,6 @@ def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]]
 
 
 # ---------------------------------------------------------------------------------------------- formatting
-def _ms(v: float | None) -> str:
-    if v is None:
-        return NOT_RUN
-    return f"{v:.0f}" if v >= 100 else f"{v:.1f}" if v >= 10 else f"{v:.3g}"
-
-
-def _cell(v) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return _ms(v)
-    return str(v).replace("|", "\\|").replace("\n", " ")
-
-
-def markdown_table(header: list[str], rows: list[list]) -> list[str]:
-    """Markdown table lines; floats formatted like times, '|' escaped."""
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
-    return lines
-
-
 def _mtime(p: Path) -> str:
     try:
         return _dt.datetime.fromtimestamp(p.stat().st_mtime).astimezone().isoformat(timespec="seconds")
@@ -297,12 +250,6 @@ def _commit(run: Run) -> str:
     return first.split()[1][:12] if first.startswith("commit ") and len(first.split()) > 1 else first[:40]
 
 
-def report_path(target: str | os.PathLike, base: Path) -> str:
-    """``target`` relative to ``base`` (the report's folder): a report names no absolute path of the machine that
-    wrote it, and its links hold wherever the folders move together."""
-    return Path(os.path.relpath(target, base)).as_posix()
-
-
 # ---------------------------------------------------------------------------------------------- sections
 def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. Backward time per iteration (Table 1)",
                    members_left_out: int = 0) -> list[str]:
@@ -320,14 +267,14 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
               f"paper ({PAPER_DEVICE}): D.Va [ms]", f"paper ({PAPER_DEVICE}): SHAC with rendering [ms]",
               "paper: ratio"]
     rows = []
-    extra = sorted({t for t, _ in cells if t not in TASKS})
+    extra = sorted({t for t, _ in cells if t not in TABLE1_TASKS})
 
     def of_mode(task: str, mode: str) -> list[tuple[str, Cell]]:
         found = [(lab, c) for (t, lab), c in cells.items() if t == task and (c.mode or lab) == mode]
         # The plain mode first (a benchmark's, or runs without variants), then the variants by label.
         return sorted(found, key=lambda lc: (lc[0] != mode, lc[0]))
 
-    for task in (*TASKS, *extra):
+    for task in (*TABLE1_TASKS, *extra):
         decs = of_mode(task, "decoupled")
         dec_label, dec = decs[0] if decs else ("decoupled", None)
         paper = PAPER_TABLE1_MS.get(task)
@@ -347,15 +294,15 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
             for name, c in ((dec_label, dec), (full_label, full)):
                 if c:
                     info.append(f"{name}: {c.setting}, {c.device}, {c.source} (n={c.n})")
-            rows.append([task, _ms(dec.ms if dec else None), _ms(full.ms if full else None), ratio,
+            rows.append([task, ms_text(dec.ms if dec else None), ms_text(full.ms if full else None), ratio,
                          "; ".join(info) or NOT_RUN,
-                         _ms(paper[0]) if paper else "-", _ms(paper[1]) if paper else "-",
+                         ms_text(paper[0]) if paper else "-", ms_text(paper[1]) if paper else "-",
                          f"{paper[1] / paper[0]:.2f}x" if paper else "-"])
     out += markdown_table(header, rows)
     state = sorted((t, lab) for (t, lab), c in cells.items() if (c.mode or lab) in ("state", "blind"))
     if state:
         out += ["", "Runs that render nothing during training (state, blind) have backward times too: "
-                + ", ".join(f"{t} {lab} {_ms(cells[(t, lab)].ms)} ms" for t, lab in state) + "."]
+                + ", ".join(f"{t} {lab} {ms_text(cells[(t, lab)].ms)} ms" for t, lab in state) + "."]
     if members_left_out:
         out += ["", f"{members_left_out} run(s) trained as population members are left out: a member's times are "
                 "its whole population's (give --benchmark files for their arms' times alone)."]
@@ -393,20 +340,6 @@ def floors_section(runs: list[Run], floors: Floors, *, base: Path) -> list[str]:
     return [*out, ""]
 
 
-def figure_lines(res: PlotResult, names, base: Path) -> list[str]:
-    """Markdown for the named figures of a make_plots result (links relative to ``base``), or why one is missing."""
-    out = []
-    for name in names:
-        caption = FIGURES[name]
-        if name in res.files:
-            out += [f"![{caption}]({report_path(res.files[name], base)})", "", f"*{caption}*", ""]
-            out += [f"*{line}.*" for line in res.left_out if line.startswith(f"{name}:")]
-            out += [""] if out[-1] != "" else []
-        elif name in res.skipped:
-            out += [f"*{name} not drawn: {res.skipped[name]}.*", ""]
-    return out
-
-
 def runs_table(runs: list[Run], *, label=None) -> list[str]:
     """One row per run: its group, status, size, training return at its end (the exploring policy's last 100
     episodes: not the deterministic evaluation return the seed statistics read), medians of time and memory."""
@@ -437,7 +370,7 @@ def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors
                    leave_out: tuple[str, ...] = ()) -> list[str]:
     """The ablate-plot figures (drawn into ``fig_dir`` unless ``plots`` holds them already; linked relative to
     ``base``) but those named in ``leave_out`` (shown by another section), the floors and a runs table;
-    ``label``: a run's group (:func:`ablations.plot.group_runs`)."""
+    ``label``: a run's group (:func:`ablations.reports.style.group_runs`)."""
     out = [heading, ""]
     if not runs:
         return [*out, "No training runs were given.", ""]
@@ -454,7 +387,6 @@ def curves_section(runs: list[Run], fig_dir: Path, base: Path, *, floors: Floors
 def memory_section(sweeps: list[Path], fig_dir: Path, base: Path, *, heading: str = "## 3. Memory sweep"
                    ) -> list[str]:
     """The ablate-memory table(s) and figures of each sweep folder (figures into ``fig_dir``)."""
-    from ablations.memory import plot_sweep, read_csv
 
     out = [heading, ""]
     if not sweeps:
@@ -541,8 +473,6 @@ def build_report(cfg: ReportConfig) -> Path:
         raise ValueError("nothing to report: give run folders, --memory SWEEP_DIR and/or --benchmark FILE.json")
     if cfg.reps < 1:
         raise ValueError(f"--reps must be a positive number of bootstrap resamples, got {cfg.reps}")
-    from ablations.stats import check_at_iteration  # (rliable and scipy load only when a report is built)
-
     try:
         check_at_iteration(cfg.at_iteration)
     except ValueError as e:
@@ -571,8 +501,6 @@ def build_report(cfg: ReportConfig) -> Path:
     if benchmarks:
         inputs.append(f"{len(benchmarks)} benchmark file(s)")
     lines += [f"Built from {', '.join(inputs)}. Sections without inputs say so; no number here is estimated.", ""]
-    from ablations.seeds import PROBE_FIGURES, SEED_FIGURES, arm_label, probe_section, seed_section
-
     label = arm_label(runs) if runs else None
     plots = make_plots(runs, fig_dir, floors=floors, label=label) if runs else None
     lines += table1_section(collect_bwd(runs, benchmarks),
