@@ -353,7 +353,7 @@ def restore_member(m: Member, state: dict) -> None:
     m.recent_returns = deque(state["recent_returns"], maxlen=100)
     m.recent_lengths = deque(state["recent_lengths"], maxlen=100)
     if m.generator is not None:
-        m.generator.set_state(state["generator"])
+        m.generator.set_state(state["generator"].cpu())  # a host ByteTensor, wherever map_location put it
 
 
 def joined_state(ordered: Sequence[dict]) -> tuple[dict, dict, torch.Tensor, torch.Tensor]:

@@ -111,6 +111,28 @@ def test_shac_iteration_on_cuda(mode):
         assert np.isfinite(m["grad_norm_render_term_encoder"])
 
 
+@pytest.mark.parametrize("members", [1, 2])
+def test_a_checkpoint_loaded_onto_the_gpu_resumes_as_if_uninterrupted(tmp_path, members):
+    """``ablate --resume`` on a GPU loads checkpoints with map_location="cuda", which moves the generators' host
+    ByteTensor states to the GPU too; the trainer must restore them there as well as on the CPU."""
+    from gradlab.checkpoint import load_checkpoint
+
+    cfgs = [SHACConfig(task="cartpole", mode="decoupled", num_envs=4, horizon=4, iters=4, critic_iterations=2,
+                       image_size=32, seed=s) for s in range(members)]
+    straight = SHAC(cfgs if members > 1 else cfgs[0], device="cuda")
+    straight.train_iteration()
+    state = straight.state_dict()
+    path = tmp_path / "ckpt.pt"
+    torch.save(state, path)
+    after = straight.train_iteration()
+    resumed = SHAC(cfgs if members > 1 else cfgs[0], device="cuda")
+    resumed.load_state_dict(load_checkpoint(path, map_location="cuda"))
+    again = resumed.train_iteration()
+    pairs = zip(after, again) if members > 1 else [(after, again)]
+    for a, b in pairs:
+        assert b["grad_norm"] == pytest.approx(a["grad_norm"], rel=1e-4)
+
+
 def test_ray_tracer_on_cuda_matches_cpu_and_replays_in_a_graph():
     """The Warp tracer on PyTorch's stream: the CUDA image is the rasterizer's sharp limit, and a captured
     frame, replayed after the state changed in place, equals an eager frame of the new state (refit inside the
