@@ -15,7 +15,9 @@ from dataclasses import dataclass, field
 
 import tyro
 
-from ablations.sweep.config import SweepConfig, flag_args, norm_key, parse_set, parse_vary, slug
+from ablations.naming import slug
+from ablations.run_config import RunConfig
+from ablations.sweep.config import SweepConfig, flag_args, norm_key, parse_set, parse_vary
 from gradlab.config import MODES
 
 __all__ = ["RunSpec", "plan", "attempt_command", "RUN_ARGS", "ABLATE"]
@@ -98,7 +100,6 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     ({name: {"mode": ..., "flags": {flag: value}}}) replaces the modes axis: the grid is tasks x arms x seeds x
     --vary, run ids ``<task>_<arm>_seed<seed>...``, each run with its arm's mode and flags (after --set).
     """
-    from ablations.runs import RunConfig
     from gradlab.config import ModePlan, check_as_given
     from gradlab.shac import MEMBER_FIELDS
     from tasks.command_line import check_argv

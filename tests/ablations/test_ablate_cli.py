@@ -98,9 +98,9 @@ def test_resume_starts_from_the_newest_readable_checkpoint(tmp_path, capsys):
     # overwritten with random bytes (fixed: which error torch.load raises depends on the bytes)
     checkpoint_path(ckpts, 6).write_bytes(random.Random(6).randbytes(4096))
     checkpoint_path(ckpts, 4).write_bytes(b"")  # truncated to nothing
-    cfg, _, device, loaded = prepare(RunConfig(resume=tmp_path / "run", progress=False))
-    assert (cfg.task, device.type) == ("cartpole", "cpu")
-    assert loaded.path == checkpoint_path(ckpts, 2) and loaded.state == {"iteration": 2}
+    prepared = prepare(RunConfig(resume=tmp_path / "run", progress=False))
+    assert (prepared.cfgs[0].task, prepared.device.type) == ("cartpole", "cpu")
+    assert prepared.states == [{"iteration": 2}]
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 2
     assert re.match(rf"warning: checkpoint {re.escape(str(checkpoint_path(ckpts, 6)))} is damaged "
@@ -121,7 +121,7 @@ def test_a_run_folder_whose_preset_has_no_table_resumes_with_its_recorded_values
                     lr_decay_iters=30)
     atomic_write_json(tmp_path / "run" / "config.json", {"config": recorded})
     save_checkpoint(checkpoint_path(tmp_path / "run" / "checkpoints", 2), {"iteration": 2})
-    cfg, _, _, _ = prepare(RunConfig(resume=tmp_path / "run", progress=False))
+    cfg = prepare(RunConfig(resume=tmp_path / "run", progress=False)).cfgs[0]
     assert cfg.preset == "dva" and "preset 'project' has no table here" in capsys.readouterr().err
     assert resolve_config(cfg) == cfg  # nothing left for the preset to fill in
     assert {k: getattr(cfg, k) for k in PRESET_FIELDS} == {k: (tuple(v) if isinstance(v, list) else v)
