@@ -7,6 +7,7 @@ non-positive sizes, an unwritable output folder) is reported in one line naming 
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import os
 import sys
@@ -164,6 +165,8 @@ class _SignalsWhileImporting:
 
 
 def _ablate(argv: list[str] | None, startup) -> None:
+    # not at the top: these import torch, and ablate starts before torch is imported (ablate_main imports them
+    # once Startup.before_torch has run)
     from ablations.population import AblateConfig, closing_lines, home_of
     from ablations.runs import NothingToDo, RunFailed, describe_error, run
 
@@ -210,8 +213,7 @@ def _checked_members(cfg, argv: list[str]) -> list:
     """The runs ``ablate``'s options stand for (one: a single run), each validated as given (before a preset fills
     in), after the checks that need the whole command line; ValueError naming the flag (``--member`` and its entry
     for a listed member's own settings), before anything is created."""
-    import dataclasses
-
+    # not at the top: these import torch (see _ablate)
     from ablations.run_config import RESUMABLE
     from tasks.command_line import scan, usable_cores
 

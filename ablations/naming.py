@@ -1,9 +1,11 @@
 """The names of run folders: one scheme for a run alone, a population and its members, and the sweep's runs.
 
-A run alone is ``<task>_<mode>_seed<seed>_<date>-<time>``; a population ``<task>_population<N>_<date>-<time>``,
-each member inside it ``<task>_<mode>[_<what sets it apart>]_seed<seed>``; flag values are written into names by
-:func:`slug` (the sweep's run ids too). Kept apart from the modules that train, so that the sweep and the run
-path both name folders from here without importing each other.
+``ablate`` names a run alone ``<task>_<mode>_seed<seed>_<date>-<time>``, a population
+``<task>_population<N>_<date>-<time>`` and each member inside it ``<task>_<mode>[_<what sets it apart>]_seed<seed>``
+(:func:`folder_name`, :func:`member_name`). A sweep names its runs ``<task>_<arm or mode>_seed<seed>[_<flag><value>]``
+and its populations ``<task>_population<k>`` (:func:`sweep_run_id`, :func:`sweep_population_id`): the names its
+existing folders and manifests hold. Flag values are written into every name by :func:`slug`. Kept apart from the
+modules that train, so that the sweep and the run path both name folders from here without importing each other.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from typing import Any
 
 from gradlab.members import MEMBER_FIELDS
 
-__all__ = ["slug", "member_name", "folder_name"]
+__all__ = ["slug", "member_name", "folder_name", "sweep_run_id", "sweep_population_id"]
 
 
 def slug(value: Any) -> str:
@@ -43,3 +45,14 @@ def folder_name(members: Sequence) -> str:
     if len(members) == 1:
         return f"{member_name(members[0], members)}_{stamp}"
     return f"{members[0].task}_population{len(members)}_{stamp}"
+
+
+def sweep_run_id(task: str, column: str, seed: int, flags: dict) -> str:
+    """A sweep run's folder: its task, arm (or mode), seed and each ``--vary`` flag's value."""
+    return f"{task}_{column}_seed{seed}" + "".join(f"_{name.replace('_', '-')}{slug(value)}"
+                                                   for name, value in flags.items())
+
+
+def sweep_population_id(task: str, k: int) -> str:
+    """The folder of a sweep's ``k``-th population of ``task`` (``--pack``)."""
+    return f"{task}_population{k}"

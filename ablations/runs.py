@@ -22,6 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
+from tqdm.auto import tqdm
 
 from ablations.population import NothingToDo, Prepared, closing_lines, prepare
 from ablations.run_config import RESUMABLE, RunConfig, default_threads, shac_part
@@ -36,9 +37,11 @@ from ablations.stopping import (
     plain_warnings,
     rescue,
 )
+from diffrender import BinCapacityWarning
 from gradlab import precision
 from gradlab.config import SHACConfig
 from gradlab.presets import preset_record
+from gradlab.shac import SHAC
 from gradlab.timing import median
 
 __all__ = ["RunConfig", "run", "prepare", "closing_lines", "default_threads", "use_threads", "shac_part",
@@ -80,8 +83,6 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
     startup = startup or Startup()
     folders: list[RunFolder] = []
     with StopOnSignal() as stop, plain_warnings():
-        from diffrender import BinCapacityWarning
-
         # the renderer grows its automatic bin capacity as the robot moves and still renders every frame
         # completely (diffrender.BinCapacityWarning): nothing a run's user has to act on
         warnings.filterwarnings("ignore", category=BinCapacityWarning)
@@ -109,10 +110,6 @@ def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started:
     """The rest of :func:`run` once its folders and start-up are settled: build the trainer, record the runs,
     train, write the summaries. Every list here has one entry per member, in the trainer's member order (a single
     run: one)."""
-    from tqdm.auto import tqdm
-
-    from gradlab.shac import SHAC
-
     cfgs, folders, device, states = prepared.cfgs, prepared.folders, prepared.device, prepared.states
     cfg = cfgs[0]  # the settings members share
     trainer_built = time.time()

@@ -17,7 +17,9 @@ import warnings
 from collections.abc import Iterator
 
 import torch
+from tqdm import tqdm
 
+from ablations.memory.worker import is_oom
 from ablations.run_folder import RunFolder
 from gradlab.probes import NonFiniteError
 
@@ -38,8 +40,6 @@ def describe_error(e: BaseException, device=None, where: str = "") -> tuple[str,
     """(summary status, one line) of an error that stopped a run ``where`` (e.g. "during iteration 3"): ``oom``
     for running out of memory on either device (torch's OutOfMemoryError, MemoryError, or the CPU allocator's
     RuntimeError), ``nonfinite`` for a NonFiniteError, ``failed`` for any other."""
-    from ablations.memory.worker import is_oom
-
     first = (str(e).strip().splitlines() or [""])[0]
     at = f" {where}" if where else ""
     if isinstance(e, NonFiniteError):
@@ -141,8 +141,6 @@ class StopOnSignal:
 
     def _handle(self, signum: int, frame) -> None:
         name = signal.Signals(signum).name
-        from tqdm import tqdm
-
         if self._finishing:
             tqdm.write(f"{name}: already stopping; writing the last checkpoint and summary.json first (SIGKILL stops "
                        f"at once, without them)", file=sys.stderr)
@@ -159,8 +157,6 @@ def plain_warnings() -> Iterator[None]:
     """Inside: every warning is one line ``warning: <message>`` on stderr, each message once, written through
     tqdm so that it does not tear the progress bar (Python's own form adds the source line and repeats per place
     it is raised). The warning filters stay as they are."""
-    from tqdm import tqdm
-
     shown: set[tuple[type, str]] = set()
 
     def show(message, category, filename, lineno, file=None, line=None) -> None:

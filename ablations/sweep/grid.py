@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import tyro
 
-from ablations.naming import slug
+from ablations.naming import slug, sweep_run_id
 from ablations.run_config import RunConfig
 from ablations.sweep.config import SweepConfig, flag_args, norm_key, parse_set, parse_vary
 from gradlab.config import MODES
@@ -123,8 +123,7 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     for task, (arm, (mode, arm_flags)), seed in itertools.product(cfg.tasks, columns, cfg.seeds):
         for combo in itertools.product(*(values for _, values in axes)):
             flags = {name: value for (name, _), value in zip(axes, combo)}
-            run_id = f"{task}_{arm or mode}_seed{seed}" + "".join(
-                f"_{name.replace('_', '-')}{slug(value)}" for name, value in flags.items())
+            run_id = sweep_run_id(task, arm or mode, seed, flags)
             own = {"mode": str(mode), "seed": int(seed),
                    **{k: v for k, v in {**arm_flags, **flags}.items() if k in MEMBER_FIELDS}}
             args = ["--task", str(task), "--mode", str(mode), "--seed", str(seed), *shared,

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import tyro
 
-from ablations.naming import member_name
+from ablations.naming import member_name, sweep_population_id
 from ablations.run_config import AblateConfig, RunConfig, shac_part
 from ablations.sweep.grid import RUN_ARGS, RunSpec
 from gradlab.config import resolve_config
@@ -130,9 +130,9 @@ def pack_runs(specs: list[RunSpec], size: int, *, taken: Iterable[str] = ()) -> 
                 jobs.append(alone(part[0]))
                 continue
             k = 0
-            while f"{part[0].task}_population{k}" in used:
+            while sweep_population_id(part[0].task, k) in used:
                 k += 1
-            used.add(job_id := f"{part[0].task}_population{k}")
+            used.add(job_id := sweep_population_id(part[0].task, k))
             jobs.append(_population(job_id, part))
     order = {s.run_id: i for i, s in enumerate(specs)}
     return sorted(jobs, key=lambda j: order[j.run_ids[0]])
