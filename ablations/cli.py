@@ -7,6 +7,7 @@ non-positive sizes, an unwritable output folder) is reported in one line naming 
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import os
 import sys
@@ -113,7 +114,7 @@ def ablate_main(argv: list[str] | None = None) -> None:
         from ablations.startup import Startup
 
         startup = Startup.before_torch(args)  # first: torch is not imported yet
-        import ablations.population  # noqa: F401  (torch, the simulator, the renderer)
+        import ablations.runs  # noqa: F401  (torch, the simulator, the renderer)
     if importing.signal is not None:
         startup.close()
         print(f"{importing.signal}: stopped while starting, before training; {where}", file=sys.stderr)
@@ -163,15 +164,15 @@ class _SignalsWhileImporting:
 
 
 def _ablate(argv: list[str] | None, startup) -> None:
-    from ablations import population
-    from ablations.run_folder import RunFolder
-    from ablations.runs import NothingToDo, RunFailed, closing_lines, describe_error, run
+    # not at the top: these import torch, and ablate starts before torch is imported (ablate_main imports them
+    # once Startup.before_torch has run)
+    from ablations.population import AblateConfig, closing_lines, home_of
+    from ablations.runs import NothingToDo, RunFailed, describe_error, run
 
     argv = list(sys.argv[1:] if argv is None else argv)
-    cfg = parse(population.AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
+    cfg = parse(AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
     try:
-        members = _checked_members(cfg, argv)
-        run_dir = run(members[0] if len(members) == 1 else members, startup=startup)
+        home = run(_checked_members(cfg, argv), startup=startup)
     except ValueError as e:
         _fail(str(e))
     except NothingToDo as e:
@@ -192,15 +193,10 @@ def _ablate(argv: list[str] | None, startup) -> None:
         print(f"error: {text}; {where}", file=sys.stderr)
         raise SystemExit(1) from None
     try:
-        if population.is_population(run_dir):
-            print("\n".join(population.closing_lines(run_dir)))
-            statuses = {(f.read_summary() or {}).get("status")
-                        for f in population.PopulationFolder(run_dir).members()}
-        else:
-            print("\n".join(closing_lines(run_dir)))
-            statuses = {(RunFolder(run_dir).read_summary() or {}).get("status")}
+        print("\n".join(closing_lines(home)))
+        statuses = {(f.read_summary() or {}).get("status") for f in home_of(home)[0]}
     except KeyboardInterrupt as e:  # the run has ended and is recorded; only this summing up is cut short
-        print(f"{str(e) or 'SIGINT'}: the run has ended; see {run_dir}", file=sys.stderr)
+        print(f"{str(e) or 'SIGINT'}: the run has ended; see {home}", file=sys.stderr)
         raise SystemExit(130) from None
     if "interrupted" in statuses:
         raise SystemExit(130)
@@ -213,20 +209,19 @@ def _field(key: str, fields) -> str:
 
 
 def _checked_members(cfg, argv: list[str]) -> list:
-    """The runs ``ablate``'s options stand for, each validated as given (before a preset fills in), after the
-    checks that need the whole command line; ValueError naming the flag (``--member`` and its entry for a listed
-    member's own settings), before anything is created."""
-    import dataclasses
-
-    from ablations.runs import RESUMABLE, RunConfig
-    from gradlab.config import check_as_given
+    """The runs ``ablate``'s options stand for (one: a single run), each validated as given (before a preset fills
+    in), after the checks that need the whole command line; ValueError naming the flag (``--member`` and its entry
+    for a listed member's own settings), before anything is created."""
+    # not at the top: these import torch (see _ablate)
+    from ablations.run_config import RESUMABLE
     from tasks.command_line import scan, usable_cores
 
     fields = {f.name for f in dataclasses.fields(cfg)}
     given = scan(argv)
     if cfg.resume is not None:
         # config.json wins over every other setting, so any other flag would be dropped without a word
-        takes = {*RESUMABLE, "resume", "progress", "compile_helper"}
+        # --restart says what the resume of a folder without a checkpoint does (a sweep's retry passes it)
+        takes = {*RESUMABLE, "resume", "restart", "progress", "compile_helper"}
         ignored = list(dict.fromkeys(g.spelling for g in given if _field(g.key, fields) not in takes))
         if ignored:
             raise ValueError(f"--resume continues {cfg.resume} with the settings its config.json records, so "
@@ -240,24 +235,8 @@ def _checked_members(cfg, argv: list[str]) -> list:
         cores = usable_cores()
         raise ValueError(f"--threads {cfg.threads} is more than the {cores} cores this process may use (its CPU "
                          f"affinity): more threads than cores make every iteration wait; give at most {cores}")
-    members: list[RunConfig] = cfg.members()
-    if cfg.resume is not None:
-        return members
-    for i, member in enumerate(members):
-        try:
-            member.validate()
-            check_as_given(member)
-        except ValueError as e:
-            if not cfg.member:
-                raise
-            spec = cfg.member[i]
-            message = str(e)
-            for part in filter(None, (p.strip() for p in spec.split(","))):
-                key, _, value = (x.strip() for x in part.partition("="))
-                flag = "--" + key.replace("_", "-")
-                message = message.replace(f"{flag} {value}", f"{key}={value}").replace(flag, key)
-            raise ValueError(f"--member {spec!r}: {message}") from None
-    return members
+    # a resume's settings are its folders' (checked as they are read)
+    return cfg.members() if cfg.resume is not None else cfg.checked_members()
 
 
 def memory_main(argv: list[str] | None = None) -> None:

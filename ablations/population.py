@@ -1,122 +1,41 @@
-"""Several runs trained in one process (``gradlab.SHAC`` with a list of configs): ``ablate``'s options with several
-values, the members they stand for, and the population folder that holds the members' run folders.
+"""The runs of one ``ablate`` process and their folders, prepared before any expensive work (:func:`prepare`),
+and what ``ablate`` says when they end (:func:`closing_lines`).
 
-``ablate --mode decoupled full blind --seed 0 1 2`` trains the product of the values as one population; with
-``--member`` the members are listed one by one instead. The population folder holds ``population.json`` (the
-members' folder names, the command) and one ordinary run folder per member, whose config.json names the
-population it ran in: plots, reports and statistics read members as they read single runs.
+A single run is a population of one. Only its folder differs, at the edge: a run alone keeps the flat run
+folder (config.json, metrics.jsonl, ... directly inside), a population of several a population folder holding
+``population.json`` (the members' folder names, the command) and one ordinary run folder per member, whose
+config.json names the population it ran in: plots, reports and statistics read members as they read single runs.
+``ablate --resume`` takes either folder, or a member's.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
+import torch
+
+from ablations.naming import folder_name, member_name
+from ablations.reports import load_floors
+from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
 from ablations.run_folder import RunFolder, check_writable
-from ablations.runs import RunConfig
-from gradlab.config import SHACConfig
-from vocabulary import MEMBER_FIELDS, MODES, POPULATION_RECORD, PRESETS, RASTER_MODELS
+from gradlab import precision
+from gradlab.checkpoint import atomic_write_json, checkpoint_path, load_checkpoint
+from gradlab.config import resolve_config
+from gradlab.members import check_population, population_order
+from gradlab.seeding import resolve_device
+from vocabulary import POPULATION_RECORD, PRESET_FIELDS, PRESETS
 
-__all__ = ["AblateConfig", "POPULATION", "PopulationFolder", "member_name", "is_population"]
+__all__ = ["AblateConfig", "POPULATION", "PopulationFolder", "Prepared", "NothingToDo", "prepare", "check_resume",
+           "closing_lines", "home_of", "member_name", "is_population"]
 
 #: The record a population folder holds beside its members' run folders.
 POPULATION = POPULATION_RECORD
-
-_PRODUCT = ("mode", "raster_model", "preset", "seed")
-
-
-@dataclass
-class AblateConfig(RunConfig):
-    """Train SHAC on a task with full, decoupled (D.Va), blind or state policy gradients, and measure them.
-    Several values of --mode, --seed, --raster-model or --preset train every combination as one population in
-    this process (one batched simulation; each member a run of its own, in its own run folder)."""
-
-    mode: tuple[Literal[MODES], ...] = ("decoupled",)
-    """full: gradients flow through the rendered images into the robot state; decoupled (D.Va): the image stack is
-    detached at the actor's input; state: the actor sees the state vector (upper bound); blind: the decoupled
-    visual actor fed a constant black image (the floor any result from pixels must beat). Several: a population."""
-    seed: tuple[int, ...] = (0,)
-    """One seed for everything of a run (networks, noise, resets); same seed on the CPU, identical metrics.
-    Several: a population, one member per seed."""
-    raster_model: tuple[Literal[RASTER_MODELS], ...] | None = None
-    """The rasterizer's image model, and so the gradient estimator of --mode full: hard (a z-buffer, the paper's
-    baseline), softmax or alpha (silhouettes carry gradient); None: the preset's. Several: a population."""
-    preset: tuple[Literal[PRESETS], ...] = ("dva",)
-    """Hyperparameters every unset setting takes (gradlab/presets.py): dva (D.Va's per-task configs) or
-    shac-diffrender (the paper's full-APG baseline: its decay length and the hard rasterizer). Several: a
-    population."""
-    member: tuple[str, ...] = ()
-    """Population members one by one instead of a product: each 'mode=full,seed=0[,raster_model=hard][,preset=P]
-    [,other=V]' with settings a member may have of its own (vocabulary.MEMBER_FIELDS); the other flags are the
-    population's. Not with several values of --mode, --seed, --raster-model or --preset."""
-
-    def members(self) -> list[RunConfig]:
-        """The runs these options stand for: one (a single run), or a population's members; ValueError naming the
-        flag for options that do not make one."""
-        base = {f.name: getattr(self, f.name) for f in dataclasses.fields(RunConfig) if f.name not in _PRODUCT}
-        values = {"mode": self.mode, "seed": self.seed, "preset": self.preset,
-                  "raster_model": (None,) if self.raster_model is None else self.raster_model}
-        for name, vals in values.items():
-            if len(set(vals)) != len(vals):
-                raise ValueError(f"--{name.replace('_', '-')} lists a value twice: {' '.join(map(str, vals))}")
-        if self.member:
-            several = [f"--{k.replace('_', '-')}" for k, v in values.items() if len(v) > 1]
-            if several:
-                raise ValueError(f"--member lists the members one by one: give {' and '.join(several)} one value")
-            one = {k: v[0] for k, v in values.items()}
-            return [RunConfig(**{**base, **one, **_member_settings(spec)}) for spec in self.member]
-        return [RunConfig(**base, mode=m, raster_model=r, preset=p, seed=s)
-                for m, r, p, s in itertools.product(values["mode"], values["raster_model"], values["preset"],
-                                                    values["seed"])]
-
-
-def _member_settings(spec: str) -> dict:
-    """'mode=full,seed=0,...' -> {"mode": "full", "seed": 0, ...}, values typed as their settings are."""
-    out = {}
-    for part in filter(None, (p.strip() for p in spec.split(","))):
-        key, sep, raw = part.partition("=")
-        key = key.strip().replace("-", "_")
-        if not sep or key not in MEMBER_FIELDS:
-            raise ValueError(f"--member {spec!r}: {part!r} is not a member's own setting (one of "
-                             f"{', '.join(MEMBER_FIELDS)}, as key=value)")
-        out[key] = _typed(raw.strip(), RunConfig.__dataclass_fields__[key].default)
-    if "mode" not in out:
-        raise ValueError(f"--member {spec!r}: every member names its mode (mode=...)")
-    return out
-
-
-def _typed(raw: str, default):
-    if raw.lower() == "none":
-        return None
-    if isinstance(default, bool):
-        return raw.lower() in ("1", "true", "yes")
-    if isinstance(default, tuple):  # e.g. betas=0.7/0.95
-        return tuple(float(x) for x in raw.split("/"))
-    for kind in (int, float):
-        try:
-            return kind(raw)
-        except ValueError:
-            pass
-    return raw
-
-
-def member_name(cfg: RunConfig, members: list[RunConfig]) -> str:
-    """A member's run folder name: task, mode, the member settings that differ between members and that it sets
-    (a raster model or preset by its name, another setting as name-value), seed; e.g. ``hopper_full_hard_seed0``
-    beside ``hopper_full_seed0``."""
-    from ablations.sweep.config import slug
-    varying = [k for k in MEMBER_FIELDS if k not in ("mode", "seed")
-               and len({repr(getattr(c, k)) for c in members}) > 1 and getattr(cfg, k) is not None]
-    # values as the sweep writes them into folder names (a tuple such as betas: "betas0.5-0.9", not "(0.5, 0.9)")
-    labels = [str(getattr(cfg, k)) if k in ("raster_model", "preset")
-              else f"{k.replace('_', '-')}{slug(getattr(cfg, k))}" for k in varying]
-    return "_".join([cfg.task, cfg.mode, *labels, f"seed{cfg.seed}"])
 
 
 def is_population(path: str | Path) -> bool:
@@ -131,7 +50,7 @@ class PopulationFolder:
         self.path = Path(path)
 
     @classmethod
-    def create(cls, parent: Path, name: str, members: list[RunConfig], names: list[str]) -> tuple:
+    def create(cls, parent: Path, name: str, names: list[str]) -> tuple[PopulationFolder, list[RunFolder]]:
         """The new folder ``parent/name`` and a new run folder per member (ValueError if it exists, not empty)."""
         pop = cls(Path(parent) / name)
         check_writable(parent)
@@ -144,8 +63,9 @@ class PopulationFolder:
         return pop, folders
 
     @classmethod
-    def of(cls, path: str | Path) -> PopulationFolder:
-        """The population of ``path``: a population folder, or a member's run folder (its config.json names it)."""
+    def of(cls, path: str | Path) -> PopulationFolder | None:
+        """The population of ``path``: a population folder, or a member's run folder (its config.json names it);
+        None for anything else (a run alone's folder)."""
         path = Path(path)
         if is_population(path):
             return cls(path)
@@ -155,11 +75,9 @@ class PopulationFolder:
             record = {}
         if isinstance(record.get("population"), dict) and is_population(path.parent):
             return cls(path.parent)
-        raise ValueError(f"{path} is not a population folder (no {POPULATION})")
+        return None
 
     def write_record(self, record: dict) -> None:
-        from gradlab.checkpoint import atomic_write_json
-
         atomic_write_json(self.path / POPULATION, record)
 
     def read_record(self) -> dict:
@@ -175,126 +93,256 @@ class PopulationFolder:
         return [RunFolder.existing(self.path / name) for name in self.read_record()["members"]]
 
 
-def is_member(path: str | Path) -> bool:
-    """Whether ``path`` (a ``--resume`` folder) belongs to a population: its folder, or a member's run folder."""
-    try:
-        PopulationFolder.of(path)
-    except ValueError:
-        return False
-    return True
+def home_of(path: str | Path) -> tuple[list[RunFolder], PopulationFolder | None]:
+    """The members' run folders of the runs ``path`` belongs to (a run alone's folder, a population's folder or a
+    member's) and their population folder (None: a run alone); ValueError naming what is not readable. The one
+    place that tells a run alone's flat folder from a population's."""
+    population = PopulationFolder.of(path)
+    return ([RunFolder.existing(path)], None) if population is None else (population.members(), population)
 
 
-def prepare(cfg) -> tuple[list[RunConfig], list[RunFolder], object, list[dict] | None, PopulationFolder]:
-    """A population's settings checked and its folders made (or found, to resume), before any expensive work.
+# ---------------------------------------------------------------------------------------------- preparing
+@dataclass
+class Prepared:
+    """What :func:`prepare` settled: one entry per member, in the trainer's member order (a single run: one)."""
 
-    ``cfg``: the members' RunConfigs, or a RunConfig whose ``--resume`` names a population (or a member of one).
-    Returns the members' configs and run folders in the trainer's member order, the device, the checkpoint states
-    to resume from (None: a fresh start; a resume from the newest iteration every member has a checkpoint of) and
-    the population folder. ValueError naming the flag for members that cannot share a process."""
-    from ablations.runs import _stored_config, default_threads, shac_part
-    from gradlab import precision
-    from gradlab.seeding import resolve_device
-    from gradlab.shac import check_population, population_order
+    cfgs: list[RunConfig]
+    folders: list[RunFolder]
+    device: torch.device
+    #: The checkpoint states to resume from, one per member; None: a fresh start (or a resume with no checkpoint).
+    states: list[dict] | None
+    #: The population folder; None: a run alone, whose run folder is the one folder ``ablate`` names.
+    population: PopulationFolder | None
 
-    if isinstance(cfg, RunConfig):
-        home = PopulationFolder.of(cfg.resume)
+    @property
+    def home(self) -> Path:
+        """The folder ``ablate`` names (and ``--resume`` takes)."""
+        return self.folders[0].path if self.population is None else self.population.path
+
+
+class NothingToDo(Exception):
+    """A resume of a run that has nothing left to train (its message: one line saying so and how to extend it)."""
+
+
+def prepare(runs: RunConfig | Sequence[RunConfig]) -> Prepared:
+    """Validate everything, then create the folders (or find the ones to resume), before any expensive work.
+
+    ``runs``: the members' RunConfigs (one: a single run), or one RunConfig whose ``--resume`` names a run folder,
+    a population folder or a member's folder. The configs come back in the trainer's member order, a resume's as
+    its folders record them, ``threads`` resolved. ValueError naming the flag for bad input, or for members that
+    cannot share a process; NothingToDo for a resume of a finished run."""
+    members = [runs] if isinstance(runs, RunConfig) else list(runs)
+    resume = members[0].resume
+    population: PopulationFolder | None = None
+    if resume is not None:
         try:
-            folders = home.members()
+            folders, population = home_of(resume)
         except ValueError as e:
-            raise ValueError(f"--resume {cfg.resume}: {e}") from None
-        members = [_stored_config(f, cfg) for f in folders]
+            raise ValueError(f"--resume {resume}: {e}") from None
+        members = [_stored_config(f, members[0]) for f in folders]
     else:
-        members, home, folders = list(cfg), None, []
+        if members[0].restart:
+            raise ValueError("--restart goes with --resume RUN_FOLDER (a folder that holds no checkpoint)")
         for member in members:
             member.validate()
-    _check_members(members)
-    check_population([_resolved(m) for m in members])
+    check_shared(members)
+    check_population([resolve_config(shac_part(m)) for m in members])
     order = population_order([shac_part(m) for m in members])
-    members = [members[i] for i in order]
     threads = members[0].threads or default_threads()
-    members = [dataclasses.replace(m, threads=threads) for m in members]
+    members = [dataclasses.replace(members[i], threads=threads) for i in order]
     device = resolve_device(members[0].device)
     precision.check(members[0].precision, device)  # a refusal before any folder is made
-    if home is not None:
-        from ablations.runs import check_resume
-
-        folders = [folders[i] for i in order]
-        states = _common_checkpoint(folders, device)
-        check_resume(folders, members[0], None if states is None else states[0])
-        return members, folders, device, states, home
-    if members[0].restart:
-        raise ValueError("--restart goes with --resume RUN_FOLDER (a folder that holds no checkpoint)")
+    if resume is not None:
+        prepared = Prepared(members, [folders[i] for i in order], device, None, population)
+        try:
+            prepared.states = _resume_states(prepared.folders, device)
+        except ValueError as e:
+            raise ValueError(f"--resume {resume}: {e}") from None
+        check_resume(prepared)
+        return prepared
     first = members[0]
-    names = [member_name(m, members) for m in members]
-    name = first.name or f"{first.task}_population{len(members)}_{time.strftime('%Y%m%d-%H%M%S')}"
-    home, folders = PopulationFolder.create(first.out, name, members, names)
-    return members, folders, device, None, home
+    name = first.name or folder_name(members)
+    if len(members) == 1:  # the edge: a run alone's folder is the run folder itself
+        folders = [RunFolder.create(first.out, name)]
+    else:
+        population, folders = PopulationFolder.create(first.out, name, [member_name(m, members) for m in members])
+    return Prepared(members, folders, device, None, population)
 
 
-def _resolved(cfg: RunConfig):
-    from ablations.runs import shac_part
-    from gradlab.config import resolve_config
+def _stored_config(folder: RunFolder, overrides: RunConfig) -> RunConfig:
+    """The RunConfig of a run folder's config.json with what a resume may change taken from ``overrides``; a
+    damaged or foreign file is named in a ValueError."""
+    try:
+        stored = folder.read_record()["config"]
+    except ValueError as e:
+        raise ValueError(f"--resume {folder.path}: {e}; it is the record of the run's settings, restore it (e.g. "
+                         f"from a copy) to resume") from None
+    fields = {f.name for f in dataclasses.fields(RunConfig)}
+    stored = {k: v for k, v in stored.items() if k in fields}
+    for k in ("actor_hidden", "critic_hidden", "betas"):
+        if stored.get(k) is not None:
+            stored[k] = tuple(stored[k])
+    if stored.get("preset") not in PRESETS and all(stored.get(k) is not None for k in PRESET_FIELDS):
+        # config.json holds every value a preset supplied, so a run whose preset has no table here (an older
+        # folder's) resumes with exactly its values, under the default preset's name
+        print(f"note: --resume {folder.path}: preset {stored.get('preset')!r} has no table here; the run resumes "
+              f"with the values its config.json records (as --preset {RunConfig.preset} with them set)",
+              file=sys.stderr)
+        stored["preset"] = RunConfig.preset
+    stored["out"] = Path(stored.get("out", folder.path.parent))
+    stored.update(resume=folder.path, progress=overrides.progress, restart=overrides.restart)
+    defaults = RunConfig()
+    for k in RESUMABLE:
+        if getattr(overrides, k) != getattr(defaults, k):
+            stored[k] = getattr(overrides, k)
+    try:
+        cfg = RunConfig(**stored)
+        cfg.validate()
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--resume {folder.path}: {folder.config_path}: {e}") from None
+    return cfg
 
-    return resolve_config(shac_part(cfg))
 
-
-def _check_members(members: list[RunConfig]) -> None:
-    """Run options (not trainer settings) that a population's members must share, named as flags."""
-    trainer_fields = {f.name for f in dataclasses.fields(SHACConfig)}
-    for name in (f.name for f in dataclasses.fields(RunConfig)):
-        if name in trainer_fields or name in ("resume", "name", "restart"):
-            continue
-        values = {repr(getattr(m, name)) for m in members}
-        if len(values) > 1:
-            raise ValueError(f"the members of one population share --{name.replace('_', '-')}, got "
-                             f"{' and '.join(sorted(values))}")
-
-
-def _common_checkpoint(folders: list[RunFolder], device) -> list[dict] | None:
-    """Every member's state at the newest iteration all of them have a readable checkpoint of; None where no
-    member has one (the population starts over in its folders, with --restart where it trained before); ValueError
-    naming the folders otherwise."""
-    from gradlab.checkpoint import checkpoint_path, load_checkpoint
-
+def _resume_states(folders: list[RunFolder], device: torch.device) -> list[dict] | None:
+    """Every member's checkpoint state of the newest iteration all of them hold a readable checkpoint of; None
+    where none holds one (the runs start over in their folders, with --restart where they trained before).
+    Damaged newer files are named on stderr and renamed aside (``.damaged`` appended), so that they no longer
+    count among the newest when the resumed run prunes, and stay for inspection; ValueError naming every file
+    that did not load when no iteration is left."""
     have = [f.checkpoint_iterations() for f in folders]
     if not any(have):
         return None
+    damaged: list[tuple[Path, str]] = []
     for iteration in sorted(set.intersection(*have), reverse=True):
-        try:
-            return [load_checkpoint(checkpoint_path(f.checkpoint_dir, iteration), map_location=device)
-                    for f in folders]
-        except Exception as e:  # a damaged file: an older iteration every member has
-            print(f"warning: a checkpoint of iteration {iteration} does not load ({type(e).__name__}); trying an "
-                  f"older one", file=sys.stderr)
-    raise ValueError(f"the members of {folders[0].path.parent} have no checkpoint of one iteration in common "
-                     f"({', '.join(f'{f.path.name}: {sorted(h)}' for f, h in zip(folders, have))})")
+        states = []
+        for folder in folders:
+            path = checkpoint_path(folder.checkpoint_dir, iteration)
+            try:
+                state = load_checkpoint(path, map_location=device)
+            except Exception as e:  # torch.load raises pickle, zip, EOF and runtime errors on damaged files
+                damaged.append((path, _why(e)))
+                break
+            if not isinstance(state, dict):
+                damaged.append((path, f"holds a {type(state).__name__}, not a checkpoint dict"))
+                break
+            states.append(state)
+        else:
+            for path, why in damaged:
+                aside = path.with_name(path.name + ".damaged")
+                path.replace(aside)
+                print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
+                      f"{checkpoint_path(folders[0].checkpoint_dir, iteration).name}", file=sys.stderr)
+            return states
+    where = folders[0].checkpoint_dir if len(folders) == 1 else f"the members of {folders[0].path.parent}"
+    listed = "; ".join(f"{p} ({why})" for p, why in damaged) or ", ".join(
+        f"{f.path.name}: {sorted(h)}" for f, h in zip(folders, have))
+    raise ValueError(f"no readable checkpoint of one iteration in common in {where}: {listed}")
 
 
+def _why(e: BaseException) -> str:
+    first = (str(e).strip().splitlines() or [""])[0]
+    return f"{type(e).__name__}: {first}"[:300] if first else type(e).__name__
+
+
+def check_resume(prepared: Prepared) -> None:
+    """What a resume of the prepared runs from their checkpoint states would do, decided before any work:
+    NothingToDo when they are finished (their iterations done or their time budget spent); ValueError when there
+    is no checkpoint but there are iterations a start from iteration 1 would train again, unless --restart asks
+    for it."""
+    folders, cfg, where = prepared.folders, prepared.cfgs[0], prepared.home
+    state = None if prepared.states is None else prepared.states[0]
+    if state is not None:
+        it = state["iteration"]
+        if it >= cfg.iters:
+            raise NothingToDo(f"{where} is finished at iteration {it} (--iters {cfg.iters}): nothing to do; to train "
+                              f"it longer: ablate --resume {where} --iters M  (M > {it})")
+        if cfg.time_limit_min is not None and state["wall_s"] >= 60.0 * cfg.time_limit_min:
+            raise NothingToDo(f"{where} has used its --time-limit-min {cfg.time_limit_min:g} at iteration {it} "
+                              f"({state['wall_s'] / 60:.2f} min of training): nothing to do; to train it longer: "
+                              f"ablate --resume {where} --time-limit-min M  (M > {state['wall_s'] / 60:.2f})")
+        return
+    trained = max((max([r["iter"] for r in f.read_metrics()] or [0]) for f in folders), default=0)
+    summaries = [f.read_summary() or {} for f in folders]
+    trained = max([trained] + [s.get("iterations") or 0 for s in summaries if isinstance(s.get("iterations"), int)])
+    if trained == 0 or cfg.restart:
+        return
+    if all(s.get("status") in ("finished", "time_limit") for s in summaries):
+        raise NothingToDo(f"{where} is finished at iteration {trained} and keeps no checkpoint (deleted since): "
+                          f"nothing to resume from; --restart trains it again from iteration 1")
+    raise ValueError(f"--resume {where}: no checkpoint to resume from, but {trained} iteration(s) trained (it "
+                     f"stopped before its first checkpoint, --checkpoint-every {cfg.checkpoint_every}); add --restart "
+                     f"to train it again from iteration 1 in this folder (the old metrics.jsonl, summary.json and "
+                     f"videos are kept beside it as *.before-restart-<time>)")
+
+
+# ---------------------------------------------------------------------------------------------- the end
 def closing_lines(path: str | Path, *, floors=None) -> list[str]:
-    """What ``ablate`` prints when a population ends: per member its status, final training return and last
-    deterministic evaluation return, the task's floors, the population folder and the command that resumes it."""
-    from ablations.reports import load_floors
+    """What ``ablate`` prints when its runs end: how each ended, its final training return and last deterministic
+    evaluation return (a run alone in full, a population's members in a table), the task's zero- and
+    random-action floors (``floors``: an ``ablations.reports.Floors``; default docs/floors.json of this checkout),
+    the absolute folder and the command that resumes it, and what a stop lost."""
+    folders, population = home_of(Path(path).resolve())
+    summaries = [f.read_summary() or {} for f in folders]
+    task = next((s.get("task") for s in summaries if s.get("task")), "?")
+    if population is None:
+        lines = _run_lines(summaries[0])
+        folder = f"  run folder         {folders[0].path}"
+    else:
+        lines = _member_table([f.path.name for f in folders], summaries, population.path)
+        folder = f"  population folder  {population.path}"
+    alone = summaries[0].get("final_eval_return") if population is None else None
+    lines += _floor_lines(task, floors or load_floors(), alone)
+    where = folders[0].path if population is None else population.path
+    interrupted = any(s.get("status") == "interrupted" for s in summaries)
+    lines += [folder, f"  resume             ablate --resume {where}"
+              + ("" if interrupted else " --iters N  (to train longer)")]
+    lost = sorted({s["lost"] for s in summaries if s.get("lost")})  # last, where it is seen: what a resume redoes
+    lines += [f"  lost               {text}" + (" (every member)" if len(folders) > 1 else "") for text in lost]
+    return lines
 
-    home = PopulationFolder(Path(path).resolve())
-    rows = [(f.path.name, f.read_summary() or {}) for f in home.members()]
-    width = max(len(name) for name, _ in rows)
 
-    def value(v) -> str:
-        return "-" if v is None else f"{v:.1f}"
+def _value(v) -> str:
+    return "-" if v is None else f"{v:.1f}"
 
-    lines = [f"population of {len(rows)} ({home.path}):",
+
+def _run_lines(s: dict) -> list[str]:
+    """A run alone's ending: its status and length, training return, last evaluation return."""
+    lines = [f"{s.get('task', '?')}/{s.get('mode', '?')} seed {s.get('seed', '?')}: {s.get('status', 'no summary')} "
+             f"after {s.get('iterations', 0)} iterations ({s.get('env_steps', 0)} environment steps, "
+             f"{s.get('wall_s', 0.0):.0f} s of training)" + (f"; {s['error']}" if s.get("error") else ""),
+             f"  training return    {_value(s.get('final_return')):>9}  (mean of the last 100 finished training "
+             f"episodes, exploring policy)"]
+    ev, std = s.get("final_eval_return"), s.get("final_eval_std")
+    if ev is None:
+        lines.append("  evaluation return          -  (none yet: --eval-every or --video-every sets how often)")
+    else:
+        spread = f" +- {std:.1f}" if std is not None else ""
+        lines.append(f"  evaluation return  {_value(ev):>9}{spread}  (deterministic policy, at iteration "
+                     f"{s.get('final_eval_iter')})")
+    return lines
+
+
+def _member_table(names: list[str], summaries: list[dict], home: Path) -> list[str]:
+    """A population's ending: per member its status, iterations, training and last evaluation return."""
+    width = max(len(name) for name in names)
+    lines = [f"population of {len(names)} ({home}):",
              f"  {'member':{width}}  {'status':11} {'iters':>6} {'training return':>16} {'evaluation return':>18}"]
-    for name, s in rows:
+    for name, s in zip(names, summaries):
         lines.append(f"  {name:{width}}  {s.get('status', 'no summary'):11} {s.get('iterations', 0):>6} "
-                     f"{value(s.get('final_return')):>16} {value(s.get('final_eval_return')):>18}")
-    task = next((s.get("task") for _, s in rows if s.get("task")), None)
-    floors = floors or load_floors()
-    known = floors.of(task) or {} if task else {}
-    if known:
-        parts = [f"{policy} action {stats['mean']:.1f}" for policy, stats in known.items()]
-        lines.append(f"  floors: {', '.join(parts)}  ({floors.source})")
-    interrupted = any(s.get("status") == "interrupted" for _, s in rows)
-    lines.append(f"  resume: ablate --resume {home.path}" + ("" if interrupted else " --iters N  (to train longer)"))
-    lost = sorted({s["lost"] for _, s in rows if s.get("lost")})
-    lines += [f"  lost: {text} (every member)" if len(rows) > 1 else f"  lost: {text}" for text in lost]
+                     f"{_value(s.get('final_return')):>16} {_value(s.get('final_eval_return')):>18}")
+    return lines
+
+
+def _floor_lines(task: str, floors, ev: float | None) -> list[str]:
+    """The task's floors, and where the evaluation return ``ev`` (a run alone's) lies against them."""
+    known = floors.of(task) or {}
+    if not known:
+        return [f"  floors             none for {task} ({floors.source or 'no floors file'}; "
+                f"task-floors --tasks {task} measures them)"]
+    parts = [f"{policy} action {known[policy]['mean']:.1f}" for policy in ("zero", "random") if policy in known]
+    lines = [f"  floors             {', '.join(parts)}  ({floors.source})"]
+    if ev is not None:
+        sides = [f"{'above' if ev > stats['mean'] else 'below'} the {policy}-action floor"
+                 for policy, stats in known.items()]
+        lines.append(f"  the evaluation return is {' and '.join(sides)}")
     return lines

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import re
 import sys
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -12,6 +11,8 @@ from typing import Annotated, Any
 
 import tyro
 
+from ablations.naming import slug
+from ablations.run_config import RunConfig
 from vocabulary import MODES, TASKS
 
 __all__ = ["SweepConfig", "parse_args", "parse_set", "parse_vary", "norm_key", "flag_args", "slug", "RESERVED",
@@ -133,8 +134,6 @@ class SweepConfig:
 
 def _field_types() -> dict[str, str]:
     """ablate's field name -> annotation text (``from __future__ import annotations`` keeps them strings)."""
-    from ablations.runs import RunConfig
-
     return {f.name: str(f.type) for f in dataclasses.fields(RunConfig)}
 
 
@@ -172,12 +171,6 @@ def flag_args(name: str, value: Any) -> list[str]:
     if "tuple" in kind and isinstance(value, str):
         return [flag, *value.split()]
     return [flag, str(value)]
-
-
-def slug(value: Any) -> str:
-    """A flag value as a piece of a folder name."""
-    text = " ".join(str(v) for v in value) if isinstance(value, (list, tuple)) else str(value)
-    return re.sub(r"[^A-Za-z0-9.+]+", "-", text).strip("-") or "none"
 
 
 def _split_assign(item: str, *, flag: str) -> tuple[str, str]:

@@ -15,7 +15,9 @@ from dataclasses import dataclass, field
 
 import tyro
 
-from ablations.sweep.config import SweepConfig, flag_args, norm_key, parse_set, parse_vary, slug
+from ablations.naming import slug, sweep_run_id
+from ablations.run_config import RunConfig
+from ablations.sweep.config import SweepConfig, flag_args, norm_key, parse_set, parse_vary
 from vocabulary import MEMBER_FIELDS, MODES
 
 __all__ = ["RunSpec", "plan", "attempt_command", "RUN_ARGS", "ABLATE"]
@@ -98,7 +100,6 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     ({name: {"mode": ..., "flags": {flag: value}}}) replaces the modes axis: the grid is tasks x arms x seeds x
     --vary, run ids ``<task>_<arm>_seed<seed>...``, each run with its arm's mode and flags (after --set).
     """
-    from ablations.runs import RunConfig
     from gradlab.config import ModePlan, check_as_given
     from tasks.command_line import check_argv
 
@@ -121,8 +122,7 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     for task, (arm, (mode, arm_flags)), seed in itertools.product(cfg.tasks, columns, cfg.seeds):
         for combo in itertools.product(*(values for _, values in axes)):
             flags = {name: value for (name, _), value in zip(axes, combo)}
-            run_id = f"{task}_{arm or mode}_seed{seed}" + "".join(
-                f"_{name.replace('_', '-')}{slug(value)}" for name, value in flags.items())
+            run_id = sweep_run_id(task, arm or mode, seed, flags)
             own = {"mode": str(mode), "seed": int(seed),
                    **{k: v for k, v in {**arm_flags, **flags}.items() if k in MEMBER_FIELDS}}
             args = ["--task", str(task), "--mode", str(mode), "--seed", str(seed), *shared,

@@ -5,7 +5,7 @@ same task and every setting but a member's own) into populations of at most N me
 ...`` process each; a group larger than N is dealt round-robin into as few populations as hold it, so that their
 sizes differ by one at most and each mixes the group's arms and seeds alike. A population's folder is
 ``runs/<task>_population<k>/`` (population.json and one run folder per member, named by ablate's
-``ablations.population.member_name``); a run alone keeps ``runs/<run_id>/``.
+``ablations.naming.member_name``); a run alone keeps ``runs/<run_id>/``.
 
 A rerun keeps every run whose job folder exists in the job the manifest records for it (whatever --pack says
 now), so that nothing trained is lost or trained twice; only runs without one are packed anew.
@@ -19,10 +19,15 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from ablations.sweep.grid import RUN_ARGS, RunSpec
-from vocabulary import POPULATION_RECORD
+import tyro
 
-__all__ = ["Job", "pack_runs", "assign_jobs", "member_entry", "POPULATION_RECORD"]
+from ablations.naming import member_name, sweep_population_id
+from ablations.run_config import AblateConfig, RunConfig, shac_part
+from ablations.sweep.grid import RUN_ARGS, RunSpec
+from gradlab.config import resolve_config
+from gradlab.members import check_population
+
+__all__ = ["Job", "pack_runs", "assign_jobs", "member_entry"]
 
 
 @dataclass(frozen=True)
@@ -84,13 +89,6 @@ def member_entry(own: dict) -> str:
 def _population(job_id: str, specs: list[RunSpec]) -> Job:
     """The population job of ``specs`` (one group), checked: ablate's own parser makes of its arguments exactly
     these runs, and the trainer accepts them as one population. Member folder names are ablate's."""
-    import tyro
-
-    from ablations.population import AblateConfig, member_name
-    from ablations.runs import RunConfig, shac_part
-    from gradlab.config import resolve_config
-    from gradlab.shac import check_population
-
     args = (*specs[0].shared, "--member", *(member_entry(s.own) for s in specs))
     ids = ", ".join(s.run_id for s in specs)
     try:
@@ -129,9 +127,9 @@ def pack_runs(specs: list[RunSpec], size: int, *, taken: Iterable[str] = ()) -> 
                 jobs.append(alone(part[0]))
                 continue
             k = 0
-            while f"{part[0].task}_population{k}" in used:
+            while sweep_population_id(part[0].task, k) in used:
                 k += 1
-            used.add(job_id := f"{part[0].task}_population{k}")
+            used.add(job_id := sweep_population_id(part[0].task, k))
             jobs.append(_population(job_id, part))
     order = {s.run_id: i for i, s in enumerate(specs)}
     return sorted(jobs, key=lambda j: order[j.run_ids[0]])

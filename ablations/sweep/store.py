@@ -14,9 +14,9 @@ import time
 from pathlib import Path
 
 from ablations.run_folder import VIDEOS, RunFolder
-from ablations.sweep.packing import POPULATION_RECORD
 from ablations.sweep.transfer import KEPT_CHECKPOINTS, pack_run, unpack_run
 from gradlab.checkpoint import atomic_write_bytes
+from vocabulary import POPULATION_RECORD
 
 __all__ = ["RunStore", "FINISHED", "run_path", "run_state", "job_state", "resumable", "common_checkpoint"]
 

@@ -23,10 +23,10 @@ from pathlib import Path
 
 from ablations.run_folder import RESUME_FILES, MetricsTail, RunFolder
 from ablations.sweep.grid import attempt_command
-from ablations.sweep.packing import POPULATION_RECORD
 from ablations.sweep.store import FINISHED, common_checkpoint
 from ablations.sweep.transfer import archive_names, pack_run, unpack_run
 from gradlab.checkpoint import checkpoint_path
+from vocabulary import POPULATION_RECORD
 
 __all__ = ["run_attempt", "RunProcessDied", "WORKER_POLL_S"]
 

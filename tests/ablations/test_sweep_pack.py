@@ -27,7 +27,7 @@ from ablations.sweep import (
     unpack_run,
 )
 from ablations.sweep.manifest import plan_jobs
-from ablations.sweep.packing import POPULATION_RECORD, member_entry, pack_runs
+from ablations.sweep.packing import member_entry, pack_runs
 from ablations.sweep.store import common_checkpoint, job_state
 from tests.ablations.test_sweep import (
     FAKE_ABLATE,
@@ -37,6 +37,7 @@ from tests.ablations.test_sweep import (
     kill_worker_once,
     ray_cluster,  # noqa: F401 - the module's Ray cluster fixture
 )
+from vocabulary import POPULATION_RECORD
 
 
 def jobs_of(cfg: SweepConfig, arms: dict | None = None) -> list[Job]:
