@@ -19,10 +19,9 @@ _PROBE = textwrap.dedent("""
     import importlib, json, os, sys
     from pathlib import Path
     from ablations.startup.bytecode import keep_bytecode
-    folder, sources = sys.argv[1], sys.argv[2]
+    folder = sys.argv[1]
     kept = keep_bytecode(None if folder == "off" else Path(folder))
-    sys.path.insert(0, sources)
-    importlib.import_module("probe_module")
+    importlib.import_module("probe_module")  # from the sources folder on PYTHONPATH
     print(json.dumps({"kept": None if kept is None else str(kept), "prefix": sys.pycache_prefix,
                       "torch": "torch" in sys.modules, "env_prefix": os.environ.get("PYTHONPYCACHEPREFIX"),
                       "env_dont_write": os.environ.get("PYTHONDONTWRITEBYTECODE")}))
@@ -35,8 +34,8 @@ def _probe(tmp_path: Path, folder: str, **env: str) -> dict:
         sources.mkdir()
         (sources / "probe_module.py").write_text("VALUE = 1\n")
     environ = {k: v for k, v in os.environ.items() if k not in ("PYTHONDONTWRITEBYTECODE", "PYTHONPYCACHEPREFIX")}
-    environ.update(PYTHONPATH=str(ROOT), **env)
-    out = subprocess.run([sys.executable, "-c", _PROBE, folder, str(sources)], capture_output=True, text=True,
+    environ.update(PYTHONPATH=os.pathsep.join([str(ROOT), str(sources)]), **env)
+    out = subprocess.run([sys.executable, "-c", _PROBE, folder], capture_output=True, text=True,
                          env=environ, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
