@@ -25,7 +25,7 @@ from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
 from ablations.run_folder import RunFolder, check_writable
 from gradlab import precision
-from gradlab.checkpoint import atomic_write_json, checkpoint_path, load_checkpoint
+from gradlab.checkpoint import atomic_write_json, checkpoint_path, read_checkpoint
 from gradlab.config import resolve_config
 from gradlab.members import check_population, population_order
 from gradlab.seeding import resolve_device
@@ -217,13 +217,9 @@ def _resume_states(folders: list[RunFolder], device: torch.device) -> list[dict]
         states = []
         for folder in folders:
             path = checkpoint_path(folder.checkpoint_dir, iteration)
-            try:
-                state = load_checkpoint(path, map_location=device)
-            except Exception as e:  # torch.load raises pickle, zip, EOF and runtime errors on damaged files
-                damaged.append((path, _why(e)))
-                break
-            if not isinstance(state, dict):
-                damaged.append((path, f"holds a {type(state).__name__}, not a checkpoint dict"))
+            state, why = read_checkpoint(path, map_location=device)
+            if state is None:
+                damaged.append((path, why))
                 break
             states.append(state)
         else:
@@ -237,11 +233,6 @@ def _resume_states(folders: list[RunFolder], device: torch.device) -> list[dict]
     listed = "; ".join(f"{p} ({why})" for p, why in damaged) or ", ".join(
         f"{f.path.name}: {sorted(h)}" for f, h in zip(folders, have))
     raise ValueError(f"no readable checkpoint of one iteration in common in {where}: {listed}")
-
-
-def _why(e: BaseException) -> str:
-    first = (str(e).strip().splitlines() or [""])[0]
-    return f"{type(e).__name__}: {first}"[:300] if first else type(e).__name__
 
 
 def check_resume(prepared: Prepared) -> None:

@@ -19,7 +19,7 @@ import torch
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "save_checkpoint", "load_checkpoint",
            "checkpoint_iteration", "checkpoint_path", "list_checkpoints", "latest_checkpoint", "prune_checkpoints",
-           "load_newest_readable", "LoadedCheckpoint", "NoReadableCheckpointError"]
+           "load_newest_readable", "read_checkpoint", "LoadedCheckpoint", "NoReadableCheckpointError"]
 
 
 def _create_temporary(folder: Path, name: str) -> tuple[int, str]:
@@ -129,6 +129,19 @@ def _why(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {first}"[:300] if first else type(exc).__name__
 
 
+def read_checkpoint(path: str | os.PathLike, *,
+                    map_location: str | torch.device = "cpu") -> tuple[dict | None, str | None]:
+    """(the checkpoint's dict, None) where ``path`` loads as one, else (None, why it counts as damaged: torch.load
+    failed on it, e.g. truncated or overwritten, or it does not hold a dict)."""
+    try:
+        state = load_checkpoint(path, map_location=map_location)
+    except Exception as e:  # torch.load raises pickle, zip, EOF and runtime errors on damaged files
+        return None, _why(e)
+    if not isinstance(state, dict):
+        return None, f"holds a {type(state).__name__}, not a checkpoint dict"
+    return state, None
+
+
 def load_newest_readable(folder: str | os.PathLike, *,
                          map_location: str | torch.device = "cpu") -> LoadedCheckpoint:
     """Load the newest checkpoint of folder that can be read, skipping (and reporting) damaged newer ones.
@@ -140,13 +153,9 @@ def load_newest_readable(folder: str | os.PathLike, *,
     folder = Path(folder)
     damaged: list[tuple[Path, str]] = []
     for path in list_checkpoints(folder):
-        try:
-            state = load_checkpoint(path, map_location=map_location)
-        except Exception as e:  # torch.load raises pickle, zip, EOF and runtime errors on damaged files
-            damaged.append((path, _why(e)))
-            continue
-        if not isinstance(state, dict):
-            damaged.append((path, f"holds a {type(state).__name__}, not a checkpoint dict"))
+        state, why = read_checkpoint(path, map_location=map_location)
+        if state is None:
+            damaged.append((path, why))
             continue
         return LoadedCheckpoint(path, state, damaged)
     if not damaged:
