@@ -37,9 +37,11 @@ import tempfile
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from gradlab.files import atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:
     import torch
@@ -234,13 +236,11 @@ class RunFolder:
     # ------------------------------------------------------------------ write
     def write_config(self, record: dict) -> None:
         """config.json: ``record`` holds "config" (every setting) and what else the run records about itself."""
-        _atomic_json(self.config_path, record)
+        atomic_write_json(self.config_path, record)
 
     def write_git(self, repo: Path | None = None) -> None:
         """git.txt (and git.diff when the tree differs from its commit) of the source tree at ``repo`` (default:
         this checkout)."""
-        from gradlab.checkpoint import atomic_write_text
-
         text, diff = git_info(repo)
         atomic_write_text(self.path / GIT, text)
         if diff:
@@ -266,8 +266,6 @@ class RunFolder:
         written before metrics.jsonl is replaced: a kill in between loses nothing); a torn last line is dropped.
         Returns one line per thing done or found (for stderr): each damaged line, the lines set aside, the torn
         line, a missing file and iterations up to ``upto_iter`` with no line."""
-        from gradlab.checkpoint import atomic_write_text
-
         path, notes = self.metrics_path, []
         if not path.exists():
             if upto_iter:
@@ -317,7 +315,7 @@ class RunFolder:
 
     def write_summary(self, summary: dict) -> None:
         self.sync_metrics()  # the lines it sums up first
-        _atomic_json(self.summary_path, summary)
+        atomic_write_json(self.summary_path, summary)
 
     def write_video(self, iteration: int, frames: list[np.ndarray], fps: int = 60) -> Path | None:
         """videos/iter_<iteration>.mp4 of frames (H, W, 3) uint8 RGB (mp4v), written under a temporary name and
@@ -426,12 +424,6 @@ class RunFolder:
     def videos(self) -> list[Path]:
         """The evaluation videos, oldest first."""
         return sorted(self.video_dir.glob("iter_*.mp4"))
-
-
-def _atomic_json(path: Path, obj: Any) -> None:
-    from gradlab.checkpoint import atomic_write_json
-
-    atomic_write_json(path, obj)
 
 
 class MetricsTail:
@@ -648,7 +640,5 @@ def thin_copy(src: str | os.PathLike, dst: str | os.PathLike, *, every: int) -> 
     rows = source.read_metrics()
     kept = [r for i, r in enumerate(rows) if r["iter"] % every == 0 or r.get("probed") or evaluation_of(r) is not None
             or i == len(rows) - 1]
-    from gradlab.checkpoint import atomic_write_text
-
     atomic_write_text(copy.metrics_path, "".join(json.dumps(r) + "\n" for r in kept))
     return copy

@@ -10,11 +10,16 @@ naming the iteration, the horizon step and the tensor. With ``--compile`` the tr
 ``compile_table`` (``COMPILE_PARTS``) and replays its iterations from CUDA graphs on a GPU.
 """
 
-from gradlab.config import MODES, ModePlan, SHACConfig, resolve_config
-from gradlab.presets import PRESETS, preset_record, preset_values
-from gradlab.probes import ImageGate, NonFiniteError, cosine, flat_grad
-from gradlab.seeding import resolve_device, seed_everything
-from gradlab.shac import COMPILE_PARTS, SHAC
+import importlib
+
+# The names below are loaded at first use (PEP 562): the modules that define them import torch, and a torch-free
+# submodule (gradlab.files, the atomic writers the reports use) can then be imported alone.
+_WHERE = {
+    "MODES": ".config", "ModePlan": ".config", "SHACConfig": ".config", "resolve_config": ".config",
+    "PRESETS": ".presets", "preset_record": ".presets", "preset_values": ".presets", "ImageGate": ".probes",
+    "NonFiniteError": ".probes", "cosine": ".probes", "flat_grad": ".probes", "resolve_device": ".seeding",
+    "seed_everything": ".seeding", "COMPILE_PARTS": ".shac", "SHAC": ".shac",
+}
 
 __all__ = [
     "COMPILE_PARTS",
@@ -33,3 +38,15 @@ __all__ = [
     "resolve_config",
     "seed_everything",
 ]
+
+
+def __getattr__(name: str):
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name], __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

@@ -7,6 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ablations.memory.config import SWEPT_MODES
+from gradlab.files import atomic_write_bytes
 
 __all__ = ["plot_sweep", "sweep_figures"]
 
@@ -32,8 +33,6 @@ def plot_sweep(rows: list[dict], out: str | os.PathLike) -> list[Path]:
     """memory_peak.png and memory_bwd.png (:func:`sweep_figures`) written into ``out``; returns the files
     written (none without ok rows)."""
     from ablations.reports.style import png_bytes
-    from gradlab.checkpoint import atomic_write_bytes
-
     written = []
     for name, fig in sweep_figures(rows).items():
         atomic_write_bytes(Path(out) / name, png_bytes(fig))

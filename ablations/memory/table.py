@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 from ablations.memory.config import SWEPT_MODES
+from gradlab.files import atomic_write_json, atomic_write_text
 
 __all__ = ["COLUMNS", "FIXED", "FINAL_STATUSES", "TIMED_COLUMNS", "point_key", "read_csv", "csv_text",
            "sort_rows", "write_results", "check_compatible", "now"]
@@ -92,8 +93,6 @@ def write_results(out: Path, rows: list[dict], meta: dict) -> None:
 
     ``meta`` (settings, commands, environment) gets its ``updated`` date set here.
     """
-    from gradlab.checkpoint import atomic_write_json, atomic_write_text
-
     rows = sort_rows(rows)
     atomic_write_text(out / "memory.csv", csv_text(rows))
     meta["updated"] = now()

@@ -81,6 +81,7 @@ from ablations.reports.seeds import PROBE_FIGURES, SEED_FIGURES, arm_label, prob
 from ablations.reports.stats import check_at_iteration
 from ablations.reports.style import Floors, PlotResult, group_runs, load_floors
 from ablations.run_folder import Run, RunFolder, find_runs
+from gradlab.files import atomic_write_text
 
 __all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TABLE1_TASKS", "run_bwd_ms",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
@@ -512,8 +513,6 @@ def build_report(cfg: ReportConfig) -> Path:
     lines += probe_section(runs, base, label=label, plots=plots)
     lines += memory_section(sweeps, fig_dir, base, heading="## 5. Memory sweep")
     lines += provenance_section(runs, sweeps, benchmarks, base=base, heading="## 6. Provenance")
-
-    from gradlab.checkpoint import atomic_write_text
 
     atomic_write_text(out, "\n".join(lines).rstrip() + "\n")
     return out

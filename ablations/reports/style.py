@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ablations.run_folder import Run, is_number
+from gradlab.files import atomic_write_bytes
 from vocabulary import TASKS
 
 if TYPE_CHECKING:
@@ -266,8 +267,6 @@ def png_bytes(fig, *, dpi: int = FIGURE_DPI) -> bytes:
 
 def save_figure(fig, path: Path) -> None:
     """The figure as a PNG at ``path`` (:func:`png_bytes`), written atomically; the figure is closed."""
-    from gradlab.checkpoint import atomic_write_bytes
-
     atomic_write_bytes(path, png_bytes(fig))
 
 

@@ -32,7 +32,7 @@ from typing import Any
 import torch
 
 from ablations.startup.bytecode import OFF_VALUES
-from gradlab.checkpoint import atomic_write_bytes, atomic_write_json
+from gradlab.files import atomic_write_bytes, atomic_write_json
 
 __all__ = ["CACHE_ENV_VAR", "DEFAULT_CACHE_ROOT", "CompileCache", "CompileCacheWarning", "cache_versions",
            "resolve_cache_root", "start_compile_workers"]

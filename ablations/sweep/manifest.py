@@ -14,7 +14,7 @@ from ablations.sweep.config import SweepConfig
 from ablations.sweep.grid import RunSpec
 from ablations.sweep.packing import Job, assign_jobs
 from ablations.sweep.store import resumable, run_path, run_state
-from gradlab.checkpoint import atomic_write_json
+from gradlab.files import atomic_write_json
 
 __all__ = ["MANIFEST", "STATUSES", "load_manifest", "prepare_manifest", "plan_jobs", "write_manifest",
            "status_counts"]

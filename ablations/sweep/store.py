@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ablations.run_folder import VIDEOS, RunFolder
 from ablations.sweep.transfer import KEPT_CHECKPOINTS, pack_run, unpack_run
-from gradlab.checkpoint import atomic_write_bytes
+from gradlab.files import atomic_write_bytes
 from vocabulary import POPULATION_RECORD
 
 __all__ = ["RunStore", "FINISHED", "run_path", "run_state", "job_state", "resumable", "common_checkpoint"]

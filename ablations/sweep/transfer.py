@@ -14,7 +14,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from ablations.run_folder import CHECKPOINTS, METRICS, RunFolder
-from gradlab.checkpoint import atomic_write_bytes
+from gradlab.files import atomic_write_bytes
 
 __all__ = ["pack_run", "unpack_run", "archive_names", "KEPT_CHECKPOINTS"]
 

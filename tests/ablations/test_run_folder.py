@@ -35,7 +35,7 @@ def test_reading_run_folders_and_their_statistics_imports_no_torch(tmp_path):
             f"runs = find_runs([{str(tmp_path)!r}])\n"
             f"curves = stats.load_arms({{'decoupled': [{str(tmp_path)!r}]}})\n"
             "assert len(runs) == 2 and len(curves) == 2\n"
-            "print(sorted(m for m in ('torch', 'gradlab') if m in sys.modules))\n")
+            "print(sorted(m for m in ('torch', 'gradlab.shac') if m in sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.returncode == 0, out.stderr[-2000:]
