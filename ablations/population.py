@@ -62,6 +62,17 @@ class PopulationFolder:
                           "created_utc": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime())})
         return pop, folders
 
+    def remove_if_unused(self) -> None:
+        """Remove the folder and its population.json when nothing else is left in it (a population that stopped
+        before any member wrote its first record: the member folders were removed as empty)."""
+        try:
+            if any(p.name != POPULATION for p in self.path.iterdir()):
+                return
+            (self.path / POPULATION).unlink(missing_ok=True)
+            self.path.rmdir()
+        except OSError:
+            pass
+
     @classmethod
     def of(cls, path: str | Path) -> PopulationFolder | None:
         """The population of ``path``: a population folder, or a member's run folder (its config.json names it);
@@ -151,7 +162,13 @@ def prepare(runs: RunConfig | Sequence[RunConfig]) -> Prepared:
     threads = members[0].threads or default_threads()
     members = [dataclasses.replace(members[i], threads=threads) for i in order]
     device = resolve_device(members[0].device)
-    precision.check(members[0].precision, device)  # a refusal before any folder is made
+    try:
+        precision.check(members[0].precision, device)  # a refusal before any folder is made
+    except ValueError:
+        if resume is None:
+            raise
+        raise ValueError(f"--resume {resume}: it trains at --precision {members[0].precision}, which needs a CUDA "
+                         f"device (it was given --device {members[0].device})") from None
     if resume is not None:
         prepared = Prepared(members, [folders[i] for i in order], device, None, population)
         try:

@@ -82,6 +82,7 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
     started = time.time()
     startup = startup or Startup()
     folders: list[RunFolder] = []
+    prepared = None
     with StopOnSignal() as stop, plain_warnings():
         # the renderer grows its automatic bin capacity as the robot moves and still renders every frame
         # completely (diffrender.BinCapacityWarning): nothing a run's user has to act on
@@ -100,6 +101,8 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
         except BaseException:
             for folder in folders:
                 folder.remove_if_empty()  # stopped before it wrote its first record
+            if prepared is not None and prepared.population is not None:
+                prepared.population.remove_if_unused()  # and so did every member of a new population
             raise
         finally:
             startup.close()  # on every way out, an error before the training loop included
@@ -142,8 +145,9 @@ def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started:
         except ImportError as e:
             raise ValueError("--tensorboard needs the tensorboard package: pip install tensorboard") from e
     members = [trainer.members[i] for i in range(len(cfgs))]
-    statuses: list[tuple[str, str | None]] = [("running", None)] * len(cfgs)
     stopped = [m.failed is not None for m in members]  # a resumed population's failed members stay stopped
+    statuses: list[tuple[str, str | None]] = [("nonfinite", m.failed) if m.failed is not None else ("running", None)
+                                              for m in members]
     # The loop's bookkeeping of what a stop would keep: ``done`` is the newest iteration whose metrics every
     # member's folder holds, ``checkpointed`` the newest one on disk, ``held`` (iteration, state) a copy of the
     # newest finished iteration that is not on disk yet, and ``between`` whether the live trainer is at a finished

@@ -94,7 +94,11 @@ def read_checkpoint(path: str | os.PathLike, *,
     failed on it, e.g. truncated or overwritten, or it does not hold a dict)."""
     try:
         state = load_checkpoint(path, map_location=map_location)
+    except torch.OutOfMemoryError:
+        raise  # the device is full, the file is not damaged
     except Exception as e:  # torch.load raises pickle, zip, EOF and runtime errors on damaged files
+        if isinstance(e, RuntimeError) and "CUDA" in str(e):
+            raise  # a device error (or a GPU checkpoint on a machine without one): not the file's
         return None, _why(e)
     if not isinstance(state, dict):
         return None, f"holds a {type(state).__name__}, not a checkpoint dict"

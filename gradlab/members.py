@@ -359,7 +359,8 @@ def restore_member(m: Member, state: dict) -> None:
 def joined_state(ordered: Sequence[dict]) -> tuple[dict, dict, torch.Tensor, torch.Tensor]:
     """The trainer's shared state from its members' checkpoints, in member order: the task state (each member's
     rows and reset seed, the one counter they must share), the frame stack and the episode return and length."""
-    task = {k: torch.cat([s["task"][k] for s in ordered]) for k in tasks.Task.STATE_TENSORS}
+    names = [k for k in ordered[0]["task"] if k != "rng"]  # the task's state tensors, as its get_state gave them
+    task = {k: torch.cat([s["task"][k] for s in ordered]) for k in names}
     counters = {int(s["task"]["rng"][-1]) for s in ordered}
     if len(counters) != 1:
         raise ValueError("the members' checkpoints are of different reset counters")

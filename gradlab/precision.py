@@ -86,6 +86,6 @@ def use(precision: str, device: torch.device | str, *, allow_cpu: bool = False) 
         # the CUDA-only switches: torch.set_float32_matmul_precision would also change the CPU's oneDNN matmuls
         torch.backends.cuda.matmul.allow_tf32 = flags["matmul_allow_tf32"]
         torch.backends.cudnn.allow_tf32 = flags["cudnn_allow_tf32"]
-        if precision == "fp32":
+        if not flags["matmul_allow_tf32"]:  # fp32 and bf16 leave TF32 matmuls off by choice
             warnings.filterwarnings("ignore", message=_TF32_ADVICE)
     _current = precision

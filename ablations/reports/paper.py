@@ -15,8 +15,8 @@ folder) has:
     5. Table 1 (backward time per iteration) from a ``benchmarks/iteration.py`` JSON (``--benchmark``), else
        from the runs; 6. each arm's iteration time alone (from a benchmarks/iteration.py or
        benchmarks/population.py JSON) beside its runs' (a population member's is its population's:
-       ``ablations.iteration_time``); 7. the memory sweep (Fig. 10) of ``ablate-memory`` folders (``--memory``);
-       8. the runs; 9. provenance.
+       ``ablations.reports.arms.iteration_times``); 7. the memory sweep (Fig. 10) of ``ablate-memory`` folders
+       (``--memory``); 8. the runs; 9. provenance.
 
 A task whose zero action scores at least the paper's final return there (D.Va's cartpole: the pole starts upright
 and stays so) is marked as not ranking arms. Nothing is estimated: a comparison without our measurement says
@@ -56,6 +56,7 @@ from ablations.reports.report import (
 )
 from ablations.reports.seeds import NOT_RANKING, not_ranking_reason
 from ablations.run_folder import Run, RunFolder, is_number, load_run
+from gradlab.files import atomic_write_text
 from vocabulary import ARMS
 
 __all__ = ["build_paper_report"]
@@ -382,8 +383,6 @@ def build_paper_report(folder: str | Path, *, out: str | Path | None = None, ben
     lines += [f"Sweep command: `{command_text(manifest.get('command'))}`; sweep created "
               f"{manifest.get('created', '?')}, updated {manifest.get('updated', '?')}; report "
               f"{_dt.datetime.now().astimezone().isoformat(timespec='seconds')}."]
-
-    from gradlab.checkpoint import atomic_write_text
 
     atomic_write_text(out, "\n".join(lines).rstrip() + "\n")
     return out

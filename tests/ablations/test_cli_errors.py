@@ -4,6 +4,7 @@ resume would ignore, settings that mean nothing for the mode, names that are pat
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -91,6 +92,23 @@ def test_a_resume_refuses_the_flags_it_would_ignore_and_takes_the_ones_it_uses(t
         ablate_main(["--resume", str(run), "--iters", "9", "--threads", "1", "--device", "cpu", "--no-progress",
                      "--no-compile-helper", "--time-limit-min", "5", "--compile-cache", "off"])
     assert "no config.json" in refusal(capsys.readouterr().err) and not run.exists()
+
+
+def test_a_resume_of_a_tensor_core_run_on_the_cpu_says_it_needs_cuda(tmp_path, capsys, two_cores):
+    """A run trained at --precision bf16 resumed with --device cpu: one line saying the run needs a CUDA device
+    (its precision is the run's own; a resume cannot change it)."""
+    ablate_main(["--task", "cartpole", "--num-envs", "2", "--horizon", "3", "--image-size", "16", "--iters", "1",
+                 "--critic-iterations", "1", "--critic-batches", "1", "--eval-envs", "2", "--episode-length", "12",
+                 "--threads", "1", "--device", "cpu", "--no-progress", "--out", str(tmp_path), "--name", "run"])
+    config = tmp_path / "run" / "config.json"
+    record = json.loads(config.read_text())
+    record["config"]["precision"] = "bf16"  # as a GPU run records it
+    config.write_text(json.dumps(record))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        ablate_main(["--resume", str(tmp_path / "run"), "--iters", "2", "--device", "cpu", "--no-progress"])
+    line = refusal(capsys.readouterr().err)
+    assert e.value.code == 2 and "trains at --precision bf16, which needs a CUDA device" in line
 
 
 @pytest.mark.parametrize("argv", [["--mode", "fulll"], ["--name", "../escape"]])

@@ -132,3 +132,18 @@ def test_member_folder_names_write_tuple_values_as_the_sweep_does():
     members = [RunConfig(task="cartpole", mode="decoupled", seed=0, betas=b) for b in ((0.7, 0.95), (0.5, 0.9))]
     assert [member_name(m, members) for m in members] == ["cartpole_decoupled_betas0.7-0.95_seed0",
                                                           "cartpole_decoupled_betas0.5-0.9_seed0"]
+
+
+def test_a_new_population_that_fails_before_any_record_leaves_no_folder(tmp_path, monkeypatch, capsys):
+    """A failure while the trainer is built (before any member wrote its config.json) removes the member folders
+    and the population folder with its population.json, so that the name is free again."""
+    import ablations.runs
+
+    def fails(*args, **kwargs):
+        raise ValueError("the trainer could not be built")
+
+    monkeypatch.setattr(ablations.runs, "SHAC", fails)
+    with pytest.raises(SystemExit):
+        ablate(*TINY, *MEMBERS, "--iters", "2", "--out", str(tmp_path / "runs"), "--name", "pop")
+    assert capsys.readouterr().err == "error: the trainer could not be built\n"
+    assert not (tmp_path / "runs" / "pop").exists()

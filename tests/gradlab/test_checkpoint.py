@@ -51,3 +51,23 @@ def test_an_overwrite_keeps_no_temporary_files(tmp_path):
     for i in range(3):
         atomic_write_bytes(tmp_path / "f", bytes([i]))
     assert (tmp_path / "f").read_bytes() == b"\x02" and [p.name for p in tmp_path.iterdir()] == ["f"]
+
+
+def test_a_device_error_while_loading_is_no_damage(tmp_path, monkeypatch):
+    """read_checkpoint names a file that does not load as damaged, but a full or failing device (a resume loads
+    onto the GPU) is raised: the newest checkpoint must not be set aside for it."""
+    import gradlab.checkpoint as checkpoint
+
+    bad = tmp_path / "ckpt_000001.pt"
+    bad.write_bytes(b"not a checkpoint")
+    state, why = checkpoint.read_checkpoint(bad)
+    assert state is None and why
+    save_checkpoint(tmp_path / "ckpt_000002.pt", {"iteration": 2})
+    assert checkpoint.read_checkpoint(tmp_path / "ckpt_000002.pt") == ({"iteration": 2}, None)
+    for error in (torch.OutOfMemoryError("CUDA out of memory"), RuntimeError("CUDA error: an illegal memory access")):
+        def load(path, map_location="cpu", error=error):
+            raise error
+
+        monkeypatch.setattr(checkpoint, "load_checkpoint", load)
+        with pytest.raises(type(error)):
+            checkpoint.read_checkpoint(tmp_path / "ckpt_000002.pt")
