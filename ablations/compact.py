@@ -1,9 +1,9 @@
-"""Compact finished run folders for shipping in the repository: each folder's metrics.jsonl and summary.json
+"""Compact finished run folders (to keep or move many of them): each folder's metrics.jsonl and summary.json
 replaced by an xz copy of the same bytes (``metrics.jsonl.xz``, ``summary.json.xz``), which ``ablations.run_folder``
 reads as it reads the plain files, so ``ablate-plot``, ``ablate-report`` and the statistics see the same numbers
 (docs/design.md, "Shipped run data")::
 
-    python -m ablations.compact docs/seeded_h100/runs
+    python -m ablations.compact RUNS_FOLDER
 
 A path stands for the run folder it is (it holds config.json) or for every run folder below it. Folders already
 compacted are left as they are; a folder whose run has not ended (no summary.json) is refused, since its run may

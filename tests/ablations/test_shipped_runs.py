@@ -2,27 +2,39 @@
 
 from __future__ import annotations
 
+import tarfile
 from collections import Counter
 from pathlib import Path
 
 import pytest
 
 from ablations.reports.arms import arm_label, arm_names, iteration_times
-from ablations.run_folder import COMPACTED, CONFIG, METRICS, SUMMARY, evaluation_of, find_runs
+from ablations.run_folder import CONFIG, evaluation_of, find_runs
 
 ROOT = Path(__file__).resolve().parents[2]
-DOCS = ROOT / "docs"
+#: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
+EXPERIMENTS = ("seeded_h100", "hopper_population_h100", "hopper_diagnosis_h100")
 #: The arms of the shipped runs (names from vocabulary.ARMS).
 SHIPPED_ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory) -> Path:
+    """The shipped archives unpacked as their READMEs unpack them: <experiment>/runs/ under a temporary folder."""
+    root = tmp_path_factory.mktemp("docs")
+    for name in EXPERIMENTS:
+        with tarfile.open(ROOT / "docs" / name / "runs.tar.xz") as archive:
+            archive.extractall(root / name, filter="data")
+    return root
 
 
 def _last_evaluated_iteration(run) -> int:
     return max(r["iter"] for r in run.metrics if evaluation_of(r) is not None)
 
 
-def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_2000_iterations():
+def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_2000_iterations(shipped):
     # decoupled, full, full with the hard raster model and blind, seeds 0-2, one compiled GPU run
-    runs = find_runs([DOCS / "hopper_population_h100" / "runs"])
+    runs = find_runs([shipped / "hopper_population_h100" / "runs"])
     assert len(runs) == 12
     assert {r.population["folder"] for r in runs} == {"hopper_population12"}
     assert all(len(r.population["members"]) == 12 for r in runs)
@@ -35,9 +47,9 @@ def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_20
     assert {_last_evaluated_iteration(r) for r in runs} == {2000}
 
 
-def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_iterations():
+def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_iterations(shipped):
     # the seeded experiment: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
-    runs = find_runs([DOCS / "seeded_h100" / "runs"])
+    runs = find_runs([shipped / "seeded_h100" / "runs"])
     ant = [r for r in runs if r.task == "ant"]
     assert len(ant) == 12  # no (arm, seed) twice
     arms = arm_names(ant)
@@ -50,10 +62,10 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
     ("hopper", {f"hopper_population_{p}" for p in "abc"}),
     ("cartpole-swingup", {f"cartpole_swingup_population_{p}" for p in "abcd"}),
 ])
-def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations(task, folders):
+def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations(shipped, task, folders):
     # the seeded experiment: hopper and cartpole-swingup, the four arms, 5 seeds, at least 3000 iterations;
     # compiled GPU populations
-    runs = [r for r in find_runs([DOCS / "seeded_h100" / "runs"]) if r.task == task]
+    runs = [r for r in find_runs([shipped / "seeded_h100" / "runs"]) if r.task == task]
     assert len(runs) == 20  # no (arm, seed) twice
     arms = arm_names(runs)
     assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in SHIPPED_ARMS for s in range(5)}
@@ -63,10 +75,10 @@ def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_
     assert {r.population["folder"] for r in runs} == folders
 
 
-def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alone():
+def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alone(shipped):
     # the equal-wall-clock view needs each arm's iteration time measured alone; the README's report command passes
     # this benchmark, whose rows must match every arm's settings (sizes, raster, compile)
-    runs = find_runs([DOCS / "seeded_h100" / "runs"])
+    runs = find_runs([shipped / "seeded_h100" / "runs"])
     bench = ROOT / "benchmarks" / "results" / "iteration_arms_alone_h100_20261127.json"
     times = iteration_times(runs, arm_label(runs), [bench])
     assert set(times) == {"ant", "hopper", "cartpole-swingup"}
@@ -77,11 +89,9 @@ def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alon
         assert t.ms["blind"] < t.ms["decoupled"] < min(t.ms["full-soft"], t.ms["full-hard-dva"])
 
 
-def test_every_shipped_run_folder_is_compacted():
-    # The run data is most of what a clone checks out; plain metrics and summaries would make it six times larger
-    # (docs/design.md, "Shipped run data"). Each folder keeps both, compacted, and nothing plain beside them.
-    folders = sorted(p.parent for p in DOCS.glob(f"*/runs/**/{CONFIG}"))
-    assert folders
-    for folder in folders:
-        names = {p.name for p in folder.iterdir()}
-        assert {METRICS + COMPACTED, SUMMARY + COMPACTED} <= names and not names & {METRICS, SUMMARY}, folder
+def test_every_experiment_ships_its_run_folders_as_one_archive(shipped):
+    # The run data is most of what a clone checks out: one xz stream an experiment shares its dictionary across the
+    # similar runs and leaves no file per run (docs/design.md, "Shipped run data"). Nothing of runs/ is tracked.
+    for name in EXPERIMENTS:
+        assert (ROOT / "docs" / name / "runs.tar.xz").is_file()
+        assert sorted(p.parent for p in (shipped / name).glob(f"runs/**/{CONFIG}")), name
