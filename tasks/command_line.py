@@ -3,8 +3,8 @@
 tyro answers a bad choice, a bad number or an unknown flag with a box of several lines, and takes a flag given
 twice as its last value without a word. :func:`check_argv` finds those mistakes first, from the dataclass's field
 types; :func:`cli` runs it, then tyro, and folds whatever tyro still refuses into one line. Every command of the
-toolkit reads its flags through :func:`cli`; it lives here, in ``tasks``, because ``task-floors`` and
-``robot-snapshots`` are commands too and imports point one way (ablations -> gradlab -> tasks). The module itself
+toolkit reads its flags through :func:`cli`; it lives here, in ``tasks``, the lowest package with commands of its
+own (``task-floors``, ``robot-snapshots``), so that every package above can import it. The module itself
 needs no torch, and ``tasks/__init__`` loads its torch-bound names at first use, so importing it loads none: a
 command's flags are checked before torch is imported.
 """

@@ -5,7 +5,7 @@ and the arms (a name for a mode, raster model, preset and the flags that set the
 torch-bound code takes its lists from here (``tasks.TASKS``, ``gradlab.config.MODES``, ``diffrender.settings
 .RASTER_MODELS``, ``gradlab.presets.PRESETS``, ...), and the reports, ``ablate-paper``, the benchmarks and the
 tests read them here, so a list cannot drift from its twin. This package imports nothing of the toolkit and no
-torch: it sits beneath diffrender, tasks, gradlab and ablations (docs/design.md, "Data flow").
+torch: it sits beneath every other package of the toolkit (docs/design.md, "Data flow").
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ POPULATION_RECORD = "population.json"
 @dataclass(frozen=True)
 class Arm:
     """A named way to train: a mode, a preset and, where the preset's is not wanted, a raster model; ``paper``:
-    the D.Va paper's method it reproduces (a key of ablations/reports/paper_numbers.json), ``about``: what it
+    the D.Va paper's method it reproduces (a key of the paper-numbers table the reports read), ``about``: what it
     stands for."""
 
     name: str
