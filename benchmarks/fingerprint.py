@@ -4,9 +4,9 @@ Runs a few CPU iterations of every mode (state, blind, decoupled, full with the 
 cartpole and hopper, and populations (mixed modes and seeds; members of differing critic schedules; state
 members; a member that goes non-finite), with probes and evaluation on, and writes every metric (clock and memory
 readings left out), every evaluation, the hashes of each run's final ``state_dict`` tensors (a checkpoint's
-content) and what a run resumed from a checkpoint file computes next. Not a test (pytest does not collect it):
+content) and what a run resumed from a checkpoint file computes next. A tool, not a test:
 
-    python -m tests.gradlab.fingerprint OUT.json [--checkpoints DIR]
+    python benchmarks/fingerprint.py OUT.json [--checkpoints DIR]
 
 ``--checkpoints DIR``: resume from the checkpoint files in DIR where they exist (written by an earlier run of this
 script, e.g. by the code before a change: checkpoints it wrote must still load), else write them there first.
