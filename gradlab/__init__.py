@@ -10,7 +10,7 @@ naming the iteration, the horizon step and the tensor. With ``--compile`` the tr
 ``compile_table`` (``COMPILE_PARTS``) and replays its iterations from CUDA graphs on a GPU.
 """
 
-import importlib
+from tasks.lazy import lazy_names
 
 # The names below are loaded at first use (PEP 562): the modules that define them import torch, and a torch-free
 # submodule (gradlab.files, the atomic writers the reports use) can then be imported alone.
@@ -39,14 +39,5 @@ __all__ = [
     "seed_everything",
 ]
 
-
-def __getattr__(name: str):
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name], __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+__getattr__, __dir__ = lazy_names(globals(), _WHERE)
+del lazy_names

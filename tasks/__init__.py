@@ -13,7 +13,7 @@ static shapes and no host synchronisation, so a whole SHAC iteration can be capt
 dynamics that equals MuJoCo's ``qacc``.
 """
 
-import importlib
+from tasks.lazy import lazy_names
 
 # The names below are loaded at first use (PEP 562): the submodules that define them import torch, and a
 # torch-free submodule (tasks.command_line, which every command parses its flags with) can then be imported
@@ -42,14 +42,5 @@ __all__ = [
     "resolve_device",
 ]
 
-
-def __getattr__(name: str):
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name], __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+__getattr__, __dir__ = lazy_names(globals(), _WHERE)
+del lazy_names
