@@ -50,14 +50,10 @@ if TYPE_CHECKING:
 
 __all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
-           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "COMPACTED", "read_text", "read_bytes"]
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES"]
 
 CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
 CHECKPOINTS, VIDEOS = "checkpoints", "videos"
-#: The suffix of a compacted file: a shipped run folder keeps its metrics.jsonl and summary.json xz-compressed
-#: under that name (``python -m ablations.compact``), and the readers here read either (docs/design.md, "Shipped
-#: run data"). Runs themselves write the plain files.
-COMPACTED = ".xz"
 #: What ``ablate --resume`` needs besides a checkpoint (the git records keep a copied folder complete).
 RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS)
 #: Installed distributions whose versions config.json records (by distribution name, from their metadata).
@@ -78,36 +74,12 @@ def check_writable(folder: str | os.PathLike) -> None:
         raise ValueError(f"output folder {folder} is not writable: {e}") from None
 
 
-def read_bytes(path: str | os.PathLike) -> bytes:
-    """The bytes of ``path``, or of its compacted copy (``path`` + :data:`COMPACTED`, xz) where only that exists;
-    FileNotFoundError without either, OSError naming the copy when it does not decompress."""
-    path = Path(path)
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        packed = path.with_name(path.name + COMPACTED)
-        if not packed.exists():
-            raise
-    import lzma
-
-    try:
-        return lzma.decompress(packed.read_bytes())
-    except lzma.LZMAError as e:
-        raise OSError(f"{packed} does not decompress: {e}") from None
-
-
-def read_text(path: str | os.PathLike) -> str:
-    """The text of ``path`` or of its compacted copy (:func:`read_bytes`)."""
-    return read_bytes(path).decode()
-
-
 def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
-    """The parsed lines of a run folder's metrics.jsonl, or of its compacted copy ([] without either): every line
-    that reads as an iteration's record; a torn last line (a run killed mid-write) or a damaged one in the middle
-    is left out, the lines after it kept (``ablate --resume`` names and sets aside such lines:
-    :meth:`RunFolder.settle_metrics`)."""
+    """The parsed lines of a run folder's metrics.jsonl ([] without one): every line that reads as an iteration's
+    record; a torn last line (a run killed mid-write) or a damaged one in the middle is left out, the lines after it
+    kept (``ablate --resume`` names and sets aside such lines: :meth:`RunFolder.settle_metrics`)."""
     try:
-        data = read_bytes(Path(run_dir) / METRICS)
+        data = (Path(run_dir) / METRICS).read_bytes()
     except FileNotFoundError:
         return []
     return [row for _, _, row in _metrics_lines(data)[0] if row is not None]
@@ -413,10 +385,10 @@ class RunFolder:
         return read_metrics(self.path)
 
     def read_summary(self) -> dict | None:
-        """summary.json (or its compacted copy), or None when there is none (yet) or it does not parse (it is
+        """summary.json, or None when there is none (yet) or it does not parse (it is
         written atomically, so a file that does not parse is not the run's)."""
         try:
-            data = json.loads(read_text(self.summary_path))
+            data = json.loads(self.summary_path.read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError):
             return None
         return data if isinstance(data, dict) else None
