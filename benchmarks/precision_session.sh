@@ -8,8 +8,10 @@
 #             ant (GPU 3), which measures cosines, not time
 #   progress  the last line of every log
 #   wait [S]  until every population has ended, at most S seconds (560), then progress
-#   time      on idle GPUs, one process a GPU: precision.py's times of the ant (GPU 0), population.py ant (1), hopper (2)
-#   collect   the thinned, compacted run folders and every JSON and log as one tarball under $OUT
+#   time      on idle GPUs, one process a GPU: precision.py's times of the ant (GPU 0), population.py ant (1),
+#             hopper (2); on GPU 3 the forward walk's variants (diffrender.raster.fused.tuning: FWD_COMPACT,
+#             FWD_DEFER_SHADING) at 768 ant images, their CUDA tests, then anchor.py's timings of each variant
+#   collect   the thinned run folders and every JSON and log as one tarball under $OUT
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 [ -f /tmp/site/.installed ] || { python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
@@ -18,7 +20,7 @@ export PYTHONPATH=/tmp/site:/tmp/pg PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 R=/tmp/pgruns; mkdir -p $R
 case ${1:?stage} in
   launch)
-    rm -rf /tmp/pg; mkdir -p /tmp/pg; cp -r ablations gradlab tasks diffrender benchmarks pyproject.toml /tmp/pg/
+    rm -rf /tmp/pg; mkdir -p /tmp/pg; cp -r ablations gradlab tasks diffrender vocabulary benchmarks tests pyproject.toml /tmp/pg/
     git rev-parse HEAD > $R/commit.txt 2>/dev/null || true
     nvidia-smi --query-gpu=index,name,memory.total --format=csv > $R/gpus.txt
     common="--task hopper --seed 0 1 2 3 4 --iters 2000 --eval-every 250 --cosine-every 100 --compile --video-every 0
@@ -45,6 +47,12 @@ case ${1:?stage} in
       --out $R/population_ant_precision.json > $R/time_pop_ant.log 2>&1 &
     CUDA_VISIBLE_DEVICES=2 python3 benchmarks/population.py --tasks hopper --members 1 12 --anchor --precision fp32 bf16 \
       --out $R/population_hopper_precision.json > $R/time_pop_hopper.log 2>&1 &
+    (CUDA_VISIBLE_DEVICES=3 python3 -m pytest -q -p no:cacheprovider tests/diffrender/test_fused.py -k "compacted or variants" \
+      > $R/time_walk_tests.log 2>&1
+     CUDA_VISIBLE_DEVICES=3 python3 benchmarks/anchor.py --batch 768 --faces 0 --parts time --compile on --no-warp \
+      --variants default FWD_DEFER_SHADING=1 FWD_COMPACT=1,FWD_SUB_BLOCK=32 FWD_COMPACT=1,FWD_SUB_BLOCK=16 \
+      FWD_COMPACT=1,FWD_SUB_BLOCK=8 FWD_COMPACT=1,FWD_SUB_BLOCK=16,FWD_DEFER_SHADING=1 \
+      --out $R/anchor_forward_walks_768.json > $R/time_walks.log 2>&1) &
     wait; tail -n 25 $R/time_*.log;;
   wait)  # until every population has ended (its summary written), at most ${2:-560} s; then progress
     end=$((SECONDS + ${2:-560}))
@@ -59,7 +67,6 @@ case ${1:?stage} in
         python3 -c "import sys; from ablations.run_folder import thin_copy; thin_copy(sys.argv[1], sys.argv[2], every=10)" \
           "$run" "/tmp/thin/$(basename "$d")/$(basename "$run")"; done
       cp "$d"/population.json "/tmp/thin/$(basename "$d")/" 2>/dev/null; done
-    python3 -m ablations.compact /tmp/thin 2>&1 | tail -n 2
     cp $R/*.json $R/*.log $R/*.txt /tmp/thin/ 2>/dev/null
     tar -C /tmp -cJf "$OUT/precision_runs.tar.xz" thin; ls -la "$OUT";;
 esac

@@ -344,3 +344,16 @@ def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path):
                           "--time-warmup", "1", "--time-iters", "1", "--out", str(tmp_path / "p.json")])
     assert [(r["precision"], r["status"]) for r in doc["time"]] == [("fp32", "ok"), ("bf16", "ok")], doc["time"]
     assert all(r["iter_ms"] > 0 for r in doc["time"])
+
+
+def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_path, capsys):
+    """The compacted walk's pair count falls with its chunk size, between the block-wise walk's and the bound;
+    chunks of one face are the bound itself (every face whose box reaches a tile, each once)."""
+    fw = _load("forward_walk")
+    out = tmp_path / "walk.json"
+    assert fw.main(["--batch", "2", "--res", "24", "--chunks", "64", "16", "4", "1", "--out", str(out)]) == 0
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["faces"] == 1856 and row["tiles"] == 36
+    assert row["block"] >= row["compact_64"] > row["compact_16"] > row["compact_4"] > row["bound"] > 0
+    assert row["compact_1"] == row["bound"]
+    assert "| 1,856 |" in capsys.readouterr().out

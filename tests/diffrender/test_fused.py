@@ -151,6 +151,55 @@ def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
         torch.testing.assert_close(out3, out1, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize(("model", "walk"), [pytest.param("hard", dict(FWD_COMPACT=True), marks=pytest.mark.slow),
+                                            ("hard", dict(FWD_COMPACT=True, FWD_DEFER_SHADING=True)),
+                                            pytest.param("hard", dict(FWD_DEFER_SHADING=True), marks=pytest.mark.slow),
+                                            pytest.param("softmax", dict(FWD_COMPACT=True), marks=pytest.mark.slow),
+                                            pytest.param("alpha", dict(FWD_COMPACT=True), marks=pytest.mark.slow)])
+def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch, model, walk):
+    """The forward's walk variants against the block-wise walk that shades every pair, on 16-face blocks in
+    chunks of 4 (the ant's 944 faces: blocks that reach a tile with none, some and more than one chunk of
+    faces whose boxes reach it), unsplit and split in three: ``FWD_COMPACT`` (of each block near a tile, only
+    the faces whose boxes reach it, packed into chunks) and the hard model's ``FWD_DEFER_SHADING`` (the
+    chosen face alone shaded): the hard model's image and state bit for bit, the soft models' to float64
+    rounding (their sums are regrouped)."""
+    _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=4)
+    q = ant_pose(2, seed=5).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=12)
+    settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
+    st = Static.make(settings, focal=cam.focal, height=cam.height, width=cam.width, tile_h=tuning.TILE,
+                     tile_w=tuning.TILE)
+    coef, box, bbox, sbox, floor = rasterize._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces,
+                                                    st, 16, 2)
+    for splits in (1, 3):
+        results = {}
+        for variant in (dict(FWD_COMPACT=False, FWD_DEFER_SHADING=False), walk):
+            _set(monkeypatch, FWD_MAX_SPLITS=splits, **variant)
+            out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
+            state = torch.full((2, rasterize.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
+            rasterize._launch_forward(coef, box, bbox, sbox, floor, st, tuning.TILE, 16, out, state)
+            results[variant is walk] = (out, state)
+        (out_b, state_b), (out_c, state_c) = results[False], results[True]
+        assert torch.isfinite(out_c).all() and torch.isfinite(state_c).all()
+        if model == "hard":
+            assert torch.equal(out_c, out_b) and torch.equal(state_c, state_b) and (state_b[:, 1] >= 0).any()
+        else:
+            assert (state_b[:, 3] > 0).any()
+            torch.testing.assert_close(state_c, state_b, rtol=1e-12, atol=1e-300)
+            torch.testing.assert_close(out_c, out_b, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("model", ["softmax", pytest.param("hard", marks=pytest.mark.slow)])
+def test_compacted_forward_walk_matches_dense(ant64, monkeypatch, model):
+    """Images and gradients of the compacted forward walk (the backward recomputes its blend state with it;
+    the hard model's chosen face alone shaded) against the dense reference."""
+    _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SUB_BLOCK=4, FWD_COMPACT=True, FWD_DEFER_SHADING=True)
+    q = ant_pose(1, seed=1).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=8), dict(raster_model=model))
+
+
 @pytest.mark.parametrize("model", [pytest.param("softmax", marks=pytest.mark.slow), "hard"])
 def test_small_faces_whose_boxes_end_inside_tiles_match_dense(model):
     """Six triangles of ~2 px, apart, at different sub-pixel offsets in a 32 x 32 image: the backward walks
@@ -374,6 +423,29 @@ def test_fused_matches_tiled_at_task_size_float32(model):
     g_t, g_f = res["tiled"][1], res["fused"][1]
     assert torch.isfinite(g_f).all()
     assert (g_t - g_f).norm() <= 1e-3 * g_t.norm()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only: the task-size point")
+@pytest.mark.parametrize("model", ["softmax", "alpha", "hard"])
+@pytest.mark.parametrize("sub_block", [8, 16])
+def test_compacted_forward_walk_at_task_size_float32(monkeypatch, model, sub_block):
+    """64 ants at 84 x 84 in float32, forward without gradient (what decoupled rollouts and evaluation render):
+    the compacted walk's images (the hard model's chosen face alone shaded) equal the block-wise walk's that
+    shades every pair, the hard model's bit for bit."""
+    robot = dr.RobotModel.from_mjcf(asset("ant"), detail=1, device=DEV)
+    q = ant_pose(64, dtype=torch.float32, seed=3).to(DEV)
+    v, n = robot.world_vertices_and_normals(q)
+    settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
+    imgs = {}
+    for compact in (False, True):
+        _set(monkeypatch, FWD_COMPACT=compact, FWD_DEFER_SHADING=compact,
+             FWD_SUB_BLOCK=sub_block if compact else tuning.FWD_SUB_BLOCK)
+        with torch.no_grad():
+            imgs[compact] = dr.render(v, robot.faces, robot.colors, ant_camera(q, size=84), settings, normals=n)
+    if model == "hard":
+        assert torch.equal(imgs[True], imgs[False])
+    else:
+        assert (imgs[True] - imgs[False]).abs().max() < 1e-5
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only")

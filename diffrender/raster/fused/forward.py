@@ -102,17 +102,65 @@ def _candidate(cp, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse):
 
 
 @triton.jit
-def _face_chunk(cbase, fbox, fo, Fp, blk, h, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse,
-                FB: tl.constexpr, FS: tl.constexpr):
-    """The ``FS`` faces ``h`` of block ``blk`` at the tile's pixels, as both forward passes walk them
-    (``cbase``, ``fbox``: the environment's coefficients and face boxes; ``fo``: ``arange(FS)``): their
-    indices (FS,), whether each pixel centre lies in each face's box, and each pair's signed distance,
-    normalised depth and colour (``_candidate``), each (FS, P)."""
-    f = blk * FB + h * FS + fo
+def _faces_at(cbase, fbox, f, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse):
+    """Faces ``f`` (FS,) at the tile's pixels (``cbase``, ``fbox``: the environment's coefficients and face
+    boxes): whether each pixel centre lies in each face's box, and each pair's signed distance, normalised
+    depth and colour (``_candidate``), each (FS, P)."""
     inbox = _in_face_box(fbox, f, Fp, xc, yc)
     sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
                                     ambient, diffuse)
+    return inbox, sd, zn, cr, cg, cb
+
+
+@triton.jit
+def _touching_faces(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB: tl.constexpr):
+    """Block ``blk``'s faces whose boxes reach the tile's pixel centres: all their indices (FB,), which ones
+    reach it, each one's rank among those (in face order) and how many there are."""
+    f = blk * FB + tl.arange(0, FB)
+    near = ((tl.load(fbox + Fp + f) >= x_lo) & (tl.load(fbox + f) <= x_hi)
+            & (tl.load(fbox + 3 * Fp + f) >= y_lo) & (tl.load(fbox + 2 * Fp + f) <= y_hi))
+    rank = tl.cumsum(near.to(tl.int32), axis=0) - 1
+    return f, near, rank, tl.sum(near.to(tl.int32), axis=0)
+
+
+@triton.jit
+def _compacted(f, near, rank, count, c, FS: tl.constexpr):
+    """Slots ``c .. c + FS - 1`` of the touching faces in face order: their indices (FS,) and which slots
+    hold one (slots past ``count`` hold face ``f[0]``, masked out)."""
+    slot = c + tl.arange(0, FS)
+    pick = near[:, None] & (rank[:, None] == slot[None, :])
+    first = tl.min(f, axis=0)
+    return tl.sum(tl.where(pick, f[:, None] - first, 0), axis=0) + first, slot < count
+
+
+@triton.jit
+def _block_chunk(cbase, fbox, fo, Fp, blk, h, near_f, near, rank, count, xc, yc, zfar, znear, lx, ly, lz,
+                 ambient, diffuse, FB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr):
+    """Chunk ``h`` of the ``FS`` faces of block ``blk`` at the tile's pixels, as both forward passes walk
+    them: their indices (FS,), whether each pixel centre lies in each face's box, and each pair's signed
+    distance, normalised depth and colour (``_candidate``), each (FS, P). COMPACT: the chunk is slots
+    ``h * FS ...`` of the block's faces that reach the tile (:func:`_touching_faces`: ``near_f, near,
+    rank, count``), so no face far from the tile is evaluated; else the block's faces ``h * FS ...``."""
+    if COMPACT:
+        f, live = _compacted(near_f, near, rank, count, h * FS, FS)
+        inbox, sd, zn, cr, cg, cb = _faces_at(cbase, fbox, f, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse)
+        inbox = inbox & live[:, None]
+    else:
+        f = blk * FB + h * FS + fo
+        inbox, sd, zn, cr, cg, cb = _faces_at(cbase, fbox, f, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse)
     return f, inbox, sd, zn, cr, cg, cb
+
+
+@triton.jit
+def _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr):
+    """How the passes walk block ``blk``: the chunks to evaluate and, with COMPACT, the block's faces that
+    reach the tile (:func:`_touching_faces`); without, every chunk of the block (placeholders for the rest)."""
+    if COMPACT:
+        near_f, near, rank, count = _touching_faces(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB)
+        return (count + FS - 1) // FS, near_f, near, rank, count
+    else:
+        zero = tl.zeros([FB], dtype=tl.int32)
+        return FB // FS, zero, zero > 0, zero, 0
 
 
 @triton.jit
@@ -120,10 +168,10 @@ def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den,
                 NB, NSB, sb0, NSPLIT,
                 xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
                 sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
-                FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr):
+                FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr):
     """Soft models: online depth softmax over the faces of super-blocks sb0, sb0 + NSPLIT, ..., starting
     from the given sums (floor and background for "softmax", zero for "alpha" and for a split's part);
-    also the faces' weight sum and coverage sum."""
+    also the faces' weight sum and coverage sum. COMPACT: see :func:`_block_chunk`."""
     fo = tl.arange(0, FS)
     cbase = coef_ptr + env * 45 * Fp
     fbox = box_ptr + env * 4 * Fp
@@ -132,9 +180,11 @@ def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den,
             for j in range(0, SB):
                 blk = sb * SB + j
                 if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                    for h in range(0, FB // FS):  # FS faces at a time: fewer registers per thread
-                        _, inbox, sd, zn, cr, cg, cb = _face_chunk(cbase, fbox, fo, Fp, blk, h, xc, yc, zfar, znear,
-                                                                   lx, ly, lz, ambient, diffuse, FB, FS)
+                    n, near_f, near, rank, count = _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, FS, COMPACT)
+                    for h in range(0, n):  # FS faces at a time: fewer registers per thread
+                        _, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near_f, near, rank,
+                                                                    count, xc, yc, zfar, znear, lx, ly, lz, ambient,
+                                                                    diffuse, FB, FS, COMPACT)
                         keep = inbox & inb[None, :] & (sd > -cutoff)
                         m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
                         scale = tl.exp((m - m_new) / gamma)
@@ -154,11 +204,14 @@ def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den,
 def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
                   NSB, sb0, NSPLIT,
                   xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz,
-                  FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr):
+                  FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr,
+                  DEFER: tl.constexpr):
     """Hard model: among the faces of super-blocks sb0, sb0 + NSPLIT, ..., the nearest face whose
     triangle contains the pixel centre, strictly nearer than ``m`` (the floor or background); the lowest
     face index among exact ties, as the faces come in order. Returns its colour, its index (as a float;
-    -1 for none) and its normalised depth."""
+    -1 for none; ``nearest`` must come in as -1) and its normalised depth. DEFER: the walk finds the face
+    by depth alone and shades only the chosen face of each pixel at the end (the same arithmetic, so the
+    same colour), instead of shading every face-pixel pair it meets. COMPACT: see :func:`_block_chunk`."""
     fo = tl.arange(0, FS)
     cbase = coef_ptr + env * 45 * Fp
     fbox = box_ptr + env * 4 * Fp
@@ -167,20 +220,33 @@ def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, ne
             for j in range(0, SB):
                 blk = sb * SB + j
                 if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                    for h in range(0, FB // FS):
-                        f, inbox, sd, zn, cr, cg, cb = _face_chunk(cbase, fbox, fo, Fp, blk, h, xc, yc, zfar, znear,
-                                                                   lx, ly, lz, ambient, diffuse, FB, FS)
+                    n, near_f, near, rank, count = _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, FS, COMPACT)
+                    for h in range(0, n):
+                        # unused, the colours are compiled away (DEFER)
+                        f, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near_f, near, rank,
+                                                                    count, xc, yc, zfar, znear, lx, ly, lz, ambient,
+                                                                    diffuse, FB, FS, COMPACT)
                         keep = inbox & inb[None, :] & (sd >= 0)
                         zk = tl.where(keep, zn, -float("inf"))
                         best = tl.max(zk, axis=0)
                         first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
-                        one = f[:, None] == first[None, :]
                         upd = best > m
-                        col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
-                        col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
-                        col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
+                        if not DEFER:
+                            # keep: a compacted chunk's empty slots repeat a face index
+                            one = keep & (f[:, None] == first[None, :])
+                            col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
+                            col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
+                            col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
                         nearest = tl.where(upd, first.to(nearest.dtype), nearest)
                         m = tl.where(upd, best, m)
+    if DEFER:
+        won = nearest >= 0
+        face = tl.where(won, nearest, 0.0).to(tl.int32)
+        _, _, cr, cg, cb = _candidate(cbase + face[None, :], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                      ambient, diffuse)
+        col_r = tl.where(won, tl.sum(cr, axis=0), col_r)
+        col_g = tl.where(won, tl.sum(cg, axis=0), col_g)
+        col_b = tl.where(won, tl.sum(cb, axis=0), col_b)
     return col_r, col_g, col_b, nearest, m
 
 
@@ -274,7 +340,8 @@ def _soft_colour(num_r, num_g, num_b, den, w_sum, cov_sum, cb_r, cb_g, cb_b):
 @triton.jit
 def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, Fp,
                    NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
-                   FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr):
+                   FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr,
+                   COMPACT: tl.constexpr, DEFER: tl.constexpr):
     """One program per (tile, environment, split). MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel
     (SAVE): soft models the blend's maximum, its denominator, the faces' weight sum and coverage sum; hard
     the maximum and the chosen face (-1: none).
@@ -296,13 +363,13 @@ def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_pt
             c_r, c_g, c_b, nearest, m = _nearest_pass(
                 coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero - 1.0, zero - 1e4, env, Fp, NB,
                 NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly,
-                lz, FB, SB, FS)
+                lz, FB, SB, FS, COMPACT, DEFER)
             p1, p2, p3, p4, p5 = nearest, c_r, c_g, c_b, zero
         else:
             p1, p2, p3, _den, p4, p5, m = _blend_pass(
                 coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero, zero, zero, zero - 1e4, env, Fp,
                 NB, NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff,
-                cap, ambient, diffuse, lx, ly, lz, FB, SB, FS)
+                cap, ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT)
         pp = part_ptr + ((split * tl.num_programs(1) + env) * 6) * HW + pix
         tl.store(pp, m, mask=inb)
         tl.store(pp + HW, p1, mask=inb)
@@ -317,7 +384,8 @@ def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_pt
             c_r, c_g, c_b, nearest, m = _hard_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b)
             out_r, out_g, out_b, nearest, m = _nearest_pass(
                 coef_ptr, box_ptr, bbox_ptr, sbox_ptr, c_r, c_g, c_b, nearest, m, env, Fp, NB, NSB, 0, 1, xc,
-                yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS)
+                yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT,
+                DEFER)
             s1, s2, s3 = nearest, tl.zeros_like(m), tl.zeros_like(m)
         else:
             zero = tl.zeros_like(fzn)
@@ -325,7 +393,7 @@ def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_pt
             num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_pass(
                 coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB,
                 NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap,
-                ambient, diffuse, lx, ly, lz, FB, SB, FS)
+                ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT)
             out_r, out_g, out_b = _soft_colour(num_r, num_g, num_b, den, w_sum, cov_sum, cb_r, cb_g, cb_b)
             s1, s2, s3 = den, w_sum, cov_sum
         _store_pixels(out_ptr, state_ptr, env, pix, inb, HW, out_r, out_g, out_b, m, s1, s2, s3, SAVE)

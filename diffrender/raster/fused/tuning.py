@@ -19,6 +19,20 @@ SUPER_BLOCK = 16
 #: or 8 for more than 1024 face-pixel pairs at once).
 FWD_SUB_BLOCK = 64
 FWD_WARPS: int | None = None
+#: Whether the forward evaluates, of each block whose box reaches its tile, only the faces whose own boxes
+#: reach it, packed in face order into chunks of FWD_SUB_BLOCK (a rank by prefix sum, then a gather of their
+#: coefficients). The block's box is the union of 64 faces' boxes, so most of a block's faces are far from
+#: most tiles it reaches: on the ant at 84 px, 224k face-pixel pairs an image are evaluated block-wise, 62k
+#: compacted in chunks of 16 and 43k in chunks of 8 (31.5k pairs have the pixel's tile inside the face's box).
+#: The same image, the hard model's bit for bit (the faces come in the same order; the soft models' sums are
+#: regrouped: float rounding). Off until timed on a GPU against the block-wise walk (benchmarks/anchor.py
+#: ``--variants FWD_COMPACT=1,FWD_SUB_BLOCK=16``).
+FWD_COMPACT = False
+#: Whether the hard model's forward walk finds each pixel's face by depth alone and shades only that face at
+#: the end (the same arithmetic: the same colour), instead of interpolating normal and albedo and shading every
+#: face-pixel pair it meets (over half of a pair's arithmetic). Off until timed on a GPU
+#: (``--variants FWD_DEFER_SHADING=1``).
+FWD_DEFER_SHADING = False
 #: The forward's walk over the super-blocks is split between up to FWD_MAX_SPLITS programs per tile (program s
 #: takes super-blocks s, s + S, ...), one per FWD_SPLIT_SUPER_BLOCKS super-blocks (see
 #: :func:`.rasterize.forward_splits`): the few tiles where a detailed mesh crowds thousands of faces would
