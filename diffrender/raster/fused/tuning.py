@@ -22,8 +22,9 @@ FWD_WARPS: int | None = None
 #: Whether the forward evaluates, of each block whose box reaches its tile, only the faces whose own boxes
 #: reach it, packed in face order into chunks of FWD_SUB_BLOCK (a rank by prefix sum, then a gather of their
 #: coefficients). The block's box is the union of 64 faces' boxes, so most of a block's faces are far from
-#: most tiles it reaches: on the ant at 84 px, 224k face-pixel pairs an image are evaluated block-wise, 62k
-#: compacted in chunks of 16 and 43k in chunks of 8 (31.5k pairs have the pixel's tile inside the face's box).
+#: most tiles it reaches: on the ant at 84 px, 221k face-pixel pairs an image are evaluated block-wise, 62k
+#: compacted in chunks of 16 and 43k in chunks of 8 (32k pairs have the pixel's tile inside the face's box;
+#: benchmarks/forward_walk.py, BENCHMARKS.md section 2.1).
 #: The same image, the hard model's bit for bit (the faces come in the same order; the soft models' sums are
 #: regrouped: float rounding). Off until timed on a GPU against the block-wise walk (benchmarks/anchor.py
 #: ``--variants FWD_COMPACT=1,FWD_SUB_BLOCK=16``).
