@@ -428,7 +428,9 @@ class MetricsTail:
 
 # ---------------------------------------------------------------------------------------------- records
 def git_info(repo: Path | None = None) -> tuple[str, str]:
-    """(git.txt text, full diff) of the source tree that runs; explains itself when git is unavailable."""
+    """(git.txt text, full diff) of the source tree that runs; explains itself when git is unavailable. A copy of
+    the tree without its repository (a GPU machine's detached runs start from one) records the commit that
+    ``$PIXELGRAD_COMMIT`` names, as the benchmarks do, and says so."""
     repo = repo or Path(__file__).resolve().parents[1]
 
     def git(*args: str) -> str:
@@ -444,6 +446,9 @@ def git_info(repo: Path | None = None) -> tuple[str, str]:
         stat = git("diff", "HEAD", "--stat")
         diff = git("diff", "HEAD")
     except (OSError, RuntimeError, subprocess.TimeoutExpired) as e:
+        named = os.environ.get("PIXELGRAD_COMMIT")
+        if named:
+            return f"commit {named}\nnamed by $PIXELGRAD_COMMIT: this copy of the tree has no repository ({e})\n", ""
         return f"git information unavailable: {e}\n", ""
     dirty = bool(status.strip())
     status = status or "(clean)\n"

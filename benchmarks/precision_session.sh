@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # The encoder-precision evidence on one four-GPU machine (benchmarks/precision.py, docs/design.md "Numeric
 # precision"), in stages, each a device call. Usage, from the repo root: bash benchmarks/precision_session.sh STAGE
+# (launch: PIXELGRAD_COMMIT=<sha> bash ...: the runs start from a copy of the tree without its repository, and each
+# run's git.txt and every benchmark JSON record the commit named)
 #   launch    install the carried wheels, copy the tree to /tmp/pg and start, detached (setsid):
 #             GPUs 0-3: the seeded comparison, hopper, 5 seeds, 2000 iterations, one population each:
 #             fp32 decoupled, fp32 full, bf16 decoupled, bf16 full (the same arm set at both precisions, so
@@ -18,10 +20,12 @@ OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
   .gpu/*.whl >/dev/null 2>&1 && touch /tmp/site/.installed; } || { echo "wheel install failed"; exit 1; }
 export PYTHONPATH=/tmp/site:/tmp/pg PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 R=/tmp/pgruns; mkdir -p $R
+# the commit launch was named, for the later stages' benchmarks
+[ -z "${PIXELGRAD_COMMIT:-}" ] && [ -f $R/commit.txt ] && export PIXELGRAD_COMMIT=$(cat $R/commit.txt)
 case ${1:?stage} in
   launch)
     rm -rf /tmp/pg; mkdir -p /tmp/pg; cp -r ablations gradlab tasks diffrender vocabulary benchmarks tests pyproject.toml /tmp/pg/
-    git rev-parse HEAD > $R/commit.txt 2>/dev/null || true
+    echo "${PIXELGRAD_COMMIT:?name the commit of the tree sent: PIXELGRAD_COMMIT=<sha>}" > $R/commit.txt
     nvidia-smi --query-gpu=index,name,memory.total --format=csv > $R/gpus.txt
     common="--task hopper --seed 0 1 2 3 4 --iters 2000 --eval-every 250 --cosine-every 100 --compile --video-every 0
             --checkpoint-every 1000 --time-limit-min 21 --device cuda --no-progress --out $R"

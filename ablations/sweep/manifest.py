@@ -38,7 +38,7 @@ def _new_record(spec: RunSpec) -> dict:
     return {"task": spec.task, "mode": spec.mode, "arm": spec.arm, "seed": spec.seed, "flags": spec.flags,
             "args": list(spec.args), "iters": spec.iters, "folder": run_path(".", spec.run_id).as_posix(),
             "status": "queued", "error": None, "iteration": None, "latest_return": None, "attempts": 0,
-            "resumed": False, "node": None, "host": None, "updated": None}
+            "resumed": False, "node": None, "host": None, "gpus": None, "updated": None}
 
 
 def plan_jobs(cfg: SweepConfig, specs: list[RunSpec], manifest: dict | None) -> list[Job]:

@@ -25,6 +25,14 @@ def time_limit_min(args: Any) -> float | None:
         return None
 
 
+def _placement(rec: dict) -> str:
+    """Where a run trains (or trained): '  on HOST GPU 0' ('GPU -' on the CPU); empty before it has started."""
+    if rec.get("host") is None:
+        return ""
+    gpus = rec.get("gpus")
+    return f"  on {rec['host']} GPU {','.join(gpus) if gpus else '-'}"
+
+
 def progress_text(rec: dict) -> str:
     """How far a run is: 'it 31/100' or, for a time-limited run, 'time 3.2/60 min (it 31)'."""
     limit = time_limit_min(rec.get("args"))
@@ -72,7 +80,8 @@ class LiveTable:
                 if before is not None or status in ("done", "failed"):
                     extra = f"  error: {rec['error']}" if rec.get("error") else ""
                     self._print(f"{status:8s} {run_id}  {progress_text(rec)}  return "
-                                f"{_fmt_return(rec.get('latest_return'))}  attempts {rec.get('attempts')}{extra}")
+                                f"{_fmt_return(rec.get('latest_return'))}  attempts {rec.get('attempts')}"
+                                f"{_placement(rec)}{extra}")
         for job_id, job in self.jobs.items() if self.enabled else ():
             recs = [runs[r] for r in job.run_ids]
             bar = self.bars.get(job_id)

@@ -58,7 +58,8 @@ def _error_of(log: Path, returncode: int) -> str:
 
 def run_attempt(job: dict, store, opts: dict) -> dict:
     """Body of the Ray task: one attempt of one job (a run, or a population of runs; fresh or resumed); returns
-    each run's result for the manifest: {"runs": {run_id: {status, error, ...}}, "attempt", "node", "host"}.
+    each run's result for the manifest: {"runs": {run_id: {status, error, ...}}, "attempt", "node", "host",
+    "gpus"}.
 
     ``job``: a :class:`~ablations.sweep.packing.Job` as a dict; ``store``: the RunStore actor; ``opts``: sweep_id,
     cpus_per_run, gpus_per_run, keep_checkpoints and program (None: ablate).
@@ -87,12 +88,14 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
         env["CUDA_VISIBLE_DEVICES"] = ""
     log = scratch / "ablate.log"
     node = ray.get_runtime_context().get_node_id()
+    # where the job trains: Ray's GPU ids for this worker (its CUDA_VISIBLE_DEVICES), [] on the CPU
+    gpus = [str(g) for g in ray.get_gpu_ids()]
     try:
         with open(log, "wb") as log_f:
             proc = subprocess.Popen([sys.executable, str(_CHILD), str(os.getpid()), *command], cwd=scratch,
                                     stdout=log_f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         store.report.remote(job_id, attempt, {"status": "running", "node": node, "host": platform.node(),
-                                              "resumed": pack is not None})
+                                              "gpus": gpus, "resumed": pack is not None})
         tails = [MetricsTail(f.metrics_path) for f in folders]
         reported: dict[str, object] = {}
         while True:
@@ -148,7 +151,7 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
                                "summary_status": summary.get("status"),
                                "iteration": summary.get("iterations", last.get("iter")),
                                "latest_return": summary.get("final_return", last.get("return_mean"))}
-        return {"runs": results, "attempt": attempt, "node": node, "host": platform.node()}
+        return {"runs": results, "attempt": attempt, "node": node, "host": platform.node(), "gpus": gpus}
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 

@@ -16,10 +16,11 @@
     python fake_ablate.py record LOG SECONDS -- ABLATE_ARGS...
         No training: spends SECONDS writing --iters iterations (a metrics line and a small checkpoint each, which
         the worker ships to the driver as it does a real run's), then a summary, and appends {"run", "pid",
-        "start", "end", "threads", "members"} (time.time() seconds; its --threads; its --member values) to LOG, to
-        measure how many runs overlap. With --member: a population folder (population.json) holding a run folder
-        per member, named as ablate names them; --resume continues from the newest checkpoint every run folder has
-        (its metrics cut there), so an attempt that repeats or skips an iteration shows in the metrics.
+        "start", "end", "threads", "members", "cuda_visible_devices"} (time.time() seconds; its --threads; its
+        --member values; the GPUs it was given) to LOG, to measure how many runs overlap and where they ran.
+        With --member: a population folder (population.json) holding a run folder per member, named as ablate
+        names them; --resume continues from the newest checkpoint every run folder has (its metrics cut there),
+        so an attempt that repeats or skips an iteration shows in the metrics.
 """
 
 from __future__ import annotations
@@ -152,7 +153,8 @@ def record(log: Path, seconds: float, args: list[str]) -> None:
         (run / "summary.json").write_text(json.dumps({"status": "finished", "iterations": iters,
                                                       "final_return": float(iters)}))
     line = json.dumps({"run": run_id, "pid": os.getpid(), "start": start, "end": time.time(),
-                       "threads": _value(args, "--threads"), "members": names, "resumed_from": done}) + "\n"
+                       "threads": _value(args, "--threads"), "members": names, "resumed_from": done,
+                       "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES")}) + "\n"
     with open(log, "a") as f:  # one short append per run: lines of concurrent runs do not interleave
         f.write(line)
 

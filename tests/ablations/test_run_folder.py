@@ -225,3 +225,18 @@ def test_a_thin_copy_keeps_the_records_every_kth_iteration_probes_and_evaluation
     thin = thin_copy(src.path, tmp_path / "thin" / "run", every=10)
     assert [r["iter"] for r in thin.read_metrics()] == [7, 10, 14, 20, 21, 25, 28, 30, 33]  # 33: the last
     assert not thin.checkpoint_dir.exists() and load_run(thin.path).config["mode"] == "full"
+
+
+def test_a_copy_of_the_tree_without_its_repository_records_the_commit_it_is_named(tmp_path, monkeypatch):
+    """git.txt of a run started from a copy of the tree with no repository (a GPU machine's detached runs): the
+    commit $PIXELGRAD_COMMIT names, and why it is named; without the variable, that git is unavailable."""
+    from ablations.run_folder import git_info
+
+    monkeypatch.delenv("PIXELGRAD_COMMIT", raising=False)
+    text, diff = git_info(tmp_path)
+    assert text.startswith("git information unavailable") and diff == ""
+    monkeypatch.setenv("PIXELGRAD_COMMIT", "46ae056")
+    text, diff = git_info(tmp_path)
+    assert text.startswith("commit 46ae056\nnamed by $PIXELGRAD_COMMIT") and diff == ""
+    text, _ = git_info()  # this checkout is a repository: git's own answer wins
+    assert text.startswith("commit ") and "named by" not in text
