@@ -429,6 +429,21 @@ def test_sign_flip_p_values_are_exact():
     assert math.isnan(stats.sign_flip_p([]))
 
 
+@pytest.mark.parametrize(("family", "seeds"), [(1, 6), (3, 7), (10, 9), (18, 10)])
+def test_seeds_to_resolve_is_the_fewest_with_which_the_strongest_result_survives_holm(family, seeds):
+    """Every seed agreeing (the smallest sign-flip p-value), against ``family - 1`` comparisons of p = 1:
+    the strongest result differs after Holm correction from the stated number of seeds on, never below it."""
+    assert stats.seeds_to_resolve(family) == seeds
+
+    def strongest_differs(n: int) -> bool:
+        p = stats.sign_flip_p([1.0 + 0.1 * i for i in range(n)])
+        return stats.holm([p] + [1.0] * (family - 1))[0] <= stats.ALPHA
+
+    assert strongest_differs(seeds) and not strongest_differs(seeds - 1)
+    with pytest.raises(ValueError, match="at least 1"):
+        stats.seeds_to_resolve(0)
+
+
 def test_holm_adjusts_known_p_values():
     # sorted 0.01, 0.03, 0.04, 0.2 times 4, 3, 2, 1: 0.04, 0.09, 0.08 -> 0.09 (monotone), 0.2
     assert stats.holm([0.01, 0.04, 0.03, 0.2]) == pytest.approx([0.04, 0.09, 0.09, 0.2])

@@ -170,6 +170,19 @@ def sign_flip_p(diffs: Sequence[float], *, reps: int = 100_000, seed: int = DEFA
     return float((1 + np.sum(np.abs(signs @ d / n) >= observed - tol)) / (reps + 1))
 
 
+def seeds_to_resolve(family: int, *, alpha: float = ALPHA) -> int:
+    """The fewest paired seeds with which a comparison can differ after Holm correction over ``family``
+    comparisons, under the exact sign-flip test (:func:`sign_flip_p`): even with every seed agreeing, its
+    p-value is 2 / 2^n, which Holm's first step holds to alpha / family. At 0.05: 6 seeds for one comparison,
+    9 for 10, 10 for 18."""
+    if family < 1:
+        raise ValueError(f"family must be at least 1, got {family}")
+    n = 1
+    while 2.0 / 2 ** n * family > alpha:
+        n += 1
+    return n
+
+
 def holm(p_values: Sequence[float]) -> list[float]:
     """Holm's step-down adjusted p-values, in the given order: with the m p-values sorted ascending,
     p_adj(i) = max over j <= i of min(1, (m - j + 1) p(j)). A comparison differs at level alpha (family-wise
