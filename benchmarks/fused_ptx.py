@@ -50,6 +50,9 @@ MODELS = {"hard": 0, "softmax": 1, "alpha": 2}
 #: setup_kernels): 4 x 4 forward tiles, 64-face blocks, 16 blocks per super-block, 8 x 8 backward tiles
 FWD_WARPS, BWD_WARPS, PIXEL_WARPS, SETUP_WARPS = 4, 2, 4, 2
 BWD_MAXNREG_SOFT = 128
+#: the forward walk's defaults (fused.tuning.FWD_COMPACT, FWD_DEFER_SHADING); dropped for a tree whose forward
+#: kernel has no such arguments, so that its default kernels compare with this one's
+_WALK = dict(COMPACT=False, DEFER=False)
 
 
 def specialisations() -> list[tuple[str, str, dict, dict]]:
@@ -59,7 +62,14 @@ def specialisations() -> list[tuple[str, str, dict, dict]]:
         for split in (False, True):
             for save in (False, True):
                 specs.append((f"_fused_forward[{model},split={split},save={save}]", "_fused_forward",
-                              dict(TILE_=4, FB=64, SB=16, FS=64, SAVE=save, SPLIT=split, MODEL=code),
+                              dict(TILE_=4, FB=64, SB=16, FS=64, SAVE=save, SPLIT=split, MODEL=code, **_WALK),
+                              dict(num_warps=FWD_WARPS)))
+            # the walk's variants (fused.tuning.FWD_COMPACT, FWD_DEFER_SHADING): compiled, so that a variant a
+            # GPU has not timed yet is known to build for one; labelled apart from the defaults
+            for fs in (16, 8):
+                walk = dict(COMPACT=True, DEFER=code == 0)
+                specs.append((f"_fused_forward[{model},split={split},save=False,compact={fs}]", "_fused_forward",
+                              dict(TILE_=4, FB=64, SB=16, FS=fs, SAVE=False, SPLIT=split, MODEL=code, **walk),
                               dict(num_warps=FWD_WARPS)))
         for save in (False, True):
             specs.append((f"_merge_forward[{model},save={save}]", "_merge_forward",
@@ -132,6 +142,13 @@ def fingerprint() -> dict:
     for label, name, constexprs, options in specialisations():
         if name not in fns:
             raise RuntimeError(f"no jit function {name} in the fused backend")
+        missing = set(constexprs) - set(fns[name].arg_names)
+        if missing and not missing <= set(_WALK):
+            raise RuntimeError(f"{name} has no arguments {sorted(missing)}")
+        if missing:
+            if "compact=" in label:  # a tree before the walk's variants: nothing to compile
+                continue
+            constexprs = {k: v for k, v in constexprs.items() if k not in missing}
         for float_type in ("fp32", "fp64"):
             hashes = compile_one(fns[name], constexprs, options, float_type)
             for key, digest in hashes.items():

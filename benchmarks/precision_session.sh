@@ -54,8 +54,9 @@ case ${1:?stage} in
     (CUDA_VISIBLE_DEVICES=3 python3 -m pytest -q -p no:cacheprovider tests/diffrender/test_fused.py -k "compacted or variants" \
       > $R/time_walk_tests.log 2>&1
      CUDA_VISIBLE_DEVICES=3 python3 benchmarks/anchor.py --batch 768 --faces 0 --parts time --compile on --no-warp \
-      --variants default FWD_DEFER_SHADING=1 FWD_COMPACT=1,FWD_SUB_BLOCK=32 FWD_COMPACT=1,FWD_SUB_BLOCK=16 \
-      FWD_COMPACT=1,FWD_SUB_BLOCK=8 FWD_COMPACT=1,FWD_SUB_BLOCK=16,FWD_DEFER_SHADING=1 \
+      --variants default FWD_DEFER_SHADING=1 FWD_COMPACT=1,FWD_SUB_BLOCK=16 FWD_COMPACT=1,FWD_SUB_BLOCK=8 \
+      FWD_COMPACT=1,FWD_SUB_BLOCK=16,FWD_DEFER_SHADING=1 FWD_COMPACT=1,FWD_SUB_BLOCK=16,FWD_MAXNREG=128 \
+      FWD_COMPACT=1,FWD_SUB_BLOCK=8,FWD_MAXNREG=128 FWD_COMPACT=1,FWD_SUB_BLOCK=8,FWD_DEFER_SHADING=1,FWD_MAXNREG=128 \
       --out $R/anchor_forward_walks_768.json > $R/time_walks.log 2>&1) &
     wait; tail -n 25 $R/time_*.log;;
   wait)  # until every population has ended (its summary written), at most ${2:-560} s; then progress

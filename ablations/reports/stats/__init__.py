@@ -116,5 +116,5 @@ __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", 
            "check_at_iteration", "task_statistics", "performance_profiles", "looking_probes", "LOOKING_FRACTION",
            "BlindPhase", "blind_phase", "BLIND_PHASE_ITERS", "Verdict", "Gate", "verdict", "MIN_SEEDS", "ALPHA",
            "EXACT_BOOTSTRAP_MAX_N", "EXACT_SIGN_FLIP_MAX_N", "bootstrap_distribution", "percentile_interval",
-           "sign_flip_p", "seeds_to_resolve", "holm", "correct", "correct_statistics", "common_window", "paired_difference",
-           "DifferenceCurve", "difference_curves", "sign_holds", "Band", "mean_band"]
+           "sign_flip_p", "seeds_to_resolve", "holm", "correct", "correct_statistics", "common_window",
+           "paired_difference", "DifferenceCurve", "difference_curves", "sign_holds", "Band", "mean_band"]

@@ -230,10 +230,12 @@ def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, ne
                         zk = tl.where(keep, zn, -float("inf"))
                         best = tl.max(zk, axis=0)
                         first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
+                        if not DEFER:
+                            one = f[:, None] == first[None, :]
+                            if COMPACT:  # a compacted chunk's empty slots repeat a face index: not its colour
+                                one = one & keep
                         upd = best > m
                         if not DEFER:
-                            # keep: a compacted chunk's empty slots repeat a face index
-                            one = keep & (f[:, None] == first[None, :])
                             col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
                             col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
                             col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)

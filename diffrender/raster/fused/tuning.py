@@ -27,7 +27,10 @@ FWD_WARPS: int | None = None
 #: benchmarks/forward_walk.py, BENCHMARKS.md section 2.1).
 #: The same image, the hard model's bit for bit (the faces come in the same order; the soft models' sums are
 #: regrouped: float rounding). Off until timed on a GPU against the block-wise walk (benchmarks/anchor.py
-#: ``--variants FWD_COMPACT=1,FWD_SUB_BLOCK=16``).
+#: ``--variants FWD_COMPACT=1,FWD_SUB_BLOCK=16``). Compiled for sm_90 (ptxas), the default forward takes 255
+#: registers a thread and spills, so 8 warps fit on a multiprocessor; compacted in chunks of 16 or 8 it
+#: spills nothing at 254, and under ``FWD_MAXNREG=128`` it spills 104-176 bytes where the default spills 612:
+#: the variants the GPU session times.
 FWD_COMPACT = False
 #: Whether the hard model's forward walk finds each pixel's face by depth alone and shades only that face at
 #: the end (the same arithmetic: the same colour), instead of interpolating normal and albedo and shading every
