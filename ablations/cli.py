@@ -172,7 +172,8 @@ def _ablate(argv: list[str] | None, startup) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse(AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
     try:
-        home = run(_checked_members(cfg, argv), startup=startup)
+        members, resume_flags = _checked_members(cfg, argv)
+        home = run(members, startup=startup, resume_flags=resume_flags)
     except ValueError as e:
         _fail(str(e))
     except NothingToDo as e:
@@ -208,9 +209,10 @@ def _field(key: str, fields) -> str:
     return name[3:] if name.startswith("no_") and name[3:] in fields else name
 
 
-def _checked_members(cfg, argv: list[str]) -> list:
+def _checked_members(cfg, argv: list[str]) -> tuple[list, frozenset[str] | None]:
     """The runs ``ablate``'s options stand for (one: a single run), each validated as given (before a preset fills
-    in), after the checks that need the whole command line; ValueError naming the flag (``--member`` and its entry
+    in), after the checks that need the whole command line, and for ``--resume`` the settings its flags change
+    (those given, a default's value included; else None); ValueError naming the flag (``--member`` and its entry
     for a listed member's own settings), before anything is created."""
     # not at the top: these import torch (see _ablate)
     from ablations.run_config import RESUMABLE
@@ -236,7 +238,9 @@ def _checked_members(cfg, argv: list[str]) -> list:
         raise ValueError(f"--threads {cfg.threads} is more than the {cores} cores this process may use (its CPU "
                          f"affinity): more threads than cores make every iteration wait; give at most {cores}")
     # a resume's settings are its folders' (checked as they are read)
-    return cfg.members() if cfg.resume is not None else cfg.checked_members()
+    if cfg.resume is not None:
+        return cfg.members(), frozenset(_field(g.key, fields) for g in given) & frozenset(RESUMABLE)
+    return cfg.checked_members(), None
 
 
 def memory_main(argv: list[str] | None = None) -> None:

@@ -10,14 +10,17 @@ modules that train, so that the sweep and the run path both name folders from he
 
 from __future__ import annotations
 
+import itertools
+import os
 import re
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from vocabulary import MEMBER_FIELDS
 
-__all__ = ["slug", "member_name", "folder_name", "sweep_run_id", "sweep_population_id"]
+__all__ = ["slug", "member_name", "folder_name", "claim_folder", "sweep_run_id", "sweep_population_id"]
 
 
 def slug(value: Any) -> str:
@@ -45,6 +48,20 @@ def folder_name(members: Sequence) -> str:
     if len(members) == 1:
         return f"{member_name(members[0], members)}_{stamp}"
     return f"{members[0].task}_population{len(members)}_{stamp}"
+
+
+def claim_folder(parent: str | os.PathLike, name: str) -> str:
+    """Create the new, empty folder ``parent/name`` and return its name; where it exists (another ``ablate`` that
+    started in the same second with the same settings), ``name_2``, ``name_3``, ... : creating a folder is atomic,
+    so two starts never share one. ``parent`` must exist."""
+    for k in itertools.count(1):
+        candidate = name if k == 1 else f"{name}_{k}"
+        try:
+            (Path(parent) / candidate).mkdir()
+        except FileExistsError:
+            continue
+        return candidate
+    raise AssertionError("unreachable")
 
 
 def sweep_run_id(task: str, column: str, seed: int, flags: dict) -> str:

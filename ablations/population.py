@@ -14,13 +14,13 @@ import dataclasses
 import json
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ablations.naming import folder_name, member_name
+from ablations.naming import claim_folder, folder_name, member_name
 from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
 from ablations.run_folder import RunFolder, check_writable
@@ -135,13 +135,15 @@ class NothingToDo(Exception):
     """A resume of a run that has nothing left to train (its message: one line saying so and how to extend it)."""
 
 
-def prepare(runs: RunConfig | Sequence[RunConfig]) -> Prepared:
+def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[str] | None = None) -> Prepared:
     """Validate everything, then create the folders (or find the ones to resume), before any expensive work.
 
     ``runs``: the members' RunConfigs (one: a single run), or one RunConfig whose ``--resume`` names a run folder,
     a population folder or a member's folder. The configs come back in the trainer's member order, a resume's as
-    its folders record them, ``threads`` resolved. ValueError naming the flag for bad input, or for members that
-    cannot share a process; NothingToDo for a resume of a finished run."""
+    its folders record them, ``threads`` resolved. ``resume_flags``: the :data:`RESUMABLE` settings a resume takes
+    from ``runs`` (the flags given on its command line; None: those that differ from their defaults, for callers
+    that cannot tell). ValueError naming the flag for bad input, or for members that cannot share a process;
+    NothingToDo for a resume of a finished run."""
     members = [runs] if isinstance(runs, RunConfig) else list(runs)
     resume = members[0].resume
     population: PopulationFolder | None = None
@@ -150,7 +152,7 @@ def prepare(runs: RunConfig | Sequence[RunConfig]) -> Prepared:
             folders, population = home_of(resume)
         except ValueError as e:
             raise ValueError(f"--resume {resume}: {e}") from None
-        members = [_stored_config(f, members[0]) for f in folders]
+        members = [_stored_config(f, members[0], resume_flags) for f in folders]
     else:
         if members[0].restart:
             raise ValueError("--restart goes with --resume RUN_FOLDER (a folder that holds no checkpoint)")
@@ -172,13 +174,17 @@ def prepare(runs: RunConfig | Sequence[RunConfig]) -> Prepared:
     if resume is not None:
         prepared = Prepared(members, [folders[i] for i in order], device, None, population)
         try:
-            prepared.states = _resume_states(prepared.folders, device)
+            prepared.states = _resume_states(prepared.folders, device, restart=members[0].restart)
         except ValueError as e:
             raise ValueError(f"--resume {resume}: {e}") from None
         check_resume(prepared)
         return prepared
     first = members[0]
-    name = first.name or folder_name(members)
+    if first.name is None:
+        check_writable(first.out)
+        name = claim_folder(first.out, folder_name(members))
+    else:
+        name = first.name
     if len(members) == 1:  # the edge: a run alone's folder is the run folder itself
         folders = [RunFolder.create(first.out, name)]
     else:
@@ -186,9 +192,10 @@ def prepare(runs: RunConfig | Sequence[RunConfig]) -> Prepared:
     return Prepared(members, folders, device, None, population)
 
 
-def _stored_config(folder: RunFolder, overrides: RunConfig) -> RunConfig:
-    """The RunConfig of a run folder's config.json with what a resume may change taken from ``overrides``; a
-    damaged or foreign file is named in a ValueError."""
+def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[str] | None = None) -> RunConfig:
+    """The RunConfig of a run folder's config.json with what a resume may change taken from ``overrides`` (the
+    settings in ``given``; None: those that differ from their defaults); a damaged or foreign file is named in a
+    ValueError."""
     try:
         stored = folder.read_record()["config"]
     except ValueError as e:
@@ -210,7 +217,7 @@ def _stored_config(folder: RunFolder, overrides: RunConfig) -> RunConfig:
     stored.update(resume=folder.path, progress=overrides.progress, restart=overrides.restart)
     defaults = RunConfig()
     for k in RESUMABLE:
-        if getattr(overrides, k) != getattr(defaults, k):
+        if (k in given) if given is not None else getattr(overrides, k) != getattr(defaults, k):
             stored[k] = getattr(overrides, k)
     try:
         cfg = RunConfig(**stored)
@@ -220,12 +227,13 @@ def _stored_config(folder: RunFolder, overrides: RunConfig) -> RunConfig:
     return cfg
 
 
-def _resume_states(folders: list[RunFolder], device: torch.device) -> list[dict] | None:
+def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: bool = False) -> list[dict] | None:
     """Every member's checkpoint state of the newest iteration all of them hold a readable checkpoint of; None
     where none holds one (the runs start over in their folders, with --restart where they trained before).
     Damaged newer files are named on stderr and renamed aside (``.damaged`` appended), so that they no longer
-    count among the newest when the resumed run prunes, and stay for inspection; ValueError naming every file
-    that did not load when no iteration is left."""
+    count among the newest when the resumed run prunes, and stay for inspection; when no iteration is left,
+    None with ``restart`` (its checkpoints are then set aside with the rest), else ValueError naming every file
+    that did not load, or each member's iterations, and --restart."""
     have = [f.checkpoint_iterations() for f in folders]
     if not any(have):
         return None
@@ -246,10 +254,14 @@ def _resume_states(folders: list[RunFolder], device: torch.device) -> list[dict]
                 print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
                       f"{checkpoint_path(folders[0].checkpoint_dir, iteration).name}", file=sys.stderr)
             return states
+    if restart:
+        return None
     where = folders[0].checkpoint_dir if len(folders) == 1 else f"the members of {folders[0].path.parent}"
     listed = "; ".join(f"{p} ({why})" for p, why in damaged) or ", ".join(
         f"{f.path.name}: {sorted(h)}" for f, h in zip(folders, have))
-    raise ValueError(f"no readable checkpoint of one iteration in common in {where}: {listed}")
+    raise ValueError(f"no readable checkpoint of one iteration in common in {where}: {listed}; add --restart to "
+                     f"train it again from iteration 1 in this folder (what it holds is kept beside it as "
+                     f"*.before-restart-<time>)")
 
 
 def check_resume(prepared: Prepared) -> None:

@@ -22,7 +22,7 @@ from vocabulary import MEMBER_FIELDS
 __all__ = ["RunConfig", "AblateConfig", "shac_part", "check_shared", "default_threads", "RESUMABLE", "AXES"]
 
 #: Settings a resume may change (where it runs, how long it goes on); config.json wins for every other one.
-RESUMABLE = ("device", "iters", "time_limit_min", "compile_cache", "threads")
+RESUMABLE = ("device", "iters", "time_limit_min", "compile_cache", "threads", "compile_helper")
 #: The member settings ``ablate`` takes several values of (a population of every combination), in product order.
 AXES = ("mode", "raster_model", "preset", "seed")
 #: Most CPU threads a run takes by default: the simulator's and networks' tensors are small, so more threads add

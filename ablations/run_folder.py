@@ -275,10 +275,13 @@ class RunFolder:
         return notes
 
     def set_aside_for_restart(self) -> list[str]:
-        """Before a run trains again from iteration 1 in this folder (``--restart``: it has no checkpoint): its
-        metrics.jsonl, summary.json and videos/ renamed to <name>.before-restart-<time>; one line per name."""
+        """Before a run trains again from iteration 1 in this folder (``--restart``: no checkpoint a resume could
+        take): its metrics.jsonl, summary.json, videos/ and checkpoints/ (a population's member can hold one the
+        others do not have) renamed to <name>.before-restart-<time>; one line per name. Its config.json and
+        git.txt are then written anew by the restart."""
         stamp, notes = _stamp(), []
-        for path in (self.metrics_path, self.summary_path, self.video_dir):
+        for path in (self.metrics_path, self.summary_path, self.video_dir, self.checkpoint_dir, self.config_path,
+                     self.path / GIT, self.path / GIT_DIFF):
             if path.exists() and (path.is_dir() or path.stat().st_size):
                 aside = path.with_name(f"{path.name}.before-restart-{stamp}")
                 os.replace(path, aside)
@@ -310,14 +313,16 @@ class RunFolder:
         return path
 
     # ------------------------------------------------------------------ checkpoints
-    def save_checkpoint(self, iteration: int, state: dict, *, keep: int) -> Path:
-        """checkpoints/ckpt_<iteration>.pt, then all but the ``keep`` newest deleted; returns its path."""
-        from gradlab.checkpoint import checkpoint_path, prune_checkpoints, save_checkpoint
+    def save_checkpoint(self, iteration: int, state: dict, *, keep: int | None) -> Path:
+        """checkpoints/ckpt_<iteration>.pt, then all but the ``keep`` newest deleted (None: none, the caller
+        prunes); returns its path."""
+        from gradlab.checkpoint import checkpoint_path, save_checkpoint
 
         path = checkpoint_path(self.checkpoint_dir, iteration)
         self.sync_metrics()  # the lines it covers first: a resume truncates the metrics to the checkpoint
         save_checkpoint(path, state)
-        prune_checkpoints(self.checkpoint_dir, keep=keep)
+        if keep is not None:
+            self.prune_checkpoints(keep)
         return path
 
     def checkpoints(self) -> list[Path]:

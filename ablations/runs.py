@@ -18,7 +18,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 
 import torch
@@ -68,7 +68,8 @@ def use_threads(n: int) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- running
-def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None) -> Path:
+def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None,
+        resume_flags: Collection[str] | None = None) -> Path:
     """Train (or resume) runs in this process: one (a single run) or several (a population's members, one batched
     simulation); ``runs`` as :func:`ablations.population.prepare` takes them. Returns the folder ``ablate`` names
     (a run alone's run folder, or the population folder that holds the members' run folders), whose summary.json
@@ -78,7 +79,7 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
     could be), and KeyboardInterrupt for a signal that came before the run recorded its settings (its folder is
     then removed; a resumed one is left as it was). ``startup``: this process's start-up
     (``Startup.before_torch``: the bytecode folder, compile helpers on standby); None: one that started nothing
-    before torch was imported."""
+    before torch was imported. ``resume_flags``: as :func:`ablations.population.prepare` takes them."""
     started = time.time()
     startup = startup or Startup()
     folders: list[RunFolder] = []
@@ -88,7 +89,7 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
         # completely (diffrender.BinCapacityWarning): nothing a run's user has to act on
         warnings.filterwarnings("ignore", category=BinCapacityWarning)
         try:
-            prepared = prepare(runs)
+            prepared = prepare(runs, resume_flags=resume_flags)
             folders, cfg = prepared.folders, prepared.cfgs[0]
             use_threads(cfg.threads)
             # process-wide (TF32 switches, the encoders' precision): before the trainer is built; config.json's
@@ -106,6 +107,40 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
             raise
         finally:
             startup.close()  # on every way out, an error before the training loop included
+
+
+def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming: bool, started: float) -> None:
+    """Each run's records: config.json (every setting, resolved, with what the preset supplied) and git.txt of a
+    new run, or of a restarted one once its earlier records are set aside beside them (each named); a resumed
+    run keeps its own, its metrics lines after the checkpoint of ``iteration`` set aside to be trained again
+    (damaged ones named), except a member that stopped before it (its lines end where it stopped). ``members``:
+    the trainer's, in the folders' order."""
+    cfgs, folders = prepared.cfgs, prepared.folders
+    for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
+        if folder.config_path.exists():
+            if resuming:
+                for note in [] if members[i].failed is not None else folder.settle_metrics(iteration):
+                    print(note, file=sys.stderr)
+                continue
+            for note in folder.set_aside_for_restart():
+                print(note, file=sys.stderr)
+        shac_fields = dataclasses.fields(SHACConfig)
+        resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name) for f in shac_fields})
+        config = dataclasses.asdict(resolved)
+        del config["restart"]  # what this start did, not a setting of the run (arms compare the settings)
+        record = {
+            "config": config,
+            # which values the preset supplied and which flags overrode it (flag and preset value side by side)
+            "preset": preset_record(shac_part(member_cfg), members[i].cfg),
+            "started_utc": _utc(started),
+            "environment": environment_info(prepared.device),
+            "command": sys.argv,
+        }
+        if prepared.population is not None:  # the process it trained in: one of these members, in this folder
+            record["population"] = {"folder": prepared.population.path.name,
+                                    "members": [f.path.name for f in folders], "index": i}
+        folder.write_config(record)
+        folder.write_git()
 
 
 def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started: float,
@@ -159,32 +194,8 @@ def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started:
     first_iter_s = None
     bar = writer = None
     try:
-        for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
-            if folder.config_path.exists():
-                # a resume: the metrics lines after the checkpoint are trained again, damaged ones set aside (each
-                # named); a restart (no checkpoint) keeps the old records beside the new
-                notes = folder.settle_metrics(trainer.iteration) if resuming else folder.set_aside_for_restart()
-                for note in notes:
-                    print(note, file=sys.stderr)
-                continue
-            shac_fields = dataclasses.fields(SHACConfig)
-            resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name)
-                                                          for f in shac_fields})
-            config = dataclasses.asdict(resolved)
-            del config["restart"]  # what this start did, not a setting of the run (arms compare the settings)
-            record = {
-                "config": config,
-                # which values the preset supplied and which flags overrode it (flag and preset value side by side)
-                "preset": preset_record(shac_part(member_cfg), members[i].cfg),
-                "started_utc": _utc(started),
-                "environment": environment_info(device),
-                "command": sys.argv,
-            }
-            if prepared.population is not None:  # the process it trained in: one of these members, in this folder
-                record["population"] = {"folder": prepared.population.path.name,
-                                        "members": [f.path.name for f in folders], "index": i}
-            folder.write_config(record)
-            folder.write_git()
+        with stop.held():  # every member's record or none: a population stopped half-way would not resume
+            _record_runs(prepared, members, trainer.iteration, resuming=resuming, started=started)
 
         if cfg.tensorboard:
             writer = SummaryWriter(str(folders[0].path / "tb"))

@@ -100,9 +100,13 @@ def rescue(live_states, folders: list[RunFolder], between: bool, held, done: int
 
 def checkpoint(states: list, folders: list[RunFolder], iteration: int, keep: int) -> None:
     """Every member's checkpoint of ``iteration`` (``states``: one per member) into its folder (a stopped
-    member's too, recording why it stopped: a population resumes from an iteration every member has)."""
+    member's too, recording why it stopped: a population resumes from an iteration every member has). The older
+    checkpoints are pruned only once every member's new one is written: a process killed in between leaves the
+    last iteration every member holds, which a resume takes."""
     for folder, state in zip(folders, states, strict=True):
-        folder.save_checkpoint(iteration, state, keep=keep)
+        folder.save_checkpoint(iteration, state, keep=None)
+    for folder in folders:
+        folder.prune_checkpoints(keep)
 
 
 class StopOnSignal:
@@ -122,6 +126,8 @@ class StopOnSignal:
         self.requested: str | None = None
         self._deferring = False
         self._finishing = False
+        self._holding = False
+        self._held: str | None = None
         self._previous: dict = {}
 
     def __enter__(self) -> StopOnSignal:
@@ -139,8 +145,27 @@ class StopOnSignal:
     def finishing(self) -> None:
         self._finishing = True
 
+    @contextlib.contextmanager
+    def held(self) -> Iterator[None]:
+        """Inside: a signal waits for the block's end, then acts as it would have (writes that must all happen
+        or none, such as a new population's member records: stopped half-way, the population would not resume)."""
+        self._holding = True
+        try:
+            yield
+        finally:
+            self._holding = False
+        if self._held is not None:
+            name, self._held = self._held, None
+            self._act(name)
+
     def _handle(self, signum: int, frame) -> None:
         name = signal.Signals(signum).name
+        if self._holding:
+            self._held = self._held or name
+            return
+        self._act(name)
+
+    def _act(self, name: str) -> None:
         if self._finishing:
             tqdm.write(f"{name}: already stopping; writing the last checkpoint and summary.json first (SIGKILL stops "
                        f"at once, without them)", file=sys.stderr)

@@ -556,9 +556,11 @@ class SHAC:
         return out[0] if self.single else out
 
     def _stop(self, member: Member, why: str) -> None:
-        """A member stops training (the others go on): no more optimiser steps, its loss out of the backward;
-        its environments keep the batch's shape (CUDA graphs replay fixed shapes). A single run stops by
-        raising ``NonFiniteError`` with the reason, its caller's contract."""
+        """A member stops training (the others go on): no more actor steps, no more target-critic updates or
+        metrics, its loss out of the backward; its environments keep the batch's shape (CUDA graphs replay fixed
+        shapes), and so does the critic fit, which goes on fitting its critic with the others' (one batched,
+        possibly captured call): nothing it acts with or reports. A single run stops by raising
+        ``NonFiniteError`` with the reason, its caller's contract."""
         if self.single:
             raise NonFiniteError(why)
         self._stopped(member, why)

@@ -472,10 +472,16 @@ def test_a_resume_without_a_checkpoint_is_refused_unless_restart_which_keeps_the
     kept = list(cut.glob("metrics.jsonl.before-restart-*"))
     assert len(kept) == 1 and kept[0].read_text() == old
     assert f"note: --restart: {cut / 'metrics.jsonl'} kept as {kept[0].name}" in capsys.readouterr().err
+    # the restart's own records: the first start's config.json and git.txt kept beside them
+    assert len(list(cut.glob("config.json.before-restart-*"))) == 1 and (cut / "config.json").is_file()
+    assert len(list(cut.glob("git.txt.before-restart-*"))) == 1 and (cut / "git.txt").is_file()
     # finished: a resume without --iters says so, and how to train it longer
     ablate("--resume", str(cut), "--no-progress")
     assert capsys.readouterr().out == (f"{cut} is finished at iteration 3 (--iters 3): nothing to do; to train it "
                                        f"longer: ablate --resume {cut} --iters M  (M > 3)\n")
+    # a flag given to a resume counts, its default value too (--iters 500): here the time budget then stops it
+    ablate("--resume", str(cut), "--no-progress", "--iters", "500", "--time-limit-min", "0.0001")
+    assert capsys.readouterr().out.startswith(f"{cut} has used its --time-limit-min 0.0001 at iteration 3")
 
 
 @pytest.mark.parametrize("sig", ["SIGINT", pytest.param("SIGTERM", marks=pytest.mark.slow)])

@@ -86,7 +86,8 @@ def test_a_resume_refuses_the_flags_it_would_ignore_and_takes_the_ones_it_uses(t
     line = refusal(capsys.readouterr().err)
     assert e.value.code == 2
     assert f"--resume continues {run} with the settings its config.json records, so --task, --mode would be " \
-           "ignored: drop them (a resume takes --device, --iters, --time-limit-min, --compile-cache, --threads)" in line
+           "ignored: drop them (a resume takes --device, --iters, --time-limit-min, --compile-cache, --threads, " \
+           "--compile-helper)" in line
     # what a resume takes gets as far as the folder (which is no run folder here)
     with pytest.raises(SystemExit):
         ablate_main(["--resume", str(run), "--iters", "9", "--threads", "1", "--device", "cpu", "--no-progress",

@@ -147,3 +147,96 @@ def test_a_new_population_that_fails_before_any_record_leaves_no_folder(tmp_path
         ablate(*TINY, *MEMBERS, "--iters", "2", "--out", str(tmp_path / "runs"), "--name", "pop")
     assert capsys.readouterr().err == "error: the trainer could not be built\n"
     assert not (tmp_path / "runs" / "pop").exists()
+
+
+def test_a_population_killed_between_its_members_checkpoints_resumes_from_the_last_they_all_hold(tmp_path):
+    """A process killed (os._exit: nothing after it runs) after one member wrote its new checkpoint and before
+    the next did, one checkpoint kept a member: the older ones are pruned only once every member's new one is
+    written, so an iteration every member holds is left. The resume trains on from there, repeating nothing."""
+    common = [*TINY, "--mode", "state", "--seed", "0", "1", "--iters", "6", "--checkpoint-every", "2",
+              "--keep-checkpoints", "1", "--video-every", "0", "--out", str(tmp_path), "--name", "pop"]
+    script = tmp_path / "killed.py"
+    script.write_text(
+        "import os, sys\n"
+        "from ablations.run_folder import RunFolder\n"
+        "from ablations.cli import ablate_main\n"
+        "saved, calls = RunFolder.save_checkpoint, []\n"
+        "def save(folder, iteration, state, *, keep):\n"
+        "    calls.append(iteration)\n"
+        "    if calls.count(4) == 2:\n"
+        "        os._exit(9)  # killed: the second member's checkpoint of iteration 4 never comes\n"
+        "    return saved(folder, iteration, state, keep=keep)\n"
+        "RunFolder.save_checkpoint = save\n"
+        "ablate_main(sys.argv[1:])\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    proc = subprocess.run([sys.executable, str(script), *common], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 9, proc.stderr[-2000:]
+    home = tmp_path / "pop"
+    held = {name: sorted(p.name for p in (home / name / "checkpoints").glob("ckpt_*.pt"))
+            for name in json.loads((home / POPULATION).read_text())["members"]}
+    assert sorted(map(tuple, held.values())) == [("ckpt_000002.pt",), ("ckpt_000002.pt", "ckpt_000004.pt")]
+    ablate("--resume", str(home), "--no-progress")
+    for name, rows in members_of(home).items():
+        assert [r["iter"] for r in rows] == list(range(1, 7)), name
+
+
+def test_a_signal_while_a_new_population_records_its_members_waits_until_every_record_is_written(tmp_path,
+                                                                                                  monkeypatch):
+    """SIGINT arriving while the first member's git.txt is written: it is held until every member's config.json
+    and git.txt exist, then stops the run before its first iteration; the population resumes."""
+    import ablations.run_folder
+
+    written = ablations.run_folder.RunFolder.write_git
+    sent = []
+
+    def signalled_once(folder, repo=None):
+        written(folder, repo)
+        if not sent:
+            sent.append(folder.path.name)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(ablations.run_folder.RunFolder, "write_git", signalled_once)
+    with pytest.raises(SystemExit) as e:
+        ablate(*TINY, "--mode", "state", "--seed", "0", "1", "--iters", "2", "--video-every", "0",
+               "--out", str(tmp_path), "--name", "pop")
+    assert e.value.code == 130
+    home = tmp_path / "pop"
+    for name in json.loads((home / POPULATION).read_text())["members"]:
+        assert (home / name / "config.json").is_file() and (home / name / "git.txt").is_file()
+        assert json.loads((home / name / "summary.json").read_text())["status"] == "interrupted"
+    monkeypatch.setattr(ablations.run_folder.RunFolder, "write_git", written)
+    ablate("--resume", str(home), "--no-progress")
+    assert all([r["iter"] for r in rows] == [1, 2] for rows in members_of(home).values())
+
+
+def test_two_starts_in_one_second_never_share_a_folder(tmp_path):
+    """The folder ablate names itself (no --name) is created atomically: a second start with the same settings in
+    the same second gets the name with _2."""
+    from ablations.naming import claim_folder
+
+    assert claim_folder(tmp_path, "cartpole_state_seed0_20261128-181500") == "cartpole_state_seed0_20261128-181500"
+    assert claim_folder(tmp_path, "cartpole_state_seed0_20261128-181500") == "cartpole_state_seed0_20261128-181500_2"
+    assert claim_folder(tmp_path, "cartpole_state_seed0_20261128-181500") == "cartpole_state_seed0_20261128-181500_3"
+
+
+def test_a_resumed_population_leaves_a_stopped_members_metrics_as_they_are(tmp_path, capsys):
+    """A member stopped by its gradient bound (abort_grad_norm) stays stopped on resume: its metrics end where it
+    stopped, and the resume neither warns about them nor sets any aside; the other member trains on."""
+    common = [*TINY, "--iters", "4", "--checkpoint-every", "2", "--video-every", "0", "--out", str(tmp_path),
+              "--name", "pop", "--member", "mode=state,seed=0", "mode=state,seed=1,abort_grad_norm=1e-9"]
+    ablate(*common)
+    home = tmp_path / "pop"
+    names = json.loads((home / POPULATION).read_text())["members"]
+    stopped = [n for n in names if json.loads((home / n / "summary.json").read_text())["status"] == "nonfinite"]
+    assert len(stopped) == 1
+    metrics = home / stopped[0] / "metrics.jsonl"
+    before = metrics.read_text() if metrics.exists() else None  # none: it stopped in its first iteration
+    capsys.readouterr()
+    ablate("--resume", str(home), "--iters", "6", "--no-progress")
+    err = capsys.readouterr().err
+    assert "metrics" not in err, err
+    assert (metrics.read_text() if metrics.exists() else None) == before
+    assert not list((home / stopped[0]).glob("metrics.jsonl.*"))
+    (live,) = set(names) - set(stopped)
+    assert [r["iter"] for r in read_metrics(home / live)] == list(range(1, 7))

@@ -427,6 +427,9 @@ def test_sign_flip_p_values_are_exact():
     # by hand: d = (3, 1, -1) sums to 3; the 8 signed sums are +-5, +-3, +-3, +-1: |sum| >= 3 in 6 of 8
     assert stats.sign_flip_p([3, 1, -1]) == 0.75
     assert math.isnan(stats.sign_flip_p([]))
+    # the same at any scale: the tie tolerance is relative (tiny differences are not all ties)
+    assert stats.sign_flip_p([i * 1e-10 for i in range(1, 7)]) == stats.sign_flip_p(list(range(1, 7))) == 2 / 64
+    assert stats.sign_flip_p([0.0, 0.0, 0.0]) == 1.0
 
 
 @pytest.mark.parametrize(("family", "seeds"), [(1, 6), (3, 7), (10, 9), (18, 10)])
