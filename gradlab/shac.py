@@ -477,14 +477,15 @@ class SHAC:
         norms = {m.index: nn.utils.clip_grad_norm_(m.params, m.cfg.grad_clip) for m in live}
         clipped = {m.index: flat_grad(m.params).norm() for m in live}
         gn = torch.stack([norms.get(i, torch.zeros((), device=self.device)) for i in range(self.n)])
-        failures = self.flags.failures(self.iteration, {"actor loss": loss.detach(), "actor gradient norm": gn})
+        # named as metrics.jsonl and ablate count iterations: from 1 (self.iteration counts those finished)
+        failures = self.flags.failures(self.iteration + 1, {"actor loss": loss.detach(), "actor gradient norm": gn})
         for m in live:
             if m.index in failures:
                 self._stop(m, failures[m.index])
         values = {i: float(v) for i, v in norms.items() if self.members[i].failed is None}
         for m in live:
             if m.failed is None and values[m.index] > m.cfg.abort_grad_norm:
-                self._stop(m, f"iteration {self.iteration}: actor gradient norm {values[m.index]:.3g} exceeds "
+                self._stop(m, f"iteration {self.iteration + 1}: actor gradient norm {values[m.index]:.3g} exceeds "
                               f"abort_grad_norm {m.cfg.abort_grad_norm:.3g} (the reference stops here too)")
         live = [m for m in live if m.failed is None]
         if not live:

@@ -108,12 +108,13 @@ def test_nan_guard_names_iteration_step_and_tensor(monkeypatch):
     def poisoned(action):
         obs, reward, done, info = real_step(action)
         calls["n"] += 1
-        if calls["n"] == 3:  # horizon step 2 of iteration 1
+        if calls["n"] == 3:  # horizon step 2 of the second iteration
             reward = reward * float("nan")
         return obs, reward, done, info
 
     monkeypatch.setattr(trainer.task, "step", poisoned)
-    with pytest.raises(NonFiniteError, match=r"iteration 1: non-finite forward value at horizon step 2 in reward"):
+    # iterations counted from 1, as metrics.jsonl and ablate's lines count them
+    with pytest.raises(NonFiniteError, match=r"iteration 2: non-finite forward value at horizon step 2 in reward"):
         trainer.train_iteration()
 
 
