@@ -128,6 +128,17 @@ def _stamp() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
 
 
+def _aside(path: Path, kind: str, stamp: str) -> Path:
+    """The name under which a resume or restart sets ``path`` aside: <name>.<kind>-<stamp>, or with -2, -3, ...
+    where that exists already (two within one second): nothing set aside is ever overwritten."""
+    k = 1
+    while True:
+        aside = path.with_name(f"{path.name}.{kind}-{stamp}" + (f"-{k}" if k > 1 else ""))
+        if not aside.exists():
+            return aside
+        k += 1
+
+
 def evaluation_of(row: dict) -> tuple[float, float] | None:
     """(mean, std) of the deterministic evaluation return a metrics line holds, or None: ``eval_return_mean`` and
     ``eval_return_std`` over the evaluation's episodes, or ``eval_return`` with std NaN (lines that have only
@@ -250,7 +261,7 @@ class RunFolder:
         damaged = [(n, line) for n, line, row in lines if row is None]
         stamp = _stamp()
         if damaged:
-            aside = path.with_name(f"{METRICS}.damaged-{stamp}")
+            aside = _aside(path, "damaged", stamp)
             atomic_write_text(aside, "".join(line + "\n" for _, line in damaged))
             for n, line in damaged[:5]:
                 notes.append(f"warning: {path} line {n} is damaged (not a JSON record: {line[:60]!r}); moved to "
@@ -258,7 +269,7 @@ class RunFolder:
             if len(damaged) > 5:
                 notes.append(f"warning: {path}: {len(damaged) - 5} more damaged lines moved to {aside.name}")
         if later:
-            aside = path.with_name(f"{METRICS}.redone-{stamp}")
+            aside = _aside(path, "redone", stamp)
             atomic_write_text(aside, "".join(line + "\n" for _, line, _ in later))
             notes.append(f"note: {path}: the lines of iteration(s) {_spans([r['iter'] for _, _, r in later])} come "
                          f"after the checkpoint of iteration {upto_iter} and are trained again; the old lines are "
@@ -283,7 +294,7 @@ class RunFolder:
         for path in (self.metrics_path, self.summary_path, self.video_dir, self.checkpoint_dir, self.config_path,
                      self.path / GIT, self.path / GIT_DIFF):
             if path.exists() and (path.is_dir() or path.stat().st_size):
-                aside = path.with_name(f"{path.name}.before-restart-{stamp}")
+                aside = _aside(path, "before-restart", stamp)
                 os.replace(path, aside)
                 notes.append(f"note: --restart: {path} kept as {aside.name}")
         return notes

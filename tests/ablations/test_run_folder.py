@@ -240,3 +240,20 @@ def test_a_copy_of_the_tree_without_its_repository_records_the_commit_it_is_name
     assert text.startswith("commit 46ae056\nnamed by $PIXELGRAD_COMMIT") and diff == ""
     text, _ = git_info()  # this checkout is a repository: git's own answer wins
     assert text.startswith("commit ") and "named by" not in text
+
+
+def test_what_two_resumes_in_one_second_set_aside_is_kept_twice(tmp_path, monkeypatch):
+    """Two resumes within one second that each set lines aside (trained again after the checkpoint): the second
+    file gets -2, the first is not overwritten."""
+    import ablations.run_folder as rf
+
+    monkeypatch.setattr(rf, "_stamp", lambda: "20261128T184500Z")
+    folder = RunFolder(tmp_path / "run")
+    folder.path.mkdir()
+    for upto, lines in ((1, [1, 2, 3]), (1, [1, 2])):
+        folder.metrics_path.write_text("".join(json.dumps({"iter": i, "return_mean": float(i)}) + "\n" for i in lines))
+        folder.settle_metrics(upto)
+    first, second = tmp_path / "run" / "metrics.jsonl.redone-20261128T184500Z", \
+        tmp_path / "run" / "metrics.jsonl.redone-20261128T184500Z-2"
+    assert [json.loads(x)["iter"] for x in first.read_text().splitlines()] == [2, 3]
+    assert [json.loads(x)["iter"] for x in second.read_text().splitlines()] == [2]
