@@ -71,7 +71,7 @@ def _fused_defaults() -> dict:
                                                      "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK",
                                                      "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS", "FWD_MAX_SPLITS",
                                                      "FWD_SPLIT_SUPER_BLOCKS", "FWD_SUB_BLOCK", "FWD_WARPS",
-                                                     "FWD_COMPACT", "FWD_DEFER_SHADING",
+                                                     "FWD_COMPACT", "FWD_DEFER_SHADING", "BWD_COMPACT",
                                                      "FWD_MAXNREG", "BWD_MAXNREG",
                                                      "BWD_MAXNREG_HARD")}
 

@@ -52,7 +52,7 @@ FWD_WARPS, BWD_WARPS, PIXEL_WARPS, SETUP_WARPS = 4, 2, 4, 2
 BWD_MAXNREG_SOFT = 128
 #: the forward walk's defaults (fused.tuning.FWD_COMPACT, FWD_DEFER_SHADING); dropped for a tree whose forward
 #: kernel has no such arguments, so that its default kernels compare with this one's
-_WALK = dict(COMPACT=False, DEFER=False)
+_WALK = dict(COMPACT=False, DEFER=False)  # the backward's COMPACT too
 
 
 def specialisations() -> list[tuple[str, str, dict, dict]]:
@@ -77,8 +77,11 @@ def specialisations() -> list[tuple[str, str, dict, dict]]:
         specs.append((f"_pixel_backward[{model}]", "_pixel_backward", dict(BLOCK=256, MODEL=code),
                       dict(num_warps=PIXEL_WARPS)))
         specs.append((f"_fused_backward[{model}]", "_fused_backward",
-                      dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=code),
+                      dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=code, COMPACT=False),
                       dict(num_warps=BWD_WARPS) | ({} if code == 0 else dict(maxnreg=BWD_MAXNREG_SOFT))))
+        specs.append((f"_fused_backward[{model},compact=32]", "_fused_backward",
+                      dict(TILE_=8, FB=64, SB=16, SUB=32, MODEL=code, COMPACT=True),
+                      dict(num_warps=1) | ({} if code == 0 else dict(maxnreg=BWD_MAXNREG_SOFT))))
     for cull in (False, True):
         specs.append((f"_setup_forward[cull={cull}]", "_setup_forward", dict(FB=64, CULL=cull),
                       dict(num_warps=SETUP_WARPS)))

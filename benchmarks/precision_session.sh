@@ -11,8 +11,8 @@
 #   progress  the last line of every log
 #   wait [S]  until every population has ended, at most S seconds (560), then progress
 #   time      on idle GPUs, one process a GPU: precision.py's times of the ant (GPU 0), population.py ant (1),
-#             hopper (2); on GPU 3 the forward walk's variants (diffrender.raster.fused.tuning: FWD_COMPACT,
-#             FWD_DEFER_SHADING) at 768 ant images, their CUDA tests, then anchor.py's timings of each variant
+#             hopper (2); on GPU 3 the walk variants (diffrender.raster.fused.tuning: FWD_COMPACT,
+#             FWD_DEFER_SHADING, BWD_COMPACT) at 768 ant images, their CUDA tests, then anchor.py's timings of each
 #   collect   the thinned run folders and every JSON and log as one tarball under $OUT
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
@@ -57,6 +57,7 @@ case ${1:?stage} in
       --variants default FWD_DEFER_SHADING=1 FWD_COMPACT=1,FWD_SUB_BLOCK=16 FWD_COMPACT=1,FWD_SUB_BLOCK=8 \
       FWD_COMPACT=1,FWD_SUB_BLOCK=16,FWD_DEFER_SHADING=1 FWD_COMPACT=1,FWD_SUB_BLOCK=16,FWD_MAXNREG=128 \
       FWD_COMPACT=1,FWD_SUB_BLOCK=8,FWD_MAXNREG=128 FWD_COMPACT=1,FWD_SUB_BLOCK=8,FWD_DEFER_SHADING=1,FWD_MAXNREG=128 \
+      BWD_SUB_BLOCK=32 BWD_COMPACT=1,BWD_SUB_BLOCK=32 \
       --out $R/anchor_forward_walks_768.json > $R/time_walks.log 2>&1) &
     wait; tail -n 25 $R/time_*.log;;
   wait)  # until every population has ended (its summary written), at most ${2:-560} s; then progress

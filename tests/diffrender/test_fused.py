@@ -200,6 +200,31 @@ def test_compacted_forward_walk_matches_dense(ant64, monkeypatch, model):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=8), dict(raster_model=model))
 
 
+@pytest.mark.parametrize("model", ["softmax", pytest.param("hard", marks=pytest.mark.slow),
+                                   pytest.param("alpha", marks=pytest.mark.slow)])
+def test_compacted_backward_lanes_give_every_face_the_same_gradient(ant64, monkeypatch, model):
+    """The backward with ``BWD_COMPACT`` (a program's lanes hold only the faces whose boxes reach its tile, in
+    sub-blocks of 8 here, of 16-face blocks) against the block-wise lanes: the same gradients, bit for bit (each
+    face sums the same pixels' terms in the same order), so the dense reference's as the block-wise ones are."""
+    _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, BWD_SUB_BLOCK=8)
+    q = ant_pose(1, seed=2).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=8)
+    grads = {}
+    for compact in (False, True):
+        _set(monkeypatch, BWD_COMPACT=compact)
+        v = verts.clone().requires_grad_()
+        img = dr.render(v, ant64.faces, ant64.colors, cam, dr.RasterSettings(backend="fused", raster_model=model))
+        w = torch.linspace(-1, 1, img.numel(), dtype=img.dtype, device=img.device).view_as(img)
+        (img * w).sum().backward()
+        grads[compact] = v.grad
+    assert grads[False].abs().max() > 0
+    if DEV.type == "cpu":  # the interpreter runs the programs in order: the atomic adds too
+        assert torch.equal(grads[True], grads[False])
+    else:
+        torch.testing.assert_close(grads[True], grads[False], rtol=1e-10, atol=1e-12)
+
+
 @pytest.mark.parametrize("model", [pytest.param("softmax", marks=pytest.mark.slow), "hard"])
 def test_small_faces_whose_boxes_end_inside_tiles_match_dense(model):
     """Six triangles of ~2 px, apart, at different sub-pixel offsets in a 32 x 32 image: the backward walks
@@ -446,6 +471,27 @@ def test_compacted_forward_walk_at_task_size_float32(monkeypatch, model, sub_blo
         assert torch.equal(imgs[True], imgs[False])
     else:
         assert (imgs[True] - imgs[False]).abs().max() < 1e-5
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only: the task-size point")
+@pytest.mark.parametrize("model", ["softmax", "alpha", "hard"])
+def test_compacted_backward_lanes_at_task_size_float32(monkeypatch, model):
+    """64 ants at 84 x 84 in float32: the gradient into the joint angles with the backward's compacted lanes
+    (sub-blocks of 32) equals the block-wise one's up to the order of the atomic adds."""
+    robot = dr.RobotModel.from_mjcf(asset("ant"), detail=1, device=DEV)
+    q0 = ant_pose(64, dtype=torch.float32, seed=4).to(DEV)
+    settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
+    grads = {}
+    for compact in (False, True):
+        _set(monkeypatch, BWD_COMPACT=compact, BWD_SUB_BLOCK=32 if compact else tuning.BWD_SUB_BLOCK)
+        q = q0.clone().requires_grad_()
+        v, n = robot.world_vertices_and_normals(q)
+        img = dr.render(v, robot.faces, robot.colors, ant_camera(q, size=84), settings, normals=n)
+        w = torch.rand(img.shape, generator=torch.Generator(device=DEV).manual_seed(0), device=DEV)
+        (img * w).sum().backward()
+        grads[compact] = q.grad
+    assert torch.isfinite(grads[True]).all() and grads[False].norm() > 0
+    assert (grads[True] - grads[False]).norm() <= 1e-4 * grads[False].norm()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only")

@@ -9,7 +9,15 @@ Imports Triton: import this module only where Triton is installed.
 import triton
 import triton.language as tl
 
-from .forward import _block_touches_tile, _cover_coefficients, _floor_start, _load_params, _tile_pixels
+from .forward import (
+    _block_touches_tile,
+    _chunks,
+    _compacted,
+    _cover_coefficients,
+    _floor_start,
+    _load_params,
+    _tile_pixels,
+)
 
 
 @triton.jit
@@ -111,13 +119,15 @@ def _pixel_backward(floor_ptr, prm, img_ptr, state_ptr, gout_ptr, gfloor_ptr, pi
 @triton.jit
 def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, prm, pix_ptr, gcoef_ptr, Fp, NB, NSB, NSPLIT, H, W,
                     TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr, SUB: tl.constexpr,
-                    MODEL: tl.constexpr):
+                    MODEL: tl.constexpr, COMPACT: tl.constexpr):
     """One program per (tile, environment, split): split s walks super-blocks s, s + NSPLIT, ... (each
     face's gradient is a sum over tiles, so it may come from any program). Per sub-block of SUB faces (one
     face per lane), a loop over the tile's pixels inside the faces' boxes accumulates every kept pair's
     gradient in registers from the pair's recomputed forward and the pixel's part
     (``_pixel_backward``), then one atomic add per face and coefficient (no cross-lane reductions).
-    MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha."""
+    MODEL: 0 hard (only the chosen face's colour has a gradient), 1 softmax, 2 alpha. COMPACT: a block's lanes
+    hold only its faces whose boxes reach the tile, packed in face order (``forward._compacted``), so that no lane
+    walks the tile's pixels for a face far from it; each face's gradient is the same sum over the same pixels."""
     tile = tl.program_id(0)
     env = tl.program_id(1).to(tl.int64)  # offsets below pass 2^31 elements for large batches and images
     split = tl.program_id(2).to(tl.int64)
@@ -135,14 +145,21 @@ def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, prm, pix_ptr, gcoef_p
             for j in range(0, SB):
                 blk = sb * SB + j
                 if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                    for sub in range(0, FB // SUB):
-                        f = blk * FB + sub * SUB + fo
+                    n, near_f, near, rank, count = _chunks(box_ptr + env * 4 * Fp, Fp, blk, x_lo, x_hi, y_lo, y_hi,
+                                                           FB, SUB, COMPACT)
+                    for sub in range(0, n):
+                        if COMPACT:
+                            f, filled = _compacted(near_f, near, rank, count, sub * SUB, SUB)
+                        else:
+                            f = blk * FB + sub * SUB + fo
                         fbp = box_ptr + env * 4 * Fp + f
                         bx0 = tl.load(fbp)
                         bx1 = tl.load(fbp + Fp)
                         by0 = tl.load(fbp + 2 * Fp)
                         by1 = tl.load(fbp + 3 * Fp)
                         fm = (bx1 >= x_lo) & (bx0 <= x_hi) & (by1 >= y_lo) & (by0 <= y_hi)
+                        if COMPACT:  # an empty slot repeats a face index: no lane of its own
+                            fm = fm & filled
                         if tl.max(fm.to(tl.int32), axis=0) > 0:
                             # only the tile's pixels inside some face's box can keep a pair (the box holds
                             # every pixel within the cut-off): where faces are smaller than the tile, the

@@ -233,7 +233,7 @@ class _FusedRasterize(torch.autograd.Function):
             _fused_backward[(ntiles, nb, splits)](
                 coef.detach(), box, bbox, sbox, prm, pixel_part, gcoef, coef.shape[2], bbox.shape[2], sbox.shape[2],
                 splits, st.height, st.width, tx, TILE_=bwd_tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], SUB=sub,
-                MODEL=model, num_warps=tuning.BWD_WARPS or max(1, sub // 32),
+                MODEL=model, COMPACT=tuning.BWD_COMPACT, num_warps=tuning.BWD_WARPS or max(1, sub // 32),
                 **_max_registers(tuning.BWD_MAXNREG_HARD if model == 0 else tuning.BWD_MAXNREG))
             parts = torch.autograd.grad([t for t, _ in outs], [leaves[i] for i in wanted], [g for _, g in outs],
                                         allow_unused=True)
