@@ -1,4 +1,5 @@
-"""How much the fused forward's walk evaluates: face-pixel pairs an image, by walk, on anchor.py's scene.
+"""How much the fused rasterizer's walks evaluate, by walk, on anchor.py's scene: the forward's face-pixel pairs
+and the backward's lane-pixel steps an image.
 
 Not a test, and not a timing: a count, the same on any device (the CPU will do). The fused forward kernel
 (``diffrender/raster/fused/forward.py``) runs one program per 4 x 4 pixel tile and walks the face blocks whose
@@ -9,6 +10,12 @@ camera) it counts, per image:
 - ``compact_N``: those of ``FWD_COMPACT`` in chunks of N (``FWD_SUB_BLOCK``): of each such block, only the
   faces whose own boxes reach the tile, rounded up to whole chunks;
 - ``bound``: pairs whose face box reaches the pixel's tile (what any walk at tile granularity must evaluate).
+
+The backward (``backward.py``) runs one program per 8 x 8 tile, keeps one face a lane in sub-blocks of
+``BWD_SUB_BLOCK`` and walks the tile's pixels inside the union of the sub-block's boxes that reach it. Per image:
+
+- ``bwd_block_N``: lanes x pixels walked with sub-blocks of N of each block's faces (idle lanes included);
+- ``bwd_compact_N``: the same with ``BWD_COMPACT``: only the faces whose boxes reach the tile, packed.
 
 The GPU decides which walk is fastest (``anchor.py --variants FWD_COMPACT=1,FWD_SUB_BLOCK=16``); this says how
 much work each one leaves, so a timing can be read against it.
@@ -48,7 +55,46 @@ def _tile_ranges(height: int, width: int, tile: int) -> tuple[torch.Tensor, ...]
             ty * tile + 0.5, torch.clamp(ty * tile + tile, max=height) - 0.5)
 
 
-def count(faces: int, batch: int, res: int, chunks: tuple[int, ...], raster_model: str = "softmax") -> dict:
+def _lane_pixels(box: torch.Tensor, hits: torch.Tensor, groups: torch.Tensor, ranges: tuple[torch.Tensor, ...],
+                 lanes: int) -> float:
+    """Lanes x pixels the backward walks: for each (image, tile, group of faces), ``lanes`` times the tile's
+    pixel centres inside the union of the boxes of the group's faces that reach the tile, where any does.
+    ``box``: (B, 4, Fp); ``hits``: (B, Fp, T); ``groups``: (B, Fp, T) each face's group id (-1: none)."""
+    x_lo, x_hi, y_lo, y_hi = ranges
+    n = int(groups.max()) + 1
+    total = 0.0
+    for g in range(n):
+        sel = hits & (groups == g)  # (B, Fp, T)
+        big = torch.finfo(box.dtype).max
+        x0 = torch.where(sel, box[:, 0, :, None], big).amin(1)
+        x1 = torch.where(sel, box[:, 1, :, None], -big).amax(1)
+        y0 = torch.where(sel, box[:, 2, :, None], big).amin(1)
+        y1 = torch.where(sel, box[:, 3, :, None], -big).amax(1)
+        # pixel centres px + 0.5 in [max(x0, x_lo), min(x1, x_hi)], as the kernel counts them
+        nx = (torch.floor(torch.minimum(x1, x_hi) - 0.5) - torch.ceil(torch.maximum(x0, x_lo) - 0.5) + 1).clamp(min=0)
+        ny = (torch.floor(torch.minimum(y1, y_hi) - 0.5) - torch.ceil(torch.maximum(y0, y_lo) - 0.5) + 1).clamp(min=0)
+        total += float((lanes * nx * ny * sel.any(1)).sum())
+    return total
+
+
+def backward_lanes(box: torch.Tensor, block: int, res: int, subs: tuple[int, ...]) -> dict:
+    """Lane-pixel steps an image of the backward's walks (see the module's docstring), per sub-block size."""
+    ranges = tuple(r.to(box.dtype) for r in _tile_ranges(res, res, 8))
+    hits = _touches(box, ranges)  # (B, Fp, T)
+    b, fp, t = hits.shape
+    face = torch.arange(fp).view(1, fp, 1).expand(b, fp, t)
+    # rank of each reaching face among its block's reaching faces, in face order
+    rank = hits.view(b, fp // block, block, t).cumsum(2).view(b, fp, t) - 1
+    out = {}
+    for sub in subs:
+        out[f"bwd_block_{sub}"] = _lane_pixels(box, hits, face // sub, ranges, sub) / b
+        compact = (face // block) * (block // sub) + rank // sub
+        out[f"bwd_compact_{sub}"] = _lane_pixels(box, hits, torch.where(hits, compact, -1), ranges, sub) / b
+    return out
+
+
+def count(faces: int, batch: int, res: int, chunks: tuple[int, ...], raster_model: str = "softmax",
+          subs: tuple[int, ...] = (64, 32)) -> dict:
     """Pairs an image each walk evaluates on the ``faces`` scene (see the module's docstring)."""
     scene = Scene(faces, batch, res, torch.device("cpu"), torch.float64)
     robot, cam = scene.robot, scene.camera(scene.qpos)
@@ -70,16 +116,19 @@ def count(faces: int, batch: int, res: int, chunks: tuple[int, ...], raster_mode
            "tiles": ranges[0].numel()}
     for n in chunks:
         row[f"compact_{n}"] = (torch.ceil(near / n) * n).sum().item() * per_tile / batch
+    row.update(backward_lanes(box, block, res, subs))
     return row
 
 
 def table(rows: list[dict], chunks: tuple[int, ...]) -> str:
-    head = ["faces", "tiles reached", "block", *(f"compact {n}" for n in chunks), "bound"]
+    bwd = [k for k in rows[0] if k.startswith("bwd_")]
+    head = ["faces", "tiles reached", "block", *(f"compact {n}" for n in chunks), "bound",
+            *(k.replace("bwd_", "backward ").replace("_", " ") for k in bwd)]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [f"{r['faces']:,}", f"{r['tiles_reached']:.0f} of {r['tiles']}", f"{r['block']:,.0f}",
                  *(f"{r[f'compact_{n}']:,.0f} ({r['block'] / r[f'compact_{n}']:.1f}x)" for n in chunks),
-                 f"{r['bound']:,.0f}"]
+                 f"{r['bound']:,.0f}", *(f"{r[k]:,.0f}" for k in bwd)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

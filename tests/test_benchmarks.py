@@ -348,7 +348,8 @@ def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path):
 
 def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_path, capsys):
     """The compacted walk's pair count falls with its chunk size, between the block-wise walk's and the bound;
-    chunks of one face are the bound itself (every face whose box reaches a tile, each once)."""
+    chunks of one face are the bound itself (every face whose box reaches a tile, each once). The backward's
+    packed lanes walk fewer lane-pixels than the block's."""
     fw = _load("forward_walk")
     out = tmp_path / "walk.json"
     assert fw.main(["--batch", "2", "--res", "24", "--chunks", "64", "16", "4", "1", "--out", str(out)]) == 0
@@ -356,4 +357,6 @@ def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_
     assert row["faces"] == 1856 and row["tiles"] == 36
     assert row["block"] >= row["compact_64"] > row["compact_16"] > row["compact_4"] > row["bound"] > 0
     assert row["compact_1"] == row["bound"]
+    # the backward: packed lanes walk no more than the block's, and a sub-block of the whole block is the same
+    assert row["bwd_compact_64"] == row["bwd_block_64"] >= row["bwd_block_32"] >= row["bwd_compact_32"] > 0
     assert "| 1,856 |" in capsys.readouterr().out
