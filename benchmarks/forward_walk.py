@@ -61,20 +61,20 @@ def _lane_pixels(box: torch.Tensor, hits: torch.Tensor, groups: torch.Tensor, ra
     pixel centres inside the union of the boxes of the group's faces that reach the tile, where any does.
     ``box``: (B, 4, Fp); ``hits``: (B, Fp, T); ``groups``: (B, Fp, T) each face's group id (-1: none)."""
     x_lo, x_hi, y_lo, y_hi = ranges
+    b, _, t = hits.shape
     n = int(groups.max()) + 1
-    total = 0.0
-    for g in range(n):
-        sel = hits & (groups == g)  # (B, Fp, T)
-        big = torch.finfo(box.dtype).max
-        x0 = torch.where(sel, box[:, 0, :, None], big).amin(1)
-        x1 = torch.where(sel, box[:, 1, :, None], -big).amax(1)
-        y0 = torch.where(sel, box[:, 2, :, None], big).amin(1)
-        y1 = torch.where(sel, box[:, 3, :, None], -big).amax(1)
-        # pixel centres px + 0.5 in [max(x0, x_lo), min(x1, x_hi)], as the kernel counts them
-        nx = (torch.floor(torch.minimum(x1, x_hi) - 0.5) - torch.ceil(torch.maximum(x0, x_lo) - 0.5) + 1).clamp(min=0)
-        ny = (torch.floor(torch.minimum(y1, y_hi) - 0.5) - torch.ceil(torch.maximum(y0, y_lo) - 0.5) + 1).clamp(min=0)
-        total += float((lanes * nx * ny * sel.any(1)).sum())
-    return total
+    bi, fi, ti = torch.nonzero(hits & (groups >= 0), as_tuple=True)
+    key = (bi * n + groups[bi, fi, ti]) * t + ti  # one slot per (image, group, tile)
+    big = torch.finfo(box.dtype).max
+    union = []
+    for row, reduce, fill in ((0, "amin", big), (1, "amax", -big), (2, "amin", big), (3, "amax", -big)):
+        out = torch.full((b * n * t,), fill, dtype=box.dtype)
+        union.append(out.scatter_reduce(0, key, box[bi, row, fi], reduce=reduce))
+    x0, x1, y0, y1 = (u.view(b, n, t) for u in union)
+    # pixel centres px + 0.5 in [max(x0, x_lo), min(x1, x_hi)], as the kernel counts them
+    nx = (torch.floor(torch.minimum(x1, x_hi) - 0.5) - torch.ceil(torch.maximum(x0, x_lo) - 0.5) + 1).clamp(min=0)
+    ny = (torch.floor(torch.minimum(y1, y_hi) - 0.5) - torch.ceil(torch.maximum(y0, y_lo) - 0.5) + 1).clamp(min=0)
+    return float((lanes * nx * ny).sum())
 
 
 def backward_lanes(box: torch.Tensor, block: int, res: int, subs: tuple[int, ...]) -> dict:
