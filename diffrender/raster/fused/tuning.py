@@ -62,7 +62,7 @@ BWD_WARPS: int | None = None
 #: boxes reach it, packed in face order into sub-blocks of BWD_SUB_BLOCK (as the forward's FWD_COMPACT), so that
 #: no lane walks the tile's pixels for a face far from it. Each face's gradient is the same sum over the same
 #: pixels. Counted on the ant at 84 px (lanes x pixels walked an image; benchmarks/forward_walk.py, BENCHMARKS.md
-#: section 2.1): 117k block-wise in sub-blocks of 64, 80k in sub-blocks of 32, 61k compacted into 32. Off until
+#: section 2.1): 119k block-wise in sub-blocks of 64, 81k in sub-blocks of 32, 62k compacted into 32. Off until
 #: timed on a GPU (``--variants BWD_COMPACT=1,BWD_SUB_BLOCK=32``).
 BWD_COMPACT = False
 #: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px] (see
