@@ -190,7 +190,8 @@ def _ablate(argv: list[str] | None, startup) -> None:
         status, text = describe_error(e, where="while building the trainer")
         if status == "failed":
             raise
-        where = "the run folder is as it was" if cfg.resume is not None else "nothing was written"
+        # a resume may have renamed damaged checkpoints aside already (each said in a warning above)
+        where = "nothing was trained or recorded" if cfg.resume is not None else "nothing was written"
         print(f"error: {text}; {where}", file=sys.stderr)
         raise SystemExit(1) from None
     try:
