@@ -63,7 +63,10 @@ BWD_WARPS: int | None = None
 #: no lane walks the tile's pixels for a face far from it. Each face's gradient is the same sum over the same
 #: pixels. Counted on the ant at 84 px (lanes x pixels walked an image; benchmarks/forward_walk.py, BENCHMARKS.md
 #: section 2.1): 119k block-wise in sub-blocks of 64, 81k in sub-blocks of 32, 62k compacted into 32. Off until
-#: timed on a GPU (``--variants BWD_COMPACT=1,BWD_SUB_BLOCK=32``).
+#: timed on a GPU (``--variants BWD_COMPACT=1,BWD_SUB_BLOCK=32``). Its price, compiled for sm_90 (ptxas): the
+#: gather's (FACE_BLOCK, 32) selection on one warp is 64 registers a thread, so the soft backward spills 608
+#: bytes uncapped (8 without compaction) and 1,692 under BWD_MAXNREG; if the GPU finds it slower, a gather
+#: through a per-program scratch row (store at each face's rank, then load the slots) avoids the matrix.
 BWD_COMPACT = False
 #: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px] (see
 #: :func:`.rasterize.backward_tile`): a smaller tile shares the busiest tiles' pairs among more programs. Equal
