@@ -145,11 +145,11 @@ def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, prm, pix_ptr, gcoef_p
             for j in range(0, SB):
                 blk = sb * SB + j
                 if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                    n, near_f, near, rank, count = _chunks(box_ptr + env * 4 * Fp, Fp, blk, x_lo, x_hi, y_lo, y_hi,
-                                                           FB, SUB, COMPACT)
+                    n, near, rank, count = _chunks(box_ptr + env * 4 * Fp, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, SUB,
+                                                   COMPACT)
                     for sub in range(0, n):
                         if COMPACT:
-                            f, filled = _compacted(near_f, near, rank, count, sub * SUB, SUB)
+                            f, filled = _compacted(blk, near, rank, count, sub * SUB, FB, SUB)
                         else:
                             f = blk * FB + sub * SUB + fo
                         fbp = box_ptr + env * 4 * Fp + f

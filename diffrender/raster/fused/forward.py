@@ -102,52 +102,42 @@ def _candidate(cp, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse):
 
 
 @triton.jit
-def _faces_at(cbase, fbox, f, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse):
-    """Faces ``f`` (FS,) at the tile's pixels (``cbase``, ``fbox``: the environment's coefficients and face
-    boxes): whether each pixel centre lies in each face's box, and each pair's signed distance, normalised
-    depth and colour (``_candidate``), each (FS, P)."""
-    inbox = _in_face_box(fbox, f, Fp, xc, yc)
-    sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                    ambient, diffuse)
-    return inbox, sd, zn, cr, cg, cb
-
-
-@triton.jit
 def _touching_faces(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB: tl.constexpr):
-    """Block ``blk``'s faces whose boxes reach the tile's pixel centres: all their indices (FB,), which ones
-    reach it, each one's rank among those (in face order) and how many there are."""
+    """Which of block ``blk``'s faces have boxes that reach the tile's pixel centres (FB,), each one's rank
+    among those (in face order) and how many there are."""
     f = blk * FB + tl.arange(0, FB)
     near = ((tl.load(fbox + Fp + f) >= x_lo) & (tl.load(fbox + f) <= x_hi)
             & (tl.load(fbox + 3 * Fp + f) >= y_lo) & (tl.load(fbox + 2 * Fp + f) <= y_hi))
     rank = tl.cumsum(near.to(tl.int32), axis=0) - 1
-    return f, near, rank, tl.sum(near.to(tl.int32), axis=0)
+    return near, rank, tl.sum(near.to(tl.int32), axis=0)
 
 
 @triton.jit
-def _compacted(f, near, rank, count, c, FS: tl.constexpr):
-    """Slots ``c .. c + FS - 1`` of the touching faces in face order: their indices (FS,) and which slots
-    hold one (slots past ``count`` hold face ``f[0]``, masked out)."""
+def _compacted(blk, near, rank, count, c, FB: tl.constexpr, FS: tl.constexpr):
+    """Slots ``c .. c + FS - 1`` of block ``blk``'s faces that reach the tile, in face order: their indices (FS,)
+    and which slots hold one (slots past ``count`` hold the block's first face, masked out)."""
     slot = c + tl.arange(0, FS)
     pick = near[:, None] & (rank[:, None] == slot[None, :])
-    first = tl.min(f, axis=0)
-    return tl.sum(tl.where(pick, f[:, None] - first, 0), axis=0) + first, slot < count
+    return blk * FB + tl.sum(tl.where(pick, tl.arange(0, FB)[:, None], 0), axis=0), slot < count
 
 
 @triton.jit
-def _block_chunk(cbase, fbox, fo, Fp, blk, h, near_f, near, rank, count, xc, yc, zfar, znear, lx, ly, lz,
-                 ambient, diffuse, FB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr):
+def _block_chunk(cbase, fbox, fo, Fp, blk, h, near, rank, count, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse,
+                 FB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr):
     """Chunk ``h`` of the ``FS`` faces of block ``blk`` at the tile's pixels, as both forward passes walk
     them: their indices (FS,), whether each pixel centre lies in each face's box, and each pair's signed
     distance, normalised depth and colour (``_candidate``), each (FS, P). COMPACT: the chunk is slots
-    ``h * FS ...`` of the block's faces that reach the tile (:func:`_touching_faces`: ``near_f, near,
-    rank, count``), so no face far from the tile is evaluated; else the block's faces ``h * FS ...``."""
+    ``h * FS ...`` of the block's faces that reach the tile (:func:`_touching_faces`: ``near, rank, count``),
+    so no face far from the tile is evaluated; else the block's faces ``h * FS ...``."""
     if COMPACT:
-        f, live = _compacted(near_f, near, rank, count, h * FS, FS)
-        inbox, sd, zn, cr, cg, cb = _faces_at(cbase, fbox, f, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse)
-        inbox = inbox & live[:, None]
+        f, filled = _compacted(blk, near, rank, count, h * FS, FB, FS)
     else:
         f = blk * FB + h * FS + fo
-        inbox, sd, zn, cr, cg, cb = _faces_at(cbase, fbox, f, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse)
+    inbox = _in_face_box(fbox, f, Fp, xc, yc)
+    if COMPACT:
+        inbox = inbox & filled[:, None]
+    sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                    ambient, diffuse)
     return f, inbox, sd, zn, cr, cg, cb
 
 
@@ -156,11 +146,11 @@ def _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB: tl.constexpr, FS: tl.cons
     """How the passes walk block ``blk``: the chunks to evaluate and, with COMPACT, the block's faces that
     reach the tile (:func:`_touching_faces`); without, every chunk of the block (placeholders for the rest)."""
     if COMPACT:
-        near_f, near, rank, count = _touching_faces(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB)
-        return (count + FS - 1) // FS, near_f, near, rank, count
+        near, rank, count = _touching_faces(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB)
+        return (count + FS - 1) // FS, near, rank, count
     else:
         zero = tl.zeros([FB], dtype=tl.int32)
-        return FB // FS, zero, zero > 0, zero, 0
+        return FB // FS, zero > 0, zero, 0
 
 
 @triton.jit
@@ -180,10 +170,10 @@ def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den,
             for j in range(0, SB):
                 blk = sb * SB + j
                 if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                    n, near_f, near, rank, count = _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, FS, COMPACT)
+                    n, near, rank, count = _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, FS, COMPACT)
                     for h in range(0, n):  # FS faces at a time: fewer registers per thread
-                        _, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near_f, near, rank,
-                                                                    count, xc, yc, zfar, znear, lx, ly, lz, ambient,
+                        _, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near, rank, count,
+                                                                    xc, yc, zfar, znear, lx, ly, lz, ambient,
                                                                     diffuse, FB, FS, COMPACT)
                         keep = inbox & inb[None, :] & (sd > -cutoff)
                         m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
@@ -220,11 +210,11 @@ def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, ne
             for j in range(0, SB):
                 blk = sb * SB + j
                 if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                    n, near_f, near, rank, count = _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, FS, COMPACT)
+                    n, near, rank, count = _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, FS, COMPACT)
                     for h in range(0, n):
-                        # unused, the colours are compiled away (DEFER)
-                        f, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near_f, near, rank,
-                                                                    count, xc, yc, zfar, znear, lx, ly, lz, ambient,
+                        # with DEFER the colours go unused and are compiled away
+                        f, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near, rank, count,
+                                                                    xc, yc, zfar, znear, lx, ly, lz, ambient,
                                                                     diffuse, FB, FS, COMPACT)
                         keep = inbox & inb[None, :] & (sd >= 0)
                         zk = tl.where(keep, zn, -float("inf"))
