@@ -10,7 +10,6 @@ modules that train, so that the sweep and the run path both name folders from he
 
 from __future__ import annotations
 
-import itertools
 import os
 import re
 import time
@@ -54,14 +53,14 @@ def claim_folder(parent: str | os.PathLike, name: str) -> str:
     """Create the new, empty folder ``parent/name`` and return its name; where it exists (another ``ablate`` that
     started in the same second with the same settings), ``name_2``, ``name_3``, ... : creating a folder is atomic,
     so two starts never share one. ``parent`` must exist."""
-    for k in itertools.count(1):
-        candidate = name if k == 1 else f"{name}_{k}"
+    candidate, k = name, 1
+    while True:
         try:
             (Path(parent) / candidate).mkdir()
+            return candidate
         except FileExistsError:
-            continue
-        return candidate
-    raise AssertionError("unreachable")
+            k += 1
+            candidate = f"{name}_{k}"
 
 
 def sweep_run_id(task: str, column: str, seed: int, flags: dict) -> str:

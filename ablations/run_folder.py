@@ -324,16 +324,14 @@ class RunFolder:
         return path
 
     # ------------------------------------------------------------------ checkpoints
-    def save_checkpoint(self, iteration: int, state: dict, *, keep: int | None) -> Path:
-        """checkpoints/ckpt_<iteration>.pt, then all but the ``keep`` newest deleted (None: none, the caller
-        prunes); returns its path."""
+    def save_checkpoint(self, iteration: int, state: dict) -> Path:
+        """checkpoints/ckpt_<iteration>.pt; returns its path. Older ones stay until :meth:`prune_checkpoints`
+        (a population prunes once every member's new one is written)."""
         from gradlab.checkpoint import checkpoint_path, save_checkpoint
 
         path = checkpoint_path(self.checkpoint_dir, iteration)
         self.sync_metrics()  # the lines it covers first: a resume truncates the metrics to the checkpoint
         save_checkpoint(path, state)
-        if keep is not None:
-            self.prune_checkpoints(keep)
         return path
 
     def checkpoints(self) -> list[Path]:

@@ -104,7 +104,7 @@ def checkpoint(states: list, folders: list[RunFolder], iteration: int, keep: int
     checkpoints are pruned only once every member's new one is written: a process killed in between leaves the
     last iteration every member holds, which a resume takes."""
     for folder, state in zip(folders, states, strict=True):
-        folder.save_checkpoint(iteration, state, keep=None)
+        folder.save_checkpoint(iteration, state)
     for folder in folders:
         folder.prune_checkpoints(keep)
 

@@ -24,6 +24,8 @@ __all__ = ["run_sweep", "dry_run", "main", "run_slots", "quiet_token_notice", "D
 
 #: Seconds between the driver's looks at the runs (and table updates).
 DRIVER_POLL_S = 1.0
+#: Where a job trained, as its worker reports it and the manifest keeps it beside each run.
+PLACEMENT = ("node", "host", "gpus")
 #: The start of the line Ray logs whenever it starts a local cluster with token authentication, its default.
 _TOKEN_NOTICE = "Token authentication is enabled for this Ray cluster"
 
@@ -175,7 +177,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
                     rec = runs[run_id]
                     if rec["status"] in ("done", "failed") and info.get("attempts", 0) <= rec.get("attempts", 0):
                         continue
-                    new = {k: info[k] for k in ("node", "host", "gpus", "attempts", "resumed") if k in info}
+                    new = {k: info[k] for k in (*PLACEMENT, "attempts", "resumed") if k in info}
                     new.update({k: v for k, v in (info.get("runs") or {}).get(run_id, {}).items()
                                 if k in ("iteration", "latest_return", "wall_s")})
                     if info.get("status") == "running" and rec["status"] == "queued":
@@ -192,12 +194,12 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
                     tries = max(max(runs[r].get("attempts") or 0 for r in job.run_ids), 1)
                     error = f"{_describe_failure(e)} (attempt {tries}, --max-retries {cfg.max_retries})"
                     result = {"runs": {r: {"status": "failed", "error": error} for r in job.run_ids}}
-                where = {k: result[k] for k in ("node", "host", "gpus") if k in result}
+                where = {k: result[k] for k in PLACEMENT if k in result}
                 for run_id, outcome in result["runs"].items():
                     rec = runs[run_id]
                     rec.update({k: v for k, v in {**outcome, **where}.items()
-                                if k in ("status", "error", "iteration", "latest_return", "node", "host",
-                                         "gpus", "summary_status")}, updated=_now())
+                                if k in ("status", "error", "iteration", "latest_return", *PLACEMENT,
+                                         "summary_status")}, updated=_now())
                     rec["attempts"] = max(rec.get("attempts", 0), result.get("attempt", 0))
                 if not cfg.keep_checkpoints and all(runs[r]["status"] == "done" for r in job.run_ids):
                     for r in job.run_ids:

@@ -161,11 +161,11 @@ def test_a_population_killed_between_its_members_checkpoints_resumes_from_the_la
         "from ablations.run_folder import RunFolder\n"
         "from ablations.cli import ablate_main\n"
         "saved, calls = RunFolder.save_checkpoint, []\n"
-        "def save(folder, iteration, state, *, keep):\n"
+        "def save(folder, iteration, state):\n"
         "    calls.append(iteration)\n"
         "    if calls.count(4) == 2:\n"
         "        os._exit(9)  # killed: the second member's checkpoint of iteration 4 never comes\n"
-        "    return saved(folder, iteration, state, keep=keep)\n"
+        "    return saved(folder, iteration, state)\n"
         "RunFolder.save_checkpoint = save\n"
         "ablate_main(sys.argv[1:])\n")
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))

@@ -103,7 +103,8 @@ def test_checkpoints_are_pruned_listed_and_a_damaged_newest_is_set_aside(tmp_pat
     folder = RunFolder.create(tmp_path, "r")
     assert folder.load_checkpoint() is None  # none at all: a resume starts from the first iteration
     for it in (2, 4, 6):
-        folder.save_checkpoint(it, {"iteration": it}, keep=2)
+        folder.save_checkpoint(it, {"iteration": it})
+        folder.prune_checkpoints(2)
     assert [p.name for p in folder.checkpoints()] == ["ckpt_000006.pt", "ckpt_000004.pt"]
     folder.newest_checkpoint().write_bytes(b"not a checkpoint")
     loaded = folder.load_checkpoint()
@@ -178,7 +179,7 @@ def test_metrics_lines_reach_the_disk_before_the_checkpoint_or_summary_that_cove
         folder.append_metrics({"iter": it})
     assert synced == []
     assert [r["iter"] for r in read_metrics(folder.path)] == [1, 2]  # what another process reads now
-    folder.save_checkpoint(2, {"x": 1}, keep=1)
+    folder.save_checkpoint(2, {"x": 1})
     assert synced[0] == str(folder.metrics_path)
     synced.clear()
     folder.write_summary({"status": "finished"})
@@ -221,7 +222,7 @@ def test_a_thin_copy_keeps_the_records_every_kth_iteration_probes_and_evaluation
         if it == 25:
             row.update(eval_return_mean=100.0, eval_return_std=1.0)
         src.append_metrics(row)
-    src.save_checkpoint(30, {"x": 1}, keep=1)
+    src.save_checkpoint(30, {"x": 1})
     thin = thin_copy(src.path, tmp_path / "thin" / "run", every=10)
     assert [r["iter"] for r in thin.read_metrics()] == [7, 10, 14, 20, 21, 25, 28, 30, 33]  # 33: the last
     assert not thin.checkpoint_dir.exists() and load_run(thin.path).config["mode"] == "full"
