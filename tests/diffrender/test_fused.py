@@ -119,36 +119,51 @@ def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits
         assert (g > r + 0.2).any() and not ((r > g + 0.2) | (b > g + 0.2)).any()
 
 
+def _two_ants_set_up(ant64, settings: dr.RasterSettings, *, seed: int) -> tuple[Static, tuple]:
+    """Two ant images of 12 x 12 px as the forward kernel takes them (16-face blocks, super-blocks of 2): the
+    static settings and the setup's (coefficients, face boxes, block boxes, super-block boxes, floor)."""
+    q = ant_pose(2, seed=seed).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=12)
+    st = Static.make(settings, focal=cam.focal, height=cam.height, width=cam.width, tile_h=tuning.TILE,
+                     tile_w=tuning.TILE)
+    return st, rasterize._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces, st, 16, 2)
+
+
+def _forward_of(st: Static, setup: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+    """The forward kernels' image and blend state of :func:`_two_ants_set_up`'s images (NaN where unwritten)."""
+    out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
+    state = torch.full((2, rasterize.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
+    rasterize._launch_forward(*setup, st, tuning.TILE, 16, out, state)
+    return out, state
+
+
+def _assert_same_blend(model: str, reference: tuple, other: tuple) -> None:
+    """Two (image, blend state) of :func:`_forward_of`: both finite, the hard model's equal bit for bit (with a
+    face chosen somewhere), the soft models' to float64 rounding (with a face kept somewhere)."""
+    (out_r, state_r), (out_o, state_o) = reference, other
+    assert all(torch.isfinite(t).all() for t in (out_r, state_r, out_o, state_o))
+    if model == "hard":
+        assert torch.equal(out_o, out_r) and torch.equal(state_o, state_r) and (state_r[:, 1] >= 0).any()
+    else:
+        assert (state_r[:, 3] > 0).any()
+        torch.testing.assert_close(state_o, state_r, rtol=1e-12, atol=1e-300)
+        torch.testing.assert_close(out_o, out_r, rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("model", ["hard", pytest.param("softmax", marks=pytest.mark.slow),
                                    pytest.param("alpha", marks=pytest.mark.slow)])
 def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     """The state the backward reads (maximum, denominator, weight and coverage sums; the hard model's chosen
     face) and the image, from one walk and from three merged parts: equal (the hard model's exactly)."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4)
-    q = ant_pose(2, seed=3).to(DEV)
-    verts, _ = ant64.world_vertices_and_normals(q)
-    cam = ant_camera(q, size=12)
-    settings = dr.RasterSettings(backend="fused", raster_model=model)
-    st = Static.make(settings, focal=cam.focal, height=cam.height, width=cam.width, tile_h=tuning.TILE,
-                     tile_w=tuning.TILE)
-    coef, box, bbox, sbox, floor = rasterize._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces,
-                                                    st, 16, 2)
+    st, setup = _two_ants_set_up(ant64, dr.RasterSettings(backend="fused", raster_model=model), seed=3)
     results = []
     for splits in (1, 3):
         monkeypatch.setattr(tuning, "FWD_MAX_SPLITS", splits)
-        assert fused.forward_splits(sbox.shape[2]) == splits
-        out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
-        state = torch.full((2, rasterize.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
-        rasterize._launch_forward(coef, box, bbox, sbox, floor, st, tuning.TILE, 16, out, state)
-        results.append((out, state))
-    (out1, state1), (out3, state3) = results
-    assert torch.isfinite(out1).all() and torch.isfinite(state1).all()
-    if model == "hard":
-        assert torch.equal(out1, out3) and torch.equal(state1, state3) and (state1[:, 1] >= 0).any()
-    else:
-        assert (state1[:, 3] > 0).any()
-        torch.testing.assert_close(state3, state1, rtol=1e-12, atol=1e-300)
-        torch.testing.assert_close(out3, out1, rtol=1e-12, atol=1e-14)
+        assert fused.forward_splits(setup[3].shape[2]) == splits
+        results.append(_forward_of(st, setup))
+    _assert_same_blend(model, *results)
 
 
 @pytest.mark.parametrize(("model", "walk"), [pytest.param("hard", dict(FWD_COMPACT=True), marks=pytest.mark.slow),
@@ -164,30 +179,14 @@ def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch
     chosen face alone shaded): the hard model's image and state bit for bit, the soft models' to float64
     rounding (their sums are regrouped)."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=4)
-    q = ant_pose(2, seed=5).to(DEV)
-    verts, _ = ant64.world_vertices_and_normals(q)
-    cam = ant_camera(q, size=12)
     settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
-    st = Static.make(settings, focal=cam.focal, height=cam.height, width=cam.width, tile_h=tuning.TILE,
-                     tile_w=tuning.TILE)
-    coef, box, bbox, sbox, floor = rasterize._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces,
-                                                    st, 16, 2)
+    st, setup = _two_ants_set_up(ant64, settings, seed=5)
     for splits in (1, 3):
         results = {}
         for variant in (dict(FWD_COMPACT=False, FWD_DEFER_SHADING=False), walk):
             _set(monkeypatch, FWD_MAX_SPLITS=splits, **variant)
-            out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
-            state = torch.full((2, rasterize.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
-            rasterize._launch_forward(coef, box, bbox, sbox, floor, st, tuning.TILE, 16, out, state)
-            results[variant is walk] = (out, state)
-        (out_b, state_b), (out_c, state_c) = results[False], results[True]
-        assert torch.isfinite(out_c).all() and torch.isfinite(state_c).all()
-        if model == "hard":
-            assert torch.equal(out_c, out_b) and torch.equal(state_c, state_b) and (state_b[:, 1] >= 0).any()
-        else:
-            assert (state_b[:, 3] > 0).any()
-            torch.testing.assert_close(state_c, state_b, rtol=1e-12, atol=1e-300)
-            torch.testing.assert_close(out_c, out_b, rtol=1e-12, atol=1e-14)
+            results[variant is walk] = _forward_of(st, setup)
+        _assert_same_blend(model, results[False], results[True])
 
 
 @pytest.mark.parametrize("model", ["softmax", pytest.param("hard", marks=pytest.mark.slow)])
