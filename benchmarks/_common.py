@@ -8,6 +8,7 @@ The scripts import it as a sibling module (``python benchmarks/X.py`` puts this 
 - :func:`graphed`: a call captured once in a CUDA graph and replayed, as the trainer runs under ``--compile``.
 - :class:`Scene`: the ant at random poses, with extra sphere meshes up to a face count, under its task's camera.
 - :func:`write_json`: a results file, written atomically (a crash keeps the previous complete file).
+- :func:`apply_fused_variant`: the fused rasterizer's tuning constants for one timed variant (``--variants``).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any, ClassVar
 import torch
 
 import diffrender as dr
+from diffrender.raster.fused import tuning
 from gradlab.timing import RegionTimer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -135,3 +137,26 @@ def write_json(path: Path, doc: Any, *, indent: int = 1) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(doc, indent=indent) + "\n")
     os.replace(tmp, path)
+
+
+#: The fused rasterizer's tuning constants a benchmark's ``--variants`` may set, with their defaults.
+FUSED_DEFAULTS = {name: getattr(tuning, name) for name in (
+    "COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE", "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL",
+    "BWD_SUB_BLOCK", "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS", "FWD_MAX_SPLITS", "FWD_SPLIT_SUPER_BLOCKS",
+    "FWD_SUB_BLOCK", "FWD_WARPS", "FWD_COMPACT", "FWD_DEFER_SHADING", "BWD_COMPACT", "FWD_MAXNREG", "BWD_MAXNREG",
+    "BWD_MAXNREG_HARD")}
+
+
+def apply_fused_variant(variant: str) -> dict:
+    """Set the fused backend's tuning constants named in ``variant`` ("default" or "NAME=VALUE,NAME=VALUE"),
+    after restoring the defaults; returns the values in force. The kernels read them when they launch (a new
+    value compiles a new specialisation), so a variant applies to everything rendered after the call."""
+    for name, value in FUSED_DEFAULTS.items():
+        setattr(tuning, name, value)
+    if variant != "default":
+        for item in variant.split(","):
+            name, _, value = item.partition("=")
+            if name not in FUSED_DEFAULTS or not value:
+                raise ValueError(f"--variants: {item!r} is not NAME=VALUE with NAME one of {', '.join(FUSED_DEFAULTS)}")
+            setattr(tuning, name, type(FUSED_DEFAULTS[name] or 0)(float(value)))
+    return {name: getattr(tuning, name) for name in FUSED_DEFAULTS}

@@ -41,42 +41,14 @@ import traceback
 from pathlib import Path
 
 import torch
-from _common import Scene, commit, graphed, median_ms, sync, write_json
+from _common import FUSED_DEFAULTS, Scene, apply_fused_variant, commit, graphed, median_ms, sync, write_json
 
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
-from diffrender.raster.fused import tuning
 from diffrender.settings import RASTER_MODELS
 
 CUDA = torch.device("cuda")
 FACES = (0, 4500, 21000, 100000)  # 0: the plain ant (1,856 faces); extra spheres up to about the rest
-
-
-def _apply_variant(variant: str) -> dict:
-    """Set the fused backend's tuning constants named in ``variant`` ("default" or "NAME=VALUE,NAME=VALUE"),
-    after restoring the defaults; returns the values in force."""
-    for name, value in _FUSED_DEFAULTS.items():
-        setattr(tuning, name, value)
-    if variant != "default":
-        for item in variant.split(","):
-            name, value = item.split("=")
-            if name not in _FUSED_DEFAULTS:
-                raise ValueError(f"--variants: {name!r} is not one of {', '.join(_FUSED_DEFAULTS)}")
-            setattr(tuning, name, type(_FUSED_DEFAULTS[name] or 0)(float(value)))
-    return {name: getattr(tuning, name) for name in _FUSED_DEFAULTS}
-
-
-def _fused_defaults() -> dict:
-    return {name: getattr(tuning, name) for name in ("COEF_ELEMS", "SUPER_BLOCK", "TILE", "FACE_BLOCK", "BWD_TILE",
-                                                     "BWD_TILE_DENSE", "DENSE_FACES_PER_PIXEL", "BWD_SUB_BLOCK",
-                                                     "BWD_MAX_SPLITS", "BWD_SPLIT_SUPER_BLOCKS", "FWD_MAX_SPLITS",
-                                                     "FWD_SPLIT_SUPER_BLOCKS", "FWD_SUB_BLOCK", "FWD_WARPS",
-                                                     "FWD_COMPACT", "FWD_DEFER_SHADING", "BWD_COMPACT",
-                                                     "FWD_MAXNREG", "BWD_MAXNREG",
-                                                     "BWD_MAXNREG_HARD")}
-
-
-_FUSED_DEFAULTS = _fused_defaults()
 
 
 def _stages(fn_fwd, fn_fwdbwd) -> dict:
@@ -209,7 +181,7 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
         print(json.dumps(anchor_row), flush=True)
 
     for variant, compile_ in itertools.product(args.variants, args.compile):
-        constants = _apply_variant(variant)
+        constants = apply_fused_variant(variant)
         for model in args.models:
             settings = dr.RasterSettings(raster_model=model, backend="fused", sync_checks=False,
                                          save_blend_state=True, compile=compile_ == "on")
@@ -250,7 +222,7 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
                         row[key.replace("_ms", "_vs_anchor")] = row[key] / row[anchor_key]
             rows.append(row)
             print(json.dumps(row), flush=True)
-    _apply_variant("default")
+    apply_fused_variant("default")
 
     if args.warp:
         row = dict(base, backend="warp", raster_model="hard")
@@ -369,7 +341,7 @@ def main(argv=None) -> int:
     p.add_argument("--iou-gamma", type=float, default=1e-4, help="gamma of the sharp-limit silhouettes")
     p.add_argument("--variants", nargs="*", default=["default"],
                    help="fused backend settings to time: 'default', or NAME=VALUE,NAME=VALUE of diffrender.raster."
-                        f"fused.tuning's constants ({', '.join(_FUSED_DEFAULTS)})")
+                        f"fused.tuning's constants ({', '.join(FUSED_DEFAULTS)})")
     p.add_argument("--compile", nargs="+", choices=["off", "on"], default=["off"],
                    help="time the fused backend with its setup's PyTorch part eager (off) and/or through "
                         "torch.compile (on: RasterSettings.compile, as the trainer renders under --compile); "

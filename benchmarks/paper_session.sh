@@ -6,30 +6,36 @@
 # repository: name the commit sent, PIXELGRAD_COMMIT=<sha>, before launch (each run's git.txt records it).
 # Usage, from the repo root:
 #   PIXELGRAD_COMMIT=<sha> bash benchmarks/paper_session.sh launch NAME ABLATE_PAPER_ARGS...
-#             install the wheels, copy the tree to /tmp/pg, start `ablate-paper --out /tmp/paper/NAME ARGS` with
+#             install the wheels, copy the tree to /tmp/pgpaper, start `ablate-paper --out /tmp/paper/NAME ARGS` with
 #             setsid; e.g. the hopper's and cartpole-swingup's added arms (issue: six arms on every task):
 #             launch arms6 --tasks hopper cartpole-swingup --arms full-hard state --seeds 0 1 2 3 4 --iters 3000
 #               --time-limit-min None --pack 5 --gpus-per-run 1 --no-progress
 #               --set compile=true device=cuda eval-every=250 checkpoint-every=1000 video-every=0 cosine-every=100
+#             (CUDA_VISIBLE_DEVICES=1,3 before it: Ray places the runs on those GPUs only, the rest being busy)
 #   progress  the log's last lines, each run's status, iteration and GPU from sweep.json, and the GPUs' load
 #   wait [S]  until ablate-paper has exited, at most S seconds (560), then progress
 #   collect   every run folder thinned (metrics every 10th iteration, evaluations and the last kept; no
 #             checkpoints), sweep.json, the logs and the report as $OUT/paper_NAME.tar.xz
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
+# each bundle into its own folder, once per machine: another session script's detached runs may import from /tmp/site
 [ -f /tmp/site/.installed ] || { python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
-  .gpu/*.whl .gpuray/*.whl >/dev/null 2>&1 && touch /tmp/site/.installed; } || { echo "wheel install failed"; exit 1; }
-export PYTHONPATH=/tmp/site:/tmp/pg PATH=/tmp/site/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+  .gpu/*.whl >/dev/null 2>&1 && touch /tmp/site/.installed; } || { echo "wheel install failed"; exit 1; }
+[ -f /tmp/siteray/.installed ] || { python3 -m pip install -q --no-index --no-deps --no-compile --upgrade \
+  --target /tmp/siteray .gpuray/*.whl >/dev/null 2>&1 && touch /tmp/siteray/.installed; } || { echo "ray install failed"; exit 1; }
+# the tree the runs import, apart from other session scripts' copies (/tmp/pg)
+T=/tmp/pgpaper
+export PYTHONPATH=/tmp/site:/tmp/siteray:$T PATH=/tmp/siteray/bin:/tmp/site/bin:$PATH PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 P=/tmp/paper; mkdir -p $P
 case ${1:?stage} in
   launch)
     name=${2:?name}; shift 2
-    rm -rf /tmp/pg; mkdir -p /tmp/pg
-    cp -r ablations gradlab tasks diffrender vocabulary benchmarks docs pyproject.toml /tmp/pg/
+    rm -rf $T; mkdir -p $T
+    cp -r ablations gradlab tasks diffrender vocabulary benchmarks docs pyproject.toml $T/
     echo "${PIXELGRAD_COMMIT:?name the commit of the tree sent: PIXELGRAD_COMMIT=<sha>}" > $P/$name.commit
     nvidia-smi --query-gpu=index,name,memory.total --format=csv > $P/$name.gpus 2>&1
     echo "$name" > $P/current
-    (cd /tmp/pg && setsid python3 -m ablations paper --out $P/$name "$@" > $P/$name.log 2>&1 < /dev/null &)
+    (cd $T && setsid python3 -m ablations paper --out $P/$name "$@" > $P/$name.log 2>&1 < /dev/null &)
     sleep 60; bash "$0" progress;;
   progress)
     name=$(cat $P/current); tail -n 5 $P/$name.log | cut -c1-300
@@ -51,7 +57,7 @@ PY
     bash "$0" progress;;
   collect)
     name=$(cat $P/current); rm -rf /tmp/thin; mkdir -p /tmp/thin/$name
-    (cd /tmp/pg && python3 - "$P/$name" "/tmp/thin/$name" <<'PY'
+    (cd $T && python3 - "$P/$name" "/tmp/thin/$name" <<'PY'
 import json, shutil, sys
 from pathlib import Path
 from ablations.run_folder import thin_copy

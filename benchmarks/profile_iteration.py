@@ -11,14 +11,22 @@ can be compared with it (the gap is GPU idle time between kernels).
 horizon x num_envs frames, once as ``horizon`` calls of ``num_envs`` frames (how the rollout runs it) and once
 as one call on all frames; both graph-captured.
 
+``--precision fp32 bf16`` profiles each (task, mode) at each encoder precision (``SHACConfig.precision``, its
+process-wide switches set before the trainer is built); ``--variants`` at each setting of the fused rasterizer's
+tuning constants (as ``anchor.py --variants``: ``default`` or ``NAME=VALUE,...``). All in one process, so the
+rows compare on one device.
+
 Not a test. Example::
 
     python benchmarks/profile_iteration.py --tasks ant cartpole --modes decoupled full --encoder --out prof.json
+    python benchmarks/profile_iteration.py --tasks ant --num-envs 768 --precision fp32 bf16 \
+        --variants default FWD_COMPACT=1,FWD_SUB_BLOCK=16 --out prof_768.json
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -26,9 +34,9 @@ from collections import defaultdict
 from pathlib import Path
 
 import torch
-from _common import graphed, median_ms, write_json
+from _common import FUSED_DEFAULTS, apply_fused_variant, commit, graphed, median_ms, write_json
 
-from gradlab import SHAC, SHACConfig, resolve_device
+from gradlab import SHAC, SHACConfig, precision, resolve_device
 from gradlab.networks import PixelEncoder
 
 
@@ -77,14 +85,16 @@ def profile_replay(fn, iters: int) -> dict:
             "top": [{"ms": round(ms, 3), "count": c, "name": n} for ms, c, n in kernels[:25]]}
 
 
-def profile_trainer(task: str, mode: str, args) -> dict:
+def profile_trainer(task: str, mode: str, precision_: str, args) -> dict:
     cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon,
-                     image_size=args.image_size, iters=10_000, cosine_every=0, seed=0, compile=True)
+                     image_size=args.image_size, iters=10_000, cosine_every=0, seed=0, compile=True,
+                     precision=precision_)
+    precision.use(precision_, "cuda")  # process-wide: before the trainer (its encoder) is built
     trainer = SHAC(cfg, device="cuda")
     for _ in range(4):  # 2 eager warm-up iterations, the capture, one replay
         trainer.train_iteration()
     graph = trainer.window.captured[False]  # the plain (not probe) window's forward and backward graphs
-    out = {"task": task, "mode": mode}
+    out = {"task": task, "mode": mode, "precision": precision_}
 
     def fwd():
         graph.fwd.replay()
@@ -141,25 +151,38 @@ def main() -> None:
     p.add_argument("--image-size", type=int, default=84)
     p.add_argument("--iters", type=int, default=5, help="timed replays per graph (median)")
     p.add_argument("--encoder", action="store_true", help="also the encoder micro-benchmark")
+    p.add_argument("--precision", nargs="+", choices=list(precision.PRECISIONS), default=["fp32"],
+                   help="the encoder's precision (SHACConfig.precision): each (task, mode) at each")
+    p.add_argument("--variants", nargs="+", default=["default"],
+                   help="fused rasterizer tuning: 'default' or NAME=VALUE,... of "
+                        f"fused.tuning's constants ({', '.join(FUSED_DEFAULTS)}); each (task, mode) at each")
     p.add_argument("--out", type=Path, default=Path("profile.json"))
     args = p.parse_args()
     try:
         resolve_device("cuda")
     except ValueError:
         p.error("needs a CUDA device (it profiles captured CUDA graphs), and torch sees none")
-    doc = {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__,
+    for variant in args.variants:
+        try:
+            apply_fused_variant(variant)
+        except ValueError as e:
+            p.error(str(e))
+    apply_fused_variant("default")
+    doc = {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "commit": commit(),
            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "command": " ".join(sys.argv), "results": []}
     if args.encoder:
         doc["encoder"] = encoder_bench(args)
         print(json.dumps(doc["encoder"]), flush=True)
-    for task in args.tasks:
-        for mode in args.modes:
-            try:
-                r = profile_trainer(task, mode, args)
-            except Exception as e:  # report and go on
-                r = {"task": task, "mode": mode, "error": f"{type(e).__name__}: {e}"[:400]}
-            doc["results"].append(r)
-            write_json(args.out, doc)
+    for variant, task, mode, precision_ in itertools.product(args.variants, args.tasks, args.modes, args.precision):
+        apply_fused_variant(variant)
+        try:
+            r = profile_trainer(task, mode, precision_, args)
+        except Exception as e:  # report and go on
+            r = {"task": task, "mode": mode, "precision": precision_, "error": f"{type(e).__name__}: {e}"[:400]}
+        r["variant"] = variant
+        doc["results"].append(r)
+        write_json(args.out, doc)
+        torch.cuda.empty_cache()
     write_json(args.out, doc)
 
     if "encoder" in doc:
@@ -168,12 +191,13 @@ def main() -> None:
               f"{e['per_step']['wall_ms']:.2f} ms, batched {e['batched']['wall_ms']:.2f} ms")
     for r in doc["results"]:
         if "error" in r:
-            print(f"{r['task']} {r['mode']}: {r['error']}")
+            print(f"{r['task']} {r['mode']} {r['precision']} {r['variant']}: {r['error']}")
             continue
         for phase in ("fwd", "bwd"):
             ph = r[phase]
             cats = ", ".join(f"{k} {v['ms']:.1f} ({v['count']})" for k, v in ph["by_category"].items())
-            print(f"{r['task']:9} {r['mode']:9} {phase}: wall {ph['wall_ms']:.1f} ms, kernels {ph['kernel_ms']:.1f} ms "
+            print(f"{r['task']:9} {r['mode']:9} {r['precision']} {r['variant']} {phase}: "
+                  f"wall {ph['wall_ms']:.1f} ms, kernels {ph['kernel_ms']:.1f} ms "
                   f"/ {ph['kernels']}: {cats}")
 
 
