@@ -139,16 +139,28 @@ def _forward_of(st: Static, setup: tuple) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _assert_same_blend(model: str, reference: tuple, other: tuple) -> None:
-    """Two (image, blend state) of :func:`_forward_of`: both finite, the hard model's equal bit for bit (with a
-    face chosen somewhere), the soft models' to float64 rounding (with a face kept somewhere)."""
+    """Two (image, blend state) of :func:`_forward_of`: both finite; the hard model's state bit for bit (the same
+    face at the same depth, a face chosen somewhere) and its image bit for bit under the interpreter, to a few
+    units in the last place on a GPU (whose compiler contracts the shading's multiply-adds differently in two
+    walks: 1-2 ulp on an H200); the soft models' to float64 rounding (with a face kept somewhere)."""
     (out_r, state_r), (out_o, state_o) = reference, other
     assert all(torch.isfinite(t).all() for t in (out_r, state_r, out_o, state_o))
     if model == "hard":
-        assert torch.equal(out_o, out_r) and torch.equal(state_o, state_r) and (state_r[:, 1] >= 0).any()
+        assert torch.equal(state_o, state_r) and (state_r[:, 1] >= 0).any()
+        _assert_same_shading(out_o, out_r)
     else:
         assert (state_r[:, 3] > 0).any()
         torch.testing.assert_close(state_o, state_r, rtol=1e-12, atol=1e-300)
         torch.testing.assert_close(out_o, out_r, rtol=1e-12, atol=1e-14)
+
+
+def _assert_same_shading(image: torch.Tensor, reference: torch.Tensor) -> None:
+    """The hard model's colours of the same faces from two walks: bit for bit under the interpreter (numpy, no
+    contraction), else within 4 units in the last place of the dtype."""
+    if DEV.type == "cpu":
+        assert torch.equal(image, reference)
+    else:
+        torch.testing.assert_close(image, reference, rtol=4 * torch.finfo(image.dtype).eps, atol=1e-30)
 
 
 @pytest.mark.parametrize("model", ["hard", pytest.param("softmax", marks=pytest.mark.slow),
@@ -176,8 +188,8 @@ def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch
     chunks of 4 (the ant's 944 faces: blocks that reach a tile with none, some and more than one chunk of
     faces whose boxes reach it), unsplit and split in three: ``FWD_COMPACT`` (of each block near a tile, only
     the faces whose boxes reach it, packed into chunks) and the hard model's ``FWD_DEFER_SHADING`` (the
-    chosen face alone shaded): the hard model's image and state bit for bit, the soft models' to float64
-    rounding (their sums are regrouped)."""
+    chosen face alone shaded): the hard model's state bit for bit and image to the last place (bit for bit under
+    the interpreter), the soft models' to float64 rounding (their sums are regrouped)."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=4)
     settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
     st, setup = _two_ants_set_up(ant64, settings, seed=5)
@@ -455,7 +467,7 @@ def test_fused_matches_tiled_at_task_size_float32(model):
 def test_compacted_forward_walk_at_task_size_float32(monkeypatch, model, sub_block):
     """64 ants at 84 x 84 in float32, forward without gradient (what decoupled rollouts and evaluation render):
     the compacted walk's images (the hard model's chosen face alone shaded) equal the block-wise walk's that
-    shades every pair, the hard model's bit for bit."""
+    shades every pair, the hard model's to a few units in the last place."""
     robot = dr.RobotModel.from_mjcf(asset("ant"), detail=1, device=DEV)
     q = ant_pose(64, dtype=torch.float32, seed=3).to(DEV)
     v, n = robot.world_vertices_and_normals(q)
@@ -467,7 +479,7 @@ def test_compacted_forward_walk_at_task_size_float32(monkeypatch, model, sub_blo
         with torch.no_grad():
             imgs[compact] = dr.render(v, robot.faces, robot.colors, ant_camera(q, size=84), settings, normals=n)
     if model == "hard":
-        assert torch.equal(imgs[True], imgs[False])
+        _assert_same_shading(imgs[True], imgs[False])
     else:
         assert (imgs[True] - imgs[False]).abs().max() < 1e-5
 
@@ -476,13 +488,14 @@ def test_compacted_forward_walk_at_task_size_float32(monkeypatch, model, sub_blo
 @pytest.mark.parametrize("model", ["softmax", "alpha", "hard"])
 def test_compacted_backward_lanes_at_task_size_float32(monkeypatch, model):
     """64 ants at 84 x 84 in float32: the gradient into the joint angles with the backward's compacted lanes
-    (sub-blocks of 32) equals the block-wise one's up to the order of the atomic adds."""
+    (sub-blocks of 32, the default) equals the block-wise one's (sub-blocks of 64) up to the order of the
+    atomic adds."""
     robot = dr.RobotModel.from_mjcf(asset("ant"), detail=1, device=DEV)
     q0 = ant_pose(64, dtype=torch.float32, seed=4).to(DEV)
     settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
     grads = {}
     for compact in (False, True):
-        _set(monkeypatch, BWD_COMPACT=compact, BWD_SUB_BLOCK=32 if compact else tuning.BWD_SUB_BLOCK)
+        _set(monkeypatch, BWD_COMPACT=compact, BWD_SUB_BLOCK=32 if compact else 64)
         q = q0.clone().requires_grad_()
         v, n = robot.world_vertices_and_normals(q)
         img = dr.render(v, robot.faces, robot.colors, ant_camera(q, size=84), settings, normals=n)

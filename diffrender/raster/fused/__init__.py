@@ -26,7 +26,8 @@ backend), organised for the GPU:
   faces crowd, :func:`backward_tile`) and per split of the super-blocks (:func:`backward_splits`: one split
   per 2k faces, up to 16), walking its faces as the forward does. From each pixel's
   blend state and colour (kept by the forward, or from a second forward pass), it forms the gradient of
-  every pixel-face pair in closed form. Faces are taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane:
+  every pixel-face pair in closed form. Faces are taken in sub-blocks of ``BWD_SUB_BLOCK``, one face per lane,
+  of each block only the faces whose own boxes reach the tile, packed in face order (``BWD_COMPACT``):
   the face's 45 coefficients stay in registers while a loop over the tile's pixels inside the sub-block's
   face boxes (all the pixels a pair can be kept at) accumulates its 45 coefficient gradients (no cross-lane
   reductions), then one atomic add per face, coefficient and tile. A pixel
@@ -42,7 +43,8 @@ backend), organised for the GPU:
 Every image model (``RasterSettings.raster_model``) is one pair of kernels with a compile-time ``MODEL``:
 the soft models add the faces' weight and coverage sums to the online softmax and compose the colour at the
 end (the floor and background start the softmax for "softmax" only); "hard" keeps a running nearest face
-instead (coverage a step, no sums), and its backward differentiates only the chosen face's colour.
+instead (coverage a step, no sums; ``FWD_DEFER_SHADING``: the walk compares depths only and shades the chosen
+face once at the end), and its backward differentiates only the chosen face's colour.
 
 Saved for backward: the inputs (O(B * V)); with ``RasterSettings.save_blend_state`` also the image and four
 numbers of each pixel's blend (7 numbers, O(B * H * W)), which spares the backward a second forward pass.

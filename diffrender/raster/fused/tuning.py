@@ -24,19 +24,19 @@ FWD_WARPS: int | None = None
 #: coefficients). The block's box is the union of 64 faces' boxes, so most of a block's faces are far from
 #: most tiles it reaches: on the ant at 84 px, 221k face-pixel pairs an image are evaluated block-wise, 62k
 #: compacted in chunks of 16 and 43k in chunks of 8 (32k pairs have the pixel's tile inside the face's box;
-#: benchmarks/forward_walk.py, BENCHMARKS.md section 2.1).
-#: The same image, the hard model's bit for bit (the faces come in the same order; the soft models' sums are
-#: regrouped: float rounding). Off until timed on a GPU against the block-wise walk (benchmarks/anchor.py
-#: ``--variants FWD_COMPACT=1,FWD_SUB_BLOCK=16``). Compiled for sm_90 (ptxas), the default forward takes 255
-#: registers a thread and spills, so 8 warps fit on a multiprocessor; compacted in chunks of 16 or 8 it
-#: spills nothing at 254, and under ``FWD_MAXNREG=128`` it spills 104-176 bytes where the default spills 612:
-#: the variants the GPU session times.
+#: benchmarks/forward_walk.py). The same image (the faces come in the same order; the soft models' sums are
+#: regrouped: float rounding). Off: the gather costs more than the pairs it saves. Timed at 768 ant images
+#: (H200, BENCHMARKS.md section 2.1), the soft forward takes 10.2 ms compacted in 16s against 5.7 block-wise
+#: (11.9 in 8s; 5.9 under FWD_MAXNREG=128), 52 against 22 ms at 21,056 faces; only the hard model with
+#: FWD_DEFER_SHADING gains (3.6 against 4.0 ms), and loses at 21,056 faces without it (37 against 23).
 FWD_COMPACT = False
 #: Whether the hard model's forward walk finds each pixel's face by depth alone and shades only that face at
-#: the end (the same arithmetic: the same colour), instead of interpolating normal and albedo and shading every
-#: face-pixel pair it meets (over half of a pair's arithmetic). Off until timed on a GPU
-#: (``--variants FWD_DEFER_SHADING=1``).
-FWD_DEFER_SHADING = False
+#: the end, instead of interpolating normal and albedo and shading every face-pixel pair it meets (over half of
+#: a pair's arithmetic). The same face at the same depth, bit for bit, and the same colour to a few units in the
+#: last place: the compiler contracts the shading's multiply-adds differently in the two walks (1-2 ulp on an
+#: H200; bit for bit under Triton's interpreter). At 768 ant images (H200, BENCHMARKS.md section 2.1) the hard
+#: forward takes 3.95 ms against 4.44 shading every pair. The soft models shade every pair they blend.
+FWD_DEFER_SHADING = True
 #: The forward's walk over the super-blocks is split between up to FWD_MAX_SPLITS programs per tile (program s
 #: takes super-blocks s, s + S, ...), one per FWD_SPLIT_SUPER_BLOCKS super-blocks (see
 #: :func:`.rasterize.forward_splits`): the few tiles where a detailed mesh crowds thousands of faces would
@@ -53,21 +53,21 @@ PART_ELEMS = 1 << 27
 #: sub-block and warps (None: one warp per 32 faces). A backward program keeps one face per lane, with its 45
 #: coefficients and 45 gradient accumulators in registers, and walks the tile's pixels inside the sub-block's
 #: face boxes; each face then issues one atomic add per coefficient and tile. A face straddles fewer 8 x 8
-#: tiles than 4 x 4 ones (fewer atomics), at the price of more pixels walked per program; 64 faces per
-#: sub-block share one pixel walk between two warps.
+#: tiles than 4 x 4 ones (fewer atomics), at the price of more pixels walked per program. A sub-block of 32
+#: faces is one warp's pixel walk; with BWD_COMPACT (below) it holds only faces that reach the tile.
 BWD_TILE = 8
-BWD_SUB_BLOCK = 64
+BWD_SUB_BLOCK = 32
 BWD_WARPS: int | None = None
 #: Whether a backward program's lanes hold, of each block whose box reaches its tile, only the faces whose own
 #: boxes reach it, packed in face order into sub-blocks of BWD_SUB_BLOCK (as the forward's FWD_COMPACT), so that
 #: no lane walks the tile's pixels for a face far from it. Each face's gradient is the same sum over the same
-#: pixels. Counted on the ant at 84 px (lanes x pixels walked an image; benchmarks/forward_walk.py, BENCHMARKS.md
-#: section 2.1): 119k block-wise in sub-blocks of 64, 81k in sub-blocks of 32, 62k compacted into 32. Off until
-#: timed on a GPU (``--variants BWD_COMPACT=1,BWD_SUB_BLOCK=32``). Its price, compiled for sm_90 (ptxas): the
-#: gather's (FACE_BLOCK, 32) selection on one warp is 64 registers a thread, so the soft backward spills 608
-#: bytes uncapped (8 without compaction) and 1,692 under BWD_MAXNREG; if the GPU finds it slower, a gather
-#: through a per-program scratch row (store at each face's rank, then load the slots) avoids the matrix.
-BWD_COMPACT = False
+#: pixels in the same order. Counted on the ant at 84 px (lanes x pixels walked an image; benchmarks/
+#: forward_walk.py): 119k block-wise in sub-blocks of 64, 81k in sub-blocks of 32, 62k compacted into 32. Timed
+#: at 768 ant images (H200, BENCHMARKS.md section 2.1), the rasterizer's backward takes 4.7 ms (soft) and 3.7
+#: (hard) compacted into 32 against 6.0 and 4.7 block-wise in 64 (5.8 and 4.2 in 32), and 23.3 against 25.9
+#: (soft) at 21,056 faces, though the soft backward spills 608 bytes a thread (the gather's (FACE_BLOCK, 32)
+#: selection; a scratch-row gather would avoid it).
+BWD_COMPACT = True
 #: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px] (see
 #: :func:`.rasterize.backward_tile`): a smaller tile shares the busiest tiles' pairs among more programs. Equal
 #: to BWD_TILE by default: where the backward's walk is split (below), the split already shares those pairs
