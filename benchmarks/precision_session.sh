@@ -29,7 +29,7 @@ R=/tmp/pgruns; mkdir -p $R
 case ${1:?stage} in
   launch)
     rm -rf /tmp/pg; mkdir -p /tmp/pg; cp -r ablations gradlab tasks diffrender vocabulary benchmarks tests pyproject.toml /tmp/pg/
-    cp -r .shared /tmp/pg/ 2>/dev/null
+    cp -r .shared /tmp/pg/ 2>/dev/null; mkdir -p /tmp/pg/docs && cp docs/floors.json /tmp/pg/docs/
     echo "${PIXELGRAD_COMMIT:?name the commit of the tree sent: PIXELGRAD_COMMIT=<sha>}" > $R/commit.txt
     nvidia-smi --query-gpu=index,name,memory.total --format=csv > $R/gpus.txt
     common="--task hopper --seed 0 1 2 3 4 --iters 2000 --eval-every 250 --cosine-every 100 --compile --video-every 0

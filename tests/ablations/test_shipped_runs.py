@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 import tarfile
 from collections import Counter
 from pathlib import Path
@@ -13,7 +15,7 @@ from ablations.run_folder import CONFIG, evaluation_of, find_runs
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
-EXPERIMENTS = ("seeded_h100", "hopper_population_h100", "hopper_diagnosis_h100")
+EXPERIMENTS = ("seeded_h100", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200")
 #: The arms of the shipped runs (names from vocabulary.ARMS).
 SHIPPED_ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
 
@@ -95,3 +97,36 @@ def test_every_experiment_ships_its_run_folders_as_one_archive(shipped):
     for name in EXPERIMENTS:
         assert (ROOT / "docs" / name / "runs.tar.xz").is_file()
         assert sorted(p.parent for p in (shipped / name).glob(f"runs/**/{CONFIG}")), name
+
+
+def _precision_seeded():
+    """benchmarks/precision_seeded.py as a module (it imports its sibling _common as the scripts do)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        spec = importlib.util.spec_from_file_location("precision_seeded", ROOT / "benchmarks" / "precision_seeded.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return module
+
+
+def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quotes_its_statistics(shipped):
+    # docs/precision_h200: decoupled and full (softmax) x fp32 and bf16 x seeds 0-4, 2000 iterations, one
+    # compiled population each; the README's paired numbers are what benchmarks/precision_seeded.py computes
+    runs = find_runs([shipped / "precision_h200" / "runs"])
+    assert len(runs) == 20
+    assert {(r.config["mode"], r.config["precision"], r.seed) for r in runs} == {
+        (m, p, s) for m in ("decoupled", "full") for p in ("fp32", "bf16") for s in range(5)}
+    assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 2000)}
+    assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in runs)
+    doc = _precision_seeded().compare_precisions([shipped / "precision_h200" / "runs"])
+    rows = {r["arm"]: r for r in doc["rows"]}
+    assert set(rows) == {"decoupled", "full-softmax"} and doc["family"] == 2
+    assert all(r["window"] == [1500, 1750, 2000] for r in rows.values())
+    readme = (ROOT / "docs" / "precision_h200" / "README.md").read_text()
+    for r in rows.values():
+        quoted = (f"{r['mean']:+.0f} [{r['ci'][0]:+.0f}, {r['ci'][1]:+.0f}], {r['agree']} of 5 seeds, "
+                  f"sign-flip p = {r['p']:.3f}, Holm {r['p_holm']:.3f}")
+        assert quoted in readme, quoted
+    assert not any(r["differs"] for r in rows.values())  # 5 paired seeds cannot differ under Holm over 2

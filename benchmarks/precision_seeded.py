@@ -1,0 +1,130 @@
+"""The seeded comparison of two encoder precisions: does a precision change what a run learns?
+
+Reads run folders (``ablate`` runs or populations; docs/precision_h200 ships the hopper's), groups them by task,
+arm (mode and raster model) and ``SHACConfig.precision``, and sets each precision's runs beside the reference
+precision's of the same task, arm and seeds, with the statistics of the reports (``ablations.reports.stats``):
+each run's final return is its deterministic evaluation return averaged over the last 3 evaluations that every
+run of the task has; per arm the per-seed differences (candidate minus reference), how many agree in sign, the
+mean with its exact bootstrap CI, the exact sign-flip p-value and Holm's correction over every comparison made
+here. With 5 paired seeds the smallest sign-flip p is 0.0625, so nothing "differs" at 0.05: the per-seed
+differences and their signs are the evidence, and the text says so. Beside the returns, each arm's median probe
+statistics (cos(full, decoupled) and the render term's norm over every probe), where the runs probed.
+
+Not a test. Example::
+
+    python benchmarks/precision_seeded.py docs/precision_h200/runs \\
+        --out benchmarks/results/precision_seeded_hopper_h200_20261128.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+from _common import write_json
+
+from ablations.reports.stats import (
+    DEFAULT_REPS,
+    FINAL_EVALS,
+    common_window,
+    curve_of,
+    holm,
+    paired_difference,
+    seeds_to_resolve,
+)
+from ablations.run_folder import find_runs
+
+PROBE_KEYS = ("cos_full_decoupled", "grad_norm_render_term")
+
+
+def _arm(cfg: dict) -> str:
+    mode = str(cfg.get("mode"))
+    return mode if mode in ("decoupled", "blind", "state") else f"{mode}-{cfg.get('raster_model', 'softmax')}"
+
+
+def _probe_medians(runs) -> dict:
+    out = {}
+    for key in PROBE_KEYS:
+        vals = [r[key] for run in runs for r in run.metrics if isinstance(r.get(key), (int, float))]
+        out[key] = {"median": statistics.median(vals), "n": len(vals)} if vals else None
+    return out
+
+
+def compare_precisions(paths: list[Path], *, reference: str = "fp32", reps: int = DEFAULT_REPS) -> dict:
+    """Per (task, arm, candidate precision): the paired difference against ``reference`` (see the module text)."""
+    runs = find_runs(paths)
+    if not runs:
+        raise ValueError(f"no run folders under {', '.join(map(str, paths))}")
+    groups: dict[tuple[str, str, str], list] = {}
+    for run in runs:
+        cfg = run.config
+        groups.setdefault((str(cfg["task"]), _arm(cfg), str(cfg.get("precision", "fp32"))), []).append(run)
+    rows = []
+    for task in sorted({k[0] for k in groups}):
+        curves = {k: [curve_of(r, f"{k[1]} {k[2]}") for r in rs] for k, rs in groups.items() if k[0] == task}
+        window = common_window([c for cs in curves.values() for c in cs], FINAL_EVALS)
+        if not window:
+            raise ValueError(f"{task}: the runs share no evaluation iteration")
+
+        def finals(cs, window=window):
+            return {c.seed: float(c.returns[[i in window for i in c.iters.tolist()]].mean()) for c in cs}
+        for (t, arm, prec), cs in sorted(curves.items()):
+            if prec == reference or (t, arm, reference) not in curves:
+                continue
+            cand, ref = finals(cs), finals(curves[(t, arm, reference)])
+            d = paired_difference(f"{arm} {prec}", f"{arm} {reference}", cand, ref, reps=reps)
+            rows.append({"task": task, "arm": arm, "precision": prec, "reference": reference,
+                         "window": list(window), "candidate": cand, "reference_returns": ref,
+                         "diff": d.diff, "agree": d.agree, "mean": d.mean.value if d.mean else None,
+                         "ci": [d.mean.ci_low, d.mean.ci_high] if d.mean else None, "p": d.p_value,
+                         "probes": {prec: _probe_medians(groups[(t, arm, prec)]),
+                                    reference: _probe_medians(groups[(t, arm, reference)])}})
+    tested = [i for i, r in enumerate(rows) if r["p"] is not None]
+    for i, p in zip(tested, holm([rows[i]["p"] for i in tested])):
+        rows[i]["p_holm"] = p
+        rows[i]["differs"] = p <= 0.05
+    return {"rows": rows, "family": len(tested),
+            "seeds_to_resolve": seeds_to_resolve(len(tested)) if tested else None}
+
+
+def table(doc: dict) -> str:
+    lines = ["| task | arm | precision - reference per seed | agree | mean [95 % CI] | sign-flip p | Holm p | "
+             "median cos(full, decoupled): cand., ref. | median render-term norm: cand., ref. |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in doc["rows"]:
+        per_seed = ", ".join(f"s{s}: {v:+.0f}" for s, v in sorted(r["diff"].items()))
+
+        def probe(key, r=r):
+            vals = [r["probes"][p][key] for p in (r["precision"], r["reference"])]
+            return ", ".join("-" if v is None else f"{v['median']:.3g}" for v in vals)
+        lines.append(f"| {r['task']} | {r['arm']} | {r['precision']} - {r['reference']}: {per_seed} | "
+                     f"{r['agree']} of {len(r['diff'])} | {r['mean']:+.0f} [{r['ci'][0]:+.0f}, {r['ci'][1]:+.0f}] | "
+                     f"{r['p']:.3f} | {r.get('p_holm', float('nan')):.3f} | {probe('cos_full_decoupled')} | "
+                     f"{probe('grad_norm_render_term')} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("paths", nargs="+", type=Path, help="run folders, or folders that hold them")
+    p.add_argument("--reference", default="fp32", help="the precision the others are read against")
+    p.add_argument("--reps", type=int, default=DEFAULT_REPS, help="bootstrap resamples where seeds are many")
+    p.add_argument("--out", type=Path, default=None, help="JSON output")
+    args = p.parse_args(argv)
+    try:
+        doc = compare_precisions(args.paths, reference=args.reference, reps=args.reps)
+    except ValueError as e:
+        p.error(str(e))
+    doc["command"] = "python benchmarks/precision_seeded.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.out:
+        write_json(args.out, doc)
+    print(table(doc))
+    print(f"\n{doc['family']} comparisons under Holm; a difference can differ only with at least "
+          f"{doc['seeds_to_resolve']} paired seeds.")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
