@@ -39,11 +39,18 @@ from _common import FUSED_DEFAULTS, apply_fused_variant, commit, graphed, median
 from gradlab import SHAC, SHACConfig, precision, resolve_device
 from gradlab.networks import PixelEncoder
 
+#: The renderer's own Triton kernels by launch name (diffrender.raster.fused and diffrender.raster.setup_kernels):
+#: the rasterizer's walks and merge, and the per-face setup and floor around them.
+RASTER_KERNELS = ("_fused_forward", "_fused_backward", "_merge_forward", "_pixel_backward")
+SETUP_KERNELS = ("_setup_forward", "_setup_backward", "_floor_forward", "_floor_backward", "_super_boxes")
+
 
 def category(name: str) -> str:
     n = name.lower()
-    if n.startswith("_fused_") or "raster" in n:  # diffrender.raster.fused's two kernels
+    if n.startswith(RASTER_KERNELS) or "raster" in n:
         return "rasterizer (fused triton)"
+    if n.startswith(SETUP_KERNELS):
+        return "renderer setup (triton)"
     if n.startswith("triton_"):
         return "inductor triton (sim, elementwise)"
     if any(k in n for k in ("conv", "cudnn", "dgrad", "wgrad", "implicit", "winograd", "fft")):

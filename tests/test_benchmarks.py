@@ -360,3 +360,16 @@ def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_
     # the backward: packed lanes walk no more than the block's, and a sub-block of the whole block is the same
     assert row["bwd_compact_64"] == row["bwd_block_64"] >= row["bwd_block_32"] >= row["bwd_compact_32"] > 0
     assert "| 1,856 |" in capsys.readouterr().out
+
+
+def test_the_profile_counts_every_renderer_kernel_as_the_renderers():
+    # names as torch.profiler reports them (BENCHMARKS section 7's profile): the rasterizer's per-pixel and merge
+    # kernels were once counted as generic element-wise work, the setup's too
+    prof = _load("profile_iteration")
+    for name in ("_fused_forward", "_fused_backward", "_pixel_backward", "_merge_forward"):
+        assert prof.category(name) == "rasterizer (fused triton)", name
+    for name in ("_setup_forward", "_setup_backward", "_floor_forward", "_floor_backward"):
+        assert prof.category(name) == "renderer setup (triton)", name
+    assert prof.category("triton_poi_fused_clone_sub_0") == "inductor triton (sim, elementwise)"
+    assert prof.category("void cudnn::engines_precompiled::convertTensor_kernel<float>") == "cudnn conv"
+    assert prof.category("void at::native::elementwise_kernel<128, 2>") == "aten elementwise/other"
