@@ -340,6 +340,28 @@ def test_fused_degenerate_faces_match_dense(cull):
     assert v.grad[0, :3].abs().sum() > 0 and v.grad[0, 12:18].abs().sum() == 0
 
 
+@pytest.mark.parametrize("model", ["hard", "softmax", pytest.param("alpha", marks=pytest.mark.slow)])
+def test_images_without_gradient_equal_the_differentiable_ones(ant64, model):
+    """What decoupled rollouts, evaluation and videos render (no_grad: the forward kernel saves nothing) is the
+    image the differentiable path renders, with the blend state kept for the backward or recomputed by it: bit
+    for bit under the interpreter, to float64 rounding on a GPU (other kernel specialisations)."""
+    q = ant_pose(2, seed=6).to(DEV)
+    verts, _ = ant64.world_vertices_and_normals(q)
+    cam = ant_camera(q, size=8)
+    with torch.no_grad():
+        plain = dr.render(verts, ant64.faces, ant64.colors, cam, dr.RasterSettings(backend="fused", raster_model=model))
+    assert plain.abs().sum() > 0
+    for keep_state in (True, False):
+        v = verts.clone().requires_grad_()
+        img = dr.render(v, ant64.faces, ant64.colors, cam,
+                        dr.RasterSettings(backend="fused", raster_model=model, save_blend_state=keep_state))
+        assert img.requires_grad
+        if DEV.type == "cpu":
+            assert torch.equal(img.detach(), plain)
+        else:
+            torch.testing.assert_close(img.detach(), plain, rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("keep_state", [pytest.param(False, marks=pytest.mark.slow),
                                         pytest.param(True, marks=pytest.mark.slow)])
 def test_fused_saved_memory_is_flat_in_faces(ant64, keep_state):
