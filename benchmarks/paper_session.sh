@@ -11,7 +11,10 @@
 #             launch arms6 --tasks hopper cartpole-swingup --arms full-hard state --seeds 0 1 2 3 4 --iters 3000
 #               --time-limit-min None --pack 5 --gpus-per-run 1 --no-progress
 #               --set compile=true device=cuda eval-every=250 checkpoint-every=1000 video-every=0 cosine-every=100
-#             (CUDA_VISIBLE_DEVICES=1,3 before it: Ray places the runs on those GPUs only, the rest being busy)
+#             (CUDA_VISIBLE_DEVICES=1,3 before it: Ray places the runs on those GPUs only, the rest being busy;
+#             state runs never pack into populations: --gpus-per-run 0.2 lets five share a GPU). Wait for other
+#             jobs inside a script, never with `pgrep -f PATTERN` in the device call's own command line: the
+#             pattern matches that command line, and the wait never ends.
 #   progress  the log's last lines, each run's status, iteration and GPU from sweep.json, and the GPUs' load
 #   wait [S]  until ablate-paper has exited, at most S seconds (560), then progress
 #   collect   every run folder thinned (metrics every 10th iteration, evaluations and the last kept; no

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The encoder-precision evidence and the rasterizer's walk timings on one four-GPU machine (benchmarks/precision.py,
 # docs/design.md "Numeric precision"), in stages, each a device call sent straight after the last. Carry .gpu
-# (GPU_WHEELS_SLIM=1 ../shared/tools/gpu-wheels.sh .gpu) and .shared (nvdiffrast's source as .shared/nvdiffrast and
+# (GPU_WHEELS_SLIM=1 ../shared/tools/gpu-wheels.sh .gpu) and .shared (git-ignored: nvdiffrast's source as
+# .shared/nvdiffrast, `git archive 253ac4f csrc nvdiffrast` of the snapshot `fetch github:NVlabs/nvdiffrast` brings, and
 # ../shared/tools/nvdiffrast-build.sh: the anchor, built there, never vendored). Usage, from the repo root:
 # bash benchmarks/precision_session.sh STAGE (launch: PIXELGRAD_COMMIT=<sha> bash ...: the runs start from a copy of
 # the tree without its repository, and each run's git.txt and every benchmark JSON record the commit named)
