@@ -47,12 +47,13 @@ from triton.runtime.jit import JITFunction
 TARGET = GPUTarget("cuda", 90, 32)
 MODELS = {"hard": 0, "softmax": 1, "alpha": 2}
 #: the renderer's default launch options per kernel (see the launches in diffrender.raster.fused and
-#: setup_kernels): 4 x 4 forward tiles, 64-face blocks, 16 blocks per super-block, 8 x 8 backward tiles
-FWD_WARPS, BWD_WARPS, PIXEL_WARPS, SETUP_WARPS = 4, 2, 4, 2
+#: setup_kernels): 4 x 4 forward tiles, 64-face blocks, 16 blocks per super-block, 8 x 8 backward tiles; the
+#: backward in compacted lanes of 32 on one warp (fused.tuning.BWD_COMPACT, BWD_SUB_BLOCK)
+FWD_WARPS, BWD_WARPS, PIXEL_WARPS, SETUP_WARPS = 4, 1, 4, 2
 BWD_MAXNREG_SOFT = 128
-#: the forward walk's defaults (fused.tuning.FWD_COMPACT, FWD_DEFER_SHADING); dropped for a tree whose forward
-#: kernel has no such arguments, so that its default kernels compare with this one's
-_WALK = dict(COMPACT=False, DEFER=False)  # the backward's COMPACT too
+#: the walk's switches (fused.tuning.FWD_COMPACT, FWD_DEFER_SHADING, BWD_COMPACT): dropped for a tree whose
+#: kernels have no such arguments, so that its default kernels compare with this one's
+_WALK = ("COMPACT", "DEFER")
 
 
 def specialisations() -> list[tuple[str, str, dict, dict]]:
@@ -61,11 +62,13 @@ def specialisations() -> list[tuple[str, str, dict, dict]]:
     for model, code in MODELS.items():
         for split in (False, True):
             for save in (False, True):
+                # the default walk: block-wise; the hard model defers its shading where nothing is saved
+                walk = dict(COMPACT=False, DEFER=code == 0 and not save)
                 specs.append((f"_fused_forward[{model},split={split},save={save}]", "_fused_forward",
-                              dict(TILE_=4, FB=64, SB=16, FS=64, SAVE=save, SPLIT=split, MODEL=code, **_WALK),
+                              dict(TILE_=4, FB=64, SB=16, FS=64, SAVE=save, SPLIT=split, MODEL=code, **walk),
                               dict(num_warps=FWD_WARPS)))
-            # the walk's variants (fused.tuning.FWD_COMPACT, FWD_DEFER_SHADING): compiled, so that a variant a
-            # GPU has not timed yet is known to build for one; labelled apart from the defaults
+            # the walk's variants (fused.tuning.FWD_COMPACT): compiled, so that a variant a GPU has not timed
+            # yet is known to build for one; labelled apart from the defaults
             for fs in (16, 8):
                 walk = dict(COMPACT=True, DEFER=code == 0)
                 specs.append((f"_fused_forward[{model},split={split},save=False,compact={fs}]", "_fused_forward",
@@ -76,12 +79,12 @@ def specialisations() -> list[tuple[str, str, dict, dict]]:
                           dict(BLOCK=256, SAVE=save, MODEL=code), dict(num_warps=4)))
         specs.append((f"_pixel_backward[{model}]", "_pixel_backward", dict(BLOCK=256, MODEL=code),
                       dict(num_warps=PIXEL_WARPS)))
+        cap = {} if code == 0 else dict(maxnreg=BWD_MAXNREG_SOFT)
         specs.append((f"_fused_backward[{model}]", "_fused_backward",
-                      dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=code, COMPACT=False),
-                      dict(num_warps=BWD_WARPS) | ({} if code == 0 else dict(maxnreg=BWD_MAXNREG_SOFT))))
-        specs.append((f"_fused_backward[{model},compact=32]", "_fused_backward",
-                      dict(TILE_=8, FB=64, SB=16, SUB=32, MODEL=code, COMPACT=True),
-                      dict(num_warps=1) | ({} if code == 0 else dict(maxnreg=BWD_MAXNREG_SOFT))))
+                      dict(TILE_=8, FB=64, SB=16, SUB=32, MODEL=code, COMPACT=True), dict(num_warps=BWD_WARPS) | cap))
+        # the block-wise lanes of 64 on two warps (BWD_COMPACT off, BWD_SUB_BLOCK=64): the default until 2436d49
+        specs.append((f"_fused_backward[{model},compact=off,lanes=64]", "_fused_backward",
+                      dict(TILE_=8, FB=64, SB=16, SUB=64, MODEL=code, COMPACT=False), dict(num_warps=2) | cap))
     for cull in (False, True):
         specs.append((f"_setup_forward[cull={cull}]", "_setup_forward", dict(FB=64, CULL=cull),
                       dict(num_warps=SETUP_WARPS)))
@@ -149,7 +152,7 @@ def fingerprint() -> dict:
         if missing and not missing <= set(_WALK):
             raise RuntimeError(f"{name} has no arguments {sorted(missing)}")
         if missing:
-            if "compact=" in label:  # a tree before the walk's variants: nothing to compile
+            if "compact=" in label and "compact=off" not in label:  # a tree before the walk's variants
                 continue
             constexprs = {k: v for k, v in constexprs.items() if k not in missing}
         for float_type in ("fp32", "fp64"):

@@ -19,12 +19,14 @@ Not a test. Example::
 from __future__ import annotations
 
 import argparse
+import re
 import statistics
 import sys
 from pathlib import Path
 
 from _common import write_json
 
+from ablations.reports.arms import arm_names
 from ablations.reports.stats import (
     DEFAULT_REPS,
     FINAL_EVALS,
@@ -34,14 +36,21 @@ from ablations.reports.stats import (
     paired_difference,
     seeds_to_resolve,
 )
+from ablations.reports.stats.curves import check_unique
 from ablations.run_folder import find_runs
 
 PROBE_KEYS = ("cos_full_decoupled", "grad_norm_render_term")
 
 
-def _arm(cfg: dict) -> str:
-    mode = str(cfg.get("mode"))
-    return mode if mode in ("decoupled", "blind", "state") else f"{mode}-{cfg.get('raster_model', 'softmax')}"
+def _arms_but_precision(runs) -> dict:
+    """Run folder -> its arm as the reports name it (``ablations.reports.arms.arm_names``: vocabulary.ARMS, then
+    every other setting that differs between the runs), the precision left out: the runs a precision is read
+    against are those of the same arm."""
+    names = {}
+    for path, name in arm_names(runs).items():
+        name = re.sub(r"precision=[^,)]*(, )?", "", name).replace(", )", ")").replace(" ()", "")
+        names[path] = name
+    return names
 
 
 def _probe_medians(runs) -> dict:
@@ -57,13 +66,15 @@ def compare_precisions(paths: list[Path], *, reference: str = "fp32", reps: int 
     runs = find_runs(paths)
     if not runs:
         raise ValueError(f"no run folders under {', '.join(map(str, paths))}")
+    arms = _arms_but_precision(runs)
     groups: dict[tuple[str, str, str], list] = {}
     for run in runs:
         cfg = run.config
-        groups.setdefault((str(cfg["task"]), _arm(cfg), str(cfg.get("precision", "fp32"))), []).append(run)
+        groups.setdefault((str(cfg["task"]), arms[run.path], str(cfg.get("precision", "fp32"))), []).append(run)
     rows = []
     for task in sorted({k[0] for k in groups}):
         curves = {k: [curve_of(r, f"{k[1]} {k[2]}") for r in rs] for k, rs in groups.items() if k[0] == task}
+        check_unique([c for cs in curves.values() for c in cs])  # a seed twice in an arm and precision: say which
         window = common_window([c for cs in curves.values() for c in cs], FINAL_EVALS)
         if not window:
             raise ValueError(f"{task}: the runs share no evaluation iteration")
@@ -94,6 +105,10 @@ def table(doc: dict) -> str:
              "median cos(full, decoupled): cand., ref. | median render-term norm: cand., ref. |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in doc["rows"]:
+        if r["mean"] is None:
+            lines.append(f"| {r['task']} | {r['arm']} | {r['precision']} - {r['reference']}: no paired seeds "
+                         "| - | - | - | - | - | - |")
+            continue
         per_seed = ", ".join(f"s{s}: {v:+.0f}" for s, v in sorted(r["diff"].items()))
 
         def probe(key, r=r):

@@ -16,8 +16,8 @@
 #   progress  the last line of every log
 #   wait [S]  until every detached job has ended, at most S seconds (560), then progress
 #   agreement on idle GPUs 2 and 3: the gradient agreement (cosines with float32) of hopper and ant
-#   time      on idle GPUs, one process a GPU: precision.py's times of the ant (GPU 0), population.py ant (1),
-#             hopper (2)
+#   time      on idle GPUs, one process a GPU: precision.py's times of the ant (GPU 0); population.py at 1, 4 and
+#             12 members: the ant at fp32 (1) and bf16 (2), the hopper at bf16 (3)
 #   collect   the thinned run folders and every JSON and log as one tarball under $OUT
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
@@ -45,6 +45,7 @@ case ${1:?stage} in
   after-populations)  # detached by launch: each decoupled population's GPU takes a timing job once it is free
     cd /tmp/pg
     ended() { ! pgrep -f "ablations ablate .*--name $1" > /dev/null; }
+    sleep 30  # the populations' processes are up before anything waits on them
     (until ended hopper_decoupled_fp32; do sleep 5; done
      NVDR_SRC=/tmp/pg/.shared/nvdiffrast source .shared/nvdiffrast-build.sh > $R/nvdiffrast.log 2>&1 || true
      CUDA_VISIBLE_DEVICES=0 python3 -m pytest -q -p no:cacheprovider tests/diffrender/test_fused.py -k "compacted or variants" \
@@ -72,18 +73,19 @@ case ${1:?stage} in
         --out $R/precision_agreement_${t%%:*}.json > $R/agreement_${t%%:*}.log 2>&1 &
     done
     wait; tail -n 12 $R/agreement_*.log;;
-  time)
+  time)  # BENCHMARKS sections 7 and 8: one GPU a job, in one call
     cd /tmp/pg
     CUDA_VISIBLE_DEVICES=0 python3 benchmarks/precision.py --device cuda --compile --tasks ant --parts time \
       --candidates fp32 bf16 --out $R/precision_time_ant.json > $R/time_single.log 2>&1 &
-    CUDA_VISIBLE_DEVICES=1 python3 benchmarks/population.py --tasks ant --members 1 12 --anchor --precision fp32 bf16 \
-      --out $R/population_ant_precision.json > $R/time_pop_ant.log 2>&1 &
-    CUDA_VISIBLE_DEVICES=2 python3 benchmarks/population.py --tasks hopper --members 1 12 --anchor --precision fp32 bf16 \
-      --out $R/population_hopper_precision.json > $R/time_pop_hopper.log 2>&1 &
+    for job in 1:ant:fp32 2:ant:bf16 3:hopper:bf16; do IFS=: read -r gpu task prec <<< "$job"
+      CUDA_VISIBLE_DEVICES=$gpu python3 benchmarks/population.py --tasks $task --members 1 4 12 --precision $prec \
+        --out $R/population_${task}_$prec.json > $R/time_pop_${task}_$prec.log 2>&1 &
+    done
     wait; tail -n 25 $R/time_*.log;;
   wait)  # until the populations and the timing jobs after them have ended, at most ${2:-560} s; then progress
     end=$((SECONDS + ${2:-560}))
-    while [ $SECONDS -lt $end ] && pgrep -f "ablations ablate|precision_session.sh after-populations" > /dev/null; do
+    while [ $SECONDS -lt $end ] && \
+          pgrep -f "ablations ablate .*--name hopper_[a-z]+_(fp32|bf16)|precision_session.sh after-populations" > /dev/null; do
       sleep 10; done
     bash "$0" progress;;
   collect)

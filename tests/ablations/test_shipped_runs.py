@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import shutil
 import sys
 import tarfile
 from collections import Counter
@@ -122,7 +123,7 @@ def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quot
     assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in runs)
     doc = _precision_seeded().compare_precisions([shipped / "precision_h200" / "runs"])
     rows = {r["arm"]: r for r in doc["rows"]}
-    assert set(rows) == {"decoupled", "full-softmax"} and doc["family"] == 2
+    assert set(rows) == {"decoupled", "full-soft"} and doc["family"] == 2
     assert all(r["window"] == [1500, 1750, 2000] for r in rows.values())
     readme = (ROOT / "docs" / "precision_h200" / "README.md").read_text()
     for r in rows.values():
@@ -130,3 +131,12 @@ def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quot
                   f"sign-flip p = {r['p']:.3f}, Holm {r['p_holm']:.3f}")
         assert quoted in readme, quoted
     assert not any(r["differs"] for r in rows.values())  # 5 paired seeds cannot differ under Holm over 2
+
+
+def test_the_precision_comparison_refuses_a_seed_twice_in_one_arm_and_precision(shipped, tmp_path):
+    # a second copy of a run would count its seed twice (or silently replace it): named instead
+    runs = shipped / "precision_h200" / "runs"
+    shutil.copytree(runs / "hopper_full_bf16", tmp_path / "a")
+    shutil.copytree(runs / "hopper_full_bf16" / "hopper_full_seed0", tmp_path / "b" / "hopper_full_seed0")
+    with pytest.raises(ValueError, match="has two runs"):
+        _precision_seeded().compare_precisions([tmp_path])

@@ -138,6 +138,14 @@ def _forward_of(st: Static, setup: tuple) -> tuple[torch.Tensor, torch.Tensor]:
     return out, state
 
 
+def _image_of(st: Static, setup: tuple) -> torch.Tensor:
+    """The forward kernels' image of :func:`_two_ants_set_up`'s images with nothing saved (as renders without
+    gradient run: the hard model's ``FWD_DEFER_SHADING`` walk applies only here)."""
+    out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
+    rasterize._launch_forward(*setup, st, tuning.TILE, 16, out, None)
+    return out
+
+
 def _assert_same_blend(model: str, reference: tuple, other: tuple) -> None:
     """Two (image, blend state) of :func:`_forward_of`: both finite; the hard model's state bit for bit (the same
     face at the same depth, a face chosen somewhere) and its image bit for bit under the interpreter, to a few
@@ -167,7 +175,8 @@ def _assert_same_shading(image: torch.Tensor, reference: torch.Tensor) -> None:
                                    pytest.param("alpha", marks=pytest.mark.slow)])
 def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     """The state the backward reads (maximum, denominator, weight and coverage sums; the hard model's chosen
-    face) and the image, from one walk and from three merged parts: equal (the hard model's exactly)."""
+    face) and the image, from one walk and from three merged parts: equal (the hard model's state exactly, its
+    image to the last place on a GPU)."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4)
     st, setup = _two_ants_set_up(ant64, dr.RasterSettings(backend="fused", raster_model=model), seed=3)
     results = []
@@ -188,17 +197,24 @@ def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch
     chunks of 4 (the ant's 944 faces: blocks that reach a tile with none, some and more than one chunk of
     faces whose boxes reach it), unsplit and split in three: ``FWD_COMPACT`` (of each block near a tile, only
     the faces whose boxes reach it, packed into chunks) and the hard model's ``FWD_DEFER_SHADING`` (the
-    chosen face alone shaded): the hard model's state bit for bit and image to the last place (bit for bit under
-    the interpreter), the soft models' to float64 rounding (their sums are regrouped)."""
+    chosen face alone shaded, in images rendered with nothing saved): the hard model's state bit for bit and
+    image to the last place (bit for bit under the interpreter), the soft models' to float64 rounding (their
+    sums are regrouped); with the state kept and without."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=4)
     settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
     st, setup = _two_ants_set_up(ant64, settings, seed=5)
     for splits in (1, 3):
-        results = {}
+        results, images = {}, {}
         for variant in (dict(FWD_COMPACT=False, FWD_DEFER_SHADING=False), walk):
             _set(monkeypatch, FWD_MAX_SPLITS=splits, **variant)
             results[variant is walk] = _forward_of(st, setup)
+            images[variant is walk] = _image_of(st, setup)
         _assert_same_blend(model, results[False], results[True])
+        assert torch.isfinite(images[True]).all()
+        if model == "hard":
+            _assert_same_shading(images[True], images[False])
+        else:
+            torch.testing.assert_close(images[True], images[False], rtol=1e-12, atol=1e-14)
 
 
 @pytest.mark.parametrize("model", ["softmax", pytest.param("hard", marks=pytest.mark.slow)])
@@ -282,7 +298,7 @@ def test_super_block_boxes_are_unions_of_their_blocks(monkeypatch):
 def test_fused_float32_hidden_faces_match_dense(ant64, monkeypatch, bwd_tile, sub_block):
     """float32 with back faces kept: the depth softmax weight of hidden faces underflows to exactly 0, which
     the backward uses to skip them (no atomics, pixels skipped); the gradients must still equal dense's, with
-    the backward walking each face block whole or in sub-blocks, over tiles of either size."""
+    the backward packing the faces that reach a tile into lanes of 64 or 16, over tiles of either size."""
     monkeypatch.setattr(tuning, "BWD_TILE", bwd_tile)
     monkeypatch.setattr(tuning, "BWD_SUB_BLOCK", sub_block)
     q = ant_pose(2, seed=3).to(DEV)

@@ -129,7 +129,7 @@ def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int
         coef, box, bbox, sbox, floor, prm, out, state, part, coef.shape[2], bbox.shape[2], sbox.shape[2], splits,
         st.height, st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], FS=fs, SAVE=save,
         SPLIT=splits > 1, MODEL=model, COMPACT=tuning.FWD_COMPACT,
-        DEFER=tuning.FWD_DEFER_SHADING, num_warps=tuning.FWD_WARPS or _warps(tile, fs),
+        DEFER=tuning.FWD_DEFER_SHADING and not save, num_warps=tuning.FWD_WARPS or _warps(tile, fs),
         **_max_registers(tuning.FWD_MAXNREG))
     if splits > 1:
         _merge_forward[(triton.cdiv(st.height * st.width, tuning.MERGE_BLOCK), b)](
