@@ -22,24 +22,19 @@ FWD_SUB_BLOCK = 64
 FWD_WARPS: int | None = None
 #: Whether the forward evaluates, of each block whose box reaches its tile, only the faces whose own boxes
 #: reach it, packed in face order into chunks of FWD_SUB_BLOCK (a rank by prefix sum, then a gather of their
-#: coefficients). The block's box is the union of 64 faces' boxes, so most of a block's faces are far from
-#: most tiles it reaches: on the ant at 84 px, 221k face-pixel pairs an image are evaluated block-wise, 62k
-#: compacted in chunks of 16 and 43k in chunks of 8 (32k pairs have the pixel's tile inside the face's box;
-#: benchmarks/forward_walk.py). The same image (the faces come in the same order; the soft models' sums are
-#: regrouped: float rounding). Off: the gather costs more than the pairs it saves. Timed at 768 ant images
-#: (H200, BENCHMARKS.md section 2.5), the soft forward takes 10.2 ms compacted in 16s against 5.7 block-wise
-#: (11.9 in 8s; 5.9 under FWD_MAXNREG=128), 52 against 22 ms at 21,056 faces; only the hard model with
-#: FWD_DEFER_SHADING gains (3.6 against 4.0 ms), and loses at 21,056 faces without it (37 against 23).
+#: coefficients). The block's box is the union of 64 faces' boxes, so most of a block's faces are far from most
+#: tiles it reaches (benchmarks/forward_walk.py counts the pairs each walk evaluates). The same image (the faces
+#: come in the same order; the soft models' sums are regrouped: float rounding). Off: on a GPU the rank and
+#: gather cost more than the pairs they save (BENCHMARKS.md section 2.5).
 FWD_COMPACT = False
 #: Whether the hard model's forward walk, in renders without gradient (nothing saved: decoupled rollouts,
 #: evaluation, videos), finds each pixel's face by depth alone and shades only that face at the end, instead of
 #: interpolating normal and albedo and shading every face-pixel pair it meets (over half of a pair's
 #: arithmetic). The same face at the same depth, bit for bit, and the same colour to a few units in the last
-#: place: the compiler contracts the shading's multiply-adds differently in the two walks (1-2 ulp on an H200;
-#: bit for bit under Triton's interpreter). At 768 ant images (H200, BENCHMARKS.md section 2.5) the hard forward
-#: without gradient takes 3.95 ms against 4.44 shading every pair; where the blend state is kept for a backward
-#: the deferred walk was slower (4.54 against 4.20 ms of the forward kernel inside forward + backward), so a
-#: render that saves its state shades every pair whatever this says. The soft models shade every pair they blend.
+#: place (the compiler may contract the shading's multiply-adds differently in the two walks; bit for bit under
+#: Triton's interpreter: tests/diffrender/test_fused.py). A render that keeps its blend state for a backward
+#: shades every pair whatever this says: there the deferred walk timed slower (BENCHMARKS.md section 2.5). The
+#: soft models shade every pair they blend.
 FWD_DEFER_SHADING = True
 #: The forward's walk over the super-blocks is split between up to FWD_MAX_SPLITS programs per tile (program s
 #: takes super-blocks s, s + S, ...), one per FWD_SPLIT_SUPER_BLOCKS super-blocks (see
@@ -64,14 +59,10 @@ BWD_SUB_BLOCK = 32
 BWD_WARPS: int | None = None
 #: Whether a backward program's lanes hold, of each block whose box reaches its tile, only the faces whose own
 #: boxes reach it, packed in face order into sub-blocks of BWD_SUB_BLOCK (as the forward's FWD_COMPACT), so that
-#: no lane walks the tile's pixels for a face far from it. Each face's gradient is the same sum over the same
-#: pixels in the same order. Counted on the ant at 84 px (lanes x pixels walked an image; benchmarks/
-#: forward_walk.py): 119k block-wise in sub-blocks of 64, 81k in sub-blocks of 32, 62k compacted into 32. Timed
-#: at 768 ant images (H200, BENCHMARKS.md section 2.5), the rasterizer's backward takes 4.7 ms (soft) and 3.7
-#: (hard) compacted into 32 against 6.0 and 4.7 block-wise in 64 (5.8 and 4.2 in 32), and 23.3 against 25.9
-#: (soft) at 21,056 faces, though, compiled for sm_90, the soft backward spills 608 bytes a thread uncapped and
-#: 1,692 under BWD_MAXNREG=128, its default (the gather's (FACE_BLOCK, 32) selection; a gather through a
-#: per-program scratch row would avoid it).
+#: no lane walks the tile's pixels for a face far from it (benchmarks/forward_walk.py counts the lane-pixels).
+#: Each face's gradient is the same sum over the same pixels in the same order. On by its GPU timing
+#: (BENCHMARKS.md section 2.5), though the gather's (FACE_BLOCK, 32) selection makes the soft backward spill
+#: (benchmarks/fused_ptx.py compiles it); a gather through a per-program scratch row would avoid that.
 BWD_COMPACT = True
 #: Where faces crowd (more than DENSE_FACES_PER_PIXEL per image pixel), the backward's tile side [px] (see
 #: :func:`.rasterize.backward_tile`): a smaller tile shares the busiest tiles' pairs among more programs. Equal
