@@ -1,14 +1,15 @@
 """The seeded comparison of two encoder precisions: does a precision change what a run learns?
 
 Reads run folders (``ablate`` runs or populations; docs/precision_h200 ships the hopper's), groups them by task,
-arm (mode and raster model) and ``SHACConfig.precision``, and sets each precision's runs beside the reference
-precision's of the same task, arm and seeds, with the statistics of the reports (``ablations.reports.stats``):
-each run's final return is its deterministic evaluation return averaged over the last 3 evaluations that every
-run of the task has; per arm the per-seed differences (candidate minus reference), how many agree in sign, the
-mean with its exact bootstrap CI, the exact sign-flip p-value and Holm's correction over every comparison made
-here. With 5 paired seeds the smallest sign-flip p is 0.0625, so nothing "differs" at 0.05: the per-seed
-differences and their signs are the evidence, and the text says so. Beside the returns, each arm's median probe
-statistics (cos(full, decoupled) and the render term's norm over every probe), where the runs probed.
+arm (as the reports name arms, ``ablations.reports.arms.arm_names``) and ``SHACConfig.precision``, and sets each
+precision's runs beside the reference precision's of the same task, arm and seeds with the reports' comparison
+(``ablations.reports.stats.compare`` and ``correct``): each run's final return is its deterministic evaluation
+return averaged over the last 3 evaluations every run of the arm has, at either precision; per arm the per-seed
+differences (candidate minus reference), how many agree in sign, the mean with its exact bootstrap CI, the exact
+sign-flip p-value and Holm's correction over every comparison made here. With 5 paired seeds the smallest
+sign-flip p is 0.0625, so nothing "differs" at 0.05: the per-seed differences and their signs are the evidence.
+Beside the returns, each arm's median probe statistics (cos(full, decoupled) and the render term's norm over
+every probe), where the runs probed.
 
 Not a test. Example::
 
@@ -27,16 +28,7 @@ from pathlib import Path
 from _common import write_json
 
 from ablations.reports.arms import arm_names
-from ablations.reports.stats import (
-    DEFAULT_REPS,
-    FINAL_EVALS,
-    common_window,
-    curve_of,
-    holm,
-    paired_difference,
-    seeds_to_resolve,
-)
-from ablations.reports.stats.curves import check_unique
+from ablations.reports.stats import DEFAULT_REPS, compare, correct, curve_of, seeds_to_resolve
 from ablations.run_folder import find_runs
 
 PROBE_KEYS = ("cos_full_decoupled", "grad_norm_render_term")
@@ -71,33 +63,27 @@ def compare_precisions(paths: list[Path], *, reference: str = "fp32", reps: int 
     for run in runs:
         cfg = run.config
         groups.setdefault((str(cfg["task"]), arms[run.path], str(cfg.get("precision", "fp32"))), []).append(run)
+    keys, comparisons = [], []
+    for task, arm, prec in sorted(groups):
+        if prec == reference or (task, arm, reference) not in groups:
+            continue
+        names = {prec: f"{arm} {prec}", reference: f"{arm} {reference}"}
+        curves = [curve_of(r, names[p]) for p in (prec, reference) for r in groups[(task, arm, p)]]
+        keys.append((task, arm, prec))
+        comparisons.append(compare(curves, reference=names[reference], reps=reps))
+    comparisons = correct(comparisons)
     rows = []
-    for task in sorted({k[0] for k in groups}):
-        curves = {k: [curve_of(r, f"{k[1]} {k[2]}") for r in rs] for k, rs in groups.items() if k[0] == task}
-        check_unique([c for cs in curves.values() for c in cs])  # a seed twice in an arm and precision: say which
-        window = common_window([c for cs in curves.values() for c in cs], FINAL_EVALS)
-        if not window:
-            raise ValueError(f"{task}: the runs share no evaluation iteration")
-
-        def finals(cs, window=window):
-            return {c.seed: float(c.returns[[i in window for i in c.iters.tolist()]].mean()) for c in cs}
-        for (t, arm, prec), cs in sorted(curves.items()):
-            if prec == reference or (t, arm, reference) not in curves:
-                continue
-            cand, ref = finals(cs), finals(curves[(t, arm, reference)])
-            d = paired_difference(f"{arm} {prec}", f"{arm} {reference}", cand, ref, reps=reps)
-            rows.append({"task": task, "arm": arm, "precision": prec, "reference": reference,
-                         "window": list(window), "candidate": cand, "reference_returns": ref,
-                         "diff": d.diff, "agree": d.agree, "mean": d.mean.value if d.mean else None,
-                         "ci": [d.mean.ci_low, d.mean.ci_high] if d.mean else None, "p": d.p_value,
-                         "probes": {prec: _probe_medians(groups[(t, arm, prec)]),
-                                    reference: _probe_medians(groups[(t, arm, reference)])}})
-    tested = [i for i, r in enumerate(rows) if r["p"] is not None]
-    for i, p in zip(tested, holm([rows[i]["p"] for i in tested])):
-        rows[i]["p_holm"] = p
-        rows[i]["differs"] = p <= 0.05
-    return {"rows": rows, "family": len(tested),
-            "seeds_to_resolve": seeds_to_resolve(len(tested)) if tested else None}
+    for (task, arm, prec), c in zip(keys, comparisons):
+        d = c.differences[f"{arm} {prec}"]
+        rows.append({"task": task, "arm": arm, "precision": prec, "reference": reference,
+                     "window": list(c.arms[d.reference].window), "candidate": c.arms[d.arm].final,
+                     "reference_returns": c.arms[d.reference].final, "diff": d.diff, "agree": d.agree,
+                     "mean": d.mean.value if d.mean else None,
+                     "ci": [d.mean.ci_low, d.mean.ci_high] if d.mean else None,
+                     "p": d.p_value, "p_holm": d.p_holm, "differs": d.differs(),
+                     "probes": {p: _probe_medians(groups[(task, arm, p)]) for p in (prec, reference)}})
+    family = sum(r["p"] is not None for r in rows)
+    return {"rows": rows, "family": family, "seeds_to_resolve": seeds_to_resolve(family) if family else None}
 
 
 def table(doc: dict) -> str:

@@ -136,7 +136,7 @@ def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quot
 def test_the_precision_comparison_refuses_a_seed_twice_in_one_arm_and_precision(shipped, tmp_path):
     # a second copy of a run would count its seed twice (or silently replace it): named instead
     runs = shipped / "precision_h200" / "runs"
-    shutil.copytree(runs / "hopper_full_bf16", tmp_path / "a")
+    shutil.copytree(runs, tmp_path / "a")
     shutil.copytree(runs / "hopper_full_bf16" / "hopper_full_seed0", tmp_path / "b" / "hopper_full_seed0")
     with pytest.raises(ValueError, match="has two runs"):
         _precision_seeded().compare_precisions([tmp_path])
