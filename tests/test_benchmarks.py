@@ -1,7 +1,6 @@
 """The benchmark scripts' helpers (kernel configs, provenance, timing, results files) and their command lines on
 the CPU."""
 
-import importlib.util
 import json
 import re
 import subprocess
@@ -12,6 +11,8 @@ from types import SimpleNamespace
 
 import pytest
 
+from .benchmark_scripts import load
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -19,14 +20,6 @@ ROOT = Path(__file__).resolve().parents[1]
 def _benchmarks_importable(monkeypatch):
     """The scripts import their shared module as a sibling, as ``python benchmarks/X.py`` lets them."""
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def _autotuner(name: str, src: str, *configs: str):
@@ -40,7 +33,7 @@ def _autotuner(name: str, src: str, *configs: str):
 
 
 def test_kernel_configs_names_each_kernel_by_its_source_and_records_the_kept_config():
-    sim = _load("sim")
+    sim = load("sim")
     found = sim.kernel_configs([
         _autotuner("triton_poi_fused_0", "def k(): a", "XBLOCK: 128"),
         _autotuner("triton_poi_fused_0", "def k(): b", "XBLOCK: 256"),
@@ -57,7 +50,7 @@ def test_kernel_configs_names_each_kernel_by_its_source_and_records_the_kept_con
 
 
 def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
-    cd = _load("config_diff")
+    cd = load("config_diff")
     a = [{"name": "k0", "source": "s0", "chosen": ["X: 128"]}, {"name": "k1", "source": "s1", "chosen": ["X: 64"]},
          {"name": "k2", "source": "s2", "chosen": ["X: 64"]}, {"name": "k2", "source": "s2", "chosen": ["X: 128"]}]
     b = [{"name": "k0", "source": "s0", "chosen": ["X: 256"]}, {"name": "k1", "source": "s1", "chosen": ["X: 64"]},
@@ -78,7 +71,7 @@ def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp_path):
-    startup = _load("startup")
+    startup = load("startup")
     out = tmp_path / "startup.json"
     doc = startup.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "state", "--num-envs", "2",
                         "--work", str(tmp_path / "work"), "--out", str(out), "--horizon", "2",
@@ -107,7 +100,7 @@ def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp
 def test_startup_runs_each_pair_with_and_without_the_compile_helper_in_its_own_cache(tmp_path, monkeypatch):
     """--compile-helper on off: the same cold/warm pair twice, the second with ablate --no-compile-helper and a
     cache folder of its own (a shared one would make the second pair warm)."""
-    startup = _load("startup")
+    startup = load("startup")
     seen = []
 
     def fake_run(cmd, run_dir, *, timeout):
@@ -129,7 +122,7 @@ def test_startup_runs_each_pair_with_and_without_the_compile_helper_in_its_own_c
 def test_startup_keeps_each_compile_helpers_own_account_of_its_seconds(tmp_path, monkeypatch, capsys):
     """A run's summary names its helpers' logs; each row keeps the last line each helper printed (where its
     seconds went), and the printout lists them with the run's wait, so a reader sees which process was slowest."""
-    startup = _load("startup")
+    startup = load("startup")
     run_dir = tmp_path / "runs" / "ant_decoupled_cold"
     run_dir.mkdir(parents=True)
     log = run_dir / "compile_helper_renderer.log"
@@ -156,7 +149,7 @@ def test_startup_keeps_each_compile_helpers_own_account_of_its_seconds(tmp_path,
 
 
 def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
-    common = _load("_common")
+    common = load("_common")
     monkeypatch.delenv("PIXELGRAD_COMMIT", raising=False)
     head = common.commit()
     assert head == "unknown" or re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", head), head
@@ -167,7 +160,7 @@ def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
 def test_timing_skips_the_warm_up_and_times_each_call():
     """Every script times through one helper: ``warmup`` untimed calls, then one time [ms] per timed call, and the
     last call's result. Call k sleeps 5 k ms, so a timed warm-up call would show as a time under its bound."""
-    common = _load("_common")
+    common = load("_common")
     calls = []
 
     def fn():
@@ -185,7 +178,7 @@ def test_timing_skips_the_warm_up_and_times_each_call():
 def test_results_files_are_replaced_whole(tmp_path):
     """A results file is written beside and renamed over the old one: a reader never sees half a file, and no
     temporary file is left."""
-    common = _load("_common")
+    common = load("_common")
     out = tmp_path / "new" / "r.json"
     common.write_json(out, {"rows": [1]})
     common.write_json(out, {"rows": [1, 2]}, indent=2)
@@ -196,7 +189,7 @@ def test_results_files_are_replaced_whole(tmp_path):
 def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monkeypatch, tmp_path):
     """``render.py --anchor`` is anchor.py's comparison with nvdiffrast (one process): its models, repeats,
     warm-up, compiled-and-eager choice and output pass through."""
-    render = _load("render")
+    render = load("render")
     seen = []
     monkeypatch.setattr(render.anchor, "main", lambda argv: seen.append(argv) or 0)
     out = tmp_path / "a.json"
@@ -215,7 +208,7 @@ def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monk
 def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypatch):
     """``iteration.py --overlap-critic on off``: one row per placement, each with the phases' medians and whether
     the fit ran alongside the backward (never on the CPU, where nothing is replayed)."""
-    iteration = _load("iteration")
+    iteration = load("iteration")
     out = tmp_path / "iter.json"
     monkeypatch.setattr(sys, "argv", ["iteration.py", "--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled",
                                       "--num-envs", "2", "--horizon", "2", "--image-size", "32", "--warmup", "1",
@@ -233,7 +226,7 @@ def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path,
     blind once, each row naming its raster model, so that a report finds each arm's time alone in the file."""
     from ablations.reports.arms import benchmark_iteration_rows
 
-    iteration = _load("iteration")
+    iteration = load("iteration")
     out = tmp_path / "iter.json"
     monkeypatch.setattr(sys, "argv", ["iteration.py", "--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled",
                                       "full", "blind", "--raster-model", "softmax", "hard", "--num-envs", "2",
@@ -252,7 +245,7 @@ def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path,
 def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch):
     """Where Python writes no bytecode beside the sources, a row says how many modules' bytecode ablate's folder
     held before the run (0: the run compiled all its Python too); elsewhere there is no such folder to count."""
-    startup = _load("startup")
+    startup = load("startup")
     monkeypatch.setattr(startup.subprocess, "run",
                         lambda *a, **k: subprocess.CompletedProcess(a, 1, stdout="", stderr="stopped"))
     folder = tmp_path / "bytecode"
@@ -270,7 +263,7 @@ def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch):
 def test_evaluation_times_each_variant_and_compares_its_episodes_with_the_first(tmp_path, monkeypatch):
     """``evaluation.py``: per population, the first evaluation, then the captured and the eager steps (the same
     path on the CPU, where nothing is captured: equal episodes), each with its time per evaluation step."""
-    evaluation = _load("evaluation")
+    evaluation = load("evaluation")
     out = tmp_path / "evaluation.json"
     monkeypatch.setattr(sys, "argv", ["evaluation.py", "--device", "cpu", "--tasks", "cartpole", "--members", "2",
                                       "--num-envs", "2", "--eval-envs", "2", "--image-size", "16", "--repeats", "1",
@@ -287,7 +280,7 @@ def test_run_progress_says_where_each_run_stands_and_thins_copies_with_the_popul
                                                                                          capsys):
     from ablations.run_folder import RunFolder, read_metrics
 
-    progress = _load("run_progress")
+    progress = load("run_progress")
     home = tmp_path / "runs" / "pop"
     home.mkdir(parents=True)
     (home / "population.json").write_text('{"members": ["a"]}')
@@ -313,7 +306,7 @@ def test_precision_compares_each_candidate_with_the_float32_run_from_the_same_st
     """``precision.py``: at each point the candidates start from the float32 run's state; a second float32 trainer
     reproduces its gradient exactly on the CPU (so the snapshot carries parameters, states and noise), bf16 is close
     but not equal, and the output says that the CPU measures nothing."""
-    precision = _load("precision")
+    precision = load("precision")
     out = tmp_path / "precision.json"
     try:
         doc = precision.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "full", "--iters", "2",
@@ -338,7 +331,7 @@ def test_precision_compares_each_candidate_with_the_float32_run_from_the_same_st
 
 @pytest.mark.slow
 def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path):
-    precision = _load("precision")
+    precision = load("precision")
     doc = precision.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled", "--candidates", "bf16",
                           "--num-envs", "2", "--horizon", "2", "--image-size", "16", "--parts", "time",
                           "--time-warmup", "1", "--time-iters", "1", "--out", str(tmp_path / "p.json")])
@@ -350,7 +343,7 @@ def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_
     """The compacted walk's pair count falls with its chunk size, between the block-wise walk's and the bound;
     chunks of one face are the bound itself (every face whose box reaches a tile, each once). The backward's
     packed lanes walk fewer lane-pixels than the block's."""
-    fw = _load("forward_walk")
+    fw = load("forward_walk")
     out = tmp_path / "walk.json"
     assert fw.main(["--batch", "2", "--res", "24", "--chunks", "64", "16", "4", "1", "--out", str(out)]) == 0
     (row,) = json.loads(out.read_text())["rows"]
@@ -365,7 +358,7 @@ def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_
 def test_the_profile_counts_every_renderer_kernel_as_the_renderers():
     # names as torch.profiler reports them (BENCHMARKS section 7's profile): the rasterizer's per-pixel and merge
     # kernels were once counted as generic element-wise work, the setup's too
-    prof = _load("profile_iteration")
+    prof = load("profile_iteration")
     for name in ("_fused_forward", "_fused_backward", "_pixel_backward", "_merge_forward"):
         assert prof.category(name) == "rasterizer (fused triton)", name
     for name in ("_setup_forward", "_setup_backward", "_floor_forward", "_floor_backward"):

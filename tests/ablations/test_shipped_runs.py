@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
-import sys
 import tarfile
 from collections import Counter
 from pathlib import Path
@@ -13,6 +11,8 @@ import pytest
 
 from ablations.reports.arms import arm_label, arm_names, iteration_times
 from ablations.run_folder import CONFIG, evaluation_of, find_runs
+
+from ..benchmark_scripts import load
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
@@ -100,18 +100,6 @@ def test_every_experiment_ships_its_run_folders_as_one_archive(shipped):
         assert sorted(p.parent for p in (shipped / name).glob(f"runs/**/{CONFIG}")), name
 
 
-def _precision_seeded():
-    """benchmarks/precision_seeded.py as a module (it imports its sibling _common as the scripts do)."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        spec = importlib.util.spec_from_file_location("precision_seeded", ROOT / "benchmarks" / "precision_seeded.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return module
-
-
 def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quotes_its_statistics(shipped):
     # docs/precision_h200: decoupled and full (softmax) x fp32 and bf16 x seeds 0-4, 2000 iterations, one
     # compiled population each; the README's paired numbers are what benchmarks/precision_seeded.py computes
@@ -121,7 +109,7 @@ def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quot
         (m, p, s) for m in ("decoupled", "full") for p in ("fp32", "bf16") for s in range(5)}
     assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 2000)}
     assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in runs)
-    doc = _precision_seeded().compare_precisions([shipped / "precision_h200" / "runs"])
+    doc = load("precision_seeded").compare_precisions([shipped / "precision_h200" / "runs"])
     rows = {r["arm"]: r for r in doc["rows"]}
     assert set(rows) == {"decoupled", "full-soft"} and doc["family"] == 2
     assert all(r["window"] == [1500, 1750, 2000] for r in rows.values())
@@ -139,4 +127,4 @@ def test_the_precision_comparison_refuses_a_seed_twice_in_one_arm_and_precision(
     shutil.copytree(runs, tmp_path / "a")
     shutil.copytree(runs / "hopper_full_bf16" / "hopper_full_seed0", tmp_path / "b" / "hopper_full_seed0")
     with pytest.raises(ValueError, match="has two runs"):
-        _precision_seeded().compare_precisions([tmp_path])
+        load("precision_seeded").compare_precisions([tmp_path])

@@ -398,18 +398,14 @@ def test_bad_input_is_named():
 
 
 # ------------------------------------------------------------------------------------------------ benchmark
-def test_benchmark_runs_on_the_cpu(tmp_path, capsys, monkeypatch):
+def test_benchmark_runs_on_the_cpu(tmp_path, capsys):
     """benchmarks/raytrace.py --tiny on Warp's CPU device: every variant timed, its image the default's, the
     JSON with its provenance and the table printed last."""
-    import importlib.util
     import json
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "raytrace.py"
-    monkeypatch.syspath_prepend(str(path.parent))  # its sibling _common, as `python benchmarks/raytrace.py` finds it
-    spec = importlib.util.spec_from_file_location("bench_raytrace", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    from ..benchmark_scripts import load
+
+    bench = load("raytrace")
     out = tmp_path / "rt.json"
     assert bench.main(["--device", "cpu", "--tiny", "--repeats", "2", "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
