@@ -130,20 +130,14 @@ def _two_ants_set_up(ant64, settings: dr.RasterSettings, *, seed: int) -> tuple[
     return st, rasterize._setup(verts, None, ant64.colors, cam.rotation, cam.eye, ant64.faces, st, 16, 2)
 
 
-def _forward_of(st: Static, setup: tuple) -> tuple[torch.Tensor, torch.Tensor]:
-    """The forward kernels' image and blend state of :func:`_two_ants_set_up`'s images (NaN where unwritten)."""
+def _forward_of(st: Static, setup: tuple, *, save: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The forward kernels' image and blend state of :func:`_two_ants_set_up`'s images (NaN where unwritten);
+    ``save=False``: the image alone, nothing saved, as renders without gradient run (the hard model's
+    ``FWD_DEFER_SHADING`` walk applies only there), and None for the state."""
     out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
-    state = torch.full((2, rasterize.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV)
+    state = torch.full((2, rasterize.STATE_PER_PIXEL, 12, 12), float("nan"), dtype=F64, device=DEV) if save else None
     rasterize._launch_forward(*setup, st, tuning.TILE, 16, out, state)
     return out, state
-
-
-def _image_of(st: Static, setup: tuple) -> torch.Tensor:
-    """The forward kernels' image of :func:`_two_ants_set_up`'s images with nothing saved (as renders without
-    gradient run: the hard model's ``FWD_DEFER_SHADING`` walk applies only here)."""
-    out = torch.full((2, 3, 12, 12), float("nan"), dtype=F64, device=DEV)
-    rasterize._launch_forward(*setup, st, tuning.TILE, 16, out, None)
-    return out
 
 
 def _assert_same_blend(model: str, reference: tuple, other: tuple) -> None:
@@ -208,7 +202,7 @@ def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch
         for variant in (dict(FWD_COMPACT=False, FWD_DEFER_SHADING=False), walk):
             _set(monkeypatch, FWD_MAX_SPLITS=splits, **variant)
             results[variant is walk] = _forward_of(st, setup)
-            images[variant is walk] = _image_of(st, setup)
+            images[variant is walk] = _forward_of(st, setup, save=False)[0]
         _assert_same_blend(model, results[False], results[True])
         assert torch.isfinite(images[True]).all()
         if model == "hard":
