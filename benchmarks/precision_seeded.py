@@ -8,8 +8,8 @@ return averaged over the last 3 evaluations every run of the arm has, at either 
 differences (candidate minus reference), how many agree in sign, the mean with its exact bootstrap CI, the exact
 sign-flip p-value and Holm's correction over every comparison made here. With 5 paired seeds the smallest
 sign-flip p is 0.0625, so nothing "differs" at 0.05: the per-seed differences and their signs are the evidence.
-Beside the returns, each arm's median probe statistics (cos(full, decoupled) and the render term's norm over
-every probe), where the runs probed.
+Beside the returns, each arm's median probe statistics (cos(full, decoupled) and the render term's norm) over the
+probes where its policy looks at its image, pooled over seeds, as the reports count them.
 
 Not a test. Example::
 
@@ -21,17 +21,25 @@ from __future__ import annotations
 
 import argparse
 import re
-import statistics
 import sys
 from pathlib import Path
 
 from _common import write_json
 
 from ablations.reports.arms import arm_names
+from ablations.reports.seeds import arm_probes
 from ablations.reports.stats import DEFAULT_REPS, compare, correct, curve_of, seeds_to_resolve
 from ablations.run_folder import find_runs
 
 PROBE_KEYS = ("cos_full_decoupled", "grad_norm_render_term")
+
+
+def _probe_medians(runs, label) -> dict:
+    """(task, arm label) -> PROBE_KEYS key -> {median, n} over the probes where the policy looks, pooled over
+    seeds (``ablations.reports.seeds.arm_probes``, as the reports count them)."""
+    return {(a.task, a.arm): {k: {"median": a.medians[k], "n": a.counts[k]} if a.medians.get(k) is not None
+                              else None for k in PROBE_KEYS}
+            for a in arm_probes(runs, label=label)}
 
 
 def _arms_but_precision(runs) -> dict:
@@ -45,14 +53,6 @@ def _arms_but_precision(runs) -> dict:
     return names
 
 
-def _probe_medians(runs) -> dict:
-    out = {}
-    for key in PROBE_KEYS:
-        vals = [r[key] for run in runs for r in run.metrics if isinstance(r.get(key), (int, float))]
-        out[key] = {"median": statistics.median(vals), "n": len(vals)} if vals else None
-    return out
-
-
 def compare_precisions(paths: list[Path], *, reference: str = "fp32", reps: int = DEFAULT_REPS) -> dict:
     """Per (task, arm, candidate precision): the paired difference against ``reference`` (see the module text)."""
     runs = find_runs(paths)
@@ -63,6 +63,7 @@ def compare_precisions(paths: list[Path], *, reference: str = "fp32", reps: int 
     for run in runs:
         cfg = run.config
         groups.setdefault((str(cfg["task"]), arms[run.path], str(cfg.get("precision", "fp32"))), []).append(run)
+    probes = _probe_medians(runs, lambda r: f"{arms[r.path]} {r.config.get('precision', 'fp32')}")
     keys, comparisons = [], []
     for task, arm, prec in sorted(groups):
         if prec == reference or (task, arm, reference) not in groups:
@@ -81,7 +82,8 @@ def compare_precisions(paths: list[Path], *, reference: str = "fp32", reps: int 
                      "mean": d.mean.value if d.mean else None,
                      "ci": [d.mean.ci_low, d.mean.ci_high] if d.mean else None,
                      "p": d.p_value, "p_holm": d.p_holm, "differs": d.differs(),
-                     "probes": {p: _probe_medians(groups[(task, arm, p)]) for p in (prec, reference)}})
+                     "probes": {p: probes.get((task, f"{arm} {p}"), dict.fromkeys(PROBE_KEYS))
+                                for p in (prec, reference)}})
     family = sum(r["p"] is not None for r in rows)
     return {"rows": rows, "family": family, "seeds_to_resolve": seeds_to_resolve(family) if family else None}
 
