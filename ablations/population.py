@@ -23,7 +23,7 @@ import torch
 from ablations.naming import claim_folder, folder_name, member_name
 from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
-from ablations.run_folder import RunFolder, check_writable
+from ablations.run_folder import RunFolder, check_writable, set_aside_damaged_checkpoint
 from gradlab import precision
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, read_checkpoint
 from gradlab.config import resolve_config
@@ -249,10 +249,7 @@ def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: b
             states.append(state)
         else:
             for path, why in damaged:
-                aside = path.with_name(path.name + ".damaged")
-                path.replace(aside)
-                print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
-                      f"{checkpoint_path(folders[0].checkpoint_dir, iteration).name}", file=sys.stderr)
+                set_aside_damaged_checkpoint(path, why, checkpoint_path(folders[0].checkpoint_dir, iteration))
             return states
     if restart:
         return None

@@ -128,15 +128,24 @@ def _stamp() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
 
 
-def _aside(path: Path, kind: str, stamp: str) -> Path:
-    """The name under which a resume or restart sets ``path`` aside: <name>.<kind>-<stamp>, or with -2, -3, ...
-    where that exists already (two within one second): nothing set aside is ever overwritten."""
+def _aside(path: Path, suffix: str) -> Path:
+    """The name under which a resume or restart sets ``path`` aside: <name><suffix>, or with -2, -3, ... where
+    that exists already (two within one second, a second damaged copy): nothing set aside is ever overwritten."""
     k = 1
     while True:
-        aside = path.with_name(f"{path.name}.{kind}-{stamp}" + (f"-{k}" if k > 1 else ""))
+        aside = path.with_name(path.name + suffix + (f"-{k}" if k > 1 else ""))
         if not aside.exists():
             return aside
         k += 1
+
+
+def set_aside_damaged_checkpoint(path: Path, why: str, resuming_from: Path) -> None:
+    """Rename a checkpoint that does not load to <name>.damaged (never over an earlier one) and say so on stderr,
+    naming the checkpoint the resume takes instead."""
+    aside = _aside(path, ".damaged")
+    os.replace(path, aside)
+    print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
+          f"{resuming_from.name}", file=sys.stderr)
 
 
 def evaluation_of(row: dict) -> tuple[float, float] | None:
@@ -261,7 +270,7 @@ class RunFolder:
         damaged = [(n, line) for n, line, row in lines if row is None]
         stamp = _stamp()
         if damaged:
-            aside = _aside(path, "damaged", stamp)
+            aside = _aside(path, f".damaged-{stamp}")
             atomic_write_text(aside, "".join(line + "\n" for _, line in damaged))
             for n, line in damaged[:5]:
                 notes.append(f"warning: {path} line {n} is damaged (not a JSON record: {line[:60]!r}); moved to "
@@ -269,7 +278,7 @@ class RunFolder:
             if len(damaged) > 5:
                 notes.append(f"warning: {path}: {len(damaged) - 5} more damaged lines moved to {aside.name}")
         if later:
-            aside = _aside(path, "redone", stamp)
+            aside = _aside(path, f".redone-{stamp}")
             atomic_write_text(aside, "".join(line + "\n" for _, line, _ in later))
             notes.append(f"note: {path}: the lines of iteration(s) {_spans([r['iter'] for _, _, r in later])} come "
                          f"after the checkpoint of iteration {upto_iter} and are trained again; the old lines are "
@@ -294,7 +303,7 @@ class RunFolder:
         for path in (self.metrics_path, self.summary_path, self.video_dir, self.checkpoint_dir, self.config_path,
                      self.path / GIT, self.path / GIT_DIFF):
             if path.exists() and (path.is_dir() or path.stat().st_size):
-                aside = _aside(path, "before-restart", stamp)
+                aside = _aside(path, f".before-restart-{stamp}")
                 os.replace(path, aside)
                 notes.append(f"note: --restart: {path} kept as {aside.name}")
         return notes
@@ -373,10 +382,7 @@ class RunFolder:
         except NoReadableCheckpointError as e:
             raise ValueError(str(e)) from None
         for path, why in loaded.damaged:
-            aside = path.with_name(path.name + ".damaged")
-            os.replace(path, aside)
-            print(f"warning: checkpoint {path} is damaged ({why}); renamed to {aside.name}, resuming from "
-                  f"{loaded.path.name}", file=sys.stderr)
+            set_aside_damaged_checkpoint(path, why, loaded.path)
         return loaded
 
     # ------------------------------------------------------------------ read
@@ -444,7 +450,8 @@ class MetricsTail:
 def git_info(repo: Path | None = None) -> tuple[str, str]:
     """(git.txt text, full diff) of the source tree that runs; explains itself when git is unavailable. A copy of
     the tree without its repository (a GPU machine's detached runs start from one) records the commit that
-    ``$PIXELGRAD_COMMIT`` names, as the benchmarks do, and says so."""
+    ``$PIXELGRAD_COMMIT`` names and says so (a repository's own answer wins here, with its diff; the benchmarks'
+    ``_common.commit`` lets the variable win, for a copy whose repository lags its files)."""
     repo = repo or Path(__file__).resolve().parents[1]
 
     def git(*args: str) -> str:

@@ -99,6 +99,20 @@ def test_a_restart_keeps_the_old_records_beside(tmp_path):
         ["metrics.jsonl", "summary.json", "videos"]
 
 
+def test_a_second_damaged_copy_of_a_checkpoint_is_set_aside_beside_the_first(tmp_path, capsys):
+    # a run resumed twice from a rewritten, again damaged checkpoint of one iteration keeps both damaged files
+    folder = RunFolder.create(tmp_path, "r")
+    for it in (2, 4):
+        folder.save_checkpoint(it, {"iteration": it})
+    for _ in range(2):
+        folder.newest_checkpoint().write_bytes(b"not a checkpoint")
+        assert folder.load_checkpoint().state == {"iteration": 2}
+        folder.save_checkpoint(4, {"iteration": 4})
+    assert capsys.readouterr().err.count("ckpt_000004.pt is damaged") == 2
+    assert sorted(p.name for p in folder.checkpoint_dir.iterdir()) == [
+        "ckpt_000002.pt", "ckpt_000004.pt", "ckpt_000004.pt.damaged", "ckpt_000004.pt.damaged-2"]
+
+
 def test_checkpoints_are_pruned_listed_and_a_damaged_newest_is_set_aside(tmp_path, capsys):
     folder = RunFolder.create(tmp_path, "r")
     assert folder.load_checkpoint() is None  # none at all: a resume starts from the first iteration
