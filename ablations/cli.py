@@ -224,7 +224,7 @@ def _checked_members(cfg, argv: list[str]) -> tuple[list, frozenset[str] | None]
     if cfg.resume is not None:
         # config.json wins over every other setting, so any other flag would be dropped without a word
         # --restart says what the resume of a folder without a checkpoint does (a sweep's retry passes it)
-        takes = {*RESUMABLE, "resume", "restart", "progress", "compile_helper"}
+        takes = {*RESUMABLE, "resume", "restart", "progress"}
         ignored = list(dict.fromkeys(g.spelling for g in given if _field(g.key, fields) not in takes))
         if ignored:
             raise ValueError(f"--resume continues {cfg.resume} with the settings its config.json records, so "

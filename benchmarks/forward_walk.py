@@ -108,11 +108,12 @@ def count(faces: int, batch: int, res: int, chunks: tuple[int, ...], raster_mode
     per_tile = tile * tile
     face_hits = _touches(box, ranges)  # (B, Fp, T)
     near = face_hits.view(batch, -1, block, face_hits.shape[-1]).sum(2)  # (B, NB, T) faces reaching each tile
+    block_hits = _touches(block_box, ranges)  # (B, NB, T)
     row = {"faces": robot.num_faces, "batch": batch, "res": res, "tile": tile, "face_block": block,
            "raster_model": raster_model,
-           "block": _touches(block_box, ranges).sum().item() * block * per_tile / batch,
+           "block": block_hits.sum().item() * block * per_tile / batch,
            "bound": face_hits.sum().item() * per_tile / batch,
-           "tiles_reached": _touches(block_box, ranges).any(1).sum().item() / batch,
+           "tiles_reached": block_hits.any(1).sum().item() / batch,
            "tiles": ranges[0].numel()}
     for n in chunks:
         row[f"compact_{n}"] = (torch.ceil(near / n) * n).sum().item() * per_tile / batch
