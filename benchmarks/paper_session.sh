@@ -56,28 +56,12 @@ PY
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv 2>/dev/null;;
   wait)
     end=$((SECONDS + ${2:-560}))
-    while [ $SECONDS -lt $end ] && pgrep -f "ablations paper" > /dev/null; do sleep 10; done
+    while [ $SECONDS -lt $end ] && pgrep -f "^python3 -m ablations paper" > /dev/null; do sleep 10; done
     bash "$0" progress;;
   collect)
     name=$(cat $P/current); rm -rf /tmp/thin; mkdir -p /tmp/thin/$name
-    (cd $T && python3 - "$P/$name" "/tmp/thin/$name" <<'PY'
-import json, shutil, sys
-from pathlib import Path
-from ablations.run_folder import thin_copy
-src, dst = Path(sys.argv[1]), Path(sys.argv[2])
-for rec in json.loads((src / "sweep.json").read_text())["runs"].values():
-    folder = src / rec["folder"]
-    if (folder / "config.json").is_file():
-        thin_copy(folder, dst / rec["folder"], every=10)
-        if (folder.parent / "population.json").is_file():  # a population's record, beside its members
-            shutil.copy2(folder.parent / "population.json", dst / rec["folder"] / ".." / "population.json")
-for name in ("sweep.json", "logs", "report"):
-    if (src / name).is_dir():
-        shutil.copytree(src / name, dst / name)
-    elif (src / name).is_file():
-        shutil.copy2(src / name, dst / name)
-PY
-    )
+    (cd $T && python3 benchmarks/run_progress.py "$P/$name" --thin "/tmp/thin/$name" --every 10 > /dev/null)
+    for x in sweep.json logs report; do [ -e "$P/$name/$x" ] && cp -r "$P/$name/$x" "/tmp/thin/$name/"; done
     cp $P/$name.log $P/$name.commit $P/$name.gpus /tmp/thin/$name/ 2>/dev/null
     tar -C /tmp/thin -cJf "$OUT/paper_$name.tar.xz" $name; ls -la "$OUT";;
   *) echo "unknown stage $1: launch NAME ARGS..., progress, wait [S], collect"; exit 2;;

@@ -89,12 +89,7 @@ case ${1:?stage} in
       sleep 10; done
     bash "$0" progress;;
   collect)
-    cd /tmp/pg && mkdir -p /tmp/thin
-    for d in $R/hopper_*_fp32 $R/hopper_*_bf16; do [ -d "$d" ] || continue
-      for run in "$d"/*/; do [ -f "$run/config.json" ] || continue
-        python3 -c "import sys; from ablations.run_folder import thin_copy; thin_copy(sys.argv[1], sys.argv[2], every=10)" \
-          "$run" "/tmp/thin/$(basename "$d")/$(basename "$run")"; done
-      cp "$d"/population.json "/tmp/thin/$(basename "$d")/" 2>/dev/null; done
+    cd /tmp/pg && rm -rf /tmp/thin && python3 benchmarks/run_progress.py $R --thin /tmp/thin --every 10 > /dev/null
     cp $R/*.json $R/*.log $R/*.txt /tmp/thin/ 2>/dev/null
     tar -C /tmp -cJf "$OUT/precision_runs.tar.xz" thin; ls -la "$OUT";;
 esac
