@@ -139,27 +139,27 @@ def _fused_backward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, prm, pix_ptr, gcoef_p
     fo = tl.arange(0, SUB)
     cbase = coef_ptr + env * 45 * Fp
     gbase = gcoef_ptr + env * 45 * Fp
+    fbox = box_ptr + env * 4 * Fp
     inv_zr = 1.0 / (zfar - znear)
     for sb in range(split, NSB, NSPLIT):  # coarse: a super-block's box, then its blocks' boxes
         if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
             for j in range(0, SB):
                 blk = sb * SB + j
                 if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-                    n, near, rank, count = _chunks(box_ptr + env * 4 * Fp, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, SUB,
-                                                   COMPACT)
+                    n, near, rank, count = _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB, SUB, COMPACT)
                     for sub in range(0, n):
                         if COMPACT:
                             f, filled = _compacted(blk, near, rank, count, sub * SUB, FB, SUB)
                         else:
                             f = blk * FB + sub * SUB + fo
-                        fbp = box_ptr + env * 4 * Fp + f
-                        bx0 = tl.load(fbp)
-                        bx1 = tl.load(fbp + Fp)
-                        by0 = tl.load(fbp + 2 * Fp)
-                        by1 = tl.load(fbp + 3 * Fp)
-                        fm = (bx1 >= x_lo) & (bx0 <= x_hi) & (by1 >= y_lo) & (by0 <= y_hi)
-                        if COMPACT:  # an empty slot repeats a face index: no lane of its own
-                            fm = fm & filled
+                        bx0 = tl.load(fbox + f)
+                        bx1 = tl.load(fbox + Fp + f)
+                        by0 = tl.load(fbox + 2 * Fp + f)
+                        by1 = tl.load(fbox + 3 * Fp + f)
+                        if COMPACT:  # the packed faces reach the tile; an empty slot repeats an index: no lane
+                            fm = filled
+                        else:
+                            fm = (bx1 >= x_lo) & (bx0 <= x_hi) & (by1 >= y_lo) & (by0 <= y_hi)
                         if tl.max(fm.to(tl.int32), axis=0) > 0:
                             # only the tile's pixels inside some face's box can keep a pair (the box holds
                             # every pixel within the cut-off): where faces are smaller than the tile, the

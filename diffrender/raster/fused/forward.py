@@ -36,7 +36,8 @@ def _tile_pixels(tile, W, H, TX, like, TILE_: tl.constexpr):
 
 @triton.jit
 def _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
-    """Whether face block ``blk``'s box touches the tile (a scalar)."""
+    """Whether face block ``blk``'s box touches the tile (a scalar; for a vector of indices, each one's: the
+    faces' own boxes, ``bbox_ptr`` a face-box array with NB = Fp and env 0)."""
     bb = bbox_ptr + env * 4 * NB + blk
     return ((tl.load(bb + NB) >= x_lo) & (tl.load(bb) <= x_hi)
             & (tl.load(bb + 3 * NB) >= y_lo) & (tl.load(bb + 2 * NB) <= y_hi))
@@ -105,9 +106,7 @@ def _candidate(cp, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse):
 def _touching_faces(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB: tl.constexpr):
     """Which of block ``blk``'s faces have boxes that reach the tile's pixel centres (FB,), each one's rank
     among those (in face order) and how many there are."""
-    f = blk * FB + tl.arange(0, FB)
-    near = ((tl.load(fbox + Fp + f) >= x_lo) & (tl.load(fbox + f) <= x_hi)
-            & (tl.load(fbox + 3 * Fp + f) >= y_lo) & (tl.load(fbox + 2 * Fp + f) <= y_hi))
+    near = _block_touches_tile(fbox, 0, Fp, blk * FB + tl.arange(0, FB), x_lo, x_hi, y_lo, y_hi)  # (FB,)
     rank = tl.cumsum(near.to(tl.int32), axis=0) - 1
     return near, rank, tl.sum(near.to(tl.int32), axis=0)
 
