@@ -13,8 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
-__all__ = ["TASKS", "MODES", "IMAGELESS_MODES", "RENDERERS", "RASTER_MODELS", "PRESETS", "SILHOUETTE_RASTER_MODEL",
-           "PRESET_RASTER_MODEL", "PRESET_FIELDS", "MEMBER_FIELDS", "MEMBER_DEFAULTS", "NOT_ARM_SETTINGS",
+__all__ = ["TASKS", "MODES", "IMAGELESS_MODES", "STATE_INPUT_MODES", "RENDERERS", "RASTER_MODELS", "PRESETS",
+           "SILHOUETTE_RASTER_MODEL", "PRESET_RASTER_MODEL", "PRESET_FIELDS", "MEMBER_FIELDS", "MEMBER_DEFAULTS",
+           "NOT_ARM_SETTINGS",
            "POPULATION_RECORD", "Arm", "ARMS", "DEFAULT_ARMS", "ARM_ORDER", "POPULATION_BENCHMARK_ARMS",
            "REFERENCE_ARM", "CONTROL_ARM", "arm_of"]
 
@@ -24,6 +25,9 @@ TASKS: tuple[str, ...] = ("cartpole", "cartpole-swingup", "hopper", "ant", "huma
 MODES: tuple[str, ...] = ("full", "decoupled", "state", "blind")
 #: Modes that render nothing while training: their raster model names no difference.
 IMAGELESS_MODES: tuple[str, ...] = ("state", "blind")
+#: Modes whose actor reads the state vector: a reference beside the pixel arms, so its cheap iterations never set
+#: a comparison's wall-clock budget (``ablations.reports.stats.common_wall_s``).
+STATE_INPUT_MODES: tuple[str, ...] = ("state",)
 #: What renders the actor's images: the differentiable rasterizer, or the forward-only Warp ray tracer.
 RENDERERS: tuple[str, ...] = ("soft", "warp")
 #: The image models of ``diffrender.RasterSettings`` (docs/design.md, "Image model").

@@ -17,6 +17,7 @@ Everything here reads JSON (no torch).
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -39,6 +40,7 @@ from vocabulary import (
     CONTROL_ARM,
     IMAGELESS_MODES,
     REFERENCE_ARM,
+    STATE_INPUT_MODES,
 )
 
 __all__ = ["NOT_RANKING", "SEED_FIGURES", "PROBE_FIGURES", "PROBE_KEYS", "TaskSeeds", "seed_statistics",
@@ -115,8 +117,9 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
         try:  # a run without a seed, or two runs of one arm and seed: this task says why, the others go on
             curves = [stats.curve_of(r, label(r)) for r in runs if r.task == task]
             keys = tuple(sorted({c.key for c in curves if c.key}))
+            on_state = {label(r) for r in runs if r.task == task and r.mode in STATE_INPUT_MODES}
             ts = stats.task_statistics(curves, iter_ms_alone=t.ms, reps=reps, seed=seed,
-                                       at_iteration=at_iteration)[task]
+                                       at_iteration=at_iteration, not_setting_wall=on_state)[task]
         except ValueError as e:
             out[task] = TaskSeeds(task, None, t, {}, None, keys, error=str(e))
             continue
@@ -316,7 +319,8 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             "the best so far (defined for runs with such evaluations; n says how many). **Equal iterations**: "
             "every run cut at the fewest iterations any run of the task reached. **Equal wall-clock**: every run "
             "cut at the least training time any run of the task reached, modelled as iterations x its arm's "
-            "iteration time measured alone (compilation, evaluations and the probes' extra backward left out); "
+            "iteration time measured alone (compilation, evaluations and the probes' extra backward left out; a run "
+            "on the state vector, a reference, does not set it and is read at its end where it ends sooner); "
             "with equal iterations that is the fastest arm's last iteration. Both cuts are single points of a "
             "curve: the figure of paired differences along the budget shows every evaluation, and the text under "
             "it says where the sign holds.", "",
@@ -358,10 +362,16 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             out += [f"Equal wall-clock: not available: {s.times.why}.", ""]
         else:
             times = ", ".join(f"{a} {ms:.4g} ms" for a, ms in ts.iter_ms_alone.items())
+            # arms whose runs stopped before the budget's iteration (not those the budget cut between iterations)
+            ended = [a for a, ms in ts.iter_ms_alone.items()
+                     if ts.iters_at_wall and ts.iters_at_wall[a] < math.floor(ts.wall_s * 1e3 / ms * (1 + 1e-12))]
             out += [_verdict_line(f"equal wall-clock, {ts.wall_s:.4g} s", s.verdicts["equal wall-clock"]), "",
                     f"Equal wall-clock: every run cut at {ts.wall_s:.4g} s of modelled training time ({times} per "
                     f"iteration; {s.times.why}); each run's final evaluation return averages its arm's last "
-                    "common evaluations (the window column).", ""]
+                    "common evaluations (the window column)."
+                    + (f" The runs of {', '.join(ended)} (the actor on the state vector: a reference, which does "
+                       "not set the budget) end sooner and are read at their end: less time than the others, "
+                       "never more." if ended else ""), ""]
             out += _view_table(ts.equal_wall, s.verdicts["equal wall-clock"], ts.iters_at_wall or {})
             out.append("")
         out += _budget_lines(s, task, fig_dir, base, styles, floors)

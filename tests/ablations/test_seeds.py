@@ -335,3 +335,22 @@ def test_runs_read_at_an_earlier_iteration(tmp_path):
     assert "**Read at iteration 10** (`--at-iteration`)" in text and "**Verdict (equal iterations, 10):**" in text
     with pytest.raises(ValueError, match="at_iteration must be a positive number of iterations, got 0"):
         seeds.seed_statistics(runs, reps=REPS, at_iteration=0)
+
+
+def test_the_state_arm_does_not_set_the_wall_clock_budget(tmp_path):
+    # decoupled 20 iterations x 40 ms = 0.8 s, blind 20 x 70 ms = 1.4 s, state 20 x 10 ms = 0.2 s: the budget is
+    # decoupled's 0.8 s (state's 0.2 s would leave the pixel arms without an evaluation), blind cut at its 11th
+    # iteration (0.77 s: between iterations, not ended), state read at its end
+    parent = tmp_path / "runs"
+    for arm, mode, ms in (("decoupled", "decoupled", 40.0), ("blind", "blind", 70.0), ("state", "state", 10.0)):
+        for s in range(3):
+            write_run(parent, f"hopper_{arm}_{s}", mode=mode, seed=s, evals=[100.0 * s, 200.0 + s], iters=20,
+                      iter_ms=ms)
+    runs = find_runs([parent])
+    out = seeds.seed_statistics(runs, reps=REPS)
+    ts = out["hopper"].stats
+    assert ts.wall_s == pytest.approx(0.8)
+    assert ts.iters_at_wall == {"decoupled": 20, "blind": 11, "state": 20}
+    assert ts.equal_wall.arms["state"].final == ts.whole.arms["state"].final
+    text = "\n".join(seeds.seed_section(runs, tmp_path / "figs", tmp_path, reps=REPS, computed=out))
+    assert "read at their end" in text and "The runs of state (the actor on the state vector" in text

@@ -208,6 +208,21 @@ def test_the_run_that_sets_the_time_budget_keeps_its_last_iteration():
     np.testing.assert_array_equal(cut_fast.iters, [10, 20, 30, 40])
 
 
+def test_a_reference_arm_does_not_set_the_wall_clock_budget_and_is_read_at_its_end():
+    # state: 100 iterations at 10 ms = 1 s; decoupled 100 x 100 ms = 10 s; full 60 x 250 ms = 15 s. Without the
+    # exception the state arm's 1 s would cut every pixel arm at its first evaluations.
+    curves = [curve([float(i + s) for i in range(n)], arm=arm, seed=s)
+              for arm, n in (("decoupled", 10), ("full", 6), ("state", 10)) for s in range(3)]
+    ms = {"decoupled": 100.0, "full": 250.0, "state": 10.0}
+    assert stats.common_wall_s(curves, ms) == pytest.approx(1.0)
+    assert stats.common_wall_s(curves, ms, not_setting={"state"}) == pytest.approx(10.0)
+    assert stats.common_wall_s(curves, ms, not_setting={"decoupled", "full", "state"}) == pytest.approx(1.0)
+    ts = stats.task_statistics(curves, iter_ms_alone=ms, reps=FEW, not_setting_wall={"state"})["hopper"]
+    assert ts.wall_s == pytest.approx(10.0)
+    assert ts.iters_at_wall == {"decoupled": 100, "full": 40, "state": 100}
+    assert ts.equal_wall.arms["state"].final == ts.whole.arms["state"].final
+
+
 # -------------------------------------------------------------------------------- performance profiles
 def test_performance_profile_fractions_and_plot(tmp_path):
     curves = _arm("decoupled", [1.0, 2.0, 3.0, 4.0]) + _arm("full", [3.0, 3.5, 5.0, 6.0])

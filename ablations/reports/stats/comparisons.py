@@ -6,7 +6,7 @@ profiles.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -251,17 +251,24 @@ def _iter_ms(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float]) -> dic
     return ms
 
 
-def common_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float]) -> float:
+def common_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float], *,
+                  not_setting: Collection[str] = ()) -> float:
     """The training-time budget every run reached, in seconds: the minimum over the runs of
     last_iter x iter_ms_alone[arm] / 1000. The time is *modelled*: each arm's iteration time measured alone
     (a benchmark's ms per iteration of that arm as the only work on its device), never a run's logged
     ``wall_s``, which for a population member is the whole population's time and includes compilation. So
     it leaves out what the measurement alone left out (typically compilation, evaluation rollouts, and the
-    extra backward of probe iterations if the benchmark's time excludes them)."""
+    extra backward of probe iterations if the benchmark's time excludes them).
+
+    ``not_setting``: arms whose runs do not set the budget (a reference trained on another input, such as the
+    state vector, whose cheap iterations would otherwise end every comparison early); a cut at the budget
+    reads such a run at its end when it ends sooner, so it is given less time, never more. Ignored when it
+    names every arm."""
     if not curves:
         raise ValueError("no runs to compare")
     ms = _iter_ms(curves, iter_ms_alone)
-    return min(c.last_iter * ms[c.arm] / 1e3 for c in curves)
+    setting = [c for c in curves if c.arm not in not_setting] or list(curves)
+    return min(c.last_iter * ms[c.arm] / 1e3 for c in setting)
 
 
 def truncate_at_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float], wall_s: float) -> list[Curve]:
@@ -299,12 +306,14 @@ class TaskStatistics:
 def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupled",
                     iter_ms_alone: Mapping[str, float] | None = None, final_evals: int = FINAL_EVALS,
                     reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED, confidence: float = 0.95,
-                    at_iteration: int | None = None) -> dict[str, TaskStatistics]:
+                    at_iteration: int | None = None, not_setting_wall: Collection[str] = ()
+                    ) -> dict[str, TaskStatistics]:
     """Task -> its ``TaskStatistics`` (tasks in the curves' order). Equal iterations and equal wall-clock are
     taken over all runs of the task, every arm together. ``iter_ms_alone``: arm -> milliseconds per training
     iteration of that arm measured alone (population members share a process, so their own ``wall_s`` is not
     their arm's time). ``at_iteration``: every curve is cut there first (to read longer runs at an earlier
-    point: all three views then end at or before it)."""
+    point: all three views then end at or before it). ``not_setting_wall``: arms that do not set the
+    wall-clock budget (``common_wall_s``'s ``not_setting``)."""
     check_at_iteration(at_iteration)
     kw = dict(reference=reference, final_evals=final_evals, reps=reps, seed=seed, confidence=confidence)
     out = {}
@@ -320,7 +329,7 @@ def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupl
         stats = TaskStatistics(task=task, whole=compare(cs, window="per arm", **kw), iteration=n,
                                equal_iters=compare(truncate_at_iteration(cs, n), **kw))
         if iter_ms_alone is not None:
-            budget = common_wall_s(cs, iter_ms_alone)
+            budget = common_wall_s(cs, iter_ms_alone, not_setting=not_setting_wall)
             cut = truncate_at_wall_s(cs, iter_ms_alone, budget)
             ms = _iter_ms(cs, iter_ms_alone)
             stats = replace(stats, wall_s=budget, iter_ms_alone=ms, equal_wall=compare(cut, window="per arm", **kw),
