@@ -43,7 +43,7 @@ BLOCKS = [(doc, line, text) for doc in DOCS for line, text in shell_blocks(doc)]
 
 def test_the_docs_have_shell_blocks():
     names = {doc.relative_to(ROOT).as_posix() for doc, _, _ in BLOCKS}
-    assert {"README.md", "docs/quickstart.md", "docs/seeded_h100/README.md"} <= names
+    assert {"README.md", "docs/quickstart.md", "docs/seeded/README.md"} <= names
 
 
 @pytest.mark.skipif(shutil.which("bash") is None, reason="no bash")
@@ -94,9 +94,9 @@ def test_what_the_quick_start_writes_is_git_ignored():
         path = out if Path(out).suffix else out.rstrip("/") + "/x"  # a file, or a file in the folder
         r = subprocess.run(["git", "check-ignore", "-q", path], cwd=ROOT)
         assert r.returncode == 0, f"{out} is not git-ignored"
-    shipped = subprocess.run(["git", "check-ignore", "-q", "docs/seeded_h100/runs.tar.xz"], cwd=ROOT)
+    shipped = subprocess.run(["git", "check-ignore", "-q", "docs/seeded/runs.tar.xz"], cwd=ROOT)
     assert shipped.returncode == 1
-    unpacked = subprocess.run(["git", "check-ignore", "-q", "docs/seeded_h100/runs/x/config.json"], cwd=ROOT)
+    unpacked = subprocess.run(["git", "check-ignore", "-q", "docs/seeded/runs/x/config.json"], cwd=ROOT)
     assert unpacked.returncode == 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import tarfile
 from collections import Counter
@@ -16,7 +17,7 @@ from ..benchmark_scripts import load
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
-EXPERIMENTS = ("seeded_h100", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200")
+EXPERIMENTS = ("seeded", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200")
 #: The arms of the shipped runs (names from vocabulary.ARMS).
 SHIPPED_ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
 
@@ -52,7 +53,7 @@ def test_the_hopper_population_is_twelve_members_of_one_process_that_finished_20
 
 def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_iterations(shipped):
     # the seeded experiment: ant, the four arms, 3 seeds, at least 2000 iterations in one continuous GPU run
-    runs = find_runs([shipped / "seeded_h100" / "runs"])
+    runs = find_runs([shipped / "seeded" / "runs"])
     ant = [r for r in runs if r.task == "ant"]
     assert len(ant) == 12  # no (arm, seed) twice
     arms = arm_names(ant)
@@ -68,7 +69,7 @@ def test_the_ant_populations_hold_the_four_arms_with_three_seeds_each_past_2000_
 def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_iterations(shipped, task, folders):
     # the seeded experiment: hopper and cartpole-swingup, the four arms, 5 seeds, at least 3000 iterations;
     # compiled GPU populations
-    runs = [r for r in find_runs([shipped / "seeded_h100" / "runs"]) if r.task == task]
+    runs = [r for r in find_runs([shipped / "seeded" / "runs"]) if r.task == task and r.population["folder"] in folders]
     assert len(runs) == 20  # no (arm, seed) twice
     arms = arm_names(runs)
     assert {(arms[r.path], r.seed) for r in runs} == {(a, s) for a in SHIPPED_ARMS for s in range(5)}
@@ -78,18 +79,44 @@ def test_the_seeded_populations_hold_the_four_arms_with_five_seeds_each_at_3000_
     assert {r.population["folder"] for r in runs} == folders
 
 
+def test_cartpole_swingup_has_the_six_arms_the_papers_baseline_and_state_from_ablate_paper_on_one_h200(shipped):
+    # issue "six arms on every task": full-hard (--preset shac-diffrender) and state x 5 seeds x 3000 iterations,
+    # launched by ablate-paper (--pack 5) on a one-GPU H200 machine; its sweep.json records where each run trained
+    runs = [r for r in find_runs([shipped / "seeded" / "runs"]) if r.task == "cartpole-swingup"]
+    arms = arm_names(runs)
+    assert Counter(arms.values()) == {a: 5 for a in (*SHIPPED_ARMS, "full-hard", "state")}
+    added = [r for r in runs if arms[r.path] in ("full-hard", "state")]
+    assert {r.population["folder"] for r in added} == {"cartpole-swingup_population0", "cartpole-swingup_population1"}
+    assert all(r.config["preset"] == "shac-diffrender" and r.config["raster_model"] == "hard"
+               for r in added if arms[r.path] == "full-hard")
+    assert {(r.summary["status"], r.summary["iterations"]) for r in added} == {("finished", 3000)}
+    assert {_last_evaluated_iteration(r) for r in added} == {3000}
+    assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in added)
+    sweep = json.loads((ROOT / "docs" / "seeded" / "ablate_paper_cartpole_swingup.sweep.json").read_text())
+    assert sweep["command"][0] == "ablate-paper" and sweep["counts"]["done"] == 10
+    assert {(r["arm"], r["seed"]) for r in sweep["runs"].values()} == {
+        (a, s) for a in ("full-hard", "state") for s in range(5)}
+    assert {tuple(r["gpus"]) for r in sweep["runs"].values()} == {("0",)}
+
+
 def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alone(shipped):
-    # the equal-wall-clock view needs each arm's iteration time measured alone; the README's report command passes
-    # this benchmark, whose rows must match every arm's settings (sizes, raster, compile)
-    runs = find_runs([shipped / "seeded_h100" / "runs"])
-    bench = ROOT / "benchmarks" / "results" / "iteration_arms_alone_h100_20261127.json"
-    times = iteration_times(runs, arm_label(runs), [bench])
+    # the equal-wall-clock view needs each arm's iteration time measured alone, all of a task's on one device;
+    # the README's report command passes these benchmarks, the first file with an arm's row giving its time
+    runs = find_runs([shipped / "seeded" / "runs"])
+    results = ROOT / "benchmarks" / "results"
+    h200 = results / "iteration_arms_alone_cartpole_h200_20261128.json"
+    h100 = results / "iteration_arms_alone_h100_20261127.json"
+    times = iteration_times(runs, arm_label(runs), [h200, h100])
     assert set(times) == {"ant", "hopper", "cartpole-swingup"}
     for task, t in times.items():
-        assert t.ms is not None and set(t.ms) == SHIPPED_ARMS, (task, t.why)
+        arms = SHIPPED_ARMS | ({"full-hard", "state"} if task == "cartpole-swingup" else set())
+        bench = h200 if task == "cartpole-swingup" else h100
+        assert t.ms is not None and set(t.ms) == arms, (task, t.why)
         assert {a.source for a in t.found.values()} == {f"benchmark {bench.name}"}
         # blind renders nothing, decoupled renders without a backward through the image, full does both
         assert t.ms["blind"] < t.ms["decoupled"] < min(t.ms["full-soft"], t.ms["full-hard-dva"])
+        if task == "cartpole-swingup":  # state steps no renderer and no encoder; full-hard costs full-hard-dva's
+            assert t.ms["state"] < t.ms["blind"] and t.ms["full-hard"] == t.ms["full-hard-dva"]
 
 
 def test_every_experiment_ships_its_run_folders_as_one_archive(shipped):
