@@ -7,12 +7,13 @@
 # Usage, from the repo root:
 #   PIXELGRAD_COMMIT=<sha> bash benchmarks/paper_session.sh launch NAME ABLATE_PAPER_ARGS...
 #             install the wheels, copy the tree to /tmp/pgpaper, start `ablate-paper --out /tmp/paper/NAME ARGS` with
-#             setsid; e.g. the hopper's and cartpole-swingup's added arms (issue: six arms on every task):
-#             launch arms6 --tasks hopper cartpole-swingup --arms full-hard state --seeds 0 1 2 3 4 --iters 3000
-#               --time-limit-min None --pack 5 --gpus-per-run 1 --no-progress
+#             setsid; e.g. cartpole-swingup's added arms as docs/seeded ran them on one H200 (two populations of
+#             5: state runs pack into populations of their own, never with pixel arms; --gpus-per-run 0.5 puts
+#             both on the one GPU, state's 4.5 minutes beside full-hard's 16):
+#             launch arms6cp --tasks cartpole-swingup --arms full-hard state --seeds 0 1 2 3 4 --iters 3000
+#               --time-limit-min 24 --pack 5 --gpus-per-run 0.5 --no-progress
 #               --set compile=true device=cuda eval-every=250 checkpoint-every=1000 video-every=0 cosine-every=100
-#             (CUDA_VISIBLE_DEVICES=1,3 before it: Ray places the runs on those GPUs only, the rest being busy;
-#             state runs never pack into populations: --gpus-per-run 0.2 lets five share a GPU). Wait for other
+#             (CUDA_VISIBLE_DEVICES=1,3 before it: Ray places the runs on those GPUs only). Wait for other
 #             jobs inside a script, never with `pgrep -f PATTERN` in the device call's own command line: the
 #             pattern matches that command line, and the wait never ends.
 #   progress  the log's last lines, each run's status, iteration and GPU from sweep.json, and the GPUs' load
