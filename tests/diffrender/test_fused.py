@@ -181,23 +181,27 @@ def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     _assert_same_blend(model, *results)
 
 
-@pytest.mark.parametrize(("model", "walk"), [pytest.param("hard", dict(FWD_COMPACT=True), marks=pytest.mark.slow),
-                                            ("hard", dict(FWD_COMPACT=True, FWD_DEFER_SHADING=True)),
-                                            pytest.param("hard", dict(FWD_DEFER_SHADING=True), marks=pytest.mark.slow),
-                                            pytest.param("softmax", dict(FWD_COMPACT=True), marks=pytest.mark.slow),
-                                            pytest.param("alpha", dict(FWD_COMPACT=True), marks=pytest.mark.slow)])
-def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch, model, walk):
+@pytest.mark.parametrize(("model", "walk", "split_counts"), [
+    pytest.param("hard", dict(FWD_COMPACT=True), (1, 3), marks=pytest.mark.slow),
+    pytest.param("hard", dict(FWD_COMPACT=True, FWD_DEFER_SHADING=True), (1, 3), marks=pytest.mark.slow),
+    # the default walk of images rendered with nothing saved; split in three, the case with part boundaries (the
+    # default walk split and unsplit agree: test_split_forward_keeps_the_unsplit_blend_state)
+    ("hard", dict(FWD_DEFER_SHADING=True), (3,)),
+    pytest.param("hard", dict(FWD_DEFER_SHADING=True), (1,), marks=pytest.mark.slow),
+    pytest.param("softmax", dict(FWD_COMPACT=True), (1, 3), marks=pytest.mark.slow),
+    pytest.param("alpha", dict(FWD_COMPACT=True), (1, 3), marks=pytest.mark.slow)])
+def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch, model, walk, split_counts):
     """The forward's walk variants against the block-wise walk that shades every pair, on 16-face blocks in
     chunks of 4 (the ant's 944 faces: blocks that reach a tile with none, some and more than one chunk of
-    faces whose boxes reach it), unsplit and split in three: ``FWD_COMPACT`` (of each block near a tile, only
-    the faces whose boxes reach it, packed into chunks) and the hard model's ``FWD_DEFER_SHADING`` (the
-    chosen face alone shaded, in images rendered with nothing saved): the hard model's state bit for bit and
-    image to the last place (bit for bit under the interpreter), the soft models' to float64 rounding (their
+    faces whose boxes reach it), unsplit and split in three (``split_counts``): ``FWD_COMPACT`` (of each block near a
+    tile, only the faces whose boxes reach it, packed into chunks) and the hard model's ``FWD_DEFER_SHADING``
+    (the chosen face alone shaded, in images rendered with nothing saved): the hard model's state bit for bit
+    and image to the last place (bit for bit under the interpreter), the soft models' to float64 rounding (their
     sums are regrouped); with the state kept and without."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=4)
     settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
     st, setup = _two_ants_set_up(ant64, settings, seed=5)
-    for splits in (1, 3):
+    for splits in split_counts:
         results, images = {}, {}
         for variant in (dict(FWD_COMPACT=False, FWD_DEFER_SHADING=False), walk):
             _set(monkeypatch, FWD_MAX_SPLITS=splits, **variant)
