@@ -17,7 +17,6 @@ Everything here reads JSON (no torch).
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -362,14 +361,12 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             out += [f"Equal wall-clock: not available: {s.times.why}.", ""]
         else:
             times = ", ".join(f"{a} {ms:.4g} ms" for a, ms in ts.iter_ms_alone.items())
-            # arms whose runs stopped before the budget's iteration (not those the budget cut between iterations)
-            ended = [a for a, ms in ts.iter_ms_alone.items()
-                     if ts.iters_at_wall and ts.iters_at_wall[a] < math.floor(ts.wall_s * 1e3 / ms * (1 + 1e-12))]
+            ended = ", ".join(ts.ended_before_wall)
             out += [_verdict_line(f"equal wall-clock, {ts.wall_s:.4g} s", s.verdicts["equal wall-clock"]), "",
                     f"Equal wall-clock: every run cut at {ts.wall_s:.4g} s of modelled training time ({times} per "
                     f"iteration; {s.times.why}); each run's final evaluation return averages its arm's last "
                     "common evaluations (the window column)."
-                    + (f" The runs of {', '.join(ended)} (the actor on the state vector: a reference, which does "
+                    + (f" The runs of {ended} (the actor on the state vector: a reference, which does "
                        "not set the budget) end sooner and are read at their end: less time than the others, "
                        "never more." if ended else ""), ""]
             out += _view_table(ts.equal_wall, s.verdicts["equal wall-clock"], ts.iters_at_wall or {})

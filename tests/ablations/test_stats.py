@@ -219,7 +219,7 @@ def test_a_reference_arm_does_not_set_the_wall_clock_budget_and_is_read_at_its_e
     assert stats.common_wall_s(curves, ms, not_setting={"decoupled", "full", "state"}) == pytest.approx(1.0)
     ts = stats.task_statistics(curves, iter_ms_alone=ms, reps=FEW, not_setting_wall={"state"})["hopper"]
     assert ts.wall_s == pytest.approx(10.0)
-    assert ts.iters_at_wall == {"decoupled": 100, "full": 40, "state": 100}
+    assert ts.iters_at_wall == {"decoupled": 100, "full": 40, "state": 100} and ts.ended_before_wall == ("state",)
     assert ts.equal_wall.arms["state"].final == ts.whole.arms["state"].final
 
 

@@ -301,6 +301,8 @@ class TaskStatistics:
     iters_at_wall: dict[str, int] | None = None
     iter_ms_alone: dict[str, float] | None = None
     equal_wall: Comparison | None = None
+    #: Arms that did not set the wall-clock budget and whose runs all ended before it (read at their ends).
+    ended_before_wall: tuple[str, ...] = ()
 
 
 def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupled",
@@ -332,8 +334,11 @@ def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupl
             budget = common_wall_s(cs, iter_ms_alone, not_setting=not_setting_wall)
             cut = truncate_at_wall_s(cs, iter_ms_alone, budget)
             ms = _iter_ms(cs, iter_ms_alone)
+            ended = tuple(a for a in ms if a in not_setting_wall
+                          and all(c.last_iter * ms[a] / 1e3 < budget for c in cs if c.arm == a))
             stats = replace(stats, wall_s=budget, iter_ms_alone=ms, equal_wall=compare(cut, window="per arm", **kw),
-                            iters_at_wall={a: max(c.last_iter for c in cut if c.arm == a) for a in ms})
+                            iters_at_wall={a: max(c.last_iter for c in cut if c.arm == a) for a in ms},
+                            ended_before_wall=ended)
         out[task] = stats
     return out
 
