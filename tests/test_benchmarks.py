@@ -11,8 +11,6 @@ from types import SimpleNamespace
 
 import pytest
 
-from .benchmark_scripts import load
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -32,8 +30,8 @@ def _autotuner(name: str, src: str, *configs: str):
     return k
 
 
-def test_kernel_configs_names_each_kernel_by_its_source_and_records_the_kept_config():
-    sim = load("sim")
+def test_kernel_configs_names_each_kernel_by_its_source_and_records_the_kept_config(benchmark_script):
+    sim = benchmark_script("sim")
     found = sim.kernel_configs([
         _autotuner("triton_poi_fused_0", "def k(): a", "XBLOCK: 128"),
         _autotuner("triton_poi_fused_0", "def k(): b", "XBLOCK: 256"),
@@ -49,8 +47,8 @@ def test_kernel_configs_names_each_kernel_by_its_source_and_records_the_kept_con
     assert sorted(k["chosen"] for k in found) == [["XBLOCK: 128"], ["XBLOCK: 256"], ["XBLOCK: 256"]]
 
 
-def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
-    cd = load("config_diff")
+def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys, benchmark_script):
+    cd = benchmark_script("config_diff")
     a = [{"name": "k0", "source": "s0", "chosen": ["X: 128"]}, {"name": "k1", "source": "s1", "chosen": ["X: 64"]},
          {"name": "k2", "source": "s2", "chosen": ["X: 64"]}, {"name": "k2", "source": "s2", "chosen": ["X: 128"]}]
     b = [{"name": "k0", "source": "s0", "chosen": ["X: 256"]}, {"name": "k1", "source": "s1", "chosen": ["X: 64"]},
@@ -70,8 +68,8 @@ def test_config_diff_lists_only_kernels_whose_configs_differ(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp_path):
-    startup = load("startup")
+def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp_path, benchmark_script):
+    startup = benchmark_script("startup")
     out = tmp_path / "startup.json"
     doc = startup.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "state", "--num-envs", "2",
                         "--work", str(tmp_path / "work"), "--out", str(out), "--horizon", "2",
@@ -97,10 +95,11 @@ def test_startup_runs_cold_then_warm_and_the_warm_run_hits_the_compile_cache(tmp
     assert "--compile-cache" in cold["command"] and "--horizon 2" in cold["command"]
 
 
-def test_startup_runs_each_pair_with_and_without_the_compile_helper_in_its_own_cache(tmp_path, monkeypatch):
+def test_startup_runs_each_pair_with_and_without_the_compile_helper_in_its_own_cache(
+        tmp_path, monkeypatch, benchmark_script):
     """--compile-helper on off: the same cold/warm pair twice, the second with ablate --no-compile-helper and a
     cache folder of its own (a shared one would make the second pair warm)."""
-    startup = load("startup")
+    startup = benchmark_script("startup")
     seen = []
 
     def fake_run(cmd, run_dir, *, timeout):
@@ -119,10 +118,10 @@ def test_startup_runs_each_pair_with_and_without_the_compile_helper_in_its_own_c
     assert startup.run_label(doc["rows"][1]) == "cold no-helper"
 
 
-def test_startup_keeps_each_compile_helpers_own_account_of_its_seconds(tmp_path, monkeypatch, capsys):
+def test_startup_keeps_each_compile_helpers_own_account_of_its_seconds(tmp_path, monkeypatch, capsys, benchmark_script):
     """A run's summary names its helpers' logs; each row keeps the last line each helper printed (where its
     seconds went), and the printout lists them with the run's wait, so a reader sees which process was slowest."""
-    startup = load("startup")
+    startup = benchmark_script("startup")
     run_dir = tmp_path / "runs" / "ant_decoupled_cold"
     run_dir.mkdir(parents=True)
     log = run_dir / "compile_helper_renderer.log"
@@ -148,8 +147,8 @@ def test_startup_keeps_each_compile_helpers_own_account_of_its_seconds(tmp_path,
             "done after 47.9 s; (networks: exit -9, no report)") in out
 
 
-def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
-    common = load("_common")
+def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch, benchmark_script):
+    common = benchmark_script("_common")
     monkeypatch.delenv("PIXELGRAD_COMMIT", raising=False)
     head = common.commit()
     assert head == "unknown" or re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", head), head
@@ -157,10 +156,10 @@ def test_results_record_the_commit_or_the_one_the_caller_names(monkeypatch):
     assert common.commit() == "abc1234"
 
 
-def test_timing_skips_the_warm_up_and_times_each_call():
+def test_timing_skips_the_warm_up_and_times_each_call(benchmark_script):
     """Every script times through one helper: ``warmup`` untimed calls, then one time [ms] per timed call, and the
     last call's result. Call k sleeps 5 k ms, so a timed warm-up call would show as a time under its bound."""
-    common = load("_common")
+    common = benchmark_script("_common")
     calls = []
 
     def fn():
@@ -175,10 +174,10 @@ def test_timing_skips_the_warm_up_and_times_each_call():
     assert common.median_ms(fn, "cpu", repeats=3) >= 10.0
 
 
-def test_results_files_are_replaced_whole(tmp_path):
+def test_results_files_are_replaced_whole(tmp_path, benchmark_script):
     """A results file is written beside and renamed over the old one: a reader never sees half a file, and no
     temporary file is left."""
-    common = load("_common")
+    common = benchmark_script("_common")
     out = tmp_path / "new" / "r.json"
     common.write_json(out, {"rows": [1]})
     common.write_json(out, {"rows": [1, 2]}, indent=2)
@@ -186,10 +185,10 @@ def test_results_files_are_replaced_whole(tmp_path):
     assert [p.name for p in out.parent.iterdir()] == ["r.json"]
 
 
-def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monkeypatch, tmp_path):
+def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monkeypatch, tmp_path, benchmark_script):
     """``render.py --anchor`` is anchor.py's comparison with nvdiffrast (one process): its models, repeats,
     warm-up, compiled-and-eager choice and output pass through."""
-    render = load("render")
+    render = benchmark_script("render")
     seen = []
     monkeypatch.setattr(render.anchor, "main", lambda argv: seen.append(argv) or 0)
     out = tmp_path / "a.json"
@@ -205,10 +204,10 @@ def test_render_anchor_runs_the_anchor_time_part_with_this_commands_choices(monk
     assert "--compile" not in seen[0] and "--repeats" not in seen[0]
 
 
-def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypatch):
+def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypatch, benchmark_script):
     """``iteration.py --overlap-critic on off``: one row per placement, each with the phases' medians and whether
     the fit ran alongside the backward (never on the CPU, where nothing is replayed)."""
-    iteration = load("iteration")
+    iteration = benchmark_script("iteration")
     out = tmp_path / "iter.json"
     monkeypatch.setattr(sys, "argv", ["iteration.py", "--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled",
                                       "--num-envs", "2", "--horizon", "2", "--image-size", "32", "--warmup", "1",
@@ -221,12 +220,12 @@ def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypa
         assert r["critic_overlapped"] is False and r["critic_ms"] > 0 and r["iter_ms"] > r["fwd_ms"] > 0
 
 
-def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path, monkeypatch):
+def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path, monkeypatch, benchmark_script):
     """``--modes decoupled full blind --raster-model softmax hard``: every rendering mode with each raster model and
     blind once, each row naming its raster model, so that a report finds each arm's time alone in the file."""
     from ablations.reports.arms import benchmark_iteration_rows
 
-    iteration = load("iteration")
+    iteration = benchmark_script("iteration")
     out = tmp_path / "iter.json"
     monkeypatch.setattr(sys, "argv", ["iteration.py", "--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled",
                                       "full", "blind", "--raster-model", "softmax", "hard", "--num-envs", "2",
@@ -242,10 +241,10 @@ def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path,
     assert all(r["iter_ms"] > 0 and r["num_envs"] == 2 and r["compile"] is False for r in timed)
 
 
-def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch):
+def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch, benchmark_script):
     """Where Python writes no bytecode beside the sources, a row says how many modules' bytecode ablate's folder
     held before the run (0: the run compiled all its Python too); elsewhere there is no such folder to count."""
-    startup = load("startup")
+    startup = benchmark_script("startup")
     monkeypatch.setattr(startup.subprocess, "run",
                         lambda *a, **k: subprocess.CompletedProcess(a, 1, stdout="", stderr="stopped"))
     folder = tmp_path / "bytecode"
@@ -260,10 +259,11 @@ def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch):
     assert startup.run_once(["python"], tmp_path / "run", timeout=10)["bytecode_pyc_before"] is None
 
 
-def test_evaluation_times_each_variant_and_compares_its_episodes_with_the_first(tmp_path, monkeypatch):
+def test_evaluation_times_each_variant_and_compares_its_episodes_with_the_first(
+        tmp_path, monkeypatch, benchmark_script):
     """``evaluation.py``: per population, the first evaluation, then the captured and the eager steps (the same
     path on the CPU, where nothing is captured: equal episodes), each with its time per evaluation step."""
-    evaluation = load("evaluation")
+    evaluation = benchmark_script("evaluation")
     out = tmp_path / "evaluation.json"
     monkeypatch.setattr(sys, "argv", ["evaluation.py", "--device", "cpu", "--tasks", "cartpole", "--members", "2",
                                       "--num-envs", "2", "--eval-envs", "2", "--image-size", "16", "--repeats", "1",
@@ -277,10 +277,10 @@ def test_evaluation_times_each_variant_and_compares_its_episodes_with_the_first(
 
 
 def test_run_progress_says_where_each_run_stands_and_thins_copies_with_the_population_record(tmp_path, monkeypatch,
-                                                                                         capsys):
+                                                                                         capsys, benchmark_script):
     from ablations.run_folder import RunFolder, read_metrics
 
-    progress = load("run_progress")
+    progress = benchmark_script("run_progress")
     home = tmp_path / "runs" / "pop"
     home.mkdir(parents=True)
     (home / "population.json").write_text('{"members": ["a"]}')
@@ -302,11 +302,11 @@ def test_run_progress_says_where_each_run_stands_and_thins_copies_with_the_popul
     assert [r["iter"] for r in read_metrics(tmp_path / "keep" / "pop" / "a")] == [10, 20, 30]
 
 
-def test_precision_compares_each_candidate_with_the_float32_run_from_the_same_state(tmp_path, capsys):
+def test_precision_compares_each_candidate_with_the_float32_run_from_the_same_state(tmp_path, capsys, benchmark_script):
     """``precision.py``: at each point the candidates start from the float32 run's state; a second float32 trainer
     reproduces its gradient exactly on the CPU (so the snapshot carries parameters, states and noise), bf16 is close
     but not equal, and the output says that the CPU measures nothing."""
-    precision = load("precision")
+    precision = benchmark_script("precision")
     out = tmp_path / "precision.json"
     try:
         doc = precision.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "full", "--iters", "2",
@@ -330,8 +330,8 @@ def test_precision_compares_each_candidate_with_the_float32_run_from_the_same_st
 
 
 @pytest.mark.slow
-def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path):
-    precision = load("precision")
+def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path, benchmark_script):
+    precision = benchmark_script("precision")
     doc = precision.main(["--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled", "--candidates", "bf16",
                           "--num-envs", "2", "--horizon", "2", "--image-size", "16", "--parts", "time",
                           "--time-warmup", "1", "--time-iters", "1", "--out", str(tmp_path / "p.json")])
@@ -339,11 +339,11 @@ def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path):
     assert all(r["iter_ms"] > 0 for r in doc["time"])
 
 
-def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_path, capsys):
+def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_path, capsys, benchmark_script):
     """The compacted walk's pair count falls with its chunk size, between the block-wise walk's and the bound;
     chunks of one face are the bound itself (every face whose box reaches a tile, each once). The backward's
     packed lanes walk fewer lane-pixels than the block's."""
-    fw = load("forward_walk")
+    fw = benchmark_script("forward_walk")
     out = tmp_path / "walk.json"
     assert fw.main(["--batch", "2", "--res", "24", "--chunks", "64", "16", "4", "1", "--out", str(out)]) == 0
     (row,) = json.loads(out.read_text())["rows"]
@@ -355,10 +355,10 @@ def test_forward_walk_counts_fewer_pairs_for_finer_chunks_down_to_the_bound(tmp_
     assert "| 1,856 |" in capsys.readouterr().out
 
 
-def test_the_profile_counts_every_renderer_kernel_as_the_renderers():
+def test_the_profile_counts_every_renderer_kernel_as_the_renderers(benchmark_script):
     # names as torch.profiler reports them (BENCHMARKS section 7's profile): the rasterizer's per-pixel and merge
     # kernels were once counted as generic element-wise work, the setup's too
-    prof = load("profile_iteration")
+    prof = benchmark_script("profile_iteration")
     for name in ("_fused_forward", "_fused_backward", "_pixel_backward", "_merge_forward"):
         assert prof.category(name) == "rasterizer (fused triton)", name
     for name in ("_setup_forward", "_setup_backward", "_floor_forward", "_floor_backward"):

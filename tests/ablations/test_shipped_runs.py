@@ -13,8 +13,6 @@ import pytest
 from ablations.reports.arms import arm_label, arm_names, iteration_times
 from ablations.run_folder import CONFIG, evaluation_of, find_runs
 
-from ..benchmark_scripts import load
-
 ROOT = Path(__file__).resolve().parents[2]
 #: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
 EXPERIMENTS = ("seeded", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200")
@@ -127,7 +125,8 @@ def test_every_experiment_ships_its_run_folders_as_one_archive(shipped):
         assert sorted(p.parent for p in (shipped / name).glob(f"runs/**/{CONFIG}")), name
 
 
-def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quotes_its_statistics(shipped):
+def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quotes_its_statistics(
+        shipped, benchmark_script):
     # docs/precision_h200: decoupled and full (softmax) x fp32 and bf16 x seeds 0-4, 2000 iterations, one
     # compiled population each; the README's paired numbers are what benchmarks/precision_seeded.py computes
     runs = find_runs([shipped / "precision_h200" / "runs"])
@@ -136,7 +135,7 @@ def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quot
         (m, p, s) for m in ("decoupled", "full") for p in ("fp32", "bf16") for s in range(5)}
     assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 2000)}
     assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in runs)
-    doc = load("precision_seeded").compare_precisions([shipped / "precision_h200" / "runs"])
+    doc = benchmark_script("precision_seeded").compare_precisions([shipped / "precision_h200" / "runs"])
     rows = {r["arm"]: r for r in doc["rows"]}
     assert set(rows) == {"decoupled", "full-soft"} and doc["family"] == 2
     assert all(r["window"] == [1500, 1750, 2000] for r in rows.values())
@@ -148,10 +147,10 @@ def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quot
     assert not any(r["differs"] for r in rows.values())  # 5 paired seeds cannot differ under Holm over 2
 
 
-def test_the_precision_comparison_refuses_a_seed_twice_in_one_arm_and_precision(shipped, tmp_path):
+def test_the_precision_comparison_refuses_a_seed_twice_in_one_arm_and_precision(shipped, tmp_path, benchmark_script):
     # a second copy of a run would count its seed twice (or silently replace it): named instead
     runs = shipped / "precision_h200" / "runs"
     shutil.copytree(runs, tmp_path / "a")
     shutil.copytree(runs / "hopper_full_bf16" / "hopper_full_seed0", tmp_path / "b" / "hopper_full_seed0")
     with pytest.raises(ValueError, match="has two runs"):
-        load("precision_seeded").compare_precisions([tmp_path])
+        benchmark_script("precision_seeded").compare_precisions([tmp_path])

@@ -398,14 +398,11 @@ def test_bad_input_is_named():
 
 
 # ------------------------------------------------------------------------------------------------ benchmark
-def test_benchmark_runs_on_the_cpu(tmp_path, capsys):
+def test_benchmark_runs_on_the_cpu(tmp_path, capsys, benchmark_script):
     """benchmarks/raytrace.py --tiny on Warp's CPU device: every variant timed, its image the default's, the
     JSON with its provenance and the table printed last."""
     import json
-
-    from ..benchmark_scripts import load
-
-    bench = load("raytrace")
+    bench = benchmark_script("raytrace")
     out = tmp_path / "rt.json"
     assert bench.main(["--device", "cpu", "--tiny", "--repeats", "2", "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
