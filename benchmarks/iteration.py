@@ -36,7 +36,7 @@ from _common import commit, write_json
 
 import diffrender
 import tasks
-from gradlab import SHAC, ModePlan, SHACConfig, precision, resolve_device
+from gradlab import SHAC, ModePlan, SHACConfig, precision, resolve_config, resolve_device
 from gradlab.timing import median
 
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
@@ -68,9 +68,11 @@ def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_crit
                      iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
                      raster_model=raster_model, extra_meshes=args.extra_meshes,
                      extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic, precision=args.precision)
-    row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": args.num_envs, "horizon": args.horizon,
-           "image_size": args.image_size, "compile": args.compile, "overlap_critic": overlap_critic,
-           "precision": args.precision, "status": "ok"}
+    # num_envs None: the preset's, per task and mode (SHAC's 256 for the hopper on the state vector), so that
+    # each arm is timed at the size `ablate` trains it
+    row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": resolve_config(cfg).num_envs,
+           "horizon": args.horizon, "image_size": args.image_size, "compile": args.compile,
+           "overlap_critic": overlap_critic, "precision": args.precision, "status": "ok"}
     try:
         t0 = time.perf_counter()
         trainer = SHAC(cfg, device=args.device)
@@ -123,7 +125,8 @@ def main() -> None:
     p.add_argument("--device", default="auto", help="auto | cpu | cuda")
     p.add_argument("--tasks", nargs="+", default=["cartpole", "hopper", "ant", "humanoid"])
     p.add_argument("--modes", nargs="+", default=["decoupled", "full"])
-    p.add_argument("--num-envs", type=int, default=64)
+    p.add_argument("--num-envs", type=int, default=None,
+                   help="environments per iteration (default: the preset's for each task and mode, as ablate trains)")
     p.add_argument("--horizon", type=int, default=32)
     p.add_argument("--image-size", type=int, default=84)
     p.add_argument("--warmup", type=int, default=2, help="iterations excluded from the medians")
@@ -174,7 +177,8 @@ def main() -> None:
                "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
         write_json(args.out, doc, indent=2)
 
-    print(f"\nSHAC iteration, {args.num_envs} envs, horizon {args.horizon}, {args.image_size}px, "
+    envs = "/".join(map(str, sorted({r["num_envs"] for r in results})))
+    print(f"\nSHAC iteration, {envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile}, precision={args.precision} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
     print(f"{'task':9} {'mode':9} {'render':6} {'raster':7} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} "

@@ -241,6 +241,22 @@ def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path,
     assert all(r["iter_ms"] > 0 and r["num_envs"] == 2 and r["compile"] is False for r in timed)
 
 
+def test_iteration_times_each_arm_at_the_size_ablate_trains_it(tmp_path, monkeypatch, benchmark_script):
+    """Without ``--num-envs`` each row takes its preset's environments: 64 for the hopper's pixel arms, SHAC's 256
+    (gradlab.presets, DiffRL's hopper.yaml) for its state arm; ``--num-envs`` still sets every row."""
+    iteration = benchmark_script("iteration")
+    out = tmp_path / "iter.json"
+    argv = ["iteration.py", "--device", "cpu", "--tasks", "hopper", "--modes", "state", "blind", "--horizon", "2",
+            "--image-size", "16", "--warmup", "0", "--iters", "1", "--probe-every", "0", "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", argv)
+    iteration.main()
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["mode"], r["num_envs"], r["status"]) for r in rows] == [("state", 256, "ok"), ("blind", 64, "ok")]
+    monkeypatch.setattr(sys, "argv", [*argv, "--num-envs", "3", "--modes", "state"])
+    iteration.main()
+    assert [r["num_envs"] for r in json.loads(out.read_text())["results"]] == [3]
+
+
 def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch, benchmark_script):
     """Where Python writes no bytecode beside the sources, a row says how many modules' bytecode ablate's folder
     held before the run (0: the run compiled all its Python too); elsewhere there is no such folder to count."""
