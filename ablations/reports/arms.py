@@ -8,7 +8,9 @@
   ``--benchmark`` files (``benchmarks/iteration.py`` rows of (task, mode, raster model, iter_ms);
   ``benchmarks/population.py`` single runs, a population of one) when they hold every arm of the task, else
   the runs' own median ``iter_ms`` when no run of the task was a population member (a member's iterations
-  are its whole population's); otherwise the view is not available, and the section says why.
+  are its whole population's); otherwise the view is not available, and the section says why. An arm whose
+  actor reads the state vector does not set the view's budget, so without a time of its own it is left out
+  of the view, which the others keep.
 
 Everything here reads JSON (no torch).
 """
@@ -38,6 +40,7 @@ from vocabulary import (
     NOT_ARM_SETTINGS,
     POPULATION_BENCHMARK_ARMS,
     PRESET_RASTER_MODEL,
+    STATE_INPUT_MODES,
     arm_of,
 )
 
@@ -131,13 +134,15 @@ class ArmTime:
 @dataclass(frozen=True)
 class IterationTimes:
     """One task's iteration times for the equal-wall-clock view: ``ms`` arm -> milliseconds when every arm has
-    one from one kind of source on one device, else None; ``found``: arm -> the time found, where one was;
-    ``why``: where the times come from, or why the view is not available (one sentence)."""
+    one from one kind of source on one device (arms on the state vector may lack one: ``untimed``), else None;
+    ``found``: arm -> the time found, where one was; ``why``: where the times come from, or why the view is
+    not available (one sentence); ``untimed``: the state-vector arms left out of the view for lack of a time."""
 
     task: str
     ms: dict[str, float] | None
     found: dict[str, ArmTime]
     why: str
+    untimed: tuple[str, ...] = ()
 
 
 def benchmark_iteration_rows(path: str | os.PathLike) -> tuple[str, list[dict]]:
@@ -190,7 +195,9 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
     with a matching row (same task, mode, raster model where the mode renders, and the settings both record;
     the median of its matching rows); else the median of its runs' median ``iter_ms`` when none of them is a
     population member. The times are used when every arm of the task has a benchmark time, all on one device,
-    or else every arm has a time from its runs, all on one device."""
+    or else every arm has a time from its runs, all on one device; in both, an arm whose runs all read the
+    state vector (``vocabulary.STATE_INPUT_MODES``: it does not set the budget) may lack one and is then left
+    out of the view (``IterationTimes.untimed``)."""
     loaded = [(Path(b), *benchmark_iteration_rows(b)) for b in benchmarks]
     groups: dict[str, dict[str, list[Run]]] = {}
     for r in runs:
@@ -213,9 +220,13 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
                 why_not[arm] = ("trained as population members (a member's iter_ms is its whole population's)"
                                 if len(alone) < len(rs) else "no iter_ms logged")
         found = {**own, **bench}
-        ms, why = None, ""
-        for kind, times in (("benchmark", bench), ("runs", own)):
-            if len(times) < len(arms):
+        on_state = {arm for arm, rs in arms.items() if all(r.mode in STATE_INPUT_MODES for r in rs)}
+        ms, why, untimed = None, "", ()
+        # a kind of source with every arm first; then one that lacks only state-vector arms
+        for kind, times, may_lack in (("benchmark", bench, set()), ("runs", own, set()),
+                                      ("benchmark", bench, on_state), ("runs", own, on_state)):
+            lacking = [a for a in arms if a not in times]
+            if set(lacking) - may_lack or len(lacking) == len(arms):
                 continue
             devices = {t.device for t in times.values()}
             if len(devices) > 1:
@@ -227,6 +238,10 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
                    + ("" if kind == "benchmark" else " (each run's median iter_ms without warm-up and probe "
                       "iterations; alone only if nothing else shared its device, which a run folder does not "
                       "record)"))
+            untimed = tuple(lacking)
+            for a in untimed:
+                why += (f"; {a} left out: no time measured alone at its runs' settings, "
+                        + (why_not.get(a) or f"its only time is from {found[a].source} on {found[a].device}"))
             break
         if ms is None and not why:
             reasons: dict[str, list[str]] = {}
@@ -238,5 +253,5 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
                     f"{a}: {found[a].source}" for a in arms) + ")"]
             why = ("no iteration time measured alone for every arm: " + "; ".join(parts)
                    + " (give --benchmark files of benchmarks/iteration.py or benchmarks/population.py)")
-        out[task] = IterationTimes(task, ms, found, why)
+        out[task] = IterationTimes(task, ms, found, why, untimed)
     return out

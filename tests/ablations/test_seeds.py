@@ -19,9 +19,9 @@ REPS = 20
 def write_run(parent, name, *, task="hopper", mode="decoupled", seed=0, raster="softmax", preset="dva",
               overridden=None, settings=None, evals=(), every=10, iters=None, iter_ms=50.0, members=None,
               probes=None, device="GPU-A"):
-    """A run folder as `ablate` writes one. config.json: the preset's record (raster model and learning-rate
-    decay supplied unless ``overridden`` names them: {key: (flag, preset's value)}), the population record when
-    ``members`` is given; metrics.jsonl: every iteration with ``iter_ms`` and ``action_std``, the evaluation
+    """A run folder as `ablate` writes one. config.json: the preset's record (raster model, learning-rate decay
+    and environments supplied unless ``overridden`` names them: {key: (flag, preset's value)}), the population
+    record when ``members`` is given; metrics.jsonl: every iteration with ``iter_ms`` and ``action_std``, the evaluation
     returns ``evals`` at iterations every, 2 every, ..., ``probes`` {iter: (sensitivity per frame, more keys)}."""
     overridden = overridden or {}
     decay = 2000 if preset == "shac-diffrender" else 30000
@@ -29,7 +29,8 @@ def write_run(parent, name, *, task="hopper", mode="decoupled", seed=0, raster="
               "lr_decay_iters": decay, "num_envs": 64, "horizon": 32, "image_size": 84, "compile": True,
               "encoder_lr_scale": 1.0, "warmup_iters": 2, "eval_every": every, "name": name, "out": str(parent),
               **{k: v[0] for k, v in overridden.items()}, **(settings or {})}
-    supplied = {k: v for k, v in (("raster_model", raster), ("lr_decay_iters", decay)) if k not in overridden}
+    supplied = {k: v for k, v in (("raster_model", raster), ("lr_decay_iters", decay), ("num_envs", config["num_envs"]))
+                if k not in overridden}
     record = {"config": config, "environment": {"device": "cuda", "gpu": device},
               "preset": {"name": preset, "supplied": supplied,
                          "overridden": {k: {"flag": f, "preset": p} for k, (f, p) in overridden.items()}}}
@@ -354,3 +355,38 @@ def test_the_state_arm_does_not_set_the_wall_clock_budget(tmp_path):
     assert ts.equal_wall.arms["state"].final == ts.whole.arms["state"].final
     text = "\n".join(seeds.seed_section(runs, tmp_path / "figs", tmp_path, reps=REPS, computed=out))
     assert "read at their end" in text and "The runs of state (the actor on the state vector" in text
+
+
+def test_a_state_arm_without_a_time_alone_leaves_only_itself_out_of_equal_wall_clock(tmp_path):
+    # population members (no time of their own); the benchmark times the state arm at 64 envs, its runs trained
+    # 256 (SHAC's hopper): that row is not its time, so state leaves the equal-wall-clock view and the pixel arms
+    # keep it; a pixel arm without a time still takes the whole view away
+    parent = tmp_path / "runs"
+    for arm, mode in (("decoupled", "decoupled"), ("blind", "blind"), ("state", "state")):
+        for s in range(3):
+            write_run(parent, f"hopper_{arm}_{s}", mode=mode, seed=s, evals=[100.0 * s, 200.0 + s], iters=20,
+                      members=["a", "b"], settings={"num_envs": 256} if mode == "state" else None)
+    runs = find_runs([parent])
+    common = {"task": "hopper", "horizon": 32, "image_size": 84, "compile": True}
+    rows = [{**common, "mode": "decoupled", "raster_model": "softmax", "iter_ms": 40.0, "num_envs": 64},
+            {**common, "mode": "blind", "raster_model": None, "iter_ms": 70.0, "num_envs": 64},
+            {**common, "mode": "state", "raster_model": None, "iter_ms": 10.0, "num_envs": 64}]
+    bench = tmp_path / "iteration.json"
+    bench.write_text(json.dumps({"gpu": "GPU-B", "results": rows}))
+    t = arms.iteration_times(runs, arms.arm_label(runs), [bench])["hopper"]
+    assert t.ms == {"decoupled": 40.0, "blind": 70.0} and t.untimed == ("state",)
+    assert "state left out: no time measured alone at its runs' settings, trained as population members" in t.why
+    out = seeds.seed_statistics(runs, benchmarks=[bench], reps=REPS)
+    ts = out["hopper"].stats
+    assert ts.wall_s == pytest.approx(0.8) and set(ts.equal_wall.arms) == {"decoupled", "blind"}
+    assert ts.untimed_at_wall == ("state",) and "state" in ts.equal_iters.arms
+    text = "\n".join(seeds.seed_section(runs, tmp_path / "figs", tmp_path, reps=REPS, computed=out))
+    assert "Equal wall-clock: every run cut at 0.8 s" in text and "state left out" in text
+    # timed at its own settings, state is in the view again
+    bench.write_text(json.dumps({"gpu": "GPU-B", "results": [*rows, {**rows[2], "num_envs": 256, "iter_ms": 30.0}]}))
+    t = arms.iteration_times(runs, arms.arm_label(runs), [bench])["hopper"]
+    assert t.ms == {"decoupled": 40.0, "blind": 70.0, "state": 30.0} and t.untimed == ()
+    bench.write_text(json.dumps({"gpu": "GPU-B", "results": rows[1:]}))
+    t = arms.iteration_times(runs, arms.arm_label(runs), [bench])["hopper"]
+    assert t.ms is None and "decoupled, state: trained as population members" in t.why
+    assert seeds.seed_statistics(runs, benchmarks=[bench], reps=REPS)["hopper"].stats.equal_wall is None

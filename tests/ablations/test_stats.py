@@ -223,6 +223,25 @@ def test_a_reference_arm_does_not_set_the_wall_clock_budget_and_is_read_at_its_e
     assert ts.equal_wall.arms["state"].final == ts.whole.arms["state"].final
 
 
+def test_a_reference_arm_without_a_time_is_left_out_of_equal_wall_clock_only():
+    # as above, but the state arm's time alone is not known: the pixel arms keep their budget and cut, state
+    # leaves the wall-clock view (and its difference curve along wall-clock) and stays in equal iterations
+    curves = [curve([float(i + s) for i in range(n)], arm=arm, seed=s)
+              for arm, n in (("decoupled", 10), ("full", 6), ("state", 10)) for s in range(3)]
+    ms = {"decoupled": 100.0, "full": 250.0}
+    ts = stats.task_statistics(curves, iter_ms_alone=ms, reps=FEW, not_setting_wall={"state"})["hopper"]
+    assert ts.wall_s == pytest.approx(10.0) and ts.untimed_at_wall == ("state",)
+    assert set(ts.equal_wall.arms) == {"decoupled", "full"} and set(ts.iters_at_wall) == {"decoupled", "full"}
+    assert "state" in ts.equal_iters.arms and ts.ended_before_wall == ()
+    diffs = stats.difference_curves(curves, iter_ms_alone=ms, reps=FEW)
+    assert set(diffs) == {("full", "iteration"), ("state", "iteration"), ("full", "wall-clock")}
+    # an arm that sets the budget still needs its time
+    with pytest.raises(ValueError, match="no iteration time for arm 'full'"):
+        stats.task_statistics(curves, iter_ms_alone={"decoupled": 100.0}, reps=FEW, not_setting_wall={"state"})
+    with pytest.raises(ValueError, match="no iteration time for arm 'decoupled'"):
+        stats.difference_curves(curves, iter_ms_alone={"full": 250.0}, reps=FEW)
+
+
 # -------------------------------------------------------------------------------- performance profiles
 def test_performance_profile_fractions_and_plot(tmp_path):
     curves = _arm("decoupled", [1.0, 2.0, 3.0, 4.0]) + _arm("full", [3.0, 3.5, 5.0, 6.0])

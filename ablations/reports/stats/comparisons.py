@@ -303,6 +303,8 @@ class TaskStatistics:
     equal_wall: Comparison | None = None
     #: Arms that did not set the wall-clock budget and whose runs all ended before it (read at their ends).
     ended_before_wall: tuple[str, ...] = ()
+    #: Arms that do not set the budget and have no time in ``iter_ms_alone``: left out of ``equal_wall``.
+    untimed_at_wall: tuple[str, ...] = ()
 
 
 def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupled",
@@ -315,7 +317,8 @@ def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupl
     iteration of that arm measured alone (population members share a process, so their own ``wall_s`` is not
     their arm's time). ``at_iteration``: every curve is cut there first (to read longer runs at an earlier
     point: all three views then end at or before it). ``not_setting_wall``: arms that do not set the
-    wall-clock budget (``common_wall_s``'s ``not_setting``)."""
+    wall-clock budget (``common_wall_s``'s ``not_setting``); such an arm missing from ``iter_ms_alone`` is left
+    out of the equal-wall-clock view (``untimed_at_wall``), every other arm needs a time."""
     check_at_iteration(at_iteration)
     kw = dict(reference=reference, final_evals=final_evals, reps=reps, seed=seed, confidence=confidence)
     out = {}
@@ -331,14 +334,17 @@ def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupl
         stats = TaskStatistics(task=task, whole=compare(cs, window="per arm", **kw), iteration=n,
                                equal_iters=compare(truncate_at_iteration(cs, n), **kw))
         if iter_ms_alone is not None:
-            budget = common_wall_s(cs, iter_ms_alone, not_setting=not_setting_wall)
-            cut = truncate_at_wall_s(cs, iter_ms_alone, budget)
-            ms = _iter_ms(cs, iter_ms_alone)
+            untimed = tuple(a for a in dict.fromkeys(c.arm for c in cs)
+                            if a in not_setting_wall and a not in iter_ms_alone)
+            timed = [c for c in cs if c.arm not in untimed]
+            budget = common_wall_s(timed, iter_ms_alone, not_setting=not_setting_wall)
+            cut = truncate_at_wall_s(timed, iter_ms_alone, budget)
+            ms = _iter_ms(timed, iter_ms_alone)
             ended = tuple(a for a in ms if a in not_setting_wall
-                          and all(c.last_iter * ms[a] / 1e3 < budget for c in cs if c.arm == a))
+                          and all(c.last_iter * ms[a] / 1e3 < budget for c in timed if c.arm == a))
             stats = replace(stats, wall_s=budget, iter_ms_alone=ms, equal_wall=compare(cut, window="per arm", **kw),
                             iters_at_wall={a: max(c.last_iter for c in cut if c.arm == a) for a in ms},
-                            ended_before_wall=ended)
+                            ended_before_wall=ended, untimed_at_wall=untimed)
         out[task] = stats
     return out
 
@@ -398,8 +404,9 @@ def difference_curves(curves: Sequence[Curve], *, reference: str = "decoupled",
                       reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED, confidence: float = 0.95
                       ) -> dict[tuple[str, str], DifferenceCurve]:
     """(arm, axis) -> :class:`DifferenceCurve` of every arm against ``reference`` in the curves of ONE task, along
-    iterations and, with ``iter_ms_alone`` (arm -> ms per iteration measured alone), along modelled wall-clock.
-    An arm without paired seeds, or whose runs share no evaluation iteration with the reference's, has none."""
+    iterations and, with ``iter_ms_alone`` (arm -> ms per iteration measured alone), along modelled wall-clock
+    for the arms it times (the reference must be one). An arm without paired seeds, or whose runs share no
+    evaluation iteration with the reference's, has none."""
     tasks = sorted({c.task for c in curves})
     if len(tasks) != 1:
         raise ValueError(f"difference_curves takes the curves of one task, got {tasks or 'none'}")
@@ -409,7 +416,10 @@ def difference_curves(curves: Sequence[Curve], *, reference: str = "decoupled",
             by_arm.setdefault(c.arm, {})[c.seed] = c
     if reference not in by_arm:
         return {}
-    ms = _iter_ms([c for c in curves if c.arm in by_arm], iter_ms_alone) if iter_ms_alone is not None else None
+    ms = None
+    if iter_ms_alone is not None:
+        ms = _iter_ms([c for c in curves if c.arm in by_arm and (c.arm in iter_ms_alone or c.arm == reference)],
+                      iter_ms_alone)
     out = {}
 
     def point_stats(rows: list[np.ndarray]) -> dict[str, np.ndarray]:
@@ -436,7 +446,7 @@ def difference_curves(curves: Sequence[Curve], *, reference: str = "decoupled",
             out[(arm, "iteration")] = DifferenceCurve(tasks[0], arm, reference, "iteration", shared.astype(float),
                                                       final_evals=final_evals, confidence=confidence,
                                                       **point_stats(list(diffs)))
-        if ms is None:
+        if ms is None or arm not in ms:
             continue
         own = {}
         for name, cs in ((arm, [runs[s] for s in seeds]), (reference, [ref[s] for s in seeds])):
