@@ -82,6 +82,7 @@ from ablations.reports.stats import check_at_iteration
 from ablations.reports.style import Floors, PlotResult, group_runs, load_floors
 from ablations.run_folder import Run, RunFolder, find_runs
 from gradlab.files import atomic_write_text
+from vocabulary import PRESET_RASTER_MODEL
 
 __all__ = ["ReportConfig", "build_report", "PAPER_TABLE1_MS", "PAPER_DEVICE", "TABLE1_TASKS", "run_bwd_ms",
            "load_benchmark", "collect_bwd", "Cell", "table1_section", "curves_section", "floors_section",
@@ -270,16 +271,19 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
     rows = []
     extra = sorted({t for t, _ in cells if t not in TABLE1_TASKS})
 
-    def of_mode(task: str, mode: str) -> list[tuple[str, Cell]]:
+    def of_mode(task: str, mode: str, first: str = "") -> list[tuple[str, Cell]]:
         found = [(lab, c) for (t, lab), c in cells.items() if t == task and (c.mode or lab) == mode]
-        # The plain mode first (a benchmark's, or runs without variants), then the variants by label.
-        return sorted(found, key=lambda lc: (lc[0] != mode, lc[0]))
+        # The plain mode first (a benchmark's, or runs without variants), then the variant named ``first``, then
+        # the others by label.
+        return sorted(found, key=lambda lc: (lc[0] != mode, not first or first not in lc[0], lc[0]))
 
     for task in (*TABLE1_TASKS, *extra):
-        decs = of_mode(task, "decoupled")
-        dec_label, dec = decs[0] if decs else ("decoupled", None)
+        decs = of_mode(task, "decoupled", first=f"({PRESET_RASTER_MODEL['dva']})")  # the decoupled arm's images
         paper = PAPER_TABLE1_MS.get(task)
         for full_label, full in of_mode(task, "full") or [("full", None)]:
+            # the decoupled time measured where this full time was, when there is one: a ratio needs both
+            beside = [d for d in decs if full and (d[1].source, d[1].device) == (full.source, full.device)]
+            dec_label, dec = (beside or decs or [("decoupled", None)])[0]
             if dec and full:
                 # A ratio of two times means something only when one process kind on one device measured both
                 # (a benchmark alone on its GPU; runs that shared theirs are slowed by their neighbours).

@@ -310,3 +310,22 @@ def test_population_members_times_are_not_their_arms(tmp_path):
     assert table_row(text, "hopper")[1:3] == ["20.0", "not run"]
     assert "2 run(s) trained as population members are left out" in text
     assert "2 run(s) trained as population members: their times and memory" in "\n".join(runs_table(loaded))
+
+
+def test_table1_sets_each_full_time_beside_the_decoupled_time_measured_with_it():
+    """A ratio needs both times from one measurement: where one file times decoupled with each raster model
+    (labels "decoupled (hard)", "decoupled (softmax)") and another plain "decoupled", a full row of the first
+    is set beside the first's decoupled time, D.Va's softmax image model's, not the other file's."""
+    from ablations.reports.report import collect_bwd, table1_section
+
+    def row(mode, raster, bwd):
+        return {"task": "hopper", "mode": mode, "raster_model": raster, "bwd_ms": bwd, "num_envs": 64,
+                "horizon": 32, "image_size": 84, "status": "ok"}
+
+    h100 = (Path("h100.json"), {"gpu": "H100"}, [row("decoupled", "softmax", 45.0), row("blind", None, 40.0)])
+    h200 = (Path("h200.json"), {"gpu": "H200"}, [row("decoupled", "hard", 41.0), row("decoupled", "softmax", 44.0),
+                                                  row("full", "hard", 63.0), row("full", "softmax", 66.0)])
+    text = "\n".join(table1_section(collect_bwd([], [h100, h200])))
+    rows = [r for r in text.splitlines() if r.startswith("| hopper |")]
+    assert [r.split(" | ")[1:4] for r in rows] == [["44.0", "63.0", "1.43x"], ["44.0", "66.0", "1.50x"]]
+    assert all("decoupled (softmax): 64x32 84px, H200, benchmark h200.json" in r for r in rows)
