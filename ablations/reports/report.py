@@ -95,6 +95,8 @@ PAPER_TABLE1_MS = _PAPER.table1_ms()
 #: The tasks of the paper's Table 1, in its order: Table 1 here has a row for each (and for any other task measured).
 TABLE1_TASKS = tuple(PAPER_TABLE1_MS)
 PAPER_DEVICE = _PAPER.table1_device()
+#: The decoupled arm's image model (D.Va's preset): the decoupled row a benchmark's full row is set beside.
+_DVA_RASTER = PRESET_RASTER_MODEL["dva"]
 
 
 @dataclass
@@ -159,7 +161,9 @@ def _setting(d: dict) -> str:
 
 @dataclass
 class Cell:
-    """Our backward time for one (task, label) and where it came from; ``mode`` is the label's mode."""
+    """Our backward time for one (task, label) and where it came from; ``mode`` is the label's mode.
+    ``decoupled``: for a full cell of a benchmark file, (label, cell) of the decoupled time that file measured
+    with it (D.Va's own image model where it timed several), the partner of a full / decoupled ratio."""
 
     ms: float
     n: int
@@ -167,6 +171,7 @@ class Cell:
     setting: str
     device: str
     mode: str = ""
+    decoupled: tuple[str, Cell] | None = None
 
 
 def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]], *, label=None
@@ -186,13 +191,23 @@ def collect_bwd(runs: list[Run], benchmarks: list[tuple[Path, dict, list[dict]]]
             keys = varying[r["mode"]]
             lab = f"{r['mode']} ({', '.join(str(r.get(k)) for k in keys)})" if keys else r["mode"]
             by_key.setdefault((r["task"], lab), []).append(r)
+        here = {}
         for key, rs in by_key.items():
-            if key in cells:
-                continue  # the first benchmark given wins
             settings = sorted({_setting(r) for r in rs})
-            cells[key] = Cell(ms=median([r["bwd_ms"] for r in rs]), n=len(rs), source=f"benchmark {path.name}",
-                              setting=" / ".join(settings), device=str(meta.get("gpu") or meta.get("device") or "?"),
-                              mode=rs[0]["mode"])
+            here[key] = Cell(ms=median([r["bwd_ms"] for r in rs]), n=len(rs), source=f"benchmark {path.name}",
+                             setting=" / ".join(settings), device=str(meta.get("gpu") or meta.get("device") or "?"),
+                             mode=rs[0]["mode"])
+        for (task, _), cell in here.items():
+            if cell.mode != "full":
+                continue
+            # the decoupled arm's own rows first: D.Va's image model, rasterized (not ray-traced), then by label
+            decs = sorted((key for key in by_key if key[0] == task and here[key].mode == "decoupled"),
+                          key=lambda key: (by_key[key][0].get("raster_model") not in (None, _DVA_RASTER),
+                                           by_key[key][0].get("renderer") not in (None, "soft"), key[1]))
+            if decs:
+                cell.decoupled = (decs[0][1], here[decs[0]])
+        for key, cell in here.items():
+            cells.setdefault(key, cell)  # the first benchmark given wins
     for (task, lab), rs in group_runs(runs, label=label).items():
         if (task, lab) in cells:
             continue
@@ -271,19 +286,18 @@ def table1_section(cells: dict[tuple[str, str], Cell], *, heading: str = "## 1. 
     rows = []
     extra = sorted({t for t, _ in cells if t not in TABLE1_TASKS})
 
-    def of_mode(task: str, mode: str, first: str = "") -> list[tuple[str, Cell]]:
+    def of_mode(task: str, mode: str) -> list[tuple[str, Cell]]:
         found = [(lab, c) for (t, lab), c in cells.items() if t == task and (c.mode or lab) == mode]
-        # The plain mode first (a benchmark's, or runs without variants), then the variant named ``first``, then
-        # the others by label.
-        return sorted(found, key=lambda lc: (lc[0] != mode, not first or first not in lc[0], lc[0]))
+        # The plain mode first (a benchmark's, or runs without variants), then the variants by label.
+        return sorted(found, key=lambda lc: (lc[0] != mode, lc[0]))
 
     for task in (*TABLE1_TASKS, *extra):
-        decs = of_mode(task, "decoupled", first=f"({PRESET_RASTER_MODEL['dva']})")  # the decoupled arm's images
+        decs = of_mode(task, "decoupled")
         paper = PAPER_TABLE1_MS.get(task)
         for full_label, full in of_mode(task, "full") or [("full", None)]:
-            # the decoupled time measured where this full time was, when there is one: a ratio needs both
-            beside = [d for d in decs if full and (d[1].source, d[1].device) == (full.source, full.device)]
-            dec_label, dec = (beside or decs or [("decoupled", None)])[0]
+            # the decoupled time its benchmark file measured with it, where there is one: a ratio needs both
+            dec_label, dec = (full.decoupled if full and full.decoupled else None) or (
+                decs[0] if decs else ("decoupled", None))
             if dec and full:
                 # A ratio of two times means something only when one process kind on one device measured both
                 # (a benchmark alone on its GPU; runs that shared theirs are slowed by their neighbours).

@@ -318,9 +318,9 @@ def test_table1_sets_each_full_time_beside_the_decoupled_time_measured_with_it()
     is set beside the first's decoupled time, D.Va's softmax image model's, not the other file's."""
     from ablations.reports.report import collect_bwd, table1_section
 
-    def row(mode, raster, bwd):
-        return {"task": "hopper", "mode": mode, "raster_model": raster, "bwd_ms": bwd, "num_envs": 64,
-                "horizon": 32, "image_size": 84, "status": "ok"}
+    def row(mode, raster, bwd, renderer="soft"):
+        return {"task": "hopper", "mode": mode, "raster_model": raster, "renderer": renderer, "bwd_ms": bwd,
+                "num_envs": 64, "horizon": 32, "image_size": 84, "status": "ok"}
 
     h100 = (Path("h100.json"), {"gpu": "H100"}, [row("decoupled", "softmax", 45.0), row("blind", None, 40.0)])
     h200 = (Path("h200.json"), {"gpu": "H200"}, [row("decoupled", "hard", 41.0), row("decoupled", "softmax", 44.0),
@@ -329,3 +329,19 @@ def test_table1_sets_each_full_time_beside_the_decoupled_time_measured_with_it()
     rows = [r for r in text.splitlines() if r.startswith("| hopper |")]
     assert [r.split(" | ")[1:4] for r in rows] == [["44.0", "63.0", "1.43x"], ["44.0", "66.0", "1.50x"]]
     assert all("decoupled (softmax): 64x32 84px, H200, benchmark h200.json" in r for r in rows)
+    # the same label in both files (the first file's cell is the table's), and a ray-traced decoupled row (labels
+    # "decoupled (None, warp)" and "decoupled (softmax, soft)"): still the second file's rasterized softmax row
+    h100 = (Path("h100.json"), {"gpu": "H100"}, [row("decoupled", "softmax", 45.0)])
+    h200 = (Path("h200.json"), {"gpu": "H200"}, [row("decoupled", None, 30.0, "warp"), row("decoupled", "hard", 41.0),
+                                                  row("decoupled", "softmax", 44.0), row("full", "hard", 63.0)])
+    text = "\n".join(table1_section(collect_bwd([], [h100, h200])))
+    rows = [r for r in text.splitlines() if r.startswith("| hopper |")]
+    assert [r.split(" | ")[1:4] for r in rows] == [["44.0", "63.0", "1.43x"]]
+    assert "decoupled (softmax, soft): 64x32 84px, H200" in rows[0]
+    one = (Path("one.json"), {"gpu": "H200"}, [row("decoupled", "softmax", 44.0), row("full", "softmax", 66.0)])
+    rows = [r for r in "\n".join(table1_section(collect_bwd([], [h100, one]))).splitlines() if r.startswith("| hop")]
+    assert [r.split(" | ")[1:4] for r in rows] == [["44.0", "66.0", "1.50x"]]
+    # a file without decoupled rows: its full row is set beside the table's decoupled cell, and the ratio refused
+    alone = (Path("alone.json"), {"gpu": "H200"}, [row("full", "softmax", 66.0)])
+    rows = [r for r in "\n".join(table1_section(collect_bwd([], [h100, alone]))).splitlines() if r.startswith("| hop")]
+    assert [r.split(" | ")[1:4] for r in rows] == [["45.0", "66.0", "n/a (measured apart)"]]
