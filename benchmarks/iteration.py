@@ -68,12 +68,13 @@ def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_crit
                      iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
                      raster_model=raster_model, extra_meshes=args.extra_meshes,
                      extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic, precision=args.precision)
-    # num_envs None: the preset's, per task and mode (SHAC's 256 for the hopper on the state vector), so that
-    # each arm is timed at the size `ablate` trains it
-    row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": resolve_config(cfg).num_envs,
-           "horizon": args.horizon, "image_size": args.image_size, "compile": args.compile,
-           "overlap_critic": overlap_critic, "precision": args.precision, "status": "ok"}
+    row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": args.num_envs, "horizon": args.horizon,
+           "image_size": args.image_size, "compile": args.compile, "overlap_critic": overlap_critic,
+           "precision": args.precision, "status": "ok"}
     try:
+        # num_envs None: the preset's, per task and mode (SHAC's 256 for the hopper on the state vector), so that
+        # each arm is timed at the size `ablate` trains it
+        row["num_envs"] = resolve_config(cfg).num_envs
         t0 = time.perf_counter()
         trainer = SHAC(cfg, device=args.device)
         row["setup_s"] = time.perf_counter() - t0
@@ -177,7 +178,7 @@ def main() -> None:
                "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
         write_json(args.out, doc, indent=2)
 
-    envs = "/".join(map(str, sorted({r["num_envs"] for r in results})))
+    envs = "/".join(sorted({str(r["num_envs"]) for r in results}, key=lambda e: (len(e), e)))
     print(f"\nSHAC iteration, {envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile}, precision={args.precision} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")

@@ -255,6 +255,11 @@ def test_iteration_times_each_arm_at_the_size_ablate_trains_it(tmp_path, monkeyp
     monkeypatch.setattr(sys, "argv", [*argv, "--num-envs", "3", "--modes", "state"])
     iteration.main()
     assert [r["num_envs"] for r in json.loads(out.read_text())["results"]] == [3]
+    # a setting the config refuses is that row's error, not the script's end
+    monkeypatch.setattr(sys, "argv", [*argv, "--num-envs", "1", "--modes", "state"])
+    iteration.main()
+    (row,) = json.loads(out.read_text())["results"]
+    assert row["status"] == "error" and row["num_envs"] == 1 and "ValueError" in row["error"], row
 
 
 def test_startup_records_how_much_bytecode_a_run_found(tmp_path, monkeypatch, benchmark_script):
