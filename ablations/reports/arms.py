@@ -225,6 +225,9 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
         # a kind of source with every arm first; then one that lacks only state-vector arms
         for kind, times, may_lack in (("benchmark", bench, set()), ("runs", own, set()),
                                       ("benchmark", bench, on_state), ("runs", own, on_state)):
+            if may_lack:  # a state arm timed on another device than the others counts as lacking a time
+                others = {t.device for a, t in times.items() if a not in may_lack}
+                times = {a: t for a, t in times.items() if a not in may_lack or {t.device} == others}
             lacking = [a for a in arms if a not in times]
             if set(lacking) - may_lack or len(lacking) == len(arms):
                 continue

@@ -134,8 +134,8 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
         cut = curves if at_iteration is None else stats.truncate_at_iteration(curves, at_iteration)
         profile = stats.performance_profiles(stats.truncate_at_iteration(curves, ts.iteration), reps=reps,
                                              seed=seed).get(task) if keys else None
-        diffs = stats.difference_curves(cut, reference=REFERENCE_ARM, iter_ms_alone=t.ms, reps=reps,
-                                        seed=seed) if keys else {}
+        diffs = stats.difference_curves(cut, reference=REFERENCE_ARM, iter_ms_alone=t.ms, untimed=ts.untimed_at_wall,
+                                        reps=reps, seed=seed) if keys else {}
         task_runs = [r for r in runs if r.task == task]
         bands = {}
         for arm in dict.fromkeys(label(r) for r in task_runs):
@@ -363,7 +363,8 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             times = ", ".join(f"{a} {ms:.4g} ms" for a, ms in ts.iter_ms_alone.items())
             ended = ", ".join(ts.ended_before_wall)
             out += [_verdict_line(f"equal wall-clock, {ts.wall_s:.4g} s", s.verdicts["equal wall-clock"]), "",
-                    f"Equal wall-clock: every run cut at {ts.wall_s:.4g} s of modelled training time ({times} per "
+                    f"Equal wall-clock: every run{' of the timed arms' if ts.untimed_at_wall else ''} cut at "
+                    f"{ts.wall_s:.4g} s of modelled training time ({times} per "
                     f"iteration; {s.times.why}); each run's final evaluation return averages its arm's last "
                     "common evaluations (the window column)."
                     + (f" The runs of {ended} (the actor on the state vector: a reference, which does "

@@ -381,7 +381,13 @@ def test_a_state_arm_without_a_time_alone_leaves_only_itself_out_of_equal_wall_c
     assert ts.wall_s == pytest.approx(0.8) and set(ts.equal_wall.arms) == {"decoupled", "blind"}
     assert ts.untimed_at_wall == ("state",) and "state" in ts.equal_iters.arms
     text = "\n".join(seeds.seed_section(runs, tmp_path / "figs", tmp_path, reps=REPS, computed=out))
-    assert "Equal wall-clock: every run cut at 0.8 s" in text and "state left out" in text
+    assert "Equal wall-clock: every run of the timed arms cut at 0.8 s" in text and "state left out" in text
+    # a state time measured on another device is no time beside the others': state alone is left out again
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"gpu": "GPU-C", "results": [{**rows[2], "num_envs": 256, "iter_ms": 30.0}]}))
+    t = arms.iteration_times(runs, arms.arm_label(runs), [bench, other])["hopper"]
+    assert t.ms == {"decoupled": 40.0, "blind": 70.0} and t.untimed == ("state",)
+    assert "its only time is from benchmark other.json on GPU-C" in t.why
     # timed at its own settings, state is in the view again
     bench.write_text(json.dumps({"gpu": "GPU-B", "results": [*rows, {**rows[2], "num_envs": 256, "iter_ms": 30.0}]}))
     t = arms.iteration_times(runs, arms.arm_label(runs), [bench])["hopper"]

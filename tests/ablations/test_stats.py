@@ -233,13 +233,15 @@ def test_a_reference_arm_without_a_time_is_left_out_of_equal_wall_clock_only():
     assert ts.wall_s == pytest.approx(10.0) and ts.untimed_at_wall == ("state",)
     assert set(ts.equal_wall.arms) == {"decoupled", "full"} and set(ts.iters_at_wall) == {"decoupled", "full"}
     assert "state" in ts.equal_iters.arms and ts.ended_before_wall == ()
-    diffs = stats.difference_curves(curves, iter_ms_alone=ms, reps=FEW)
+    diffs = stats.difference_curves(curves, iter_ms_alone=ms, untimed=ts.untimed_at_wall, reps=FEW)
     assert set(diffs) == {("full", "iteration"), ("state", "iteration"), ("full", "wall-clock")}
+    with pytest.raises(ValueError, match="no iteration time for arm 'state'"):  # not named untimed: an error
+        stats.difference_curves(curves, iter_ms_alone=ms, reps=FEW)
     # an arm that sets the budget still needs its time
     with pytest.raises(ValueError, match="no iteration time for arm 'full'"):
         stats.task_statistics(curves, iter_ms_alone={"decoupled": 100.0}, reps=FEW, not_setting_wall={"state"})
     with pytest.raises(ValueError, match="no iteration time for arm 'decoupled'"):
-        stats.difference_curves(curves, iter_ms_alone={"full": 250.0}, reps=FEW)
+        stats.difference_curves(curves, iter_ms_alone={"full": 250.0}, untimed={"decoupled", "state"}, reps=FEW)
 
 
 # -------------------------------------------------------------------------------- performance profiles

@@ -400,13 +400,14 @@ def _window_means(c: Curve, shared: np.ndarray, final_evals: int) -> np.ndarray:
 
 
 def difference_curves(curves: Sequence[Curve], *, reference: str = "decoupled",
-                      iter_ms_alone: Mapping[str, float] | None = None, final_evals: int = FINAL_EVALS,
-                      reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED, confidence: float = 0.95
-                      ) -> dict[tuple[str, str], DifferenceCurve]:
+                      iter_ms_alone: Mapping[str, float] | None = None, untimed: Collection[str] = (),
+                      final_evals: int = FINAL_EVALS, reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED,
+                      confidence: float = 0.95) -> dict[tuple[str, str], DifferenceCurve]:
     """(arm, axis) -> :class:`DifferenceCurve` of every arm against ``reference`` in the curves of ONE task, along
-    iterations and, with ``iter_ms_alone`` (arm -> ms per iteration measured alone), along modelled wall-clock
-    for the arms it times (the reference must be one). An arm without paired seeds, or whose runs share no
-    evaluation iteration with the reference's, has none."""
+    iterations and, with ``iter_ms_alone`` (arm -> ms per iteration measured alone), along modelled wall-clock;
+    every arm needs a time there but those named in ``untimed`` (``TaskStatistics.untimed_at_wall``), which have
+    no wall-clock curve. An arm without paired seeds, or whose runs share no evaluation iteration with the
+    reference's, has none."""
     tasks = sorted({c.task for c in curves})
     if len(tasks) != 1:
         raise ValueError(f"difference_curves takes the curves of one task, got {tasks or 'none'}")
@@ -418,7 +419,7 @@ def difference_curves(curves: Sequence[Curve], *, reference: str = "decoupled",
         return {}
     ms = None
     if iter_ms_alone is not None:
-        ms = _iter_ms([c for c in curves if c.arm in by_arm and (c.arm in iter_ms_alone or c.arm == reference)],
+        ms = _iter_ms([c for c in curves if c.arm in by_arm and (c.arm not in untimed or c.arm == reference)],
                       iter_ms_alone)
     out = {}
 
