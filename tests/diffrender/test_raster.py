@@ -499,6 +499,8 @@ def test_bin_overflow_raises_with_numbers_or_poisons_without_sync(ant64):
 def test_automatic_capacity_grows_instead_of_failing(ant64, monkeypatch):
     render_module = importlib.import_module("diffrender.render")
     monkeypatch.setattr(render_module, "_growth_warned", False)  # as in a fresh process
+    # and no capacities of earlier tests: a freed faces tensor's address, reused here, would name their entries
+    monkeypatch.setattr(render_module, "_capacity_cache", {})
     verts, _, cam = _ant_inputs(ant64, batch=2, size=24)
     small = ant64.to(dtype=F64)  # a fresh faces tensor: a fresh automatic capacity
     # first frame: the robots half out of view set a small capacity
