@@ -136,13 +136,16 @@ class IterationTimes:
     """One task's iteration times for the equal-wall-clock view: ``ms`` arm -> milliseconds when every arm has
     one from one kind of source on one device (arms on the state vector may lack one: ``untimed``), else None;
     ``found``: arm -> the time found, where one was; ``why``: where the times come from, or why the view is
-    not available (one sentence); ``untimed``: the state-vector arms left out of the view for lack of a time."""
+    not available (one sentence); ``untimed``: the state-vector arms left out of the view for lack of a time;
+    ``not_setting``: the arms on the state vector (``vocabulary.STATE_INPUT_MODES``), which never set the view's
+    budget."""
 
     task: str
     ms: dict[str, float] | None
     found: dict[str, ArmTime]
     why: str
     untimed: tuple[str, ...] = ()
+    not_setting: frozenset[str] = frozenset()
 
 
 def benchmark_iteration_rows(path: str | os.PathLike) -> tuple[str, list[dict]]:
@@ -220,7 +223,7 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
                 why_not[arm] = ("trained as population members (a member's iter_ms is its whole population's)"
                                 if len(alone) < len(rs) else "no iter_ms logged")
         found = {**own, **bench}
-        on_state = {arm for arm, rs in arms.items() if all(r.mode in STATE_INPUT_MODES for r in rs)}
+        on_state = frozenset(arm for arm, rs in arms.items() if all(r.mode in STATE_INPUT_MODES for r in rs))
         ms, why, untimed = None, "", ()
         # a kind of source with every arm first; then one that lacks only state-vector arms
         for kind, times, may_lack in (("benchmark", bench, set()), ("runs", own, set()),
@@ -256,5 +259,5 @@ def iteration_times(runs: Sequence[Run], label: Callable[[Run], str],
                     f"{a}: {found[a].source}" for a in arms) + ")"]
             why = ("no iteration time measured alone for every arm: " + "; ".join(parts)
                    + " (give --benchmark files of benchmarks/iteration.py or benchmarks/population.py)")
-        out[task] = IterationTimes(task, ms, found, why, untimed)
+        out[task] = IterationTimes(task, ms, found, why, untimed, on_state)
     return out

@@ -39,7 +39,6 @@ from vocabulary import (
     CONTROL_ARM,
     IMAGELESS_MODES,
     REFERENCE_ARM,
-    STATE_INPUT_MODES,
 )
 
 __all__ = ["NOT_RANKING", "SEED_FIGURES", "PROBE_FIGURES", "PROBE_KEYS", "TaskSeeds", "seed_statistics",
@@ -116,9 +115,8 @@ def seed_statistics(runs: Sequence[Run], *, label: Callable[[Run], str] | None =
         try:  # a run without a seed, or two runs of one arm and seed: this task says why, the others go on
             curves = [stats.curve_of(r, label(r)) for r in runs if r.task == task]
             keys = tuple(sorted({c.key for c in curves if c.key}))
-            on_state = {label(r) for r in runs if r.task == task and r.mode in STATE_INPUT_MODES}
             ts = stats.task_statistics(curves, iter_ms_alone=t.ms, reps=reps, seed=seed,
-                                       at_iteration=at_iteration, not_setting_wall=on_state)[task]
+                                       at_iteration=at_iteration, not_setting_wall=t.not_setting)[task]
         except ValueError as e:
             out[task] = TaskSeeds(task, None, t, {}, None, keys, error=str(e))
             continue
