@@ -5,16 +5,16 @@ overrides it, and ``config.json`` records both (:func:`preset_record`). Sources,
 HaoxiangYou/D.VA ``01b2be4`` and NVlabs/DiffRL ``a4c0dd1`` (facts, no code):
 
 ``dva`` (the default)
-    D.Va's ``examples/cfg/dva/{cartpole,hopper,ant,humanoid}.yaml``: actor/critic learning rates, target
+    D.Va's ``examples/cfg/dva/{cartpole,hopper,ant,humanoid,cheetah}.yaml``: actor/critic learning rates, target
     alpha, MLP widths, ``max_epochs`` as the length of the linear learning-rate decay (4000 cartpole, 30000
-    hopper and ant, 60000 humanoid), 64 envs. The encoder's trunk width is the actor's first MLP width
+    hopper, ant and cheetah, 60000 humanoid), 64 envs. The encoder's trunk width is the actor's first MLP width
     (``models/actor.py``: ``output_dim=units[0]``). The actor's linear layers keep PyTorch's default
     initialisation (``ActorStochasticMLP`` wraps plain ``nn.Linear``), observations are normalised without
     clipping (``utils/running_mean_std.py``), and an episode that ends on its last step is bootstrapped with
     the target critic even if it failed there (``algorithms/dva.py``: only ``episode_length <
     max_episode_length`` counts as early termination). In ``--mode state`` the values are SHAC's state-based
     ones where they differ (DiffRL ``examples/cfg/shac/*.yaml``: cartpole actor lr 1e-2, critic 1e-3, decay
-    500; hopper 256 envs; decay 2000 for hopper, ant and humanoid).
+    500; hopper 256 envs; decay 2000 for hopper, ant, humanoid and cheetah).
 ``shac-diffrender``
     The paper's full-APG baseline, D.Va's ``examples/cfg/dva/diff_render_*.yaml``: the same learning rates
     and networks as ``dva``, decay over ``max_epochs`` 800 (cartpole) or 2000 (others), and the hard
@@ -47,9 +47,12 @@ _DVA_TASKS: dict[str, dict[str, Any]] = {
                      lr_decay_iters=60000),
 }
 _DVA_TASKS["cartpole-swingup"] = dict(_DVA_TASKS["cartpole"])
+_DVA_TASKS["cheetah"] = dict(critic_lr=2e-3, target_alpha=0.2, actor_hidden=(128, 64, 32), critic_hidden=(64, 64),
+                             lr_decay_iters=30000)
 
 # D.Va examples/cfg/dva/diff_render_<task>.yaml: max_epochs only differs.
 _DIFFRENDER_DECAY = {"cartpole": 800, "cartpole-swingup": 800, "hopper": 2000, "ant": 2000, "humanoid": 2000}
+_DIFFRENDER_DECAY["cheetah"] = 2000
 
 # DiffRL examples/cfg/shac/<task>.yaml, where they differ from D.Va's (state-based SHAC).
 _SHAC_STATE = {
@@ -59,6 +62,7 @@ _SHAC_STATE = {
     "ant": dict(lr_decay_iters=2000),
     "humanoid": dict(lr_decay_iters=2000),
 }
+_SHAC_STATE["cheetah"] = dict(lr_decay_iters=2000)
 
 _REFERENCE_TRAINER = dict(num_envs=64, actor_lr=2e-3, actor_init="default", obs_clip=0.0, bootstrap_last_step=True)
 

@@ -1,7 +1,7 @@
 """Differentiable, batched articulated-body simulation in pure PyTorch and the SHAC tasks.
 
 >>> import torch, tasks
->>> env = tasks.make("ant", 64)            # tasks.TASKS: cartpole, cartpole-swingup, hopper, ant, humanoid
+>>> env = tasks.make("ant", 64)            # tasks.TASKS: cartpole, cartpole-swingup, hopper, ant, humanoid, cheetah
 >>> obs = env.reset()                       # (64, 37), seeded
 >>> action = torch.zeros(64, env.num_act, requires_grad=True)
 >>> obs, reward, done, info = env.step(action)

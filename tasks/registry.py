@@ -11,6 +11,7 @@ from vocabulary import TASKS
 
 from .ant import AntTask
 from .cartpole import CartpoleSwingUpTask, CartpoleTask
+from .cheetah import CheetahTask
 from .hopper import HopperTask
 from .humanoid import HumanoidTask
 from .task import Task, config_fields
@@ -23,6 +24,7 @@ _REGISTRY: dict[str, type[Task]] = {
     "hopper": HopperTask,
     "ant": AntTask,
     "humanoid": HumanoidTask,
+    "cheetah": CheetahTask,
 }
 if tuple(_REGISTRY) != TASKS:  # the names are vocabulary's; a task class without its name there is refused here
     raise ImportError(f"tasks/registry.py registers {tuple(_REGISTRY)}, vocabulary.TASKS names {TASKS}")

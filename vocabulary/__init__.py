@@ -20,7 +20,7 @@ __all__ = ["TASKS", "MODES", "IMAGELESS_MODES", "STATE_INPUT_MODES", "RENDERERS"
            "REFERENCE_ARM", "CONTROL_ARM", "arm_of"]
 
 #: The tasks, in the order tables list them (``tasks.make`` builds each; ``tasks/registry.py`` holds the classes).
-TASKS: tuple[str, ...] = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid")
+TASKS: tuple[str, ...] = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid", "cheetah")
 #: The training modes (``gradlab.config.ModePlan`` says what each decides; docs/design.md, "Where the mode acts").
 MODES: tuple[str, ...] = ("full", "decoupled", "state", "blind")
 #: Modes that render nothing while training: their raster model names no difference.

@@ -21,7 +21,7 @@ def tiny(task="cartpole", mode="decoupled", **kw) -> SHACConfig:
 
 
 @pytest.mark.parametrize("preset", PRESETS)
-@pytest.mark.parametrize("task", ["cartpole", "cartpole-swingup", "hopper", "ant", "humanoid"])
+@pytest.mark.parametrize("task", ["cartpole", "cartpole-swingup", "hopper", "ant", "humanoid", "cheetah"])
 @pytest.mark.parametrize("mode", ["full", "decoupled", "state", "blind"])
 def test_every_preset_sets_every_field(preset, task, mode):
     values = preset_values(preset, task, mode)
@@ -49,6 +49,21 @@ def test_dva_preset_is_dvas_configs():
         # utils/running_mean_std.py normalises without clipping; ActorStochasticMLP keeps nn.Linear's init;
         # algorithms/dva.py bootstraps an episode that reached its length.
         assert (c.obs_clip, c.actor_init, c.bootstrap_last_step) == (0.0, "default", True)
+
+
+def test_cheetah_presets_are_the_references():
+    """D.Va examples/cfg/dva/cheetah.yaml: actor lr 2e-3, critic lr 2e-3, target_critic_alpha 0.2, actor_mlp
+    [128, 64, 32], critic_mlp [64, 64], max_epochs 30000, num_actors 64; dva/diff_render_cheetah.yaml (and
+    shac/cheetah_vis.yaml): max_epochs 2000; DiffRL examples/cfg/shac/cheetah.yaml (state SHAC): the same values
+    with max_epochs 2000 and num_actors 64."""
+    c = resolve_config(SHACConfig(task="cheetah", mode="decoupled"))
+    assert (c.actor_lr, c.critic_lr, c.target_alpha, c.actor_hidden, c.critic_hidden, c.lr_decay_iters) == (
+        2e-3, 2e-3, 0.2, (128, 64, 32), (64, 64), 30000)
+    assert (c.num_envs, c.trunk_dim) == (64, 128)
+    c = resolve_config(SHACConfig(task="cheetah", mode="full", preset="shac-diffrender"))
+    assert (c.critic_lr, c.lr_decay_iters, c.raster_model) == (2e-3, 2000, "hard")
+    c = resolve_config(SHACConfig(task="cheetah", mode="state"))
+    assert (c.actor_lr, c.critic_lr, c.target_alpha, c.num_envs, c.lr_decay_iters) == (2e-3, 2e-3, 0.2, 64, 2000)
 
 
 def test_shac_diffrender_preset_is_the_papers_baseline():
