@@ -12,7 +12,7 @@ from tasks import UnsupportedModelError, load_model
 from tasks.dynamics import ContactParams, Simulator
 from tasks.task import ASSETS
 
-ROBOTS = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid")
+ROBOTS = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid", "cheetah")
 
 
 def random_states(m: mujoco.MjModel, model, n: int, seed: int):

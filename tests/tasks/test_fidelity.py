@@ -303,6 +303,106 @@ def test_humanoid_task_constants():
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# cheetah
+CHEETAH_JOINTS = {
+    # name: (stiffness, damping, range [rad]); D.Va = DiffRL envs/assets/half_cheetah.xml, each joint's own
+    # attributes (parse_mjcf reads no <default>)
+    "bthigh": (240, 6, (-0.52, 1.05)),
+    "bshin": (180, 4.5, (-0.785, 0.785)),
+    "bfoot": (120, 3, (-0.4, 0.785)),
+    "fthigh": (180, 4.5, (-1.5, 0.8)),
+    "fshin": (120, 3, (-1.2, 1.1)),
+    "ffoot": (60, 1.5, (-3.1, -0.3)),
+}
+
+
+def test_cheetah_joints_armature_springs_ranges():
+    """D.Va (= DiffRL) envs/cheetah.py: ``parse_mjcf(..., density=1000.0, stiffness=0.0, damping=1.0,
+    armature=0.1, radians=True, load_stiffness=True)`` without ``load_armature``, so armature 0.1 is on all nine
+    dofs, the root slides and hinge included (the file's ``armature="0"`` on them is not read); stiffness and
+    damping from each joint's attributes in envs/assets/half_cheetah.xml (CHEETAH_JOINTS; 0 on the root
+    joints); ``joint_target`` 0, so the springs pull towards 0; root joints ``limited="false"``."""
+    m = _model("cheetah")
+    assert m.hs_names == ("rootx", "rootz", "rooty", *CHEETAH_JOINTS)
+    assert m.dof_armature.tolist() == [0.1] * 9
+    assert m.dof_damping.tolist() == [0.0] * 3 + [v[1] for v in CHEETAH_JOINTS.values()]
+    assert m.hs_stiffness.tolist() == [0.0] * 3 + [v[0] for v in CHEETAH_JOINTS.values()]
+    assert m.hs_springref.tolist() == [0.0] * 9
+    assert m.hs_limited.tolist() == [False] * 3 + [True] * 6
+    np.testing.assert_allclose(m.hs_range[3:], [v[2] for v in CHEETAH_JOINTS.values()], atol=1e-12)
+
+
+def test_cheetah_geometry_masses_and_contacts():
+    """envs/assets/half_cheetah.xml: eight capsules of radius 0.046 (torso ``fromto="-.5 0 0 .5 0 0"``, head
+    half 0.15 at (.6, 0, .1) tilted .87 rad, thighs/shins/feet as CHEETAH_GEOMS); dflex at density 1000 ignores
+    ``settotalmass="14"``: 21.18 kg (torso + head 9.457 kg); every dflex shape collides with the ground, two
+    end-cap points per capsule (dflex model.py), so 16 contact points, where the file as MuJoCo reads it
+    (``conaffinity="0"`` on its ground and its geom defaults) has none. The root frame is 1.0 m above
+    dflex's ground (envs/cheetah.py ``joint_X_pj`` of the first link, ``(0.0, 1.0, 0.0)``)."""
+    geoms = {  # name: (half-length, pos, axis-angle about y [rad])
+        "head": (0.15, (0.6, 0, 0.1), 0.87),
+        "bthigh": (0.145, (0.1, 0, -0.13), -3.8),
+        "bshin": (0.15, (-0.14, 0, -0.07), -2.03),
+        "bfoot": (0.094, (0.03, 0, -0.097), -0.27),
+        "fthigh": (0.133, (-0.07, 0, -0.12), 0.52),
+        "fshin": (0.106, (0.065, 0, -0.09), -0.6),
+        "ffoot": (0.07, (0.045, 0, -0.07), -0.6),
+    }
+    mj = mujoco.MjModel.from_xml_path(str(ASSETS / "cheetah.xml"))
+    for name, (half, pos, angle) in geoms.items():
+        g = mj.geom(name).id
+        np.testing.assert_allclose(mj.geom_size[g, :2], [0.046, half], err_msg=name)
+        np.testing.assert_allclose(mj.geom_pos[g], pos, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(mj.geom_quat[g], [math.cos(angle / 2), 0, math.sin(angle / 2), 0], atol=1e-12)
+    np.testing.assert_allclose(mj.geom_size[mj.geom("torso").id, :2], [0.046, 0.5])
+    body_pos = {"bthigh": (-0.5, 0, 0), "bshin": (0.16, 0, -0.25), "bfoot": (-0.28, 0, -0.14),
+                "fthigh": (0.5, 0, 0), "fshin": (-0.14, 0, -0.24), "ffoot": (0.13, 0, -0.18)}
+    for name, pos in body_pos.items():
+        np.testing.assert_allclose(mj.body(name).pos, pos, atol=1e-12, err_msg=name)
+    m = _model("cheetah")
+    np.testing.assert_allclose(m.body_mass, [9.457333, 2.335527, 2.402003, 1.657471, 2.175984, 1.817013, 1.338385],
+                               atol=1e-6)
+    assert m.body_mass.sum() == pytest.approx(21.183717, rel=1e-6)
+    assert m.nc == 16 and m.contact_dist.tolist() == [0.046] * 16
+    assert np.bincount(m.contact_body).tolist() == [4, 2, 2, 2, 2, 2, 2]  # the torso holds the head
+    assert m.ground_height == 0.0 and mj.body("torso").pos.tolist() == [0.0, 0.0, 1.0]
+
+
+def test_cheetah_task_constants():
+    """D.Va (= DiffRL) envs/cheetah.py: contact ke 2e4, kd 1e3, kf 1e3, mu 1.0; limit ke 1e3, kd 1e1;
+    ``sim_substeps = 16``; ``action_strength = 200.0`` on every leg joint (``joint_act[:, 3:] = actions *
+    action_strength``; the file's gears 120/90/60/120/60/30 are not read); ``action_penalty = -0.1``;
+    ``start_height = -0.2`` (rootz), start rotation 0, ``start_joint_q`` all 0; reset noise ``0.1 * (rand - 0.5)
+    * 2`` on rootx, rootz and the joints, ``(rand - 0.5) * 0.2`` on rooty, ``0.5 * (rand - 0.5)`` on all nine
+    rates; no termination (``early_termination`` is stored, never read); 1000-step episodes
+    (examples/cfg/dva/cheetah.yaml ``episode_length: 1000``)."""
+    env = tasks.make("cheetah", 1, dtype=torch.float64)
+    c = env.config
+    assert (c.contact_ke, c.contact_kd, c.contact_kf, c.contact_mu) == (2e4, 1e3, 1e3, 1.0)
+    assert (c.limit_ke, c.limit_kd, c.limit_damping) == (1e3, 1e1, "always")
+    assert (c.substeps, c.episode_length, c.mass_matrix_every) == (16, 1000, None)
+    assert (c.start_height, c.action_penalty, c.q_noise, c.qd_noise) == (-0.2, 0.1, 0.1, 0.25)
+    assert env.model.act_gear.tolist() == [200.0] * 6 and c.action_scale == 1.0
+    assert env.model.act_dof.tolist() == [3, 4, 5, 6, 7, 8]
+    assert env.qpos.tolist() == [[0.0, -0.2] + [0.0] * 7] and env.qvel.abs().sum() == 0
+    assert env.sim.frames(env.qpos).pos[0, 0, 2].item() == pytest.approx(0.8)  # torso 0.8 m up
+
+
+def test_cheetah_start_pose_has_ffoot_past_its_limit():
+    """envs/cheetah.py starts every joint at 0 while half_cheetah.xml limits ffoot to [-3.1, -0.3]: the
+    reference's start pose is 0.3 rad past that limit, so dflex's limit penalty ``limit_ke (upper - q)`` =
+    -300 N m acts on ffoot from the first substep (and on no other joint). Faithful to the reference: the foot
+    is pushed back into its range within the first control step."""
+    env = tasks.make("cheetah", 1, dtype=torch.float64, reset_noise=False)
+    q, qd = env.qpos.clone(), env.qvel.clone()
+    passive = env.sim.passive_force(q, qd, limits=True)
+    assert passive[0].tolist() == [0.0] * 8 + [-300.0]
+    assert env.sim.passive_force(q, qd, limits=False).abs().sum() == 0  # the springs pull to 0: no force there
+    env.step(torch.zeros(1, 6, dtype=torch.float64))
+    assert env.qpos[0, 8] < -0.1  # ffoot moved towards its range in one control step
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # every robot
 @pytest.mark.parametrize(
     ("name", "total"),
@@ -312,6 +412,7 @@ def test_humanoid_task_constants():
         ("hopper", 15.820013),
         ("ant", 182.176017),
         ("humanoid", 40.844021),
+        ("cheetah", 21.183717),
     ],
 )
 def test_body_masses_are_dflex_shape_masses_at_density_1000(name, total):

@@ -10,7 +10,8 @@ import torch
 
 import tasks
 
-DIMS = {"cartpole": (5, 1), "cartpole-swingup": (5, 1), "hopper": (11, 3), "ant": (37, 8), "humanoid": (76, 21)}
+DIMS = {"cartpole": (5, 1), "cartpole-swingup": (5, 1), "hopper": (11, 3), "ant": (37, 8), "humanoid": (76, 21),
+        "cheetah": (17, 6)}
 
 
 def test_registry_lists_the_paper_tasks_and_the_swingup_variant():
@@ -62,6 +63,7 @@ def test_cameras():
         "hopper": ((0, -2.8, 0.1), (0, 0, 0), 45, "xz"),  # offsets from the torso (1.25 m at the start)
         "ant": ((0.5, -2, 1), (0, 0, 1), 90, "xyz"),
         "humanoid": ((-3, 0, 1), (0, 0, 0), 45, "xyz"),
+        "cheetah": ((0, -3, -0.4), (0, 0, -0.4), 45, "xz"),  # offsets from the torso (0.8 m at the start)
     }
     for n, cam in cams.items():
         eye, target, fov, track = expected[n]
@@ -78,6 +80,21 @@ def test_hopper_camera_sees_dvas_view_at_the_start():
     env = tasks.make("hopper", 1, dtype=torch.float64)
     cam = TaskRenderer(env).camera(env.qpos)
     assert cam.eye[0].tolist() == pytest.approx([0.0, -2.8, 1.35])
+
+
+def test_cheetah_camera_keeps_dvas_height_above_the_floor():
+    """D.Va viewer/torch3d_robo cheetah_renderer.py: eye (0, -3, 0.25) + (q_x, 0, q_z) looking at (0, 0, 0.25)
+    + (q_x, 0, q_z), fov 45, over a floor drawn at z = -0.35: the eye is 0.6 + q_z above that floor. Ours is
+    drawn at the physics ground (z = 0), and the eye is 0.6 + q_z above it too (0.4 m at the start, q_z =
+    -0.2), looking horizontally, tracking x and z."""
+    from tasks.vision import TaskRenderer
+
+    env = tasks.make("cheetah", 2, dtype=torch.float64)
+    q = env.qpos.clone()
+    q[1, 0], q[1, 1] = 2.0, -0.45
+    cam = TaskRenderer(env).camera(q)
+    torch.testing.assert_close(cam.eye, torch.tensor([[0.0, -3.0, 0.4], [2.0, -3.0, 0.15]], dtype=torch.float64))
+    assert (cam.eye[:, 2] - env.model.ground_height).tolist() == pytest.approx((0.6 + q[:, 1]).tolist())
 
 
 
@@ -425,6 +442,33 @@ def test_hopper_reward_obs_termination_on_hand_made_states():
     assert torch.allclose(r, torch.tensor(expected, dtype=torch.float64))
     assert env.compute_terminated(qpos, qvel).tolist() == [False, True, True]
     assert torch.equal(env.observe(qpos, qvel, a), torch.cat((qpos[:, 1:], qvel), dim=1))
+
+
+def test_cheetah_reward_obs_and_no_termination_on_hand_made_states():
+    """D.Va envs/cheetah.py: reward ``obs[:, 8] - 0.1 |a|^2`` with obs ``[joint_q[1:], joint_qd]``, so entry 8 is
+    the rootx velocity; no termination, however low or upside down the torso."""
+    env = tasks.make("cheetah", 3, dtype=torch.float64)
+    qpos = torch.zeros(3, 9, dtype=torch.float64)
+    qpos[:, 1] = torch.tensor([-0.2, -0.9, 0.5])  # torso 0.8 m up, 0.1 m up, 1.5 m up
+    qpos[2, 2] = math.pi  # upside down
+    qvel = torch.arange(27, dtype=torch.float64).reshape(3, 9) / 10 - 1.0
+    a = torch.tensor([[0.0] * 6, [0.5] * 6, [1.0, -1.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    r = env.compute_reward(qpos, qvel, a)
+    assert torch.allclose(r, torch.tensor([-1.0, -0.1 - 0.1 * 1.5, 0.8 - 0.1 * 2], dtype=torch.float64))
+    obs = env.observe(qpos, qvel, a)
+    assert torch.equal(obs, torch.cat((qpos[:, 1:], qvel), dim=1)) and torch.equal(obs[:, 8], qvel[:, 0])
+    assert env.compute_terminated(qpos, qvel).tolist() == [False, False, False]
+
+
+def test_cheetah_reset_distribution():
+    """D.Va envs/cheetah.py stochastic init: rootx 0 and rootz -0.2 plus ``0.1 * (rand - 0.5) * 2``, rooty
+    ``(rand - 0.5) * 0.2``, joints ``0.1 * (rand - 0.5) * 2`` around 0, every rate ``0.5 * (rand - 0.5)``."""
+    env = tasks.make("cheetah", 4096, seed=4, dtype=torch.float64)
+    env.reset()
+    dev = env.qpos - torch.tensor([0.0, -0.2] + [0.0] * 7, dtype=torch.float64)
+    assert (dev.abs() <= 0.1).all() and (dev.abs().amax(0) > 0.099).all()
+    assert (env.qvel.abs() <= 0.25).all() and (env.qvel.abs().amax(0) > 0.249).all()
+    assert (dev.mean(0).abs() < 0.01).all() and (env.qvel.mean(0).abs() < 0.02).all()
 
 
 def _quat(axis, angle):
