@@ -70,6 +70,22 @@ def test_smoke_every_mode(tmp_path, task, mode, capsys):
     assert video.exists() and video.stat().st_size > 1000
 
 
+def test_a_short_cheetah_run_from_pixels(tmp_path, capsys):
+    """The cheetah trains from pixels on the CPU with its D.Va preset (examples/cfg/dva/cheetah.yaml critic lr
+    2e-3) and is evaluated over whole (shortened) episodes, which it never ends early (no termination)."""
+    ablate("--task", "cheetah", "--mode", "decoupled", "--iters", "2", "--cosine-every", "0", "--eval-every", "2",
+           "--eval-envs", "2", "--episode-length", "6", "--video-every", "0", "--out", str(tmp_path), "--name", "run",
+           *TINY)
+    run = tmp_path / "run"
+    rows = read_metrics(run)
+    assert [r["iter"] for r in rows] == [1, 2] and rows[-1]["eval_length_mean"] == 6
+    assert all(set(REQUIRED_KEYS) <= set(r) for r in rows)
+    cfg = json.loads((run / "config.json").read_text())
+    assert (cfg["config"]["task"], cfg["config"]["critic_lr"], cfg["config"]["actor_hidden"]) == (
+        "cheetah", 2e-3, [128, 64, 32])
+    assert "cheetah/decoupled seed 0: finished after 2 iterations" in capsys.readouterr().out
+
+
 def test_resume_equals_uninterrupted_and_same_seed_same_metrics(tmp_path):
     common = ["--task", "cartpole", "--mode", "decoupled", "--iters", "4", "--cosine-every", "3",
               "--video-every", "0", "--checkpoint-every", "2", "--out", str(tmp_path), *TINY]

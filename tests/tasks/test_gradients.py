@@ -70,7 +70,31 @@ def test_step_gradient_reaches_action_and_state():
     assert gq.abs().sum() > 0 and gv.abs().sum() > 0 and ga.abs().sum() > 0
 
 
-@pytest.mark.parametrize("name", [pytest.param(t, marks=pytest.mark.slow) if t == "humanoid" else t
+def test_cheetah_through_contact_and_the_ffoot_limit_matches_finite_differences():
+    """d(return)/d(actions, initial qpos, initial qvel) over 2 control steps (32 substeps) of two float64
+    cheetahs: one with its back foot pressed into the ground (contact normal, damping and friction), one at the
+    reference's start pose, ffoot 0.3 rad past its upper limit (the limit penalty's gradient)."""
+    env = tasks.make("cheetah", 2, dtype=torch.float64, reset_noise=False)
+    qpos0 = torch.tensor([[0.0, -0.44, -0.05, 0.2, -0.3, 0.1, -0.2, 0.1, -0.6], [0.0, -0.2] + [0.0] * 7],
+                         dtype=torch.float64)
+    qvel0 = torch.tensor([[-0.3, -0.2, 0.1, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0], [0.0] * 9], dtype=torch.float64)
+    fr = env.sim.frames(qpos0)
+    vb = torch.einsum("bn,xnk->xbk", env.sim._body_dof_anc, fr.S * qvel0[..., None])
+    normal = env.sim._contact_forces(fr, vb)[..., 5]
+    assert normal[0, 3] > 100 and normal[1].abs().sum() == 0  # bfoot on the ground; the other in the air
+    limit = env.sim.passive_force(qpos0, qvel0, limits=True) - env.sim.passive_force(qpos0, qvel0, limits=False)
+    assert limit[1, 8].item() == pytest.approx(-300.0)
+    gen = torch.Generator().manual_seed(4)
+    actions = torch.tanh(0.7 * torch.randn(2, 2, 6, generator=gen, dtype=torch.float64))
+
+    def f(a, q, v):
+        return rollout_return(env, q, v, a)
+
+    pairs = directional_fd_check(f, [actions, qpos0, qvel0], n_dirs=2, eps=1e-6, rtol=1e-6, seed=1)
+    assert any(abs(ad) > 1e-1 for ad, _ in pairs)
+
+
+@pytest.mark.parametrize("name", [pytest.param(t, marks=pytest.mark.slow) if t in ("humanoid", "cheetah") else t
                                   for t in tasks.TASKS])
 def test_gradients_finite_short_windows(name):
     """CI variant of the 1000-step check: 64 steps of random actions in windows of 32 (SHAC-style, detach at
