@@ -124,7 +124,7 @@ def fmt(v, nd=1):
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="auto", help="auto | cpu | cuda")
-    p.add_argument("--tasks", nargs="+", default=["cartpole", "hopper", "ant", "humanoid"])
+    p.add_argument("--tasks", nargs="+", default=["cartpole", "hopper", "ant", "humanoid", "cheetah"])
     p.add_argument("--modes", nargs="+", default=["decoupled", "full"])
     p.add_argument("--num-envs", type=int, default=None,
                    help="environments per iteration (default: the preset's for each task and mode, as ablate trains)")

@@ -83,7 +83,7 @@ class SHACConfig:
 
     task: str = "cartpole"
     """Task: cartpole (D.Va's, with joint springs), cartpole-swingup (SHAC's spring-free swing-up), hopper,
-    ant or humanoid (docs/tasks.md lists every constant and its source)."""
+    ant, humanoid or cheetah (docs/tasks.md lists every constant and its source)."""
     preset: Literal[PRESETS] = "dva"
     """Hyperparameters every field left unset takes (gradlab/presets.py, with sources): dva, D.Va's per-task
     configs (SHAC's state-based ones for --mode state where they differ); shac-diffrender, the paper's
@@ -99,7 +99,7 @@ class SHACConfig:
     """Training iterations (one iteration = num_envs x horizon env steps)."""
     lr_decay_iters: int | None = None
     """Iterations over which both learning rates decay linearly to 1e-5 (the reference's max_epochs:
-    D.Va 4000 cartpole, 30000 hopper/ant, 60000 humanoid); None: the preset's."""
+    D.Va 4000 cartpole, 30000 hopper/ant/cheetah, 60000 humanoid); None: the preset's."""
     num_envs: int | None = None
     """Parallel environments; None: the preset's (64; SHAC's state-based hopper 256)."""
     horizon: int = 32
@@ -113,7 +113,7 @@ class SHACConfig:
     actor_lr: float | None = None
     """Actor learning rate (decays linearly to 1e-5); None: the preset's (2e-3; SHAC's state cartpole 1e-2)."""
     critic_lr: float | None = None
-    """Critic learning rate; None: the preset's (2e-4 cartpole/hopper, 2e-3 ant, 5e-4 humanoid)."""
+    """Critic learning rate; None: the preset's (2e-4 cartpole/hopper, 2e-3 ant/cheetah, 5e-4 humanoid)."""
     betas: tuple[float, float] = MEMBER_DEFAULTS["betas"]
     """Adam betas (actor and critic)."""
     grad_clip: float = MEMBER_DEFAULTS["grad_clip"]
@@ -125,7 +125,7 @@ class SHACConfig:
     target_alpha: float | None = None
     """Target critic Polyak factor (target = a*target + (1-a)*critic); None: 0.2, humanoid 0.995."""
     trunk_dim: int | None = None
-    """Visual encoder trunk width; None: 64 cartpole, 128 hopper/ant, 256 humanoid."""
+    """Visual encoder trunk width; None: 64 cartpole, 128 hopper/ant/cheetah, 256 humanoid."""
     actor_hidden: tuple[int, ...] | None = None
     """Actor MLP widths; None: task reference ([64,64], [128,64,32], [256,128])."""
     critic_hidden: tuple[int, ...] | None = None

@@ -1,4 +1,4 @@
-"""The batched task interface shared by cartpole, hopper, ant and humanoid.
+"""The batched task interface shared by cartpole, hopper, ant, humanoid and cheetah.
 
 A :class:`Task` owns ``num_envs`` copies of one robot: the state tensors (``qpos``, ``qvel``, ``progress``,
 ``prev_actions``), a :class:`~tasks.dynamics.Simulator`, a counter-based reset RNG and the task's reward,

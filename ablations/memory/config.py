@@ -31,7 +31,7 @@ class MemoryConfig:
 
     # The tasks and renderers are vocabulary's (torch-free), checked in validate().
     task: str = "cartpole"
-    """Task, as ablate's --task: cartpole, cartpole-swingup, hopper, ant or humanoid."""
+    """Task, as ablate's --task: cartpole, cartpole-swingup, hopper, ant, humanoid or cheetah."""
     modes: tuple[Literal["full", "decoupled"], ...] = ("decoupled", "full")
     """Gradient modes to sweep (full: through the rendered images; decoupled: D.Va)."""
     renderer: str = "soft"

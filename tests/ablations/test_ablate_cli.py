@@ -202,7 +202,8 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize(("args", "message"), [
-    (["--task", "cartpol"], "unknown task 'cartpol'; valid tasks: cartpole, cartpole-swingup, hopper, ant, humanoid"),
+    (["--task", "cartpol"],
+     "unknown task 'cartpol'; valid tasks: cartpole, cartpole-swingup, hopper, ant, humanoid, cheetah"),
     (["--mode", "ful"], "full"),  # tyro lists the valid choices
     (["--num-envs", "0"], "--num-envs must be a positive integer, got 0"),
     (["--horizon", "-2"], "--horizon must be a positive integer"),
@@ -266,7 +267,7 @@ def test_help_is_grouped_essentials_first_and_each_flags_help_one_paragraph():
     # a docstring's source line breaks do not break its help (tyro would keep them: "hopper,\n ant"); wide enough,
     # a flag's help is one line
     wide = ablate_help(400)
-    assert "hopper, ant or humanoid" in wide and "blind: the decoupled visual actor" in wide
+    assert "hopper, ant, humanoid or cheetah" in wide and "blind: the decoupled visual actor" in wide
 
 
 def test_one_paragraph_joins_a_docstrings_lines_and_keeps_its_paragraphs():

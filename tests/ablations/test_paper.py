@@ -102,7 +102,7 @@ def test_without_a_gpu_the_runs_go_to_the_cpu_and_dry_run_says_so(tmp_path, caps
     (["--set", "iters=5"], "--set iters=5: ablate-paper sets it; use --iters"),
     (["--set", "time-limit-min=5"], "use --time-limit-min"),
     (["--time-limit-min", "0"], "--time-limit-min must be positive"),
-    (["--tasks", "hoper"], "--tasks hoper: choose from cartpole, cartpole-swingup, hopper, ant, humanoid"),
+    (["--tasks", "hoper"], "--tasks hoper: choose from cartpole, cartpole-swingup, hopper, ant, humanoid, cheetah"),
 ])
 def test_bad_options_are_one_line_errors(tmp_path, capsys, argv, message):
     with pytest.raises(SystemExit) as e:

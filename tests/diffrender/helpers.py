@@ -11,7 +11,7 @@ import diffrender as dr
 from diffrender.floor import floor_candidate
 
 ASSETS = Path(__file__).resolve().parents[2] / "tasks" / "assets"
-ROBOTS = ("cartpole", "hopper", "ant", "humanoid")
+ROBOTS = ("cartpole", "hopper", "ant", "humanoid", "cheetah")
 F64 = torch.float64
 
 
