@@ -76,6 +76,22 @@ def test_hopper_lands_and_keeps_its_foot_on_the_ground():
     assert h[-1].max() < 1.24  # it did land
 
 
+def test_cheetah_lands_on_its_feet_and_ffoot_returns_to_its_range():
+    """The cheetah dropped from its start (torso 0.8 m up, feet 0.3-0.4 m above the floor) lands on its feet:
+    the torso stays above 0.45 m, never on the ground, and ffoot, started 0.3 rad past its upper limit
+    (-0.3 rad), is pushed back to that limit within four control steps."""
+    env = tasks.make("cheetah", 1, reset_noise=False)
+    env.reset()
+    z, ffoot = [], []
+    with torch.no_grad():
+        for _ in range(30):
+            env.step(torch.zeros(1, 6))
+            z.append(1.0 + env.qpos[0, 1].item())
+            ffoot.append(env.qpos[0, 8].item())
+    assert min(z) > 0.5 and z[-1] < 0.6  # it fell about 0.25 m onto its feet
+    assert max(ffoot[3:]) < -0.25  # back at the limit, within its soft penalty's give
+
+
 def test_contact_free_trajectory_matches_mujoco_euler():
     """200 substeps of hopper dynamics with contacts, limits and passive forces off equal MuJoCo's Euler
     integrator (semi-implicit: velocities first, then positions with the new velocities)."""
