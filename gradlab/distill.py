@@ -17,9 +17,9 @@ One iteration (the reference's epoch), top to bottom:
    ``distill_loss_threshold``.
 
 The student (:class:`Student`) is D.Va's ``ActorDeterministicMLP`` on the visual encoder: ``PixelEncoder``
-(the trunk's width the first MLP width), then Linear -> ELU -> LayerNorm per hidden width and a last Linear,
-every Linear orthogonal with gain sqrt(2) and zero bias. The expert is a state run of this toolkit
-(``--expert``), loaded from its checkpoint; its training time (the trainer's wall-clock, which excludes
+(its trunk the first MLP width, as the presets set ``trunk_dim``), then Linear -> ELU -> LayerNorm per hidden
+width and a last Linear, every Linear orthogonal with gain sqrt(2) and zero bias. The expert is a state run of
+this toolkit (``--expert``), loaded from its checkpoint; its training time (the trainer's wall-clock, which excludes
 evaluation: the reference's algorithm timer minus its evaluation timer) and environment steps are charged to the
 student's ``wall_s`` and ``env_steps``.
 
@@ -74,14 +74,15 @@ def to_uint8(images: torch.Tensor) -> torch.Tensor:
 
 class Student(nn.Module):
     """D.Va's ``ActorDeterministicMLP`` on pixels: frames (B, 3 * frames, H, W) in [0, 1] -> pre-tanh actions
-    (B, act_dim). ``PixelEncoder`` to ``hidden[0]`` features, then Linear -> ELU -> LayerNorm per width of
-    ``hidden`` and a last Linear, every Linear orthogonal (gain sqrt 2, zero bias; ``models/actor.py``)."""
+    (B, act_dim). ``PixelEncoder`` to ``trunk_dim`` features (the reference's: ``hidden[0]``, as the presets set
+    it), then Linear -> ELU -> LayerNorm per width of ``hidden`` and a last Linear, every Linear orthogonal (gain
+    sqrt 2, zero bias; ``models/actor.py``)."""
 
-    def __init__(self, in_channels: int, height: int, width: int, act_dim: int, hidden: Sequence[int], *,
-                 precision: str | None = None):
+    def __init__(self, in_channels: int, height: int, width: int, act_dim: int, trunk_dim: int,
+                 hidden: Sequence[int], *, precision: str | None = None):
         super().__init__()
-        self.encoder = PixelEncoder(in_channels, height, width, hidden[0], precision=precision)
-        self.mu = MLP(hidden[0], hidden, act_dim)
+        self.encoder = PixelEncoder(in_channels, height, width, trunk_dim, precision=precision)
+        self.mu = MLP(trunk_dim, hidden, act_dim)
         orthogonal_init(self.mu, gain=2.0**0.5)
 
     def mean(self, obs: torch.Tensor) -> torch.Tensor:
@@ -243,7 +244,8 @@ class Distill:
         self.members: list[DistillMember] = []
         for i, (c, expert) in enumerate(zip(cfgs, experts)):
             seed_everything(c.seed)  # a member's student is initialised as a run alone's
-            student = Student(*image_shape, self.task.num_act, c.actor_hidden, precision=c.precision).to(self.device)
+            student = Student(*image_shape, self.task.num_act, c.trunk_dim, c.actor_hidden,
+                              precision=c.precision).to(self.device)
             generator = torch.Generator(device=self.device)
             generator.manual_seed(c.seed)
             self.members.append(DistillMember(
