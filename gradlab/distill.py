@@ -285,6 +285,8 @@ class Distill:
         images = torch.empty(T, rows, 3 * cfg.frames, cfg.image_size, cfg.image_size, dtype=torch.uint8,
                              device=self.device)
         states = torch.empty(T, rows, task.num_obs, device=self.device)
+        ends = torch.empty(T, rows, dtype=torch.bool, device=self.device)
+        returns, lengths = torch.empty(T, rows, device=self.device), torch.empty(T, rows, device=self.device)
         for t in range(T):
             states[t] = task.state_obs()
             images[t] = to_uint8(self.frames.stacked())
@@ -294,15 +296,16 @@ class Distill:
             self.frames.push(self._render(), reset=done)
             self.episode_return += reward
             self.episode_length += 1
-            ends = done.cpu()
-            if ends.any():
-                returns, lengths = self.episode_return.cpu(), self.episode_length.cpu()
-                for m in self.members:
-                    mine = ends[m.rows]
-                    m.recent_returns.extend(returns[m.rows][mine].tolist())
-                    m.recent_lengths.extend(lengths[m.rows][mine].tolist())
+            ends[t], returns[t], lengths[t] = done, self.episode_return, self.episode_length
             self.episode_return.masked_fill_(done, 0.0)
             self.episode_length.masked_fill_(done, 0)
+        ends = ends.cpu()  # the episodes' ends: one host transfer a segment
+        if ends.any():
+            returns, lengths = returns.cpu(), lengths.cpu()
+            for m in self.members:
+                mine = ends[:, m.rows]
+                m.recent_returns.extend(returns[:, m.rows][mine].tolist())
+                m.recent_lengths.extend(lengths[:, m.rows][mine].long().tolist())
         return images, states
 
     # ------------------------------------------------------------------ the updates
@@ -327,17 +330,17 @@ class Distill:
             loss = F.mse_loss(m.actor.mean(frames), labels)
             m.actor_opt.zero_grad(set_to_none=True)
             loss.backward()
-            grad_norm = float(torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in m.params])))
+            grad_norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in m.params]))
             m.actor_opt.step()
             m.updates += 1
             steps += 1
-            loss_value = float(loss.detach())
+            loss_value = float(loss.detach())  # the early stop reads every loss on the host, as the reference
             if not math.isfinite(loss_value):
                 raise NonFiniteError(f"iteration {self.iteration + 1}: member {m.index}'s distillation loss is "
                                      f"{loss_value}")
             if loss_value < cfg.distill_loss_threshold:  # the reference's early stop
                 break
-        return loss_value, grad_norm, steps
+        return loss_value, float(grad_norm), steps
 
     def _sync(self) -> None:
         if self.device.type == "cuda":

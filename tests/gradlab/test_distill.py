@@ -78,6 +78,26 @@ def test_teacher_preset_is_the_references():
             32, 16, 4, 0.95, 0.99)
 
 
+def test_the_distillation_loss_gradient_is_the_finite_differences_one():
+    """The student's MSE loss against labels, differentiated in its head's parameters, in float64 (gradcheck)."""
+    from torch.func import functional_call
+
+    from gradlab.distill import Student
+
+    torch.manual_seed(0)
+    student = Student(9, 16, 16, 2, 5, (4, 3)).double()
+    frames, labels = torch.rand(3, 9, 16, 16, dtype=torch.float64), torch.randn(3, 2, dtype=torch.float64)
+    names = [n for n, _ in student.mu.named_parameters()]
+    with torch.no_grad():
+        features = student.encoder(frames)
+
+    def loss(*head):
+        return F.mse_loss(functional_call(student.mu, dict(zip(names, head)), (features,)), labels)
+
+    head = [p.detach().clone().requires_grad_(True) for p in student.mu.parameters()]
+    assert torch.autograd.gradcheck(loss, tuple(head))
+
+
 # ---------------------------------------------------------------------------------------------- the buffer
 def test_buffer_is_a_fifo_that_drops_the_overflow_at_the_wrap():
     """utils/dataset.py ExpertReplayBuffer.append: a batch that runs past the end is cut there, the next starts at
