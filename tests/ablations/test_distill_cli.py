@@ -90,3 +90,28 @@ def test_ablate_distill_writes_the_usual_run_folder(tmp_path):
     assert [r["env_steps"] for r in rows] == [8 + 8, 8 + 16] and rows[-1]["buffer_size"] == 16
     assert json.loads((tmp_path / "student" / "summary.json").read_text())["status"] == "finished"
     assert (tmp_path / "student" / "checkpoints" / "ckpt_000002.pt").exists()
+
+
+def test_ablate_paper_trains_the_experts_first(tmp_path):
+    """ablate-paper with the distill arm: one sweep per task of its experts (the teacher preset, the teacher's
+    max_epochs iterations: 4000 cartpole, 2000 others), then the experiment set, each distill run's --expert the
+    folder its task's and seed's expert trains in; distill runs pack only with each other."""
+    from ablations.paper import PaperConfig, phases
+    from ablations.sweep import plan
+    from ablations.sweep.packing import pack_runs
+
+    cfg = PaperConfig(out=tmp_path, tasks=("cartpole-swingup", "hopper"), arms=("decoupled", "distill"),
+                      seeds=(0, 1), gpus_per_run=0)
+    planned = phases(cfg)
+    assert len(planned) == 3
+    for (sweep, arms), task, iters in zip(planned, ("cartpole-swingup", "hopper"), (4000, 2000)):
+        specs = plan(sweep, arms=arms)
+        assert sweep.out == tmp_path / "experts" / task and list(arms) == ["expert"]
+        assert [(s.run_id, s.iters) for s in specs] == [(f"{task}_expert_seed{k}", iters) for k in (0, 1)]
+        assert all("--preset" in s.args and "teacher" in s.args for s in specs)
+    specs = plan(planned[-1][0], arms=planned[-1][1])
+    distill = {s.run_id: s for s in specs if s.mode == "distill"}
+    assert distill["hopper_distill_seed1"].own["expert"] == str(
+        tmp_path / "experts" / "hopper" / "runs" / "hopper_expert_seed1")
+    for job in pack_runs(specs, 12):
+        assert len({"distill" in r for r in job.run_ids}) == 1
