@@ -34,6 +34,8 @@ ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
                "extra_meshes", "extra_mesh_verts"),
     "run-folder": ("checkpoint_every", "keep_checkpoints", "warmup_iters", "tensorboard"),
     "compiling": ("overlap_critic", "compile_cache", "compile_helper"),
+    "distillation": ("expert", "distill_buffer", "distill_starts", "distill_updates", "distill_batch",
+                     "distill_loss_threshold"),
 }
 
 

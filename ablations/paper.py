@@ -10,6 +10,7 @@ The report is :func:`ablations.reports.paper.build_paper_report`'s.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,9 +21,10 @@ from ablations.reports.report import (
     load_benchmark,
     load_memory_sweeps,
 )
+from gradlab.presets import preset_values
 from vocabulary import ARMS, DEFAULT_ARMS
 
-__all__ = ["PaperConfig", "sweep_config", "gpus_per_run", "main"]
+__all__ = ["PaperConfig", "sweep_config", "phases", "gpus_per_run", "main"]
 
 #: The tasks run unless --tasks names others. D.Va's cartpole stays available; its report marks it as not ranking
 #: arms (its zero action scores above the paper's final return, docs/floors.json).
@@ -136,6 +138,29 @@ def sweep_config(cfg: PaperConfig):
     return sweep, arms
 
 
+#: Where the distill arm's experts train, inside --out: one sweep folder per task.
+EXPERTS = "experts"
+
+
+def phases(cfg: PaperConfig) -> list[tuple]:
+    """The sweeps to run, in order, each (SweepConfig, arms): the experiment set's (:func:`sweep_config`), preceded,
+    where --arms names distill, by one sweep per task of its state experts (the expert arm, one per seed, each in
+    a process of its own, for the teacher's ``max_epochs`` iterations under the same budget), in
+    ``<out>/experts/<task>``; each distill run's ``--expert`` is the folder of its task's and seed's expert."""
+    sweep, arms = sweep_config(cfg)
+    if "distill" not in arms:
+        return [(sweep, arms)]
+    experts = []
+    for task in cfg.tasks:
+        iters = preset_values("teacher", task, "state")["lr_decay_iters"]  # the teacher's max_epochs
+        expert_cfg = dataclasses.replace(cfg, out=cfg.out / EXPERTS / task, tasks=(task,), arms=("expert",),
+                                         iters=iters, pack="1")
+        experts.append(sweep_config(expert_cfg))
+    where = cfg.out / EXPERTS / "{task}" / "runs" / "{task}_expert_seed{seed}"
+    arms["distill"]["flags"]["expert"] = str(where)
+    return [*experts, (sweep, arms)]
+
+
 def main(argv: list[str] | None = None) -> None:
     """``ablate-paper [--tasks hopper ant] [--seeds 0 1 2] [--time-limit-min 60] ...``; see --help."""
     from ablations.cli import parse
@@ -148,10 +173,11 @@ def main(argv: list[str] | None = None) -> None:
             return
         from ablations.sweep import dry_run, run_sweep
 
-        sweep, arms = sweep_config(cfg)
+        planned = phases(cfg)
         cpu_note = gpus_per_run(cfg)[1]
         if cfg.dry_run:
-            dry_run(sweep, arms=arms)
+            for sweep, arms in planned:
+                dry_run(sweep, arms=arms)
             if cpu_note:
                 print(cpu_note)
             return
@@ -162,7 +188,15 @@ def main(argv: list[str] | None = None) -> None:
             load_benchmark(b)
         load_memory_sweeps(cfg.memory)
         load_floors(cfg.floors)
-        manifest = run_sweep(sweep, arms=arms, command=["ablate-paper", *(sys.argv[1:] if argv is None else argv)])
+        command = ["ablate-paper", *(sys.argv[1:] if argv is None else argv)]
+        for sweep, arms in planned[:-1]:  # the distill arm's experts first; a failed one stops before its students
+            experts = run_sweep(sweep, arms=arms, command=command)
+            failed = [k for k, r in experts["runs"].items() if r["status"] == "failed"]
+            if failed:
+                raise ValueError(f"the distill arm's experts {', '.join(failed)} failed ({sweep.out}); rerun to "
+                                 "resume them")
+        sweep, arms = planned[-1]
+        manifest = run_sweep(sweep, arms=arms, command=command)
         print(build_paper_report(cfg.out, out=cfg.report, benchmark=cfg.benchmark, memory=cfg.memory,
                                  floors=cfg.floors))
     except ValueError as e:

@@ -40,6 +40,7 @@ from ablations.stopping import (
 from diffrender import BinCapacityWarning
 from gradlab import precision
 from gradlab.config import SHACConfig
+from gradlab.distill import Distill
 from gradlab.presets import preset_record
 from gradlab.shac import SHAC
 from gradlab.timing import median
@@ -136,6 +137,9 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
             "environment": environment_info(prepared.device),
             "command": sys.argv,
         }
+        if getattr(members[i], "expert", None) is not None:  # a distill student's expert and what it cost
+            record["expert"] = {"source": members[i].expert.source, "wall_s": members[i].expert.wall_s,
+                                "env_steps": members[i].expert.env_steps, "iterations": members[i].expert.iterations}
         if prepared.population is not None:  # the process it trained in: one of these members, in this folder
             record["population"] = {"folder": prepared.population.path.name,
                                     "members": [f.path.name for f in folders], "index": i}
@@ -152,8 +156,10 @@ def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started:
     cfg = cfgs[0]  # the settings members share
     trainer_built = time.time()
     parts = [shac_part(c) for c in cfgs]
-    # the trainer's edge: a run alone is built as one (its failure raises NonFiniteError, its values come unwrapped)
-    trainer = SHAC(parts[0] if len(parts) == 1 else parts, device=device)
+    # the trainer's edge: a run alone is built as one (its failure raises NonFiniteError, its values come unwrapped);
+    # --mode distill's students train in a trainer of their own with SHAC's interface (gradlab/distill.py)
+    trainer_class = Distill if cfg.mode == "distill" else SHAC
+    trainer = trainer_class(parts[0] if len(parts) == 1 else parts, device=device)
 
     def per_member(value) -> list:
         return [value] if trainer.single else value
@@ -267,8 +273,9 @@ def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started:
             if evals:
                 eval_text = f"{sum(e[0] for e in evals) / len(evals):.1f}"
             returns = [r["return_mean"] for r in live if r["return_mean"] is not None]
+            norms = [r["grad_norm"] for r in live if r["grad_norm"] is not None]  # None: no update (distill)
             bar.set_postfix({"ret": f"{sum(returns) / len(returns):.1f}" if returns else "-", "eval": eval_text,
-                             "ms": f"{live[0]['iter_ms']:.0f}", "gn": f"{max(r['grad_norm'] for r in live):.2g}"})
+                             "ms": f"{live[0]['iter_ms']:.0f}", "gn": f"{max(norms):.2g}" if norms else "-"})
             bar.update(1)
         if stop.requested and not ended:
             if checkpointed != trainer.iteration:

@@ -72,6 +72,8 @@ _MODE_PLANS = {
     "decoupled": ModePlan(actor_input="images", grad_through_images=False),
     "state": ModePlan(actor_input="state", grad_through_images=False),
     "blind": ModePlan(actor_input="blank", grad_through_images=False),
+    # a student sees rendered images, without their gradient (it learns by regression: gradlab/distill.py)
+    "distill": ModePlan(actor_input="images", grad_through_images=False),
 }
 if tuple(_MODE_PLANS) != MODES:  # the names are vocabulary's: a mode without its plan is refused here
     raise ImportError(f"gradlab.config plans the modes {tuple(_MODE_PLANS)}, vocabulary.MODES names {MODES}")
@@ -211,6 +213,23 @@ class SHACConfig:
     lr_warmup_iters: int = MEMBER_DEFAULTS["lr_warmup_iters"]
     """Iterations over which the actor's learning rate ramps linearly from 0 to its schedule (an ablation of
     the early blind phase; the reference: 0, none)."""
+    expert: str | None = MEMBER_DEFAULTS["expert"]
+    """--mode distill: the frozen state expert the student imitates, a state run's folder (its newest readable
+    checkpoint) or one of its checkpoint files; its training time and steps are charged to the student
+    (docs/distill.md). A member's own setting: distill members with one expert each form a population."""
+    distill_buffer: int = 100_000
+    """--mode distill: samples the replay buffer holds (FIFO, on the device, frames as uint8; D.Va's
+    max_replay_buffer_size)."""
+    distill_starts: int = 32_000
+    """--mode distill: samples the buffer must hold before the student's updates start (D.Va's learning_starts)."""
+    distill_updates: int = 2000
+    """--mode distill: most Adam steps an iteration (D.Va's num_update_per_epoch)."""
+    distill_batch: int = 128
+    """--mode distill: samples per Adam step, drawn without replacement from the whole buffer (D.Va's
+    batch_size)."""
+    distill_loss_threshold: float = 0.1
+    """--mode distill: an iteration's updates stop at the first minibatch whose loss is below this (D.Va's
+    supervised_loss_threshold)."""
 
     def validate(self) -> None:
         """Clear errors for bad values, before any work: each names its flag as typed (``--num-envs``), NaN and
@@ -258,6 +277,14 @@ class SHACConfig:
         check_number("grad_clip", self.grad_clip, "(0, inf)")
         check_number("encoder_lr_scale", self.encoder_lr_scale, "(0, inf)")
         check_number("abort_grad_norm", self.abort_grad_norm, "(0, inf]")
+        check_integers(self, ("distill_buffer", "distill_starts", "distill_updates", "distill_batch"), minimum=1)
+        check_number("distill_loss_threshold", self.distill_loss_threshold, "[0, inf)")
+        if self.mode == "distill":
+            if not self.distill_batch <= self.distill_starts <= self.distill_buffer:
+                raise ValueError(f"--distill-starts {self.distill_starts} must lie between --distill-batch "
+                                 f"{self.distill_batch} and --distill-buffer {self.distill_buffer}")
+            if self.compile:
+                raise ValueError("--compile: --mode distill trains eagerly (gradlab/distill.py); drop --compile")
         if self.num_envs is not None and self.critic_batches > self.num_envs * self.horizon:
             raise ValueError(f"--critic-batches {self.critic_batches} cannot exceed --num-envs x --horizon "
                              f"({self.num_envs * self.horizon})")
@@ -272,6 +299,14 @@ def check_as_given(cfg: SHACConfig) -> None:
     if cfg.raster_model is not None and not plan.renders:
         raise ValueError(f"--raster-model {cfg.raster_model} means nothing with --mode {cfg.mode}: the raster model "
                          "is the image model of the images the actor trains on, and this actor sees none")
+    if cfg.mode == "distill" and not cfg.expert:
+        raise ValueError("--expert: --mode distill needs a state expert, a state run's folder or checkpoint (train "
+                         "one with --mode state --preset teacher)")
+    if cfg.expert and cfg.mode != "distill":
+        raise ValueError(f"--expert means nothing with --mode {cfg.mode}: only a distill student has an expert")
+    if cfg.preset == "teacher" and cfg.mode != "state":
+        raise ValueError(f"--preset teacher trains the state experts of --mode distill: use it with --mode state, "
+                         f"not --mode {cfg.mode}")
 
 
 def resolve_config(cfg: SHACConfig) -> SHACConfig:

@@ -58,6 +58,10 @@ def check_population(cfgs: Sequence[SHACConfig]) -> None:
     if len(on_state) > 1:
         raise ValueError("--mode state trains on the state vector and cannot share a population with the pixel "
                          "modes (full, decoupled, blind): train it as a population of its own")
+    distill = {c.mode == "distill" for c in cfgs}
+    if len(distill) > 1:
+        raise ValueError("--mode distill trains in a trainer of its own (gradlab.Distill) and cannot share a "
+                         "population with the other modes: train its members as a population of their own")
     seen = set()
     for cfg in cfgs:
         key = tuple(getattr(cfg, name) for name in MEMBER_FIELDS)

@@ -20,6 +20,15 @@ HaoxiangYou/D.VA ``01b2be4`` and NVlabs/DiffRL ``a4c0dd1`` (facts, no code):
     and networks as ``dva``, decay over ``max_epochs`` 800 (cartpole) or 2000 (others), and the hard
     rasterizer (PyTorch3D ``MeshRasterizer`` at its default ``blur_radius=0, faces_per_pixel=1``).
 
+``teacher``
+    The experts of ``--mode distill``, D.Va's ``examples/cfg/teacher_student/teacher/<task>.yaml``: SHAC on the
+    state with D.Va's networks and learning rates, 64 envs (the hopper too), and ``max_epochs`` 4000 (cartpole,
+    whose actor and critic learning rates are 1e-2 and 1e-3) or 2000 (others) as the decay length.
+
+In ``--mode distill`` (any preset) the student is D.Va's ``examples/cfg/teacher_student/<task>.yaml``: the actor
+widths (the encoder's trunk their first), actor learning rate 2e-3, 64 envs, and ``max_epochs`` 10000 (humanoid
+40000) as the decay length, over which ``gradlab.distill`` decays the rate per Adam step.
+
 Other trainer choices are flags over a preset (``--actor-init orthogonal``, ``--obs-clip 5``,
 ``--bootstrap-last-step False``, ``--lr-decay-iters``).
 """
@@ -64,6 +73,24 @@ _SHAC_STATE = {
 }
 _SHAC_STATE["cheetah"] = dict(lr_decay_iters=2000)
 
+# D.Va examples/cfg/teacher_student/teacher/<task>.yaml, where they differ from dva/<task>.yaml (state SHAC, 64 envs).
+_TEACHER = {
+    "cartpole": dict(actor_lr=1e-2, critic_lr=1e-3, lr_decay_iters=4000),
+    "cartpole-swingup": dict(actor_lr=1e-2, critic_lr=1e-3, lr_decay_iters=4000),
+    "hopper": dict(lr_decay_iters=2000),
+    "ant": dict(lr_decay_iters=2000),
+    "humanoid": dict(lr_decay_iters=2000),
+}
+
+# D.Va examples/cfg/teacher_student/<task>.yaml: the student's actor_mlp units and max_epochs.
+_STUDENT = {
+    "cartpole": dict(actor_hidden=(64, 64), lr_decay_iters=10000),
+    "cartpole-swingup": dict(actor_hidden=(64, 64), lr_decay_iters=10000),
+    "hopper": dict(actor_hidden=(128, 64, 32), lr_decay_iters=10000),
+    "ant": dict(actor_hidden=(128, 64, 32), lr_decay_iters=10000),
+    "humanoid": dict(actor_hidden=(128, 64, 32), lr_decay_iters=40000),
+}
+
 _REFERENCE_TRAINER = dict(num_envs=64, actor_lr=2e-3, actor_init="default", obs_clip=0.0, bootstrap_last_step=True)
 
 
@@ -83,6 +110,10 @@ def preset_values(preset: str, task: str, mode: str) -> dict[str, Any]:
         values.update(_SHAC_STATE[task])
     elif preset == "shac-diffrender":
         values.update(lr_decay_iters=_DIFFRENDER_DECAY[task])
+    elif preset == "teacher":
+        values.update(_TEACHER[task])
+    if mode == "distill":
+        values.update(_STUDENT[task], actor_lr=2e-3, num_envs=64, trunk_dim=_STUDENT[task]["actor_hidden"][0])
     return values
 
 

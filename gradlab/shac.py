@@ -101,6 +101,8 @@ class SHAC:
         self.single = isinstance(cfg, SHACConfig)
         cfgs = [resolve_config(c) for c in ([cfg] if self.single else cfg)]
         check_population(cfgs)
+        if cfgs[0].mode == "distill":
+            raise ValueError("--mode distill is trained by gradlab.Distill, not SHAC")
         cfgs.sort(key=members.render_order)
         self.n = n = len(cfgs)
         self.cfg = cfg = cfgs[0]  # the population's shared settings (a single run's config)

@@ -22,7 +22,7 @@ __all__ = ["TASKS", "MODES", "IMAGELESS_MODES", "STATE_INPUT_MODES", "RENDERERS"
 #: The tasks, in the order tables list them (``tasks.make`` builds each; ``tasks/registry.py`` holds the classes).
 TASKS: tuple[str, ...] = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid", "cheetah")
 #: The training modes (``gradlab.config.ModePlan`` says what each decides; docs/design.md, "Where the mode acts").
-MODES: tuple[str, ...] = ("full", "decoupled", "state", "blind")
+MODES: tuple[str, ...] = ("full", "decoupled", "state", "blind", "distill")
 #: Modes that render nothing while training: their raster model names no difference.
 IMAGELESS_MODES: tuple[str, ...] = ("state", "blind")
 #: Modes whose actor reads the state vector: a reference beside the pixel arms, so its cheap iterations never set
@@ -33,13 +33,15 @@ RENDERERS: tuple[str, ...] = ("soft", "warp")
 #: The image models of ``diffrender.RasterSettings`` (docs/design.md, "Image model").
 RASTER_MODELS: tuple[str, ...] = ("hard", "softmax", "alpha")
 #: The trainer's presets (``gradlab/presets.py`` holds their values and sources).
-PRESETS: tuple[str, ...] = ("dva", "shac-diffrender")
+PRESETS: tuple[str, ...] = ("dva", "shac-diffrender", "teacher")
 #: The soft raster model whose silhouettes carry gradient: what ``--mode full`` uses unless told otherwise.
 #: softmax and alpha pass the same share of the image's change at silhouettes to the gradient (BENCHMARKS.md,
 #: renderer); softmax also lets the floor hide parts below it and keeps back-face culling (half the work).
 SILHOUETTE_RASTER_MODEL = "softmax"
 #: The raster model each preset trains with (shac-diffrender: the paper's baseline, the hard rasterizer).
-PRESET_RASTER_MODEL = MappingProxyType({"dva": SILHOUETTE_RASTER_MODEL, "shac-diffrender": "hard"})
+#: (teacher: the state experts of --mode distill, which render nothing while training.)
+PRESET_RASTER_MODEL = MappingProxyType({"dva": SILHOUETTE_RASTER_MODEL, "shac-diffrender": "hard",
+                                      "teacher": SILHOUETTE_RASTER_MODEL})
 #: Config fields a preset sets (every one of them defaults to None in ``gradlab.SHACConfig``).
 PRESET_FIELDS = ("num_envs", "actor_lr", "critic_lr", "target_alpha", "trunk_dim", "actor_hidden", "critic_hidden",
                  "lr_decay_iters", "actor_init", "obs_clip", "bootstrap_last_step", "raster_model")
@@ -48,12 +50,12 @@ PRESET_FIELDS = ("num_envs", "actor_lr", "critic_lr", "target_alpha", "trunk_dim
 #: other setting is the population's: one task, batch, horizon, image and network shape, one probe schedule.
 MEMBER_FIELDS = ("mode", "seed", "raster_model", "preset", "actor_lr", "critic_lr", "lr_decay_iters",
                  "target_alpha", "actor_init", "betas", "grad_clip", "critic_iterations", "critic_batches",
-                 "abort_grad_norm", "encoder_lr_scale", "lr_warmup_iters")
+                 "abort_grad_norm", "encoder_lr_scale", "lr_warmup_iters", "expert")
 #: The trainer's defaults of the member settings no preset supplies (``gradlab.SHACConfig`` takes them from here):
 #: a run at its default is named without it.
 MEMBER_DEFAULTS = MappingProxyType({"betas": (0.7, 0.95), "grad_clip": 1.0, "critic_iterations": 16,
                                     "critic_batches": 4, "abort_grad_norm": 1e8, "encoder_lr_scale": 1.0,
-                                    "lr_warmup_iters": 0})
+                                    "lr_warmup_iters": 0, "expert": None})
 #: config.json settings that do not change what a run trains (where it writes, how often it measures, how long
 #: it may run, how it is compiled and on what), besides those an arm is named by (mode, raster_model, preset)
 #: and the seed: runs that differ only in these are one arm.
@@ -61,7 +63,7 @@ NOT_ARM_SETTINGS = frozenset({
     "task", "seed", "mode", "raster_model", "preset", "name", "out", "resume", "progress", "tensorboard",
     "checkpoint_every", "keep_checkpoints", "video_every", "video_steps", "compile", "compile_cache",
     "compile_helper", "threads", "device", "time_limit_min", "iters", "cosine_every", "eval_every", "eval_envs",
-    "warmup_iters", "overlap_critic"})
+    "warmup_iters", "overlap_critic", "expert"})
 #: The record a population folder holds beside its members' run folders.
 POPULATION_RECORD = "population.json"
 
@@ -114,6 +116,10 @@ _ARMS = (
         "whose silhouettes carry gradient); the dva preset", raster_flag="alpha"),
     Arm("state", "state", "the actor sees the state vector: the upper bound of learning from pixels"),
     Arm("blind", "blind", "the actor sees a constant black image: the floor of a policy that cannot see"),
+    Arm("expert", "state", "a state expert for distill, trained as D.Va's teacher (teacher_student/teacher/<task>"
+        ".yaml)", preset="teacher"),
+    Arm("distill", "distill", "state-to-visual distillation (D.Va's DAgger baseline): a deterministic visual student "
+        "imitates a frozen state expert on its own rollouts (gradlab/distill.py)"),
 )
 #: The arms, by name (``ablate-paper --arms`` lists them in this order).
 ARMS: MappingProxyType[str, Arm] = MappingProxyType({a.name: a for a in _ARMS})
@@ -122,7 +128,8 @@ ARMS: MappingProxyType[str, Arm] = MappingProxyType({a.name: a for a in _ARMS})
 #: the two controls and D.Va.
 DEFAULT_ARMS = ("decoupled", "full-hard", "full-hard-dva", "full-soft", "state", "blind")
 #: The order reports list the arms in (other arms follow by mode: decoupled, full, state, blind).
-ARM_ORDER = ("decoupled", "full-soft", "full-hard", "full-hard-dva", "full-alpha", "state", "blind")
+ARM_ORDER = ("decoupled", "full-soft", "full-hard", "full-hard-dva", "full-alpha", "state", "blind", "expert",
+             "distill")
 #: The arms the population and evaluation benchmarks cycle their members through, in that order (a benchmark row's
 #: ``arm`` is an index into it).
 POPULATION_BENCHMARK_ARMS = ("decoupled", "full-soft", "full-hard-dva", "blind")

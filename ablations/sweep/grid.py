@@ -120,6 +120,8 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
     specs, seen = [], {}
     axes = list(vary_table.items())
     for task, (arm, (mode, arm_flags)), seed in itertools.product(cfg.tasks, columns, cfg.seeds):
+        # an arm's flag may name its run's task and seed (ablate-paper's distill arm: its expert's folder)
+        arm_flags = {k: v.format(task=task, seed=seed) if isinstance(v, str) else v for k, v in arm_flags.items()}
         for combo in itertools.product(*(values for _, values in axes)):
             flags = {name: value for (name, _), value in zip(axes, combo)}
             run_id = sweep_run_id(task, arm or mode, seed, flags)
@@ -150,7 +152,7 @@ def plan(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | Non
             seen[run_id] = flags
             on_state = ModePlan.of(run_cfg.mode).actor_input == "state"
             group = repr(sorted((k, v) for k, v in vars(run_cfg).items() if k not in MEMBER_FIELDS)) + \
-                (" on the state vector" if on_state else "")
+                (" on the state vector" if on_state else "") + (" distill" if run_cfg.mode == "distill" else "")
             specs.append(RunSpec(run_id=run_id, task=str(task), mode=str(mode), seed=int(seed), flags=flags,
                                  args=tuple(args), iters=run_cfg.iters, arm=arm, own=own, shared=tuple(population),
                                  group=group))

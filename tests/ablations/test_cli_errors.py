@@ -60,6 +60,10 @@ CASES = [
     (["--mode", "state", "--raster-model", "hard"], "--raster-model hard means nothing with --mode state"),
     (["--mode", "blind", "--raster-model", "softmax"], "--raster-model softmax means nothing with --mode blind"),
     (["--mode", "full", "state", "--raster-model", "hard"], "--raster-model hard means nothing with --mode state"),
+    # distill needs a state expert; an expert or the teacher preset mean nothing elsewhere
+    (["--mode", "distill"], "--expert: --mode distill needs a state expert"),
+    (["--mode", "decoupled", "--expert", "runs/x"], "--expert means nothing with --mode decoupled"),
+    (["--mode", "full", "--preset", "teacher"], "--preset teacher trains the state experts of --mode distill"),
     # the run folder stays inside --out
     (["--name", "../escape"], "--name '../escape': the run folder's name inside --out, not a path"),
     (["--name", "a/b"], "--name 'a/b': the run folder's name inside --out, not a path"),

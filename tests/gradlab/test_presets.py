@@ -102,7 +102,7 @@ def test_presets_are_the_references_and_every_other_choice_is_a_flag():
     the run's own length."""
     from typing import get_args, get_type_hints
 
-    assert get_args(get_type_hints(SHACConfig)["preset"]) == PRESETS == ("dva", "shac-diffrender")
+    assert get_args(get_type_hints(SHACConfig)["preset"]) == PRESETS == ("dva", "shac-diffrender", "teacher")
     c = resolve_config(SHACConfig(task="hopper", iters=123, lr_decay_iters=123, obs_clip=5.0, actor_init="orthogonal",
                                   bootstrap_last_step=False))
     assert (c.lr_decay_iters, c.obs_clip, c.actor_init, c.bootstrap_last_step) == (123, 5.0, "orthogonal", False)
