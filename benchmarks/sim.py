@@ -9,6 +9,12 @@ substeps) with actions ``tanh(theta)``, loss = sum of rewards, backward to ``the
 * ``graph``: compiled, and the WHOLE forward + backward captured in one CUDA graph (static shapes, the state
   restored by in-place copies into the captured input tensors), then replayed (CUDA only).
 
+``--backends torch warp`` times both simulator backends (``tasks.TaskConfig.sim_backend``) in one process, each
+row naming its ``backend``. Before the first timed row of a (task, batch) the Warp backend is checked against the
+float64 PyTorch simulator on the same device (``check_*`` fields of the warp rows: the largest state error after
+``--check-horizon`` steps beside the torch float32 simulator's own spread, and the cosine and relative error of the
+gradient into the actions); a warp row whose check fails has status "error: check ...".
+
 Timing is CUDA-synchronised, warm-up (compilation, capture) is excluded and reported separately, the result
 is the median over ``--iters`` iterations. Peak allocated and reserved memory are read after
 ``reset_peak_memory_stats`` around the measured iterations (CUDA only). With ``--kernels`` one compiled
@@ -21,6 +27,7 @@ Not a test. Examples::
     python benchmarks/sim.py --device cuda --quick --out sim_quick.json
     python benchmarks/sim.py --device cuda --tasks ant humanoid --num-envs 64 1024 4096 --out sim.json
     python benchmarks/sim.py --device cpu --tasks cartpole ant --num-envs 4 --horizon 2 --modes eager compiled
+    python benchmarks/sim.py --device cuda --quick --backends torch warp --out benchmarks/results/sim_backends.json
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ import tasks
 from tasks.device import resolve_device
 
 MODES = ("eager", "compiled", "graph")
+BACKENDS = ("torch", "warp")
 QUICK = [("ant", 64), ("humanoid", 64), ("ant", 4096)]
 
 
@@ -51,8 +59,8 @@ class Rollout:
     """The measured computation for one (task, batch, mode): state restore, horizon, loss, backward."""
 
     def __init__(self, name: str, num_envs: int, horizon: int, device: torch.device, mode: str, seed: int,
-                 inductor: dict | None = None):
-        self.task = tasks.make(name, num_envs, device=device, seed=seed)
+                 inductor: dict | None = None, backend: str = "torch"):
+        self.task = tasks.make(name, num_envs, device=device, seed=seed, sim_backend=backend)
         if mode in ("compiled", "graph"):
             self.task.compile(**({"options": inductor} if inductor else {}))
         self.task.reset()
@@ -73,11 +81,54 @@ class Rollout:
         return loss.detach(), grad
 
 
-def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
+def _final_state_and_grad(name: str, num_envs: int, device: torch.device, dtype: torch.dtype, backend: str,
+                          horizon: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """State (qpos, qvel) after ``horizon`` steps from a seeded reset, and the gradient of the summed reward into the
+    actions, both float64; no early termination, so that no environment resets inside the horizon."""
+    task = tasks.make(name, num_envs, device=device, dtype=dtype, seed=seed, sim_backend=backend,
+                      early_termination=False)
+    task.reset()
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    theta = (0.5 * torch.randn(horizon, num_envs, task.num_act, generator=gen, dtype=torch.float64))
+    theta = theta.to(device=device, dtype=dtype).requires_grad_(True)
+    loss = theta.new_zeros(())
+    for a in torch.tanh(theta):
+        _, r, _, info = task.step(a)
+        loss = loss + r.sum()
+    (grad,) = torch.autograd.grad(loss, theta)
+    state = torch.cat((info["qpos_before_reset"], info["qvel_before_reset"]), dim=1)
+    return state.detach().double(), grad.double()
+
+
+def check_warp(name: str, num_envs: int, device: torch.device, horizon: int, seed: int) -> dict:
+    """The Warp backend (float32) against the float64 PyTorch simulator, and the torch float32 simulator's own
+    spread beside it: ``check_state_err``, ``check_torch32_spread`` (largest absolute state difference from float64),
+    ``check_grad_cos``, ``check_grad_rel`` (Warp's action gradient against float64's), ``check_torch32_grad_cos``,
+    ``check_torch32_grad_rel`` and ``check_ok`` (state error <= 4 x spread + 1e-5, cosine >= 0.999)."""
+    ref_s, ref_g = _final_state_and_grad(name, num_envs, device, torch.float64, "torch", horizon, seed)
+    t32_s, t32_g = _final_state_and_grad(name, num_envs, device, torch.float32, "torch", horizon, seed)
+    w32_s, w32_g = _final_state_and_grad(name, num_envs, device, torch.float32, "warp", horizon, seed)
+
+    def cos_rel(g):
+        cos = torch.nn.functional.cosine_similarity(g.flatten(), ref_g.flatten(), dim=0).item()
+        return cos, ((g - ref_g).norm() / ref_g.norm()).item()
+
+    out = {"check_horizon": horizon, "check_state_err": (w32_s - ref_s).abs().max().item(),
+           "check_torch32_spread": (t32_s - ref_s).abs().max().item()}
+    out["check_grad_cos"], out["check_grad_rel"] = cos_rel(w32_g)
+    out["check_torch32_grad_cos"], out["check_torch32_grad_rel"] = cos_rel(t32_g)
+    out["check_ok"] = bool(out["check_state_err"] <= 4 * out["check_torch32_spread"] + 1e-5
+                           and out["check_grad_cos"] >= 0.999)
+    return out
+
+
+def measure(name: str, num_envs: int, mode: str, args, cache: dict, backend: str = "torch") -> dict:
     """One row. ``cache`` carries the compiled rollout from the "compiled" row to the "graph" row of the same
-    (task, batch), so the graph mode captures the already compiled code instead of compiling again."""
+    (task, batch, backend), so the graph mode captures the already compiled code instead of compiling again, and
+    the Warp backend's correctness check (:func:`check_warp`) from its first row to the others."""
     device = torch.device(args.device)
-    row: dict = {"task": name, "num_envs": num_envs, "mode": mode, "horizon": args.horizon, "status": "ok"}
+    row: dict = {"backend": backend, "task": name, "num_envs": num_envs, "mode": mode, "horizon": args.horizon,
+                 "status": "ok"}
     if args.inductor:
         row["inductor"] = args.inductor
     if mode == "graph" and device.type != "cuda":
@@ -85,12 +136,21 @@ def measure(name: str, num_envs: int, mode: str, args, cache: dict) -> dict:
         return row
     held = contextlib.ExitStack()  # the GPU lock, once taken
     try:
+        if backend == "warp" and args.check_horizon > 0:
+            check = cache.get(("check", name, num_envs))
+            if check is None:
+                check = cache[("check", name, num_envs)] = check_warp(
+                    name, min(num_envs, args.check_envs), device, args.check_horizon, args.seed)
+            row.update(check)
+            if not check["check_ok"]:
+                row["status"] = "error: check (the Warp backend disagrees with the float64 torch simulator)"
+                return row
         t0 = time.perf_counter()
-        key = (name, num_envs)
+        key = (name, num_envs, backend)
         try:
             roll = cache.pop(key, None) if mode == "graph" else None
             if roll is None:
-                roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed, args.inductor)
+                roll = Rollout(name, num_envs, args.horizon, device, mode, args.seed, args.inductor, backend)
             if args.gpu_lock is not None:
                 # compile (the first call) concurrently with the other processes, wait for all of them, then
                 # take turns: no measurement overlaps another process's GPU work
@@ -238,6 +298,7 @@ def _setting(kv: str, p: argparse.ArgumentParser) -> tuple[str, object]:
 
 def table(rows: list[dict]) -> str:
     cols = (
+        "backend",
         "task",
         "num_envs",
         "mode",
@@ -263,6 +324,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--tasks", nargs="+", default=list(tasks.TASKS), choices=tasks.TASKS)
     p.add_argument("--num-envs", nargs="+", type=int, default=[64, 1024, 4096])
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    p.add_argument("--backends", nargs="+", default=["torch"], choices=BACKENDS,
+                   help="simulator backends to time (tasks.TaskConfig.sim_backend), each row naming its own")
+    p.add_argument("--check-horizon", type=int, default=8,
+                   help="steps of the Warp backend's check against float64 torch before its first timed row (0: none)")
+    p.add_argument("--check-envs", type=int, default=256, help="environments of that check (at most the row's)")
     p.add_argument("--horizon", type=int, default=32)
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--iters", type=int, default=None, help="measured iterations (default 5; 3 with --quick)")
@@ -321,13 +387,15 @@ def main(argv: list[str] | None = None) -> None:
     rows: list[dict] = []
     cache: dict = {}
     modes = [m for m in MODES if m in args.modes]  # compiled before graph: the graph row reuses its compile
+    backends = [b for b in BACKENDS if b in args.backends]
     for name, n in configs:
-        for mode in modes:
-            row = measure(name, n, mode, args, cache)
-            rows.append(row)
-            print(json.dumps(row), flush=True)
-            if args.out:
-                write_json(args.out, {"meta": meta, "rows": rows})
+        for backend in backends:
+            for mode in modes:
+                row = measure(name, n, mode, args, cache, backend)
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+                if args.out:
+                    write_json(args.out, {"meta": meta, "rows": rows})
     print(f"\n# {meta['device']}, torch {meta['torch']}, {meta['date']}")
     print(table(rows))
 

@@ -15,7 +15,7 @@ from typing import Literal
 from gradlab.config_checks import check_integers, check_number, flag
 from gradlab.precision import PRECISIONS
 from gradlab.presets import preset_values
-from vocabulary import MEMBER_DEFAULTS, MODES, PRESET_FIELDS, PRESETS, RASTER_MODELS, RENDERERS, TASKS
+from vocabulary import MEMBER_DEFAULTS, MODES, PRESET_FIELDS, PRESETS, RASTER_MODELS, RENDERERS, SIM_BACKENDS, TASKS
 
 __all__ = ["SHACConfig", "MODES", "ModePlan", "resolve_config", "check_as_given"]
 
@@ -230,6 +230,10 @@ class SHACConfig:
     distill_loss_threshold: float = 0.1
     """--mode distill: an iteration's updates stop at the first minibatch whose loss is below this (D.Va's
     supervised_loss_threshold)."""
+    sim_backend: Literal[SIM_BACKENDS] = "torch"
+    """What runs the physics substeps (tasks.TaskConfig.sim_backend): torch, the PyTorch simulator (the
+    reference); warp, the same model as Warp kernels (tasks/warp_sim.py), a kernel launch a substep. Not part
+    of a run's arm. One value for a whole population (its environments are one batch)."""
 
     def validate(self) -> None:
         """Clear errors for bad values, before any work: each names its flag as typed (``--num-envs``), NaN and
@@ -251,6 +255,9 @@ class SHACConfig:
         if self.renderer == "warp" and plan.grad_through_images:
             raise ValueError(f"--renderer warp renders without gradient, but --mode {self.mode} backpropagates "
                              "through the images: use --renderer soft (the differentiable rasterizer)")
+        if self.sim_backend not in SIM_BACKENDS:
+            raise ValueError(f"--sim-backend: unknown simulator backend {self.sim_backend!r}; valid: "
+                             f"{', '.join(SIM_BACKENDS)}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"--precision: unknown precision {self.precision!r}; valid: {', '.join(PRECISIONS)}")
         check_integers(self, ("iters", "horizon", "critic_iterations", "critic_batches", "image_size", "frames",

@@ -198,6 +198,8 @@ def make_task(cfg: SHACConfig, seeds: Sequence[int], per_member: int, device: to
     """The population's task: ``per_member`` environments for each reset seed, member m's resets those a task of
     its own with seed ``seeds[m]`` draws (``tasks.rng.CounterRNG`` groups)."""
     overrides = {} if cfg.episode_length is None else {"episode_length": cfg.episode_length}
+    if cfg.sim_backend != "torch":
+        overrides["sim_backend"] = cfg.sim_backend
     return tasks.make(cfg.task, len(seeds) * per_member, device=device, seed=list(seeds), **overrides)
 
 

@@ -26,6 +26,8 @@ from typing import Any, ClassVar, Literal
 
 import torch
 
+from vocabulary import SIM_BACKENDS
+
 from . import _pdl
 from .dynamics import ContactParams, LimitParams, Simulator
 from .model import ArticulatedModel, load_model
@@ -78,6 +80,10 @@ class TaskConfig:
     1 = every substep). linalg: how the mass matrix is inverted ("library": cuSOLVER/LAPACK; "torch": the same
     Cholesky in plain tensor ops, e.g. where a solver library cannot be captured in a CUDA graph).
     reset_noise: randomise reset states (False: the nominal start state).
+    sim_backend: what runs the substeps of :meth:`Task.step`: "torch" (:class:`~tasks.dynamics.Simulator`, the
+    reference) or "warp" (:class:`~tasks.warp_sim.WarpSimulator`, the same model as Warp kernels, a launch a
+    substep; ``sim`` stays the torch simulator for everything else a task computes). ``linalg`` and
+    ``compile``'s substep and factorize parts act on the torch backend only.
     validate: check actions for NaN/inf on every step (a host sync; default from env var TASKS_VALIDATE).
     """
 
@@ -96,6 +102,7 @@ class TaskConfig:
     mass_matrix_every: int | None = None
     linalg: Literal["library", "torch"] = "library"
     reset_noise: bool = True
+    sim_backend: Literal["torch", "warp"] = "torch"
     validate: bool = field(default_factory=lambda: _env_flag("TASKS_VALIDATE"))
 
     def __post_init__(self) -> None:
@@ -109,6 +116,8 @@ class TaskConfig:
             raise ValueError(f"mass_matrix_every must be None or a positive int, got {self.mass_matrix_every!r}")
         if self.linalg not in ("library", "torch"):
             raise ValueError(f"linalg must be 'library' or 'torch', got {self.linalg!r}")
+        if self.sim_backend not in SIM_BACKENDS:
+            raise ValueError(f"sim_backend must be one of {', '.join(SIM_BACKENDS)}, got {self.sim_backend!r}")
         if self.limit_damping not in ("always", "violated"):
             raise ValueError(f"limit_damping must be 'always' or 'violated', got {self.limit_damping!r}")
         for name in ("contact_ke", "contact_kd", "contact_kf", "contact_mu", "limit_ke", "limit_kd"):
@@ -213,6 +222,11 @@ class Task(abc.ABC):
         self.sim = Simulator(
             self.model, device=self.device, dtype=dtype, contact=contact, limits=limits, linalg=cfg.linalg
         )
+        self.warp_sim = None
+        if cfg.sim_backend == "warp":
+            from .warp_sim import WarpSimulator
+
+            self.warp_sim = WarpSimulator(self.model, device=self.device, dtype=dtype, contact=contact, limits=limits)
         self.num_act = self.model.nu
         self.episode_length = cfg.episode_length
         self.substeps = cfg.substeps
@@ -286,11 +300,14 @@ class Task(abc.ABC):
         tau = self.sim.actuator_force(a * self.config.action_scale)
         h = self.dt / self.substeps
         qpos, qvel = self.qpos, self.qvel
-        M = Minv = None
-        for i in range(self.substeps):
-            if i % self.mass_matrix_every == 0:
-                M, Minv = self._factorize(qpos)
-            qpos, qvel, tau, M = self._substep(qpos, qvel, tau, h, M, Minv)
+        if self.warp_sim is not None:
+            qpos, qvel = self.warp_sim.step(qpos, qvel, tau, h, self.substeps, self.mass_matrix_every)
+        else:
+            M = Minv = None
+            for i in range(self.substeps):
+                if i % self.mass_matrix_every == 0:
+                    M, Minv = self._factorize(qpos)
+                qpos, qvel, tau, M = self._substep(qpos, qvel, tau, h, M, Minv)
         (self.qpos, self.qvel, self.progress, self.prev_actions, obs, reward, done, info) = self._finish(
             qpos, qvel, a, self.progress
         )

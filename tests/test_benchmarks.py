@@ -387,3 +387,21 @@ def test_the_profile_counts_every_renderer_kernel_as_the_renderers(benchmark_scr
     assert prof.category("triton_poi_fused_clone_sub_0") == "inductor triton (sim, elementwise)"
     assert prof.category("void cudnn::engines_precompiled::convertTensor_kernel<float>") == "cudnn conv"
     assert prof.category("void at::native::elementwise_kernel<128, 2>") == "aten elementwise/other"
+
+
+@pytest.mark.slow
+def test_sim_times_both_backends_after_checking_warp(tmp_path, benchmark_script):
+    """``sim.py --backends torch warp``: a row per backend in one JSON, the Warp row carrying its check against the
+    float64 torch simulator (CPU, tiny sizes)."""
+    pytest.importorskip("warp")
+    sim = benchmark_script("sim")
+    out = tmp_path / "sim.json"
+    sim.main(["--device", "cpu", "--tasks", "cartpole", "--num-envs", "2", "--horizon", "1", "--modes", "eager",
+              "--backends", "torch", "warp", "--check-horizon", "2", "--iters", "1", "--warmup", "1",
+              "--settle-s", "0", "--out", str(out)])
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["backend"], r["status"]) for r in rows] == [("torch", "ok"), ("warp", "ok")]
+    warp = rows[1]
+    assert warp["check_ok"] and warp["check_grad_cos"] > 0.999 and warp["ms"] > 0
+    assert warp["check_state_err"] <= 4 * warp["check_torch32_spread"] + 1e-5
+    assert abs(rows[0]["loss"] - warp["loss"]) <= 1e-4 * abs(rows[0]["loss"])  # the same rollout, either backend

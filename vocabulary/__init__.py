@@ -17,7 +17,7 @@ __all__ = ["TASKS", "MODES", "IMAGELESS_MODES", "STATE_INPUT_MODES", "RENDERERS"
            "SILHOUETTE_RASTER_MODEL", "PRESET_RASTER_MODEL", "PRESET_FIELDS", "MEMBER_FIELDS", "MEMBER_DEFAULTS",
            "NOT_ARM_SETTINGS",
            "POPULATION_RECORD", "Arm", "ARMS", "DEFAULT_ARMS", "ARM_ORDER", "POPULATION_BENCHMARK_ARMS",
-           "REFERENCE_ARM", "CONTROL_ARM", "arm_of"]
+           "REFERENCE_ARM", "CONTROL_ARM", "arm_of", "SIM_BACKENDS"]
 
 #: The tasks, in the order tables list them (``tasks.make`` builds each; ``tasks/registry.py`` holds the classes).
 TASKS: tuple[str, ...] = ("cartpole", "cartpole-swingup", "hopper", "ant", "humanoid", "cheetah")
@@ -30,6 +30,9 @@ IMAGELESS_MODES: tuple[str, ...] = ("state", "blind")
 STATE_INPUT_MODES: tuple[str, ...] = ("state",)
 #: What renders the actor's images: the differentiable rasterizer, or the forward-only Warp ray tracer.
 RENDERERS: tuple[str, ...] = ("soft", "warp")
+#: What runs the simulator (``tasks.TaskConfig.sim_backend``): the PyTorch reference (``tasks.dynamics``) or the
+#: same model as Warp kernels (``tasks.warp_sim``).
+SIM_BACKENDS: tuple[str, ...] = ("torch", "warp")
 #: The image models of ``diffrender.RasterSettings`` (docs/design.md, "Image model").
 RASTER_MODELS: tuple[str, ...] = ("hard", "softmax", "alpha")
 #: The trainer's presets (``gradlab/presets.py`` holds their values and sources).
@@ -63,7 +66,7 @@ NOT_ARM_SETTINGS = frozenset({
     "task", "seed", "mode", "raster_model", "preset", "name", "out", "resume", "progress", "tensorboard",
     "checkpoint_every", "keep_checkpoints", "video_every", "video_steps", "compile", "compile_cache",
     "compile_helper", "threads", "device", "time_limit_min", "iters", "cosine_every", "eval_every", "eval_envs",
-    "warmup_iters", "overlap_critic", "expert"})
+    "warmup_iters", "overlap_critic", "expert", "sim_backend"})
 #: The record a population folder holds beside its members' run folders.
 POPULATION_RECORD = "population.json"
 

@@ -115,6 +115,7 @@ def test_presets_are_the_references_and_every_other_choice_is_a_flag():
     ("preset", "paper", "unknown preset 'paper'; valid presets: dva, shac-diffrender"),
     ("raster_model", "blurry", "--raster-model: unknown raster model 'blurry'"),
     ("renderer", "opengl", "unknown renderer 'opengl'"),
+    ("sim_backend", "jax", "--sim-backend: unknown simulator backend 'jax'; valid: torch, warp"),
     ("lr_decay_iters", 0, "--lr-decay-iters must be a positive integer"),
     ("obs_clip", -1.0, r"--obs-clip must be in \[0, inf\)"),
 ])
