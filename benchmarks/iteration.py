@@ -38,6 +38,7 @@ import diffrender
 import tasks
 from gradlab import SHAC, ModePlan, SHACConfig, precision, resolve_config, resolve_device
 from gradlab.timing import median
+from vocabulary import SIM_BACKENDS
 
 KEYS = ("fwd_ms", "bwd_ms", "critic_ms", "iter_ms", "peak_alloc_mb", "peak_reserved_mb", "saved_mb")
 
@@ -56,19 +57,22 @@ def window_start(kind: str):
 
 
 def measure(task: str, mode: str, args, *, renderer: str = "soft", start: str = "leaf",
-            overlap_critic: bool = True, raster_model: str | None = None) -> dict:
+            overlap_critic: bool = True, raster_model: str | None = None, sim_backend: str = "torch") -> dict:
     with window_start(start):
-        row = _measure(task, mode, args, renderer=renderer, overlap_critic=overlap_critic, raster_model=raster_model)
+        row = _measure(task, mode, args, renderer=renderer, overlap_critic=overlap_critic, raster_model=raster_model,
+                       sim_backend=sim_backend)
     return {**row, "window_start": start}
 
 
 def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_critic: bool = True,
-             raster_model: str | None = None) -> dict:
+             raster_model: str | None = None, sim_backend: str = "torch") -> dict:
     cfg = SHACConfig(task=task, mode=mode, num_envs=args.num_envs, horizon=args.horizon, image_size=args.image_size,
                      iters=10_000, cosine_every=0, seed=args.seed, compile=args.compile, renderer=renderer,
                      raster_model=raster_model, extra_meshes=args.extra_meshes,
-                     extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic, precision=args.precision)
-    row = {"task": task, "mode": mode, "renderer": renderer, "num_envs": args.num_envs, "horizon": args.horizon,
+                     extra_mesh_verts=args.extra_mesh_verts, overlap_critic=overlap_critic, precision=args.precision,
+                     sim_backend=sim_backend)
+    row = {"task": task, "mode": mode, "renderer": renderer, "sim_backend": sim_backend, "num_envs": args.num_envs,
+           "horizon": args.horizon,
            "image_size": args.image_size, "compile": args.compile, "overlap_critic": overlap_critic,
            "precision": args.precision, "status": "ok"}
     try:
@@ -147,6 +151,8 @@ def main() -> None:
     p.add_argument("--overlap-critic", nargs="+", choices=["on", "off"], default=["on"],
                    help="the critic fit alongside the replayed backward (on, the trainer's default) or after it "
                         "(off); several: each timed in this process (SHACConfig.overlap_critic)")
+    p.add_argument("--sim-backends", nargs="+", choices=SIM_BACKENDS, default=["torch"],
+                   help="the simulator backends (SHACConfig.sim_backend), each timed in this process")
     p.add_argument("--precision", choices=precision.PRECISIONS, default="fp32",
                    help="SHACConfig.precision for every row (on the CPU a dry run: no TF32 there, bf16 emulated)")
     p.add_argument("--seed", type=int, default=0)
@@ -163,13 +169,13 @@ def main() -> None:
     if args.device.startswith("cuda"):
         env["gpu"] = torch.cuda.get_device_name()
     results = []
-    runs = [(t, m, r, w, o, rm) for t in args.tasks for m in args.modes for r in args.renderers
-            for w in args.window_starts for o in args.overlap_critic
+    runs = [(t, m, r, w, o, rm, sb) for t in args.tasks for m in args.modes for r in args.renderers
+            for w in args.window_starts for o in args.overlap_critic for sb in args.sim_backends
             for rm in (args.raster_model if ModePlan.of(m).renders and r == "soft" else [None])
             if r == "soft" or not ModePlan.of(m).grad_through_images]
-    for task, mode, renderer, start, overlap, raster in runs:
+    for task, mode, renderer, start, overlap, raster, backend in runs:
         row = measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on",
-                      raster_model=raster)
+                      raster_model=raster, sim_backend=backend)
         results.append(row)
         print(json.dumps(row), flush=True)
         # The format ablate-report reads: provenance at the top level, one row per (task, mode).
@@ -183,7 +189,7 @@ def main() -> None:
           f"{env.get('gpu', args.device)}, compile={args.compile}, precision={args.precision} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
     print(f"{'task':9} {'mode':9} {'render':6} {'raster':7} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} "
-          f"{'overlap':>7} {'iter ms':>9} "
+          f"{'overlap':>7} {'sim':>5} {'iter ms':>9} "
           f"{'alloc MB':>9} {'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
     for r in results:
         head = (f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r.get('raster_model') or '-':7} "
@@ -193,7 +199,7 @@ def main() -> None:
             continue
         ov = r.get("probe_overhead_at_k")
         print(f"{head} {fmt(r['fwd_ms']):>9} {fmt(r['bwd_ms']):>9} "
-              f"{fmt(r['critic_ms']):>8} {('yes' if r['critic_overlapped'] else 'no'):>7} "
+              f"{fmt(r['critic_ms']):>8} {('yes' if r['critic_overlapped'] else 'no'):>7} {r['sim_backend']:>5} "
               f"{fmt(r['iter_ms']):>9} {fmt(r['peak_alloc_mb'], 0):>9} "
               f"{fmt(r['peak_reserved_mb'], 0):>9} "
               f"{fmt(r['saved_mb'], 1):>9} {('-' if ov is None else f'{100 * ov:.1f}'):>8} "
