@@ -37,6 +37,7 @@ from ablations.stopping import (
     plain_warnings,
     rescue,
 )
+from ablations.tree_hash import tree_hash
 from diffrender import BinCapacityWarning
 from gradlab import precision
 from gradlab.config import SHACConfig
@@ -116,6 +117,7 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
     (damaged ones named), except a member that stopped before it (its lines end where it stopped). ``members``:
     the trainer's, in the folders' order."""
     cfgs, folders = prepared.cfgs, prepared.folders
+    tree = tree_hash()  # the code that trains, hashed where a device copy has no repository to name it
     for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
         if folder.config_path.exists():
             if resuming:
@@ -135,6 +137,8 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
             "started_utc": _utc(started),
             "environment": environment_info(prepared.device),
             "command": sys.argv,
+            "tree_hash": tree.value,
+            "tree_hash_source": tree.source,
         }
         if prepared.population is not None:  # the process it trained in: one of these members, in this folder
             record["population"] = {"folder": prepared.population.path.name,
