@@ -25,7 +25,8 @@ T = TypeVar("T")
 ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
     "essentials": ("task", "mode", "seed", "iters", "num_envs", "device", "threads", "compile", "out", "name",
                    "resume", "restart", "time_limit_min", "progress", "member"),
-    "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every"),
+    "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every",
+                              "eval_final_every", "eval_final_from"),
     "training": ("preset", "horizon", "gamma", "lam", "actor_lr", "critic_lr", "lr_decay_iters", "lr_warmup_iters",
                  "encoder_lr_scale", "betas", "grad_clip", "abort_grad_norm", "critic_iterations", "critic_batches",
                  "target_alpha", "obs_clip", "bootstrap_last_step", "episode_length"),

@@ -235,7 +235,7 @@ def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started:
             it = trainer.iteration
             ended = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
             video = bool(cfg.video_every) and (it % cfg.video_every == 0 or ended)
-            if video or (cfg.eval_every and (it % cfg.eval_every == 0 or ended)):
+            if video or cfg.evaluates_at(it, ended):
                 # the deterministic policy from the fixed evaluation seed (SHAC.evaluate), filmed on video iterations
                 t_eval = time.perf_counter()
                 with startup.evaluating():
