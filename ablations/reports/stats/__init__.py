@@ -84,6 +84,7 @@ from ablations.reports.stats.curves import (
     curve_of,
     final_return,
     load_arms,
+    window_statistic,
 )
 from ablations.reports.stats.estimates import (
     ALPHA,
@@ -117,7 +118,8 @@ from ablations.reports.stats.verdicts import Gate, Verdict, verdict
 
 __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", "Estimate", "ArmSummary",
            "PairedDifference", "Comparison", "TaskStatistics", "ProfileCurve", "PerformanceProfile", "LookingProbes",
-           "curve_of", "load_arms", "final_return", "auc", "collapse_rate", "iqm_estimate", "mean_estimate",
+           "curve_of", "load_arms", "window_statistic", "final_return", "auc", "collapse_rate", "iqm_estimate",
+           "mean_estimate",
            "compare", "common_iteration", "truncate_at_iteration", "common_wall_s", "truncate_at_wall_s",
            "check_at_iteration", "task_statistics", "performance_profiles", "looking_probes", "LOOKING_FRACTION",
            "BlindPhase", "blind_phase", "BLIND_PHASE_ITERS", "Verdict", "Gate", "verdict", "MIN_SEEDS", "ALPHA",
