@@ -16,7 +16,7 @@ from typing import Annotated, Any, NoReturn, TypeVar
 
 from tasks.command_line import check_argv, tyro_one_line
 
-__all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "parse", "ABLATE_GROUPS"]
+__all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "plan_main", "parse", "ABLATE_GROUPS"]
 
 T = TypeVar("T")
 
@@ -288,5 +288,17 @@ def report_main(argv: list[str] | None = None) -> None:
     cfg = parse(ReportConfig, argv, prog="ablate-report")
     try:
         print(build_report(cfg))
+    except ValueError as e:
+        _fail(str(e))
+
+
+def plan_main(argv: list[str] | None = None) -> None:
+    """``ablate-plan RUN_DIR... --registration FILE`` (the power of a registered design from pilot runs), or
+    ``ablate-plan --pin --registration FILE`` (pin the training tree hash)."""
+    from ablations.reports.confirmatory import PlanConfig, plan
+
+    cfg = parse(PlanConfig, argv, prog="ablate-plan")
+    try:
+        print(plan(cfg))
     except ValueError as e:
         _fail(str(e))
