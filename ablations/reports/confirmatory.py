@@ -25,7 +25,8 @@ import numpy as np
 import tyro
 
 from ablations.registration import Hypothesis, Registration, load_registration, pin, run_arm
-from ablations.reports.stats import curve_of, sign_flip_p, window_statistic
+from ablations.registration import check_runs as rg_check
+from ablations.reports.stats import curve_of, sign_flip_interval, sign_flip_p, window_statistic
 from ablations.run_folder import find_runs
 
 
@@ -201,3 +202,75 @@ def plan(cfg: PlanConfig) -> str:
         lines.append(f"| {h.id} | {st} | {len(pairs[h.id])} | {mean:+.1f}, {sd:.1f} | {p.by_last:.2f} "
                      f"({p.at_first:.2f}) | {small} | {tost} |")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------- the registered report
+#: summary.json statuses of a run that failed in training: an outcome, not a gap (the registration's policy).
+TRAINING_FAILURES = ("nonfinite",)
+
+
+def in_family(reg: Registration, run) -> bool:
+    """Whether a run is one of the registered family's: a registered task, arm and seed of the last look."""
+    return run.task in reg.tasks and run_arm(run) in reg.arms and run.seed in set(reg.looks[-1].seeds)
+
+
+def latest_complete_look(reg: Registration, runs) -> int | None:
+    """The index of the latest look whose every registered task, arm and seed has a run that trained all the
+    registered iterations or failed in training (:data:`TRAINING_FAILURES`); None when look 1 is not complete."""
+    done = set()
+    for run in runs:
+        last = max((r.get("iter", 0) for r in run.metrics), default=0)
+        if last >= reg.iterations or (run.summary or {}).get("status") in TRAINING_FAILURES:
+            done.add((run.task, run_arm(run), run.seed))
+    complete = None
+    for k, look in enumerate(reg.looks):
+        if all((t, a, s) in done for t in reg.tasks for a in reg.arms for s in look.seeds):
+            complete = k
+    return complete
+
+
+def registered_section(reg: Registration, runs) -> list[str]:
+    """The registered analysis as markdown lines: the family at the latest complete look (each earlier look's
+    rejections standing), per hypothesis the seeds, the mean with its sign-flip interval at the look's Holm level
+    for it, the seeds agreeing, the exact p-value and the verdict. Raises ValueError naming every registered run
+    whose tree hash or registered fields differ."""
+    family = [r for r in runs if in_family(reg, r)]
+    problems = rg_check(reg, family)
+    if problems:
+        raise ValueError(f"{len(problems)} run(s) differ from the registration {reg.path}:\n" + "\n".join(problems))
+    out = ["## The registered analysis", ""]
+    k = latest_complete_look(reg, family)
+    if k is None:
+        return [*out, f"Look 1 ({len(reg.looks[0].seeds)} seeds) is not complete: no registered hypothesis is "
+                "tested yet. Everything below is exploratory.", ""]
+    p_by_look, pairs_by_look = [], []
+    for look in reg.looks[:k + 1]:
+        pairs = hypothesis_pairs(reg, family, seeds=look.seeds)
+        pairs_by_look.append(pairs)
+        p_by_look.append({h.id: hypothesis_p(h, list(pairs[h.id].values())) for h in reg.hypotheses})
+    rejected = sequential_holm(reg, p_by_look)
+    look = reg.looks[k]
+    out += [f"Registration `{reg.path}` ({reg.name}), tree `{reg.tree_hash}`. Look {k + 1} of {len(reg.looks)} is "
+            f"the latest complete one ({len(look.seeds)} seeds, alpha {look.alpha:g}); at each look Holm ran over "
+            "the hypotheses not rejected before, a comparison counting only where its task's gate is rejected. "
+            "Intervals: inverted from the same sign-flip test at alpha / (hypotheses tested at that look).", ""]
+    rows = []
+    open_at_k = [h for h in reg.hypotheses if h.id not in (rejected[k - 1] if k else set())]
+    for h in reg.hypotheses:
+        d = list(pairs_by_look[k][h.id].values())
+        if not d:
+            rows.append(f"| {h.id} | {h.arm} - {h.reference} | {h.alternative} | 0 | - | - | - | not tested |")
+            continue
+        lo, hi = sign_flip_interval(d, alpha=look.alpha / max(1, len(open_at_k)), alternative=h.alternative)
+        mean = float(np.mean(d))
+        agree = int(np.sum(np.sign(d) == np.sign(mean)))
+        at = next((i for i, r in enumerate(rejected) if h.id in r), None)
+        verdict = (f"rejected at look {at + 1}" if at is not None else
+                   "not read: its task's gate is not rejected" if h.role == "comparison" and
+                   h.id in holm_rejects({x.id: p_by_look[k][x.id] for x in open_at_k}, look.alpha) else
+                   "not rejected (not equivalence)")
+        rows.append(f"| {h.id} | {h.arm} - {h.reference} | {h.alternative} | {len(d)} | {mean:+.1f} "
+                    f"[{lo:.1f}, {hi:.1f}] | {agree} of {len(d)} | {p_by_look[k][h.id]:.3g} | {verdict} |")
+    out += ["| hypothesis | difference | sided | seeds | mean [interval] | seeds agreeing | exact p | verdict |",
+            "|---|---|---|---|---|---|---|---|", *rows, ""]
+    return out

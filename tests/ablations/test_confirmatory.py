@@ -36,14 +36,17 @@ def small_registration(**over) -> dict:
     return data
 
 
-def write_run(root, arm, seed, returns_at):
-    """A run folder of ``arm`` with evaluations ``returns_at`` (iteration -> return)."""
+HASH = "sha256:" + "c" * 64
+
+
+def write_run(root, arm, seed, returns_at, tree=HASH):
+    """A run folder of ``arm`` with evaluations ``returns_at`` (iteration -> return), trained in tree ``tree``."""
     run = root / f"{arm}_{seed}"
     run.mkdir(parents=True)
     a = ARMS[arm]
     config = {"task": "hopper", "mode": a.mode, "raster_model": a.raster_model, "preset": a.preset, "seed": seed,
               "iters": 20}
-    (run / "config.json").write_text(json.dumps({"config": config, "environment": {}}))
+    (run / "config.json").write_text(json.dumps({"config": config, "environment": {}, "tree_hash": tree}))
     lines = [{"iter": it, **({"eval_return_mean": returns_at[it]} if it in returns_at else {})}
              for it in range(1, 21)]
     (run / "metrics.jsonl").write_text("\n".join(map(json.dumps, lines)) + "\n")
@@ -124,3 +127,34 @@ def test_ablate_plan_refuses_in_one_line(tmp_path, capsys):
             plan_main(argv)
         err = capsys.readouterr().err
         assert e.value.code == 2 and err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+def test_the_registered_analysis_reads_the_latest_complete_look(tmp_path):
+    from ablations.run_folder import find_runs
+    write_pilot(tmp_path / "runs")
+    looks = [{"seeds": list(range(6)), "alpha": 0.04}, {"seeds": list(range(10)), "alpha": 0.01}]
+    reg = rg.parse_registration(small_registration(tree_hash=HASH, looks=looks))
+    assert cf.latest_complete_look(reg, find_runs([tmp_path / "runs"])) == 0  # seeds 6-9 have no runs
+    text = "\n".join(cf.registered_section(reg, find_runs([tmp_path / "runs"])))
+    assert "Look 1 of 2 is the latest complete one (6 seeds, alpha 0.04)" in text
+    # G: every seed agrees, one-sided p = 1/64 <= 0.04 / 2; C: -3 + s, p well above
+    assert "| G | decoupled - blind | greater | 6 | +117.5 [" in text and "| 6 of 6 | 0.0156 | rejected at look 1 |" \
+        in text
+    assert "| C | full-soft - decoupled | two-sided | 6 | -0.5 [" in text and "not rejected (not equivalence)" in text
+
+
+def test_the_registered_analysis_refuses_runs_that_differ_naming_them(tmp_path):
+    from ablations.run_folder import find_runs
+    write_pilot(tmp_path / "runs", seeds=range(5))
+    write_run(tmp_path / "runs", "blind", 5, {10: 1.0, 20: 3.0}, tree="sha256:" + "d" * 64)
+    reg = rg.parse_registration(small_registration(tree_hash=HASH))
+    with pytest.raises(ValueError, match=r"1 run\(s\) differ") as e:
+        cf.registered_section(reg, find_runs([tmp_path / "runs"]))
+    assert f"{tmp_path / 'runs' / 'blind_5'}: tree hash sha256:ddd" in str(e.value)
+    with pytest.raises(rg.RegistrationError, match="not pinned"):
+        cf.registered_section(rg.parse_registration(small_registration()), find_runs([tmp_path / "runs"]))
+    # look 1 needs seeds 0-5 of every arm: without blind seed 5 nothing is tested
+    (tmp_path / "runs" / "blind_5" / "config.json").unlink()
+    (tmp_path / "runs" / "blind_5").rename(tmp_path / "elsewhere")
+    text = "\n".join(cf.registered_section(reg, find_runs([tmp_path / "runs"])))
+    assert "Look 1 (6 seeds) is not complete" in text
