@@ -158,3 +158,17 @@ def test_the_registered_analysis_refuses_runs_that_differ_naming_them(tmp_path):
     (tmp_path / "runs" / "blind_5").rename(tmp_path / "elsewhere")
     text = "\n".join(cf.registered_section(reg, find_runs([tmp_path / "runs"])))
     assert "Look 1 (6 seeds) is not complete" in text
+
+
+@pytest.mark.slow
+def test_ablate_report_with_a_registration_opens_with_it_and_reads_nothing_else(tmp_path):
+    from ablations.cli import report_main
+    write_pilot(tmp_path / "runs")
+    looks = [{"seeds": list(range(6)), "alpha": 0.04}, {"seeds": list(range(10)), "alpha": 0.01}]
+    (tmp_path / "reg.json").write_text(json.dumps(small_registration(tree_hash=HASH, looks=looks)))
+    report_main([str(tmp_path / "runs"), "--out", str(tmp_path / "rep" / "report.md"), "--registration",
+                 str(tmp_path / "reg.json"), "--reps", "20"])
+    text = (tmp_path / "rep" / "report.md").read_text()
+    assert text.index("## The registered analysis") < text.index("## 1.")
+    assert "| G | decoupled - blind | greater | 6 |" in text and "**Verdict" not in text
+    assert "| blind | 6 |" in text and text.count("| exploratory |") == 2  # full-soft and blind, no reading
