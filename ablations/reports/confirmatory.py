@@ -150,10 +150,10 @@ class PlanConfig:
     and at the registered smallest effect of interest (with the pilot's SD), and of the TOST where a margin is
     registered."""
 
+    registration: Path
+    """The registration (preregistration.json, ablations/registration.py); no default, since --pin writes it."""
     runs: tyro.conf.Positional[tuple[Path, ...]] = ()
     """Pilot run folders (or folders that hold them)."""
-    registration: Path = Path("docs/confirmatory/preregistration.json")
-    """The registration (ablations/registration.py)."""
     sims: int = 1000
     """Simulated experiments per power."""
     seed: int = 0
