@@ -16,7 +16,7 @@ from typing import Annotated, Any, NoReturn, TypeVar
 
 from tasks.command_line import check_argv, tyro_one_line
 
-__all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "parse", "ABLATE_GROUPS"]
+__all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "plan_main", "parse", "ABLATE_GROUPS"]
 
 T = TypeVar("T")
 
@@ -25,7 +25,8 @@ T = TypeVar("T")
 ABLATE_GROUPS: dict[str, tuple[str, ...]] = {
     "essentials": ("task", "mode", "seed", "iters", "num_envs", "device", "threads", "compile", "out", "name",
                    "resume", "restart", "time_limit_min", "progress", "member"),
-    "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every"),
+    "evaluation-and-probes": ("eval_every", "eval_envs", "video_every", "video_steps", "cosine_every",
+                              "eval_final_every", "eval_final_from"),
     "training": ("preset", "horizon", "gamma", "lam", "actor_lr", "critic_lr", "lr_decay_iters", "lr_warmup_iters",
                  "encoder_lr_scale", "betas", "grad_clip", "abort_grad_norm", "critic_iterations", "critic_batches",
                  "target_alpha", "obs_clip", "bootstrap_last_step", "episode_length"),
@@ -289,5 +290,17 @@ def report_main(argv: list[str] | None = None) -> None:
     cfg = parse(ReportConfig, argv, prog="ablate-report")
     try:
         print(build_report(cfg))
+    except ValueError as e:
+        _fail(str(e))
+
+
+def plan_main(argv: list[str] | None = None) -> None:
+    """``ablate-plan RUN_DIR... --registration FILE`` (the power of a registered design from pilot runs), or
+    ``ablate-plan --pin --registration FILE`` (pin the training tree hash)."""
+    from ablations.reports.confirmatory import PlanConfig, plan
+
+    cfg = parse(PlanConfig, argv, prog="ablate-plan")
+    try:
+        print(plan(cfg))
     except ValueError as e:
         _fail(str(e))

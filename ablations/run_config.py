@@ -86,9 +86,33 @@ class RunConfig(SHACConfig):
     the physics, the renderer and the networks while this one compiles the physics substep, into the same cache
     (ablations/startup/helpers.py); --no-compile-helper compiles everything in this process."""
 
+    eval_final_every: int = 0
+    """With --eval-final-from: evaluate also every this many iterations from that iteration on (a denser schedule
+    in the window a final return averages), beside every --eval-every-th; 0: no denser window."""
+    eval_final_from: int | None = None
+    """The first iteration of the denser evaluation window (--eval-final-every): evaluations at this iteration,
+    then every --eval-final-every iterations after it; None: none."""
+
+    def evaluates_at(self, iteration: int, ended: bool = False) -> bool:
+        """Whether iteration ``iteration`` (iterations done, 1-based) is followed by an evaluation: every
+        --eval-every-th, every --eval-final-every-th from --eval-final-from on, and the last (``ended``) where
+        either schedule is on."""
+        every, dense, start = self.eval_every, self.eval_final_every, self.eval_final_from
+        if ended and (every or (dense and start is not None)):
+            return True
+        if every and iteration % every == 0:
+            return True
+        return bool(dense) and start is not None and iteration >= start and (iteration - start) % dense == 0
+
     def validate(self) -> None:
         """SHACConfig's checks plus the run options'; every error names its flag."""
         super().validate()
+        check_integers(self, ("eval_final_every",), minimum=0)
+        check_integers(self, ("eval_final_from",), minimum=1, optional=True)
+        if bool(self.eval_final_every) != (self.eval_final_from is not None):
+            raise ValueError("--eval-final-every and --eval-final-from go together: give both (a denser "
+                             f"evaluation window from an iteration on) or neither, got --eval-final-every "
+                             f"{self.eval_final_every} and --eval-final-from {self.eval_final_from}")
         check_integers(self, ("checkpoint_every", "keep_checkpoints"), minimum=1)
         check_integers(self, ("threads", "video_steps"), minimum=1, optional=True)
         check_integers(self, ("video_every", "warmup_iters"), minimum=0)

@@ -536,6 +536,8 @@ class Run:
     started_utc: str | None = None
     #: config.json's "population" record (its folder and members), when the run trained in one.
     population: dict | None = None
+    #: config.json's "tree_hash" (``ablations.tree_hash``): the training tree's hash, when the run recorded it.
+    tree_hash: str | None = None
 
     @property
     def task(self) -> str:
@@ -586,9 +588,10 @@ def load_run(path: str | os.PathLike) -> Run:
     preset = data.get("preset") if isinstance(data.get("preset"), dict) else None
     started = data.get("started_utc") if isinstance(data.get("started_utc"), str) else None
     population = data.get("population") if isinstance(data.get("population"), dict) else None
+    tree = data.get("tree_hash") if isinstance(data.get("tree_hash"), str) else None
     return Run(path=folder.path, config=config, environment=data.get("environment") or {},
                command=data.get("command"), summary=folder.read_summary(), metrics=folder.read_metrics(),
-               preset=preset, started_utc=started, population=population)
+               preset=preset, started_utc=started, population=population, tree_hash=tree)
 
 
 def find_runs(paths: list[str | os.PathLike] | tuple) -> list[Run]:

@@ -37,6 +37,7 @@ from ablations.stopping import (
     plain_warnings,
     rescue,
 )
+from ablations.tree_hash import tree_hash
 from diffrender import BinCapacityWarning
 from gradlab import precision
 from gradlab.config import SHACConfig
@@ -117,6 +118,7 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
     (damaged ones named), except a member that stopped before it (its lines end where it stopped). ``members``:
     the trainer's, in the folders' order."""
     cfgs, folders = prepared.cfgs, prepared.folders
+    tree = tree_hash()  # the code that trains, hashed where a device copy has no repository to name it
     for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
         if folder.config_path.exists():
             if resuming:
@@ -136,6 +138,8 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
             "started_utc": _utc(started),
             "environment": environment_info(prepared.device),
             "command": sys.argv,
+            "tree_hash": tree.value,
+            "tree_hash_source": tree.source,
         }
         if getattr(members[i], "expert", None) is not None:  # a distill student's expert and what it cost
             record["expert"] = {"source": members[i].expert.source, "wall_s": members[i].expert.wall_s,
@@ -237,7 +241,7 @@ def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started:
             it = trainer.iteration
             ended = it == cfg.iters or (budget_s is not None and trainer.wall_s >= budget_s)
             video = bool(cfg.video_every) and (it % cfg.video_every == 0 or ended)
-            if video or (cfg.eval_every and (it % cfg.eval_every == 0 or ended)):
+            if video or cfg.evaluates_at(it, ended):
                 # the deterministic policy from the fixed evaluation seed (SHAC.evaluate), filmed on video iterations
                 t_eval = time.perf_counter()
                 with startup.evaluating():

@@ -120,6 +120,11 @@ class ReportConfig:
     at_iteration: int | None = None
     """Read the seed statistics (section 3) as if every run had stopped at this iteration, e.g. to set longer
     runs beside shorter ones; None: at the fewest iterations any run of the task reached."""
+    registration: Path | None = None
+    """A confirmatory registration (preregistration.json, ablations/registration.py): the report opens with the
+    registered family analysed at the latest complete look, and section 3 shows everything else without Holm's
+    correction and without verdicts. Registered runs whose tree hash or registered fields differ are refused by
+    name. None: no registration (section 3 corrects and reads what it shows)."""
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -520,6 +525,11 @@ def build_report(cfg: ReportConfig) -> Path:
     if benchmarks:
         inputs.append(f"{len(benchmarks)} benchmark file(s)")
     lines += [f"Built from {', '.join(inputs)}. Sections without inputs say so; no number here is estimated.", ""]
+    if cfg.registration is not None:
+        from ablations.registration import load_registration
+        from ablations.reports.confirmatory import registered_section
+
+        lines += registered_section(load_registration(cfg.registration), runs)
     label = arm_label(runs) if runs else None
     plots = make_plots(runs, fig_dir, floors=floors, label=label) if runs else None
     lines += table1_section(collect_bwd(runs, benchmarks),
@@ -527,7 +537,7 @@ def build_report(cfg: ReportConfig) -> Path:
     lines += curves_section(runs, fig_dir, base, floors=floors, plots=plots, label=label,
                             leave_out=(*SEED_FIGURES, *PROBE_FIGURES))
     lines += seed_section(runs, fig_dir, base, label=label, benchmarks=cfg.benchmark, floors=floors, plots=plots,
-                          reps=cfg.reps, at_iteration=cfg.at_iteration)
+                          reps=cfg.reps, at_iteration=cfg.at_iteration, exploratory=cfg.registration is not None)
     lines += probe_section(runs, base, label=label, plots=plots)
     lines += memory_section(sweeps, fig_dir, base, heading="## 5. Memory sweep")
     lines += provenance_section(runs, sweeps, benchmarks, base=base, heading="## 6. Provenance")

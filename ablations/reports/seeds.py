@@ -187,7 +187,8 @@ def _window_text(a: stats.ArmSummary) -> str:
     return "each run's own last: " + "; ".join(f"s{s}: {', '.join(map(str, w))}" for s, w in a.own_windows.items())
 
 
-def _view_table(cmp: stats.Comparison, v: stats.Verdict, iters: dict[str, int]) -> list[str]:
+def _view_table(cmp: stats.Comparison, v: stats.Verdict, iters: dict[str, int], exploratory: bool = False
+                ) -> list[str]:
     rows = []
     for arm, a in cmp.arms.items():
         d = cmp.differences.get(arm)
@@ -207,6 +208,8 @@ def _view_table(cmp: stats.Comparison, v: stats.Verdict, iters: dict[str, int]) 
             if arm == v.control:
                 reading += (f" ({_READING['worse' if d.mean.value < 0 else 'better']})" if d.differs(v.alpha)
                             else f" ({_READING['not resolved']})")
+            if exploratory:  # a registration decides: no correction over what is shown, no reading
+                holm, reading = "-", "exploratory"
         collapse = a.collapse_mean
         evals = (_span(a.evals.values()) if a.evals else "0") + (
             f"; seeds without an evaluation: {', '.join(map(str, a.without_evals))}" if a.without_evals else "")
@@ -271,12 +274,14 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
                  benchmarks: Sequence[str | os.PathLike] = (), floors: Floors | None = None,
                  plots: PlotResult | None = None, reps: int = stats.DEFAULT_REPS, seed: int = stats.DEFAULT_SEED,
                  computed: dict[str, TaskSeeds] | None = None, at_iteration: int | None = None,
-                 heading: str = "## 3. Seed statistics: which arm trains better") -> list[str]:
+                 heading: str = "## 3. Seed statistics: which arm trains better", exploratory: bool = False
+                 ) -> list[str]:
     """The seed-statistics section: the arms, per task the verdict and the tables at equal iterations and equal
     wall-clock, the performance profiles (drawn into ``fig_dir``) and ``plots``' SEED_FIGURES (links relative to
     ``base``, the report's folder). ``computed``: :func:`seed_statistics` of these runs and arguments, when the
     caller has it already (computed with the same ``at_iteration``). ``at_iteration``: the runs read as if they
-    had stopped there."""
+    had stopped there. ``exploratory``: a registered analysis decides elsewhere in the report, so the tables show
+    no Holm-adjusted p-value and no reading, and no verdict line is written."""
     out = [heading, ""]
     if not runs:
         return [*out, "No training runs were given.", ""]
@@ -329,6 +334,10 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
             f"{CONTROL_ARM} (the same pixels, never looked at): {REFERENCE_ARM} minus {CONTROL_ARM} positive and "
             f"differing after Holm correction. Otherwise the pixel arms cannot be ranked on that task yet. **The "
             f"minimum-seeds rule**: nothing is decided from fewer than {stats.MIN_SEEDS} paired seeds.", ""]
+    if exploratory:
+        out += ["**Exploratory**: a registration decides this report's question (the registered analysis above). "
+                "This section shows every arm, view and budget without Holm's correction and without verdicts: its "
+                "adjusted p-values and readings are left out, and its p-values are pointwise.", ""]
     out += _arms_table(runs, label)
     styles = arm_styles(group_runs(list(runs), label=label))
     for task, s in seeds.items():
@@ -344,10 +353,12 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
                     "episode): read with care.", ""]
         ts = s.stats
         n = ts.iteration
-        out += [_verdict_line(f"equal iterations, {n}", s.verdicts["equal iterations"]), "",
+        out += [*([] if exploratory else [_verdict_line(f"equal iterations, {n}", s.verdicts["equal iterations"]),
+                                          ""]),
                 f"Equal iterations: every run cut at iteration {n}; its final evaluation return averages the "
                 f"evaluations at iterations {_window_text(next(iter(ts.equal_iters.arms.values())))}.", ""]
-        out += _view_table(ts.equal_iters, s.verdicts["equal iterations"], dict.fromkeys(ts.equal_iters.arms, n))
+        out += _view_table(ts.equal_iters, s.verdicts["equal iterations"], dict.fromkeys(ts.equal_iters.arms, n),
+                           exploratory)
         out.append("")
         missing = {arm: d.missing for arm, d in ts.equal_iters.differences.items() if d.missing}
         if missing:
@@ -360,7 +371,8 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
         else:
             times = ", ".join(f"{a} {ms:.4g} ms" for a, ms in ts.iter_ms_alone.items())
             ended = ", ".join(ts.ended_before_wall)
-            out += [_verdict_line(f"equal wall-clock, {ts.wall_s:.4g} s", s.verdicts["equal wall-clock"]), "",
+            out += [*([] if exploratory else [_verdict_line(f"equal wall-clock, {ts.wall_s:.4g} s",
+                                                            s.verdicts["equal wall-clock"]), ""]),
                     f"Equal wall-clock: every run{' of the timed arms' if ts.untimed_at_wall else ''} cut at "
                     f"{ts.wall_s:.4g} s of modelled training time ({times} per "
                     f"iteration; {s.times.why}); each run's final evaluation return averages its arm's last "
@@ -368,7 +380,7 @@ def seed_section(runs: Sequence[Run], fig_dir: Path, base: Path, *, label: Calla
                     + (f" The runs of {ended} (the actor on the state vector: a reference, which does "
                        "not set the budget) end sooner and are read at their end: less time than the others, "
                        "never more." if ended else ""), ""]
-            out += _view_table(ts.equal_wall, s.verdicts["equal wall-clock"], ts.iters_at_wall or {})
+            out += _view_table(ts.equal_wall, s.verdicts["equal wall-clock"], ts.iters_at_wall or {}, exploratory)
             out.append("")
         out += _budget_lines(s, task, fig_dir, base, styles, floors)
         if s.profile is not None:

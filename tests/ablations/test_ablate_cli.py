@@ -16,6 +16,7 @@ import pytest
 from ablations.cli import ABLATE_GROUPS, _one_paragraph, ablate_main
 from ablations.run_folder import read_metrics
 from ablations.runs import PROBE_KEYS, REQUIRED_KEYS, TIMING_KEYS, RunConfig, prepare
+from ablations.tree_hash import tree_hash
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, save_checkpoint
 
 TINY = ["--num-envs", "2", "--horizon", "3", "--image-size", "24", "--critic-iterations", "1",
@@ -54,6 +55,8 @@ def test_smoke_every_mode(tmp_path, task, mode, capsys):
     assert cfg["config"]["critic_lr"] == {"cartpole": 1e-3 if mode == "state" else 2e-4, "ant": 2e-3}[task]
     assert cfg["preset"]["name"] == "dva" and cfg["preset"]["supplied"]["critic_lr"] == cfg["config"]["critic_lr"]
     assert cfg["started_utc"].endswith("+00:00")
+    # the training tree's hash, which a device copy without a repository records alike
+    assert cfg["tree_hash"] == tree_hash().value and cfg["tree_hash_source"] in ("git", "files")
     assert (run / "git.txt").read_text().startswith(("commit ", "git information unavailable"))
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"] == "finished" and summary["iterations"] == 2

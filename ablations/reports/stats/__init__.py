@@ -20,7 +20,9 @@ precipice", 2021), computed here with numpy so that no resampling library (and n
 * **paired difference** against a reference arm: per seed, arm minus reference final return (same seed in both;
   seeds that only one arm has are listed and skipped), how many seeds agree in sign, the mean with its bootstrap
   CI, the two-sided **sign-flip permutation p-value** (exact over all 2^n sign patterns up to
-  ``EXACT_SIGN_FLIP_MAX_N`` seeds; its smallest value is 2 / 2^n: 0.25 for 3 seeds, 0.0625 for 5, 0.0078 for 8)
+  ``EXACT_SIGN_FLIP_MAX_N`` (40) seeds, counted by meeting in the middle; its smallest value is 2 / 2^n: 0.25
+  for 3 seeds, 0.0625 for 5, 0.0078 for 8; :func:`sign_flip_test` also one-sided, with the confidence set
+  inverted from the same test at the level given)
   and the probability of improvement P(arm > reference) (Mann-Whitney U / (n m), ties count 1/2) with a CI
   from each arm resampled independently;
 * **Holm's correction** (:func:`correct`): a difference *differs* only where its Holm-adjusted p-value over the
@@ -82,6 +84,7 @@ from ablations.reports.stats.curves import (
     curve_of,
     final_return,
     load_arms,
+    window_statistic,
 )
 from ablations.reports.stats.estimates import (
     ALPHA,
@@ -91,13 +94,17 @@ from ablations.reports.stats.estimates import (
     EXACT_SIGN_FLIP_MAX_N,
     MIN_SEEDS,
     Estimate,
+    SignFlipTest,
     bootstrap_distribution,
     holm,
     iqm_estimate,
     mean_estimate,
     percentile_interval,
     seeds_to_resolve,
+    sign_flip_count,
+    sign_flip_interval,
     sign_flip_p,
+    sign_flip_test,
 )
 from ablations.reports.stats.probes import (
     BLIND_PHASE_ITERS,
@@ -111,10 +118,12 @@ from ablations.reports.stats.verdicts import Gate, Verdict, verdict
 
 __all__ = ["DEFAULT_REPS", "DEFAULT_SEED", "FINAL_EVALS", "EVAL_KEYS", "Curve", "Estimate", "ArmSummary",
            "PairedDifference", "Comparison", "TaskStatistics", "ProfileCurve", "PerformanceProfile", "LookingProbes",
-           "curve_of", "load_arms", "final_return", "auc", "collapse_rate", "iqm_estimate", "mean_estimate",
+           "curve_of", "load_arms", "window_statistic", "final_return", "auc", "collapse_rate", "iqm_estimate",
+           "mean_estimate",
            "compare", "common_iteration", "truncate_at_iteration", "common_wall_s", "truncate_at_wall_s",
            "check_at_iteration", "task_statistics", "performance_profiles", "looking_probes", "LOOKING_FRACTION",
            "BlindPhase", "blind_phase", "BLIND_PHASE_ITERS", "Verdict", "Gate", "verdict", "MIN_SEEDS", "ALPHA",
            "EXACT_BOOTSTRAP_MAX_N", "EXACT_SIGN_FLIP_MAX_N", "bootstrap_distribution", "percentile_interval",
-           "sign_flip_p", "seeds_to_resolve", "holm", "correct", "correct_statistics", "common_window",
+           "sign_flip_p", "sign_flip_count", "sign_flip_interval", "sign_flip_test", "SignFlipTest",
+           "seeds_to_resolve", "holm", "correct", "correct_statistics", "common_window",
            "paired_difference", "DifferenceCurve", "difference_curves", "sign_holds", "Band", "mean_band"]

@@ -105,6 +105,24 @@ def auc(curve: Curve) -> float:
     return float(np.sum((y[1:] + y[:-1]) * np.diff(x)) / 2.0 / (x[-1] - x[0]))
 
 
+def window_statistic(curve: Curve, kind: str, start: int, end: int) -> float:
+    """A run's statistic over the iteration window [``start``, ``end``] (inclusive, iterations done): ``"window"``
+    the mean evaluation return at the evaluation iterations inside it; ``"auc"`` the trapezoid area under the
+    evaluation curve between its first and last evaluation inside the window, over that span (return units; the
+    one evaluation's return where there is one). NaN where no evaluation lies in the window."""
+    if kind not in ("window", "auc"):
+        raise ValueError(f"statistic kind must be 'window' or 'auc', got {kind!r}")
+    if start > end:
+        raise ValueError(f"iteration window {start}-{end}: its start is after its end")
+    inside = (curve.iters >= start) & (curve.iters <= end)
+    if not inside.any():
+        return math.nan
+    if kind == "window":
+        return float(np.mean(curve.returns[inside]))
+    return auc(Curve(curve.task, curve.arm, curve.seed, curve.path, curve.iters[inside], curve.returns[inside],
+                     curve.last_iter, curve.key))
+
+
 def collapse_rate(curve: Curve) -> float:
     """Fraction of evaluations that collapse: with returns r_1..r_E in iteration order and the running best
     b_i = max(r_1, .., r_i), let k be the first index with b_k > 0 (the first positive best; half of a
