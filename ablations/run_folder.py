@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gradlab.files import atomic_write_json, atomic_write_text
+from gradlab.files import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:
     import torch
@@ -85,12 +85,13 @@ def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
     return [row for _, _, row in _metrics_lines(data)[0] if row is not None]
 
 
-def _metrics_lines(data: bytes) -> tuple[list[tuple[int, str, dict | None]], str | None]:
-    """(the complete lines of metrics.jsonl's bytes as (line number, text, record or None where it does not read
-    as one), the last line when it is torn: cut off before its newline and not a record)."""
-    text = data.decode(errors="replace")
-    lines = text.split("\n")
-    tail = lines.pop()  # "" when the file ends with a newline
+def _metrics_lines(data: bytes) -> tuple[list[tuple[int, bytes, dict | None]], bytes | None]:
+    """(the complete lines of metrics.jsonl's bytes as (line number, its bytes without the newline, record or None
+    where it does not read as one: not UTF-8, not JSON, not an iteration's object), the last line's bytes when it is
+    torn: cut off before its newline and not a record). Lines are kept as bytes so that whatever is set aside or
+    kept is what was on disk, byte for byte."""
+    lines = data.split(b"\n")
+    tail = lines.pop()  # b"" when the file ends with a newline
     out = []
     for n, line in enumerate(lines, 1):
         out.append((n, line, _record(line)))
@@ -104,12 +105,17 @@ def _metrics_lines(data: bytes) -> tuple[list[tuple[int, str, dict | None]], str
     return out, torn
 
 
-def _record(line: str) -> dict | None:
+def _record(line: bytes) -> dict | None:
     try:
-        row = json.loads(line)
-    except ValueError:
+        row = json.loads(line.decode("utf-8"))  # strict: a line that is not UTF-8 is damaged
+    except ValueError:  # UnicodeDecodeError and JSONDecodeError are both ValueErrors
         return None
     return row if isinstance(row, dict) and isinstance(row.get("iter"), int) else None
+
+
+def _shown(line: bytes) -> str:
+    """A damaged line's first bytes, for a one-line note (undecodable bytes shown escaped)."""
+    return repr(line[:60].decode("utf-8", errors="backslashreplace"))
 
 
 def _spans(its: list[int]) -> str:
@@ -271,27 +277,27 @@ class RunFolder:
         stamp = _stamp()
         if damaged:
             aside = _aside(path, f".damaged-{stamp}")
-            atomic_write_text(aside, "".join(line + "\n" for _, line in damaged))
+            atomic_write_bytes(aside, b"".join(line + b"\n" for _, line in damaged))
             for n, line in damaged[:5]:
-                notes.append(f"warning: {path} line {n} is damaged (not a JSON record: {line[:60]!r}); moved to "
+                notes.append(f"warning: {path} line {n} is damaged (not a JSON record: {_shown(line)}); moved to "
                              f"{aside.name}")
             if len(damaged) > 5:
                 notes.append(f"warning: {path}: {len(damaged) - 5} more damaged lines moved to {aside.name}")
         if later:
             aside = _aside(path, f".redone-{stamp}")
-            atomic_write_text(aside, "".join(line + "\n" for _, line, _ in later))
+            atomic_write_bytes(aside, b"".join(line + b"\n" for _, line, _ in later))
             notes.append(f"note: {path}: the lines of iteration(s) {_spans([r['iter'] for _, _, r in later])} come "
                          f"after the checkpoint of iteration {upto_iter} and are trained again; the old lines are "
                          f"kept in {aside.name}")
         if torn is not None:
             notes.append(f"note: {path}: its last line was cut off mid-write (the run was killed while writing it); "
-                         f"dropped: {torn[:60]!r}")
+                         f"dropped: {_shown(torn)}")
         missing = sorted(set(range(1, upto_iter + 1)) - {row["iter"] for _, _, row in kept})
         if missing:
             notes.append(f"warning: {path} has no line for iteration(s) {_spans(missing)} (plots and reports of "
                          f"this run show a gap there)")
         if damaged or later or torn is not None:
-            atomic_write_text(path, "".join(line + "\n" for _, line, _ in kept))
+            atomic_write_bytes(path, b"".join(line + b"\n" for _, line, _ in kept))
         return notes
 
     def set_aside_for_restart(self) -> list[str]:
