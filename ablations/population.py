@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from ablations.folder_lock import LOCK, FolderLocks
 from ablations.naming import claim_folder, folder_name, member_name
 from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
@@ -54,7 +55,7 @@ class PopulationFolder:
         """The new folder ``parent/name`` and a new run folder per member (ValueError if it exists, not empty)."""
         pop = cls(Path(parent) / name)
         check_writable(parent)
-        if pop.path.exists() and any(pop.path.iterdir()):
+        if pop.path.exists() and any(p.name != LOCK for p in pop.path.iterdir()):
             raise ValueError(f"population folder {pop.path} exists and is not empty: pass --resume {pop.path} or "
                              f"another --name")
         folders = [RunFolder.create(pop.path, n) for n in names]
@@ -66,7 +67,7 @@ class PopulationFolder:
         """Remove the folder and its population.json when nothing else is left in it (a population that stopped
         before any member wrote its first record: the member folders were removed as empty)."""
         try:
-            if any(p.name != POPULATION for p in self.path.iterdir()):
+            if any(p.name != POPULATION for p in self.path.iterdir()):  # a lock file: another process holds it
                 return
             (self.path / POPULATION).unlink(missing_ok=True)
             self.path.rmdir()
@@ -124,6 +125,13 @@ class Prepared:
     states: list[dict] | None
     #: The population folder; None: a run alone, whose run folder is the one folder ``ablate`` names.
     population: PopulationFolder | None
+    #: The locks of the population folder and every member's folder, held until :meth:`release` (the caller's,
+    #: once the last summary is written): one process at a time trains into a folder.
+    locks: FolderLocks = dataclasses.field(default_factory=FolderLocks)
+
+    def release(self) -> None:
+        """Give up the folders' locks."""
+        self.locks.release()
 
     @property
     def home(self) -> Path:
@@ -145,11 +153,29 @@ def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[s
     that cannot tell). ValueError naming the flag for bad input, or for members that cannot share a process;
     NothingToDo for a resume of a finished run."""
     members = [runs] if isinstance(runs, RunConfig) else list(runs)
+    locks = FolderLocks()
+    try:
+        return _prepare(members, resume_flags, locks)
+    except BaseException:
+        locks.release()
+        raise
+
+
+def _lock(locks: FolderLocks, folders: list[RunFolder], population: PopulationFolder | None) -> None:
+    """Lock the population folder (if any) and every member's folder: ``--resume`` takes either."""
+    if population is not None:
+        locks.acquire([population.path], "population folder")
+    locks.acquire([f.path for f in folders], "run folder")
+
+
+def _prepare(members: list[RunConfig], resume_flags: Collection[str] | None, locks: FolderLocks) -> Prepared:
+    """:func:`prepare`, the folders it makes or finds locked in ``locks`` (released by the caller on a refusal)."""
     resume = members[0].resume
     population: PopulationFolder | None = None
     if resume is not None:
         try:
             folders, population = home_of(resume)
+            _lock(locks, folders, population)  # before anything in them is read or renamed
         except ValueError as e:
             raise ValueError(f"--resume {resume}: {e}") from None
         members = [_stored_config(f, members[0], resume_flags) for f in folders]
@@ -172,7 +198,7 @@ def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[s
         raise ValueError(f"--resume {resume}: it trains at --precision {members[0].precision}, which needs a CUDA "
                          f"device (it was given --device {members[0].device})") from None
     if resume is not None:
-        prepared = Prepared(members, [folders[i] for i in order], device, None, population)
+        prepared = Prepared(members, [folders[i] for i in order], device, None, population, locks)
         try:
             prepared.states = _resume_states(prepared.folders, device, restart=members[0].restart)
         except ValueError as e:
@@ -189,7 +215,8 @@ def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[s
         folders = [RunFolder.create(first.out, name)]
     else:
         population, folders = PopulationFolder.create(first.out, name, [member_name(m, members) for m in members])
-    return Prepared(members, folders, device, None, population)
+    _lock(locks, folders, population)
+    return Prepared(members, folders, device, None, population, locks)
 
 
 def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[str] | None = None) -> RunConfig:

@@ -26,6 +26,7 @@ record import it when they are called.
 from __future__ import annotations
 
 import datetime
+import itertools
 import json
 import math
 import os
@@ -34,6 +35,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections import Counter
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -41,6 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ablations.folder_lock import LOCK
 from gradlab.files import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:
@@ -50,7 +53,8 @@ if TYPE_CHECKING:
 
 __all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
-           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES"]
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "metrics_notes",
+           "say_metrics_notes"]
 
 CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
 CHECKPOINTS, VIDEOS = "checkpoints", "videos"
@@ -83,6 +87,37 @@ def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
     except FileNotFoundError:
         return []
     return [row for _, _, row in _metrics_lines(data)[0] if row is not None]
+
+
+def metrics_notes(run_dir: str | os.PathLike) -> list[str]:
+    """What a reader of a run folder's metrics.jsonl should be told (one line each, [] when nothing): lines it skips
+    as damaged, and iterations that appear twice or out of order (two processes that trained into one folder)."""
+    path = Path(run_dir) / METRICS
+    try:
+        lines, _ = _metrics_lines(path.read_bytes())
+    except FileNotFoundError:
+        return []
+    notes = []
+    damaged = [n for n, _, row in lines if row is None]
+    if damaged:
+        notes.append(f"warning: {path}: line(s) {_spans(damaged)} damaged (not a JSON record), skipped")
+    its = [row["iter"] for _, _, row in lines if row is not None]
+    twice = sorted(it for it, n in Counter(its).items() if n > 1)
+    if twice:
+        notes.append(f"warning: {path}: iteration(s) {_spans(twice)} appear more than once (two processes trained "
+                     f"into this folder?); every copy is read")
+    back = [b for a, b in itertools.pairwise(its) if b < a]
+    if back:
+        notes.append(f"warning: {path}: iterations out of order (iteration {back[0]} after a later one); read sorted "
+                     f"by iteration")
+    return notes
+
+
+def say_metrics_notes(runs: list[Run]) -> None:
+    """Print each run's :func:`metrics_notes` on stderr, once (``ablate-plot`` and ``ablate-report`` read them)."""
+    for run in runs:
+        for note in metrics_notes(run.path):
+            print(note, file=sys.stderr)
 
 
 def _metrics_lines(data: bytes) -> tuple[list[tuple[int, bytes, dict | None]], bytes | None]:
@@ -188,7 +223,7 @@ class RunFolder:
         """A new run folder ``parent/name`` (created, writable); ValueError when it exists with files in it."""
         folder = cls(Path(parent) / name)
         check_writable(parent)
-        if folder.path.exists() and any(folder.path.iterdir()):
+        if folder.path.exists() and any(p.name != LOCK for p in folder.path.iterdir()):
             raise ValueError(f"run folder {folder.path} exists and is not empty: pass --resume {folder.path} or "
                              f"another --name")
         check_writable(folder.path)

@@ -100,12 +100,16 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
                          resuming=prepared.states is not None)
             return _train(prepared, startup, stop, started=started, cache_opened=cache_opened)
         except BaseException:
+            if prepared is not None:
+                prepared.release()  # first: a folder holding only its lock file is empty
             for folder in folders:
                 folder.remove_if_empty()  # stopped before it wrote its first record
             if prepared is not None and prepared.population is not None:
                 prepared.population.remove_if_unused()  # and so did every member of a new population
             raise
         finally:
+            if prepared is not None:
+                prepared.release()  # after the last summary (_train's own finally wrote it)
             startup.close()  # on every way out, an error before the training loop included
 
 

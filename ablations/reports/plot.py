@@ -71,7 +71,7 @@ from ablations.reports.style import (
     load_floors,
     save_figure,
 )
-from ablations.run_folder import Run, find_runs, is_number
+from ablations.run_folder import Run, find_runs, is_number, say_metrics_notes
 
 __all__ = ["PlotConfig", "make_plots", "build_figures", "FIGURES", "RENDER_TERM_GROUPS", "plot_runs",
            "draw_learning_curves", "draw_difference_curves", "plot_performance_profiles"]
@@ -663,7 +663,9 @@ def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None
 def plot_runs(cfg: PlotConfig) -> PlotResult:
     """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``; runs
     that share an arm and a seed are refused (one error line naming them), as the seed statistics refuse them."""
-    return make_plots(find_runs(list(cfg.runs)), cfg.out, floors=load_floors(cfg.floors), shared_seed="refuse")
+    runs = find_runs(list(cfg.runs))
+    say_metrics_notes(runs)  # damaged lines skipped, iterations twice or out of order
+    return make_plots(runs, cfg.out, floors=load_floors(cfg.floors), shared_seed="refuse")
 
 
 def plot_performance_profiles(profile: PerformanceProfile, path: str | Path, *,

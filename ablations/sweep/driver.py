@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ablations.folder_lock import FolderLock
 from ablations.run_folder import RunFolder, check_writable
 from ablations.sweep.config import SweepConfig, parse_args, parse_set, parse_vary
 from ablations.sweep.grid import plan
@@ -127,6 +128,18 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
     out = Path(cfg.out).resolve()
     created = not out.exists()
     check_writable(out)
+    lock = FolderLock(out).acquire("sweep folder")  # one driver an --out: two would train each run twice
+    try:
+        return _run_locked(cfg, specs, set_table, vary_table, out, created, lock, command=command, arms=arms,
+                           program=program)
+    finally:
+        lock.release()
+
+
+def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict, out: Path, created: bool,
+                lock: FolderLock, *, command: Sequence[str] | None, arms: dict | None,
+                program: Sequence[str] | None) -> dict:
+    """:func:`run_sweep` once it holds the lock of ``out`` (``created``: made for this sweep)."""
     manifest, todo = prepare_manifest(cfg, specs, set_table, vary_table, None if command is None else list(command),
                                       arms)
     if not todo:
@@ -145,6 +158,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
             _check_resources(cfg)
         except ValueError:
             if created:
+                lock.release()  # first: the folder holds nothing else
                 with contextlib.suppress(OSError):
                     out.rmdir()  # made for this sweep, still empty
             raise
