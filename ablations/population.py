@@ -24,7 +24,7 @@ from ablations.folder_lock import LOCK, FolderLocks
 from ablations.naming import claim_folder, folder_name, member_name
 from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
-from ablations.run_folder import RunFolder, check_writable, set_aside_damaged_checkpoint
+from ablations.run_folder import ABSENT_MEANS, RunFolder, check_writable, set_aside_damaged_checkpoint
 from gradlab import precision
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, read_checkpoint
 from gradlab.config import resolve_config
@@ -229,7 +229,20 @@ def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[st
         raise ValueError(f"--resume {folder.path}: {e}; it is the record of the run's settings, restore it (e.g. "
                          f"from a copy) to resume") from None
     fields = {f.name for f in dataclasses.fields(RunConfig)}
-    stored = {k: v for k, v in stored.items() if k in fields}
+    unknown = sorted(set(stored) - fields)
+    if unknown:
+        raise ValueError(f"--resume {folder.path}: {folder.config_path} records setting(s) this version does not "
+                         f"know: {', '.join(unknown)}; resume it with the code that wrote it (git.txt, "
+                         f"provenance.jsonl name it)")
+    # set by the resume itself (where it runs, how long, what it prints), never needed from the file
+    by_resume = {*RESUMABLE, "out", "name", "resume", "restart", "progress"}
+    missing = sorted(fields - set(stored) - by_resume - set(ABSENT_MEANS))
+    if missing:
+        raise ValueError(f"--resume {folder.path}: {folder.config_path} has no {', '.join(missing)}: a resume "
+                         f"would take today's default{'s' if len(missing) > 1 else ''} for the run's own "
+                         f"setting{'s' if len(missing) > 1 else ''} without a word; restore it from the run's "
+                         f"command (config.json's \"command\") or start a new run")
+    stored = {**{k: v for k, v in ABSENT_MEANS.items() if k not in stored}, **stored}
     for k in ("actor_hidden", "critic_hidden", "betas"):
         if stored.get(k) is not None:
             stored[k] = tuple(stored[k])

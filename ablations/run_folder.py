@@ -8,6 +8,8 @@ A run folder holds:
     metrics.jsonl    one JSON object per training iteration, appended as the run goes (a resume sets lines it
                      cannot keep aside in metrics.jsonl.redone-<time> and .damaged-<time>, a --restart the old
                      records in *.before-restart-<time>: nothing is deleted)
+    provenance.jsonl one line per start in this folder (the first, each resume, a restart): time, commit, dirty
+                     status and a hash of the code (a dirty resume's own diff in git.diff.resume-<time>)
     summary.json     written at the end (or when the run stops on an error or a signal): its status, final and best
                      training and evaluation returns, medians without warm-up, peaks, start-up seconds
     checkpoints/     ckpt_<iter>.pt (the newest few), written atomically; a resume starts from the newest that loads
@@ -26,6 +28,7 @@ record import it when they are called.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import itertools
 import json
 import math
@@ -53,13 +56,22 @@ if TYPE_CHECKING:
 
 __all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
-           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "metrics_notes",
-           "say_metrics_notes"]
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "PROVENANCE", "ABSENT_MEANS", "source_tree_hash",
+           "metrics_notes", "say_metrics_notes"]
 
 CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
 CHECKPOINTS, VIDEOS = "checkpoints", "videos"
+#: One JSON line per start of the run in this folder (its first, each resume, a restart): the code that ran.
+PROVENANCE = "provenance.jsonl"
 #: What ``ablate --resume`` needs besides a checkpoint (the git records keep a copied folder complete).
-RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS)
+RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS, PROVENANCE)
+#: What a setting missing from an older config.json means: the behaviour the code had before the setting existed.
+#: A resume refuses a folder that lacks any other setting (it would take today's default without a word).
+ABSENT_MEANS: dict[str, object] = {
+    "precision": "fp32",  # the --precision flag came later; every run before it trained in float32
+}
+#: The folders whose files :func:`source_tree_hash` covers (the code a run executes) and the project file.
+SOURCE_PARTS = ("ablations", "gradlab", "tasks", "diffrender", "vocabulary", "pyproject.toml")
 #: Installed distributions whose versions config.json records (by distribution name, from their metadata).
 RECORDED_PACKAGES = ("torch", "numpy", "mujoco", "pytorch-kinematics", "triton", "warp-lang", "opencv-python",
                      "opencv-python-headless")
@@ -349,6 +361,42 @@ class RunFolder:
                 notes.append(f"note: --restart: {path} kept as {aside.name}")
         return notes
 
+    def append_provenance(self, event: str, iteration: int, repo: Path | None = None) -> dict:
+        """One line of provenance.jsonl for this start of the run (``event``: "start", "resume" or "restart", from
+        the checkpoint of ``iteration``; 0: from the first): the UTC time, the commit and whether the tree was
+        dirty (None where there is no repository), and :func:`source_tree_hash` (comparable across copies
+        without a repository). A dirty resume or restart keeps its own diff beside, git.diff.<event>-<time>
+        (the first start's is git.diff). Returns the line's record."""
+        repo = repo or Path(__file__).resolve().parents[1]
+        commit, dirty, diff = _git_state(repo)
+        entry = {"event": event, "iteration": iteration,
+                 "utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                 "commit": commit or os.environ.get("PIXELGRAD_COMMIT"), "dirty": dirty,
+                 "tree_sha256": source_tree_hash(repo)}
+        if dirty and event != "start":
+            aside = _aside(self.path / GIT_DIFF, f".{event}-{_stamp()}")
+            atomic_write_text(aside, diff)
+            entry["diff"] = aside.name
+        with open(self.path / PROVENANCE, "a") as f:
+            f.write(json.dumps(entry) + "\n")
+        return entry
+
+    def read_provenance(self) -> list[dict]:
+        """provenance.jsonl's records, oldest first ([] for a folder written before it existed)."""
+        try:
+            data = (self.path / PROVENANCE).read_bytes()
+        except FileNotFoundError:
+            return []
+        out = []
+        for line in data.split(b"\n"):
+            try:
+                row = json.loads(line.decode("utf-8"))
+            except ValueError:
+                continue
+            if isinstance(row, dict):
+                out.append(row)
+        return out
+
     def write_summary(self, summary: dict) -> None:
         self.sync_metrics()  # the lines it sums up first
         atomic_write_json(self.summary_path, summary)
@@ -517,6 +565,48 @@ def git_info(repo: Path | None = None) -> tuple[str, str]:
     stat = stat or "(none)\n"
     text = f"commit {commit}\nbranch {branch}\ndirty {dirty}\n\nstatus:\n{status}\ndiff --stat HEAD:\n{stat}"
     return text, diff
+
+
+def _git_state(repo: Path) -> tuple[str | None, bool | None, str]:
+    """(commit, dirty, diff against it) of the tree at ``repo``; (None, None, "") without a repository."""
+    def git(*args: str) -> str:
+        r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
+        if r.returncode != 0:
+            raise RuntimeError(r.stderr.strip())
+        return r.stdout
+
+    try:
+        commit = git("rev-parse", "HEAD").strip()
+        dirty = bool(git("status", "--porcelain").strip())
+        return commit, dirty, git("diff", "HEAD") if dirty else ""
+    except (OSError, RuntimeError, subprocess.TimeoutExpired):
+        return None, None, ""
+
+
+def source_tree_hash(root: Path | None = None) -> str:
+    """SHA-256 over the path and bytes of every file of the code under ``root`` (:data:`SOURCE_PARTS`; default
+    this checkout), as they are on disk: in a repository the files git tracks there, in a copy without one (a
+    device's) every file but caches and dot files, so that both name the same code by the same hash."""
+    root = root or Path(__file__).resolve().parents[1]
+    try:
+        r = subprocess.run(["git", "-C", str(root), "ls-files", "-z", "--", *SOURCE_PARTS], capture_output=True,
+                           timeout=30)
+        names = sorted(n for n in r.stdout.decode().split("\0") if n) if r.returncode == 0 else None
+    except (OSError, subprocess.TimeoutExpired):
+        names = None
+    if names is None:
+        names = sorted(str(p.relative_to(root)) for part in SOURCE_PARTS
+                       for p in ([root / part] if (root / part).is_file() else (root / part).rglob("*"))
+                       if p.is_file() and "__pycache__" not in p.parts
+                       and not any(q.startswith(".") for q in p.relative_to(root).parts))
+    h = hashlib.sha256()
+    for name in names:
+        try:
+            data = (root / name).read_bytes()
+        except OSError:  # tracked but deleted in the working tree
+            data = b""
+        h.update(name.encode() + b"\0" + str(len(data)).encode() + b"\0" + data)
+    return h.hexdigest()
 
 
 def package_versions(names: tuple[str, ...] = RECORDED_PACKAGES) -> dict[str, str]:

@@ -117,17 +117,23 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
     """Each run's records: config.json (every setting, resolved, with what the preset supplied) and git.txt of a
     new run, or of a restarted one once its earlier records are set aside beside them (each named); a resumed
     run keeps its own, its metrics lines after the checkpoint of ``iteration`` set aside to be trained again
-    (damaged ones named), except a member that stopped before it (its lines end where it stopped). ``members``:
-    the trainer's, in the folders' order."""
+    (damaged ones named), except a member that stopped before it (its lines end where it stopped). Every start
+    appends its code's provenance (provenance.jsonl). ``members``: the trainer's, in the folders' order."""
     cfgs, folders = prepared.cfgs, prepared.folders
     for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
         if folder.config_path.exists():
             if resuming:
                 for note in [] if members[i].failed is not None else folder.settle_metrics(iteration):
                     print(note, file=sys.stderr)
+                folder.append_provenance("resume", iteration)  # the code of this resume, beside the first's
                 continue
-            for note in folder.set_aside_for_restart():
-                print(note, file=sys.stderr)
+            notes = folder.set_aside_for_restart()
+            if member_cfg.restart:  # a resume of a folder that trained nothing sets aside its records unasked
+                for note in notes:
+                    print(note, file=sys.stderr)
+            restarted = True
+        else:
+            restarted = False
         shac_fields = dataclasses.fields(SHACConfig)
         resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name) for f in shac_fields})
         config = dataclasses.asdict(resolved)
@@ -145,6 +151,7 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
                                     "members": [f.path.name for f in folders], "index": i}
         folder.write_config(record)
         folder.write_git()
+        folder.append_provenance("restart" if restarted else "start", 0)
 
 
 def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started: float,
