@@ -189,7 +189,10 @@ def _prepare(members: list[RunConfig], resume_flags: Collection[str] | None, loc
     order = population_order([shac_part(m) for m in members])
     threads = members[0].threads or default_threads()
     members = [dataclasses.replace(members[i], threads=threads) for i in order]
-    device = resolve_device(members[0].device)
+    try:
+        device = resolve_device(members[0].device)
+    except ValueError as e:
+        raise ValueError(str(e) if str(e).startswith("--device") else f"--device: {e}") from None
     try:
         precision.check(members[0].precision, device)  # a refusal before any folder is made
     except ValueError:
@@ -200,7 +203,8 @@ def _prepare(members: list[RunConfig], resume_flags: Collection[str] | None, loc
     if resume is not None:
         prepared = Prepared(members, [folders[i] for i in order], device, None, population, locks)
         try:
-            prepared.states = _resume_states(prepared.folders, device, restart=members[0].restart)
+            prepared.states = _resume_states(prepared.folders, device, restart=members[0].restart,
+                                             cfgs=prepared.cfgs)
         except ValueError as e:
             raise ValueError(f"--resume {resume}: {e}") from None
         check_resume(prepared)
@@ -267,22 +271,50 @@ def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[st
     return cfg
 
 
-def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: bool = False) -> list[dict] | None:
+#: The settings a checkpoint's recorded config must share with its folder's config.json: a checkpoint of another
+#: run (another mode, task or network shape, copied in) would not load into this run's trainer.
+CHECKPOINT_IDENTITY = ("task", "mode", "seed", "num_envs", "horizon", "image_size", "frames", "actor_hidden",
+                       "critic_hidden", "raster_model")
+
+
+def _not_this_runs(state: dict, cfg: RunConfig | None) -> str | None:
+    """Why a checkpoint dict cannot be this run's (None: it can): no iteration, or a recorded config that
+    differs from config.json in :data:`CHECKPOINT_IDENTITY`."""
+    if isinstance(state.get("iteration"), bool) or not isinstance(state.get("iteration"), int):
+        return "holds no 'iteration' entry: not a checkpoint written by ablate"
+    recorded = state.get("config")
+    if cfg is None or not isinstance(recorded, dict):
+        return None
+    ours = dataclasses.asdict(resolve_config(shac_part(cfg)))
+    for k in CHECKPOINT_IDENTITY:
+        theirs, mine = recorded.get(k), ours.get(k)
+        if k in recorded and (list(theirs) if isinstance(theirs, (list, tuple)) else theirs) != \
+                (list(mine) if isinstance(mine, (list, tuple)) else mine):
+            return f"a checkpoint of another run: its {k} is {theirs!r}, config.json's {mine!r}"
+    return None
+
+
+def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: bool = False,
+                   cfgs: list[RunConfig] | None = None) -> list[dict] | None:
     """Every member's checkpoint state of the newest iteration all of them hold a readable checkpoint of; None
     where none holds one (the runs start over in their folders, with --restart where they trained before).
     Damaged newer files are named on stderr and renamed aside (``.damaged`` appended), so that they no longer
     count among the newest when the resumed run prunes, and stay for inspection; when no iteration is left,
     None with ``restart`` (its checkpoints are then set aside with the rest), else ValueError naming every file
-    that did not load, or each member's iterations, and --restart."""
+    that did not load, or each member's iterations, and --restart. ``cfgs``: the members' settings (config.json's),
+    which each checkpoint's own record must match (:func:`_not_this_runs`); a checkpoint that does not counts as
+    damaged."""
     have = [f.checkpoint_iterations() for f in folders]
     if not any(have):
         return None
     damaged: list[tuple[Path, str]] = []
     for iteration in sorted(set.intersection(*have), reverse=True):
         states = []
-        for folder in folders:
+        for k, folder in enumerate(folders):
             path = checkpoint_path(folder.checkpoint_dir, iteration)
             state, why = read_checkpoint(path, map_location=device)
+            if state is not None and (why := _not_this_runs(state, None if cfgs is None else cfgs[k])):
+                state = None
             if state is None:
                 damaged.append((path, why))
                 break

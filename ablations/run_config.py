@@ -181,7 +181,10 @@ class _Ablate(RunConfig):
             out = []
             for spec in self.member:
                 words = _member_words(spec)
-                own = {key: _typed(raw, RunConfig.__dataclass_fields__[key].default) for key, raw in words}
+                try:
+                    own = {key: _typed(key, raw) for key, raw in words}
+                except ValueError as e:
+                    raise ValueError(f"--member {spec!r}: {e}") from None
                 out.append((RunConfig(**{**base, **one, **own}), (spec, words)))
             return out
         return [(RunConfig(**base, **dict(zip(AXES, combo))), None)
@@ -198,26 +201,46 @@ def _member_words(spec: str) -> list[tuple[str, str]]:
         if not sep or key not in MEMBER_FIELDS:
             raise ValueError(f"--member {spec!r}: {part!r} is not a member's own setting (one of "
                              f"{', '.join(MEMBER_FIELDS)}, as key=value)")
+        if key in (k for k, _ in words):  # the last would win without a word
+            raise ValueError(f"--member {spec!r}: {key} is given twice: give it once")
         words.append((key, raw.strip()))
     if "mode" not in dict(words):
         raise ValueError(f"--member {spec!r}: every member names its mode (mode=...)")
     return words
 
 
-def _typed(raw: str, default):
-    """A member word's value typed as its setting is (its default's type; numbers where they read as one)."""
+def _typed(key: str, raw: str):
+    """A member word's value typed as its setting's annotation says; ValueError naming the key (as the entry gives
+    it) for a value that is not of that type: a seed that is no integer, a wrong number of betas."""
+    hint = typing.get_type_hints(RunConfig)[key]
+    args = typing.get_args(hint)
+    optional = type(None) in args
+    kind = next(a for a in args if a is not type(None)) if optional else hint
     if raw.lower() == "none":
-        return None
-    if isinstance(default, bool):
+        if optional:
+            return None
+        raise ValueError(f"{key}=none: {key} takes a value")
+    if typing.get_origin(kind) is typing.Literal:
+        return raw  # validate() names the choices
+    if kind is bool:
+        if raw.lower() not in ("1", "true", "yes", "0", "false", "no"):
+            raise ValueError(f"{key} must be true or false, got {raw!r}")
         return raw.lower() in ("1", "true", "yes")
-    if isinstance(default, tuple):  # e.g. betas=0.7/0.95
-        return tuple(float(x) for x in raw.split("/"))
-    for kind in (int, float):
-        try:
-            return kind(raw)
-        except ValueError:
-            pass
+    if typing.get_origin(kind) is tuple:  # e.g. betas=0.7/0.95
+        parts, kinds = raw.split("/"), typing.get_args(kind)
+        if Ellipsis not in kinds and len(parts) != len(kinds):
+            raise ValueError(f"{key} takes {len(kinds)} values separated by '/', got {len(parts)}: {raw}")
+        return tuple(_number(key, x, kinds[0]) for x in parts)
+    if kind in (int, float):
+        return _number(key, raw, kind)
     return raw
+
+
+def _number(key: str, raw: str, kind: type):
+    try:
+        return kind(raw)
+    except ValueError:
+        raise ValueError(f"{key} must be {'an integer' if kind is int else 'a number'}, got {raw!r}") from None
 
 
 def _several_valued(cls: type, names: tuple[str, ...]) -> type:

@@ -663,6 +663,8 @@ def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None
 def plot_runs(cfg: PlotConfig) -> PlotResult:
     """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``; runs
     that share an arm and a seed are refused (one error line naming them), as the seed statistics refuse them."""
+    if Path(cfg.out).exists() and not Path(cfg.out).is_dir():
+        raise ValueError(f"--out {cfg.out} is a file: give the folder the figures go in")
     runs = find_runs(list(cfg.runs))
     say_metrics_notes(runs)  # damaged lines skipped, iterations twice or out of order
     return make_plots(runs, cfg.out, floors=load_floors(cfg.floors), shared_seed="refuse")
