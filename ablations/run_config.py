@@ -12,14 +12,16 @@ import dataclasses
 import itertools
 import os
 import typing
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
-from gradlab.config import SHACConfig, check_as_given
+from gradlab.config import ModePlan, SHACConfig, check_as_given
 from gradlab.config_checks import check_integers, check_number
 from vocabulary import MEMBER_FIELDS
 
-__all__ = ["RunConfig", "AblateConfig", "shac_part", "check_shared", "default_threads", "RESUMABLE", "AXES"]
+__all__ = ["RunConfig", "AblateConfig", "shac_part", "check_shared", "default_threads", "RESUMABLE", "AXES",
+           "check_given_flags", "SWEEP_WIDE"]
 
 #: Settings a resume may change (where it runs, how long it goes on); config.json wins for every other one.
 RESUMABLE = ("device", "iters", "time_limit_min", "compile_cache", "threads", "compile_helper")
@@ -127,6 +129,37 @@ def check_shared(members: list[RunConfig]) -> None:
         if len(values) > 1:
             raise ValueError(f"the members of one population share --{name.replace('_', '-')}, got "
                              f"{' and '.join(sorted(values))}")
+
+
+#: The environment variable a sweep's worker sets for the ``ablate`` it starts: its flags are sweep-wide (``--set``
+#: of ``ablate-sweep`` or ``ablate-paper``), given for every run of a grid, so :func:`check_given_flags` exempts them.
+SWEEP_WIDE = "PIXELGRAD_SWEEP_WIDE"
+
+
+def check_given_flags(members: list[RunConfig], given: Collection[str]) -> None:
+    """The project's rule (``gradlab.config.check_as_given``) for settings whose being given, not their value,
+    is what a run's options cannot show: a flag in ``given`` (the fields set on the command line) that means
+    nothing for the run, or for every member of a population (a population-wide flag that acts for some member
+    is kept), is refused; ValueError naming the flags."""
+    first = members[0]
+
+    def none(means) -> bool:
+        return not any(means(m) for m in members)
+
+    if "video_steps" in given and none(lambda m: m.video_every > 0):
+        raise ValueError(f"--video-steps {first.video_steps} means nothing with --video-every 0: no video is "
+                         f"recorded; drop it, or give --video-every N")
+    if "eval_envs" in given and none(lambda m: m.video_every > 0 or m.eval_every > 0):
+        raise ValueError(f"--eval-envs {first.eval_envs} means nothing with --eval-every 0 --video-every 0: "
+                         f"nothing is evaluated; drop it, or give --eval-every N")
+    if "cosine_every" in given and first.cosine_every and none(lambda m: ModePlan.of(m.mode).probes):
+        modes = " ".join(dict.fromkeys(m.mode for m in members))
+        raise ValueError(f"--cosine-every {first.cosine_every} means nothing with --mode {modes}: probe iterations "
+                         f"compare the gradients through the images, and this actor's do not depend on them")
+    for name in ("sigma", "render_gamma"):
+        if name in given and none(lambda m: ModePlan.of(m.mode).actor_input != "state"):
+            raise ValueError(f"--{name.replace('_', '-')} {getattr(first, name)} means nothing with --mode state: "
+                             f"it shapes the rendered images, and a state actor sees none")
 
 
 # ---------------------------------------------------------------------------------------------- the command line

@@ -249,6 +249,20 @@ def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | 
     (re)run would do with it; starts nothing."""
     specs = plan(cfg, set_table, vary_table, arms=arms)
     out = Path(cfg.out)
+    # what the real run refuses before it starts anything, refused here too: a grid changed under a sweep.json,
+    # and (on this machine's own cluster) more GPUs a run than the machine has
+    prepare_manifest(cfg, specs, parse_set(cfg.set) if set_table is None else set_table,
+                     parse_vary(cfg.vary) if vary_table is None else vary_table, None, arms)
+    if cfg.gpus_per_run and cfg.address is None:
+        if cfg.num_gpus is not None:
+            gpus = cfg.num_gpus
+        else:
+            import torch
+
+            gpus = torch.cuda.device_count()
+        if cfg.gpus_per_run > gpus:
+            raise ValueError(f"--gpus-per-run {cfg.gpus_per_run}: this machine has {gpus} GPU(s); --gpus-per-run 0 "
+                             f"trains on the CPU")
     manifest = load_manifest(out) or {"runs": {}}
     jobs = plan_jobs(cfg, specs, manifest)
     lines = []

@@ -78,6 +78,13 @@ CASES = [
                                          "got 99999999999999999999"),
     (["--member", f"mode=full,seed={2**64}"], f"--member 'mode=full,seed={2**64}': seed must be an integer in "
                                               "[-2**63, 2**63 - 1]"),
+    # a flag given where it means nothing (check_given_flags)
+    (["--video-steps", "50", "--video-every", "0"], "--video-steps 50 means nothing with --video-every 0"),
+    (["--mode", "state", "--cosine-every", "1"], "--cosine-every 1 means nothing with --mode state"),
+    (["--mode", "state", "--sigma", "2.0"], "--sigma 2.0 means nothing with --mode state"),
+    (["--mode", "state", "--render-gamma", "0.5"], "--render-gamma 0.5 means nothing with --mode state"),
+    (["--eval-every", "0", "--video-every", "0", "--eval-envs", "64"], "--eval-envs 64 means nothing with "
+                                                                     "--eval-every 0 --video-every 0"),
 ]
 
 
@@ -286,3 +293,18 @@ def test_ablate_plot_out_pointed_at_a_file_is_one_line(tmp_path, capsys):
     assert e.value.code == 2
     assert refusal(capsys.readouterr().err) == f"error: --out {tmp_path / 'figs'} is a file: give the folder the " \
         f"figures go in"
+
+
+def test_population_and_sweep_wide_flags_stay_exempt(monkeypatch):
+    """A population-wide flag that acts for some member is kept (--cosine-every over decoupled and blind members);
+    a sweep's ablate (its flags the grid's, for every run) is not checked for them."""
+    from ablations.cli import _checked_members, parse
+    from ablations.run_config import SWEEP_WIDE, AblateConfig
+
+    argv = ["--mode", "decoupled", "blind", "--cosine-every", "1", "--sigma", "2.0", "--device", "cpu"]
+    assert len(_checked_members(parse(AblateConfig, argv), argv)[0]) == 2
+    argv = ["--mode", "state", "--cosine-every", "1", "--device", "cpu"]
+    with pytest.raises(ValueError, match="--cosine-every 1 means nothing with --mode state"):
+        _checked_members(parse(AblateConfig, argv), argv)
+    monkeypatch.setenv(SWEEP_WIDE, "1")
+    assert len(_checked_members(parse(AblateConfig, argv), argv)[0]) == 1
