@@ -245,6 +245,10 @@ class RunFolder:
     def existing(cls, path: str | os.PathLike) -> RunFolder:
         """The run folder at ``path`` (to resume or add to); ValueError when it has no config.json."""
         folder = cls(path)
+        if not folder.path.exists():
+            raise ValueError(f"{folder.path}: no such folder")
+        if not folder.path.is_dir():
+            raise ValueError(f"{folder.path} is a file, not a run folder (give the folder that holds config.json)")
         if not folder.config_path.exists():
             raise ValueError(f"{folder.path}: no config.json there (not a run folder)")
         check_writable(folder.path)
