@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> None:
         sweep, arms = sweep_config(cfg)
         cpu_note = gpus_per_run(cfg)[1]
         if cfg.dry_run:
-            dry_run(sweep, arms=arms)
+            dry_run(sweep, arms=arms, local_gpus=cuda_gpus())
             if cpu_note:
                 print(cpu_note)
             return

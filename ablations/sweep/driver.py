@@ -244,9 +244,10 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
 
 
 def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
-            arms: dict | None = None) -> list[str]:
+            arms: dict | None = None, local_gpus: int | None = None) -> list[str]:
     """Print (and return) one line per job (a run, or a population followed by a line per member), with what a
-    (re)run would do with it; starts nothing."""
+    (re)run would do with it; starts nothing. ValueError for what the real run would refuse before it starts
+    (a changed grid; more GPUs a run than this machine has, ``local_gpus`` of them, None: as torch sees them)."""
     specs = plan(cfg, set_table, vary_table, arms=arms)
     out = Path(cfg.out)
     # what the real run refuses before it starts anything, refused here too: a grid changed under a sweep.json,
@@ -254,8 +255,8 @@ def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | 
     prepare_manifest(cfg, specs, parse_set(cfg.set) if set_table is None else set_table,
                      parse_vary(cfg.vary) if vary_table is None else vary_table, None, arms)
     if cfg.gpus_per_run and cfg.address is None:
-        if cfg.num_gpus is not None:
-            gpus = cfg.num_gpus
+        if cfg.num_gpus is not None or local_gpus is not None:
+            gpus = cfg.num_gpus if cfg.num_gpus is not None else local_gpus
         else:
             import torch
 
