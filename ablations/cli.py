@@ -219,7 +219,8 @@ def _checked_members(cfg, argv: list[str]) -> tuple[list, frozenset[str] | None]
     (those given, a default's value included; else None); ValueError naming the flag (``--member`` and its entry
     for a listed member's own settings), before anything is created."""
     # not at the top: these import torch (see _ablate)
-    from ablations.run_config import RESUMABLE
+    from ablations.run_config import RESUMABLE, check_given_flags
+    from ablations.run_config import SWEEP_WIDE as RUN_SWEEP_WIDE
     from tasks.command_line import scan, usable_cores
 
     fields = {f.name for f in dataclasses.fields(cfg)}
@@ -244,7 +245,10 @@ def _checked_members(cfg, argv: list[str]) -> tuple[list, frozenset[str] | None]
     # a resume's settings are its folders' (checked as they are read)
     if cfg.resume is not None:
         return cfg.members(), frozenset(_field(g.key, fields) for g in given) & frozenset(RESUMABLE)
-    return cfg.checked_members(), None
+    members = cfg.checked_members()
+    if not os.environ.get(RUN_SWEEP_WIDE):  # a sweep's --set is given for every run of its grid
+        check_given_flags(members, {_field(g.key, fields) for g in given})
+    return members, None
 
 
 def memory_main(argv: list[str] | None = None) -> None:

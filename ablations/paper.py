@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> None:
         cpu_note = gpus_per_run(cfg)[1]
         if cfg.dry_run:
             for sweep, arms in planned:
-                dry_run(sweep, arms=arms)
+                dry_run(sweep, arms=arms, local_gpus=cuda_gpus())
             if cpu_note:
                 print(cpu_note)
             return

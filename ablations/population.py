@@ -20,10 +20,11 @@ from pathlib import Path
 
 import torch
 
+from ablations.folder_lock import LOCK, FolderLocks
 from ablations.naming import claim_folder, folder_name, member_name
 from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
-from ablations.run_folder import RunFolder, check_writable, set_aside_damaged_checkpoint
+from ablations.run_folder import ABSENT_MEANS, RunFolder, check_writable, set_aside_damaged_checkpoint
 from gradlab import precision
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, read_checkpoint
 from gradlab.config import resolve_config
@@ -54,7 +55,7 @@ class PopulationFolder:
         """The new folder ``parent/name`` and a new run folder per member (ValueError if it exists, not empty)."""
         pop = cls(Path(parent) / name)
         check_writable(parent)
-        if pop.path.exists() and any(pop.path.iterdir()):
+        if pop.path.exists() and any(p.name != LOCK for p in pop.path.iterdir()):
             raise ValueError(f"population folder {pop.path} exists and is not empty: pass --resume {pop.path} or "
                              f"another --name")
         folders = [RunFolder.create(pop.path, n) for n in names]
@@ -66,7 +67,7 @@ class PopulationFolder:
         """Remove the folder and its population.json when nothing else is left in it (a population that stopped
         before any member wrote its first record: the member folders were removed as empty)."""
         try:
-            if any(p.name != POPULATION for p in self.path.iterdir()):
+            if any(p.name != POPULATION for p in self.path.iterdir()):  # a lock file: another process holds it
                 return
             (self.path / POPULATION).unlink(missing_ok=True)
             self.path.rmdir()
@@ -124,6 +125,13 @@ class Prepared:
     states: list[dict] | None
     #: The population folder; None: a run alone, whose run folder is the one folder ``ablate`` names.
     population: PopulationFolder | None
+    #: The locks of the population folder and every member's folder, held until :meth:`release` (the caller's,
+    #: once the last summary is written): one process at a time trains into a folder.
+    locks: FolderLocks = dataclasses.field(default_factory=FolderLocks)
+
+    def release(self) -> None:
+        """Give up the folders' locks."""
+        self.locks.release()
 
     @property
     def home(self) -> Path:
@@ -145,11 +153,29 @@ def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[s
     that cannot tell). ValueError naming the flag for bad input, or for members that cannot share a process;
     NothingToDo for a resume of a finished run."""
     members = [runs] if isinstance(runs, RunConfig) else list(runs)
+    locks = FolderLocks()
+    try:
+        return _prepare(members, resume_flags, locks)
+    except BaseException:
+        locks.release()
+        raise
+
+
+def _lock(locks: FolderLocks, folders: list[RunFolder], population: PopulationFolder | None) -> None:
+    """Lock the population folder (if any) and every member's folder: ``--resume`` takes either."""
+    if population is not None:
+        locks.acquire([population.path], "population folder")
+    locks.acquire([f.path for f in folders], "run folder")
+
+
+def _prepare(members: list[RunConfig], resume_flags: Collection[str] | None, locks: FolderLocks) -> Prepared:
+    """:func:`prepare`, the folders it makes or finds locked in ``locks`` (released by the caller on a refusal)."""
     resume = members[0].resume
     population: PopulationFolder | None = None
     if resume is not None:
         try:
             folders, population = home_of(resume)
+            _lock(locks, folders, population)  # before anything in them is read or renamed
         except ValueError as e:
             raise ValueError(f"--resume {resume}: {e}") from None
         members = [_stored_config(f, members[0], resume_flags) for f in folders]
@@ -163,7 +189,10 @@ def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[s
     order = population_order([shac_part(m) for m in members])
     threads = members[0].threads or default_threads()
     members = [dataclasses.replace(members[i], threads=threads) for i in order]
-    device = resolve_device(members[0].device)
+    try:
+        device = resolve_device(members[0].device)
+    except ValueError as e:
+        raise ValueError(str(e) if str(e).startswith("--device") else f"--device: {e}") from None
     try:
         precision.check(members[0].precision, device)  # a refusal before any folder is made
     except ValueError:
@@ -172,9 +201,10 @@ def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[s
         raise ValueError(f"--resume {resume}: it trains at --precision {members[0].precision}, which needs a CUDA "
                          f"device (it was given --device {members[0].device})") from None
     if resume is not None:
-        prepared = Prepared(members, [folders[i] for i in order], device, None, population)
+        prepared = Prepared(members, [folders[i] for i in order], device, None, population, locks)
         try:
-            prepared.states = _resume_states(prepared.folders, device, restart=members[0].restart)
+            prepared.states = _resume_states(prepared.folders, device, restart=members[0].restart,
+                                             cfgs=prepared.cfgs)
         except ValueError as e:
             raise ValueError(f"--resume {resume}: {e}") from None
         check_resume(prepared)
@@ -189,7 +219,8 @@ def prepare(runs: RunConfig | Sequence[RunConfig], *, resume_flags: Collection[s
         folders = [RunFolder.create(first.out, name)]
     else:
         population, folders = PopulationFolder.create(first.out, name, [member_name(m, members) for m in members])
-    return Prepared(members, folders, device, None, population)
+    _lock(locks, folders, population)
+    return Prepared(members, folders, device, None, population, locks)
 
 
 def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[str] | None = None) -> RunConfig:
@@ -202,7 +233,20 @@ def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[st
         raise ValueError(f"--resume {folder.path}: {e}; it is the record of the run's settings, restore it (e.g. "
                          f"from a copy) to resume") from None
     fields = {f.name for f in dataclasses.fields(RunConfig)}
-    stored = {k: v for k, v in stored.items() if k in fields}
+    unknown = sorted(set(stored) - fields)
+    if unknown:
+        raise ValueError(f"--resume {folder.path}: {folder.config_path} records setting(s) this version does not "
+                         f"know: {', '.join(unknown)}; resume it with the code that wrote it (git.txt, "
+                         f"provenance.jsonl name it)")
+    # set by the resume itself (where it runs, how long, what it prints), never needed from the file
+    by_resume = {*RESUMABLE, "out", "name", "resume", "restart", "progress"}
+    missing = sorted(fields - set(stored) - by_resume - set(ABSENT_MEANS))
+    if missing:
+        raise ValueError(f"--resume {folder.path}: {folder.config_path} has no {', '.join(missing)}: a resume "
+                         f"would take today's default{'s' if len(missing) > 1 else ''} for the run's own "
+                         f"setting{'s' if len(missing) > 1 else ''} without a word; restore it from the run's "
+                         f"command (config.json's \"command\") or start a new run")
+    stored = {**{k: v for k, v in ABSENT_MEANS.items() if k not in stored}, **stored}
     for k in ("actor_hidden", "critic_hidden", "betas"):
         if stored.get(k) is not None:
             stored[k] = tuple(stored[k])
@@ -227,22 +271,50 @@ def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[st
     return cfg
 
 
-def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: bool = False) -> list[dict] | None:
+#: The settings a checkpoint's recorded config must share with its folder's config.json: a checkpoint of another
+#: run (another mode, task or network shape, copied in) would not load into this run's trainer.
+CHECKPOINT_IDENTITY = ("task", "mode", "seed", "num_envs", "horizon", "image_size", "frames", "actor_hidden",
+                       "critic_hidden", "raster_model")
+
+
+def _not_this_runs(state: dict, cfg: RunConfig | None) -> str | None:
+    """Why a checkpoint dict cannot be this run's (None: it can): no iteration, or a recorded config that
+    differs from config.json in :data:`CHECKPOINT_IDENTITY`."""
+    if isinstance(state.get("iteration"), bool) or not isinstance(state.get("iteration"), int):
+        return "holds no 'iteration' entry: not a checkpoint written by ablate"
+    recorded = state.get("config")
+    if cfg is None or not isinstance(recorded, dict):
+        return None
+    ours = dataclasses.asdict(resolve_config(shac_part(cfg)))
+    for k in CHECKPOINT_IDENTITY:
+        theirs, mine = recorded.get(k), ours.get(k)
+        if k in recorded and (list(theirs) if isinstance(theirs, (list, tuple)) else theirs) != \
+                (list(mine) if isinstance(mine, (list, tuple)) else mine):
+            return f"a checkpoint of another run: its {k} is {theirs!r}, config.json's {mine!r}"
+    return None
+
+
+def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: bool = False,
+                   cfgs: list[RunConfig] | None = None) -> list[dict] | None:
     """Every member's checkpoint state of the newest iteration all of them hold a readable checkpoint of; None
     where none holds one (the runs start over in their folders, with --restart where they trained before).
     Damaged newer files are named on stderr and renamed aside (``.damaged`` appended), so that they no longer
     count among the newest when the resumed run prunes, and stay for inspection; when no iteration is left,
     None with ``restart`` (its checkpoints are then set aside with the rest), else ValueError naming every file
-    that did not load, or each member's iterations, and --restart."""
+    that did not load, or each member's iterations, and --restart. ``cfgs``: the members' settings (config.json's),
+    which each checkpoint's own record must match (:func:`_not_this_runs`); a checkpoint that does not counts as
+    damaged."""
     have = [f.checkpoint_iterations() for f in folders]
     if not any(have):
         return None
     damaged: list[tuple[Path, str]] = []
     for iteration in sorted(set.intersection(*have), reverse=True):
         states = []
-        for folder in folders:
+        for k, folder in enumerate(folders):
             path = checkpoint_path(folder.checkpoint_dir, iteration)
             state, why = read_checkpoint(path, map_location=device)
+            if state is not None and (why := _not_this_runs(state, None if cfgs is None else cfgs[k])):
+                state = None
             if state is None:
                 damaged.append((path, why))
                 break

@@ -12,14 +12,16 @@ import dataclasses
 import itertools
 import os
 import typing
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
-from gradlab.config import SHACConfig, check_as_given
+from gradlab.config import ModePlan, SHACConfig, check_as_given
 from gradlab.config_checks import check_integers, check_number
 from vocabulary import MEMBER_FIELDS
 
-__all__ = ["RunConfig", "AblateConfig", "shac_part", "check_shared", "default_threads", "RESUMABLE", "AXES"]
+__all__ = ["RunConfig", "AblateConfig", "shac_part", "check_shared", "default_threads", "RESUMABLE", "AXES",
+           "check_given_flags", "SWEEP_WIDE"]
 
 #: Settings a resume may change (where it runs, how long it goes on); config.json wins for every other one.
 RESUMABLE = ("device", "iters", "time_limit_min", "compile_cache", "threads", "compile_helper")
@@ -153,6 +155,37 @@ def check_shared(members: list[RunConfig]) -> None:
                              f"{' and '.join(sorted(values))}")
 
 
+#: The environment variable a sweep's worker sets for the ``ablate`` it starts: its flags are sweep-wide (``--set``
+#: of ``ablate-sweep`` or ``ablate-paper``), given for every run of a grid, so :func:`check_given_flags` exempts them.
+SWEEP_WIDE = "PIXELGRAD_SWEEP_WIDE"
+
+
+def check_given_flags(members: list[RunConfig], given: Collection[str]) -> None:
+    """The project's rule (``gradlab.config.check_as_given``) for settings whose being given, not their value,
+    is what a run's options cannot show: a flag in ``given`` (the fields set on the command line) that means
+    nothing for the run, or for every member of a population (a population-wide flag that acts for some member
+    is kept), is refused; ValueError naming the flags."""
+    first = members[0]
+
+    def none(means) -> bool:
+        return not any(means(m) for m in members)
+
+    if "video_steps" in given and none(lambda m: m.video_every > 0):
+        raise ValueError(f"--video-steps {first.video_steps} means nothing with --video-every 0: no video is "
+                         f"recorded; drop it, or give --video-every N")
+    if "eval_envs" in given and none(lambda m: m.video_every > 0 or m.eval_every > 0):
+        raise ValueError(f"--eval-envs {first.eval_envs} means nothing with --eval-every 0 --video-every 0: "
+                         f"nothing is evaluated; drop it, or give --eval-every N")
+    if "cosine_every" in given and first.cosine_every and none(lambda m: ModePlan.of(m.mode).probes):
+        modes = " ".join(dict.fromkeys(m.mode for m in members))
+        raise ValueError(f"--cosine-every {first.cosine_every} means nothing with --mode {modes}: probe iterations "
+                         f"compare the gradients through the images, and this actor's do not depend on them")
+    for name in ("sigma", "render_gamma"):
+        if name in given and none(lambda m: ModePlan.of(m.mode).actor_input != "state"):
+            raise ValueError(f"--{name.replace('_', '-')} {getattr(first, name)} means nothing with --mode state: "
+                             f"it shapes the rendered images, and a state actor sees none")
+
+
 # ---------------------------------------------------------------------------------------------- the command line
 @dataclass
 class _Ablate(RunConfig):
@@ -205,7 +238,10 @@ class _Ablate(RunConfig):
             out = []
             for spec in self.member:
                 words = _member_words(spec)
-                own = {key: _typed(raw, RunConfig.__dataclass_fields__[key].default) for key, raw in words}
+                try:
+                    own = {key: _typed(key, raw) for key, raw in words}
+                except ValueError as e:
+                    raise ValueError(f"--member {spec!r}: {e}") from None
                 out.append((RunConfig(**{**base, **one, **own}), (spec, words)))
             return out
         return [(RunConfig(**base, **dict(zip(AXES, combo))), None)
@@ -222,26 +258,46 @@ def _member_words(spec: str) -> list[tuple[str, str]]:
         if not sep or key not in MEMBER_FIELDS:
             raise ValueError(f"--member {spec!r}: {part!r} is not a member's own setting (one of "
                              f"{', '.join(MEMBER_FIELDS)}, as key=value)")
+        if key in (k for k, _ in words):  # the last would win without a word
+            raise ValueError(f"--member {spec!r}: {key} is given twice: give it once")
         words.append((key, raw.strip()))
     if "mode" not in dict(words):
         raise ValueError(f"--member {spec!r}: every member names its mode (mode=...)")
     return words
 
 
-def _typed(raw: str, default):
-    """A member word's value typed as its setting is (its default's type; numbers where they read as one)."""
+def _typed(key: str, raw: str):
+    """A member word's value typed as its setting's annotation says; ValueError naming the key (as the entry gives
+    it) for a value that is not of that type: a seed that is no integer, a wrong number of betas."""
+    hint = typing.get_type_hints(RunConfig)[key]
+    args = typing.get_args(hint)
+    optional = type(None) in args
+    kind = next(a for a in args if a is not type(None)) if optional else hint
     if raw.lower() == "none":
-        return None
-    if isinstance(default, bool):
+        if optional:
+            return None
+        raise ValueError(f"{key}=none: {key} takes a value")
+    if typing.get_origin(kind) is typing.Literal:
+        return raw  # validate() names the choices
+    if kind is bool:
+        if raw.lower() not in ("1", "true", "yes", "0", "false", "no"):
+            raise ValueError(f"{key} must be true or false, got {raw!r}")
         return raw.lower() in ("1", "true", "yes")
-    if isinstance(default, tuple):  # e.g. betas=0.7/0.95
-        return tuple(float(x) for x in raw.split("/"))
-    for kind in (int, float):
-        try:
-            return kind(raw)
-        except ValueError:
-            pass
+    if typing.get_origin(kind) is tuple:  # e.g. betas=0.7/0.95
+        parts, kinds = raw.split("/"), typing.get_args(kind)
+        if Ellipsis not in kinds and len(parts) != len(kinds):
+            raise ValueError(f"{key} takes {len(kinds)} values separated by '/', got {len(parts)}: {raw}")
+        return tuple(_number(key, x, kinds[0]) for x in parts)
+    if kind in (int, float):
+        return _number(key, raw, kind)
     return raw
+
+
+def _number(key: str, raw: str, kind: type):
+    try:
+        return kind(raw)
+    except ValueError:
+        raise ValueError(f"{key} must be {'an integer' if kind is int else 'a number'}, got {raw!r}") from None
 
 
 def _several_valued(cls: type, names: tuple[str, ...]) -> type:

@@ -8,6 +8,8 @@ A run folder holds:
     metrics.jsonl    one JSON object per training iteration, appended as the run goes (a resume sets lines it
                      cannot keep aside in metrics.jsonl.redone-<time> and .damaged-<time>, a --restart the old
                      records in *.before-restart-<time>: nothing is deleted)
+    provenance.jsonl one line per start in this folder (the first, each resume, a restart): time, commit, dirty
+                     status and a hash of the code (a dirty resume's own diff in git.diff.resume-<time>)
     summary.json     written at the end (or when the run stops on an error or a signal): its status, final and best
                      training and evaluation returns, medians without warm-up, peaks, start-up seconds
     checkpoints/     ckpt_<iter>.pt (the newest few), written atomically; a resume starts from the newest that loads
@@ -26,6 +28,8 @@ record import it when they are called.
 from __future__ import annotations
 
 import datetime
+import hashlib
+import itertools
 import json
 import math
 import os
@@ -34,6 +38,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections import Counter
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -41,7 +46,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gradlab.files import atomic_write_json, atomic_write_text
+from ablations.folder_lock import LOCK
+from gradlab.files import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:
     import torch
@@ -50,12 +56,22 @@ if TYPE_CHECKING:
 
 __all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
-           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES"]
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "PROVENANCE", "ABSENT_MEANS", "source_tree_hash",
+           "metrics_notes", "say_metrics_notes"]
 
 CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
 CHECKPOINTS, VIDEOS = "checkpoints", "videos"
+#: One JSON line per start of the run in this folder (its first, each resume, a restart): the code that ran.
+PROVENANCE = "provenance.jsonl"
 #: What ``ablate --resume`` needs besides a checkpoint (the git records keep a copied folder complete).
-RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS)
+RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS, PROVENANCE)
+#: What a setting missing from an older config.json means: the behaviour the code had before the setting existed.
+#: A resume refuses a folder that lacks any other setting (it would take today's default without a word).
+ABSENT_MEANS: dict[str, object] = {
+    "precision": "fp32",  # the --precision flag came later; every run before it trained in float32
+}
+#: The folders whose files :func:`source_tree_hash` covers (the code a run executes) and the project file.
+SOURCE_PARTS = ("ablations", "gradlab", "tasks", "diffrender", "vocabulary", "pyproject.toml")
 #: Installed distributions whose versions config.json records (by distribution name, from their metadata).
 RECORDED_PACKAGES = ("torch", "numpy", "mujoco", "pytorch-kinematics", "triton", "warp-lang", "opencv-python",
                      "opencv-python-headless")
@@ -85,12 +101,44 @@ def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
     return [row for _, _, row in _metrics_lines(data)[0] if row is not None]
 
 
-def _metrics_lines(data: bytes) -> tuple[list[tuple[int, str, dict | None]], str | None]:
-    """(the complete lines of metrics.jsonl's bytes as (line number, text, record or None where it does not read
-    as one), the last line when it is torn: cut off before its newline and not a record)."""
-    text = data.decode(errors="replace")
-    lines = text.split("\n")
-    tail = lines.pop()  # "" when the file ends with a newline
+def metrics_notes(run_dir: str | os.PathLike) -> list[str]:
+    """What a reader of a run folder's metrics.jsonl should be told (one line each, [] when nothing): lines it skips
+    as damaged, and iterations that appear twice or out of order (two processes that trained into one folder)."""
+    path = Path(run_dir) / METRICS
+    try:
+        lines, _ = _metrics_lines(path.read_bytes())
+    except FileNotFoundError:
+        return []
+    notes = []
+    damaged = [n for n, _, row in lines if row is None]
+    if damaged:
+        notes.append(f"warning: {path}: line(s) {_spans(damaged)} damaged (not a JSON record), skipped")
+    its = [row["iter"] for _, _, row in lines if row is not None]
+    twice = sorted(it for it, n in Counter(its).items() if n > 1)
+    if twice:
+        notes.append(f"warning: {path}: iteration(s) {_spans(twice)} appear more than once (two processes trained "
+                     f"into this folder?); every copy is read")
+    back = [b for a, b in itertools.pairwise(its) if b < a]
+    if back:
+        notes.append(f"warning: {path}: iterations out of order (iteration {back[0]} after a later one); read sorted "
+                     f"by iteration")
+    return notes
+
+
+def say_metrics_notes(runs: list[Run]) -> None:
+    """Print each run's :func:`metrics_notes` on stderr, once (``ablate-plot`` and ``ablate-report`` read them)."""
+    for run in runs:
+        for note in metrics_notes(run.path):
+            print(note, file=sys.stderr)
+
+
+def _metrics_lines(data: bytes) -> tuple[list[tuple[int, bytes, dict | None]], bytes | None]:
+    """(the complete lines of metrics.jsonl's bytes as (line number, its bytes without the newline, record or None
+    where it does not read as one: not UTF-8, not JSON, not an iteration's object), the last line's bytes when it is
+    torn: cut off before its newline and not a record). Lines are kept as bytes so that whatever is set aside or
+    kept is what was on disk, byte for byte."""
+    lines = data.split(b"\n")
+    tail = lines.pop()  # b"" when the file ends with a newline
     out = []
     for n, line in enumerate(lines, 1):
         out.append((n, line, _record(line)))
@@ -104,12 +152,17 @@ def _metrics_lines(data: bytes) -> tuple[list[tuple[int, str, dict | None]], str
     return out, torn
 
 
-def _record(line: str) -> dict | None:
+def _record(line: bytes) -> dict | None:
     try:
-        row = json.loads(line)
-    except ValueError:
+        row = json.loads(line.decode("utf-8"))  # strict: a line that is not UTF-8 is damaged
+    except ValueError:  # UnicodeDecodeError and JSONDecodeError are both ValueErrors
         return None
     return row if isinstance(row, dict) and isinstance(row.get("iter"), int) else None
+
+
+def _shown(line: bytes) -> str:
+    """A damaged line's first bytes, for a one-line note (undecodable bytes shown escaped)."""
+    return repr(line[:60].decode("utf-8", errors="backslashreplace"))
 
 
 def _spans(its: list[int]) -> str:
@@ -182,7 +235,7 @@ class RunFolder:
         """A new run folder ``parent/name`` (created, writable); ValueError when it exists with files in it."""
         folder = cls(Path(parent) / name)
         check_writable(parent)
-        if folder.path.exists() and any(folder.path.iterdir()):
+        if folder.path.exists() and any(p.name != LOCK for p in folder.path.iterdir()):
             raise ValueError(f"run folder {folder.path} exists and is not empty: pass --resume {folder.path} or "
                              f"another --name")
         check_writable(folder.path)
@@ -192,6 +245,10 @@ class RunFolder:
     def existing(cls, path: str | os.PathLike) -> RunFolder:
         """The run folder at ``path`` (to resume or add to); ValueError when it has no config.json."""
         folder = cls(path)
+        if not folder.path.exists():
+            raise ValueError(f"{folder.path}: no such folder")
+        if not folder.path.is_dir():
+            raise ValueError(f"{folder.path} is a file, not a run folder (give the folder that holds config.json)")
         if not folder.config_path.exists():
             raise ValueError(f"{folder.path}: no config.json there (not a run folder)")
         check_writable(folder.path)
@@ -271,27 +328,27 @@ class RunFolder:
         stamp = _stamp()
         if damaged:
             aside = _aside(path, f".damaged-{stamp}")
-            atomic_write_text(aside, "".join(line + "\n" for _, line in damaged))
+            atomic_write_bytes(aside, b"".join(line + b"\n" for _, line in damaged))
             for n, line in damaged[:5]:
-                notes.append(f"warning: {path} line {n} is damaged (not a JSON record: {line[:60]!r}); moved to "
+                notes.append(f"warning: {path} line {n} is damaged (not a JSON record: {_shown(line)}); moved to "
                              f"{aside.name}")
             if len(damaged) > 5:
                 notes.append(f"warning: {path}: {len(damaged) - 5} more damaged lines moved to {aside.name}")
         if later:
             aside = _aside(path, f".redone-{stamp}")
-            atomic_write_text(aside, "".join(line + "\n" for _, line, _ in later))
+            atomic_write_bytes(aside, b"".join(line + b"\n" for _, line, _ in later))
             notes.append(f"note: {path}: the lines of iteration(s) {_spans([r['iter'] for _, _, r in later])} come "
                          f"after the checkpoint of iteration {upto_iter} and are trained again; the old lines are "
                          f"kept in {aside.name}")
         if torn is not None:
             notes.append(f"note: {path}: its last line was cut off mid-write (the run was killed while writing it); "
-                         f"dropped: {torn[:60]!r}")
+                         f"dropped: {_shown(torn)}")
         missing = sorted(set(range(1, upto_iter + 1)) - {row["iter"] for _, _, row in kept})
         if missing:
             notes.append(f"warning: {path} has no line for iteration(s) {_spans(missing)} (plots and reports of "
                          f"this run show a gap there)")
         if damaged or later or torn is not None:
-            atomic_write_text(path, "".join(line + "\n" for _, line, _ in kept))
+            atomic_write_bytes(path, b"".join(line + b"\n" for _, line, _ in kept))
         return notes
 
     def set_aside_for_restart(self) -> list[str]:
@@ -307,6 +364,42 @@ class RunFolder:
                 os.replace(path, aside)
                 notes.append(f"note: --restart: {path} kept as {aside.name}")
         return notes
+
+    def append_provenance(self, event: str, iteration: int, repo: Path | None = None) -> dict:
+        """One line of provenance.jsonl for this start of the run (``event``: "start", "resume" or "restart", from
+        the checkpoint of ``iteration``; 0: from the first): the UTC time, the commit and whether the tree was
+        dirty (None where there is no repository), and :func:`source_tree_hash` (comparable across copies
+        without a repository). A dirty resume or restart keeps its own diff beside, git.diff.<event>-<time>
+        (the first start's is git.diff). Returns the line's record."""
+        repo = repo or Path(__file__).resolve().parents[1]
+        commit, dirty, diff = _git_state(repo)
+        entry = {"event": event, "iteration": iteration,
+                 "utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                 "commit": commit or os.environ.get("PIXELGRAD_COMMIT"), "dirty": dirty,
+                 "tree_sha256": source_tree_hash(repo)}
+        if dirty and event != "start":
+            aside = _aside(self.path / GIT_DIFF, f".{event}-{_stamp()}")
+            atomic_write_text(aside, diff)
+            entry["diff"] = aside.name
+        with open(self.path / PROVENANCE, "a") as f:
+            f.write(json.dumps(entry) + "\n")
+        return entry
+
+    def read_provenance(self) -> list[dict]:
+        """provenance.jsonl's records, oldest first ([] for a folder written before it existed)."""
+        try:
+            data = (self.path / PROVENANCE).read_bytes()
+        except FileNotFoundError:
+            return []
+        out = []
+        for line in data.split(b"\n"):
+            try:
+                row = json.loads(line.decode("utf-8"))
+            except ValueError:
+                continue
+            if isinstance(row, dict):
+                out.append(row)
+        return out
 
     def write_summary(self, summary: dict) -> None:
         self.sync_metrics()  # the lines it sums up first
@@ -476,6 +569,48 @@ def git_info(repo: Path | None = None) -> tuple[str, str]:
     stat = stat or "(none)\n"
     text = f"commit {commit}\nbranch {branch}\ndirty {dirty}\n\nstatus:\n{status}\ndiff --stat HEAD:\n{stat}"
     return text, diff
+
+
+def _git_state(repo: Path) -> tuple[str | None, bool | None, str]:
+    """(commit, dirty, diff against it) of the tree at ``repo``; (None, None, "") without a repository."""
+    def git(*args: str) -> str:
+        r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
+        if r.returncode != 0:
+            raise RuntimeError(r.stderr.strip())
+        return r.stdout
+
+    try:
+        commit = git("rev-parse", "HEAD").strip()
+        dirty = bool(git("status", "--porcelain").strip())
+        return commit, dirty, git("diff", "HEAD") if dirty else ""
+    except (OSError, RuntimeError, subprocess.TimeoutExpired):
+        return None, None, ""
+
+
+def source_tree_hash(root: Path | None = None) -> str:
+    """SHA-256 over the path and bytes of every file of the code under ``root`` (:data:`SOURCE_PARTS`; default
+    this checkout), as they are on disk: in a repository the files git tracks there, in a copy without one (a
+    device's) every file but caches and dot files, so that both name the same code by the same hash."""
+    root = root or Path(__file__).resolve().parents[1]
+    try:
+        r = subprocess.run(["git", "-C", str(root), "ls-files", "-z", "--", *SOURCE_PARTS], capture_output=True,
+                           timeout=30)
+        names = sorted(n for n in r.stdout.decode().split("\0") if n) if r.returncode == 0 else None
+    except (OSError, subprocess.TimeoutExpired):
+        names = None
+    if names is None:
+        names = sorted(str(p.relative_to(root)) for part in SOURCE_PARTS
+                       for p in ([root / part] if (root / part).is_file() else (root / part).rglob("*"))
+                       if p.is_file() and "__pycache__" not in p.parts
+                       and not any(q.startswith(".") for q in p.relative_to(root).parts))
+    h = hashlib.sha256()
+    for name in names:
+        try:
+            data = (root / name).read_bytes()
+        except OSError:  # tracked but deleted in the working tree
+            data = b""
+        h.update(name.encode() + b"\0" + str(len(data)).encode() + b"\0" + data)
+    return h.hexdigest()
 
 
 def package_versions(names: tuple[str, ...] = RECORDED_PACKAGES) -> dict[str, str]:

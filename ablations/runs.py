@@ -102,12 +102,16 @@ def run(runs: RunConfig | Sequence[RunConfig], *, startup: Startup | None = None
                          resuming=prepared.states is not None)
             return _train(prepared, startup, stop, started=started, cache_opened=cache_opened)
         except BaseException:
+            if prepared is not None:
+                prepared.release()  # first: a folder holding only its lock file is empty
             for folder in folders:
                 folder.remove_if_empty()  # stopped before it wrote its first record
             if prepared is not None and prepared.population is not None:
                 prepared.population.remove_if_unused()  # and so did every member of a new population
             raise
         finally:
+            if prepared is not None:
+                prepared.release()  # after the last summary (_train's own finally wrote it)
             startup.close()  # on every way out, an error before the training loop included
 
 
@@ -115,8 +119,8 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
     """Each run's records: config.json (every setting, resolved, with what the preset supplied) and git.txt of a
     new run, or of a restarted one once its earlier records are set aside beside them (each named); a resumed
     run keeps its own, its metrics lines after the checkpoint of ``iteration`` set aside to be trained again
-    (damaged ones named), except a member that stopped before it (its lines end where it stopped). ``members``:
-    the trainer's, in the folders' order."""
+    (damaged ones named), except a member that stopped before it (its lines end where it stopped). Every start
+    appends its code's provenance (provenance.jsonl). ``members``: the trainer's, in the folders' order."""
     cfgs, folders = prepared.cfgs, prepared.folders
     tree = tree_hash()  # the code that trains, hashed where a device copy has no repository to name it
     for i, (member_cfg, folder) in enumerate(zip(cfgs, folders)):
@@ -124,9 +128,15 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
             if resuming:
                 for note in [] if members[i].failed is not None else folder.settle_metrics(iteration):
                     print(note, file=sys.stderr)
+                folder.append_provenance("resume", iteration)  # the code of this resume, beside the first's
                 continue
-            for note in folder.set_aside_for_restart():
-                print(note, file=sys.stderr)
+            notes = folder.set_aside_for_restart()
+            if member_cfg.restart:  # a resume of a folder that trained nothing sets aside its records unasked
+                for note in notes:
+                    print(note, file=sys.stderr)
+            restarted = True
+        else:
+            restarted = False
         shac_fields = dataclasses.fields(SHACConfig)
         resolved = dataclasses.replace(member_cfg, **{f.name: getattr(members[i].cfg, f.name) for f in shac_fields})
         config = dataclasses.asdict(resolved)
@@ -149,6 +159,7 @@ def _record_runs(prepared: Prepared, members: list, iteration: int, *, resuming:
                                     "members": [f.path.name for f in folders], "index": i}
         folder.write_config(record)
         folder.write_git()
+        folder.append_provenance("restart" if restarted else "start", 0)
 
 
 def _train(prepared: Prepared, startup: Startup, stop: StopOnSignal, *, started: float,

@@ -53,7 +53,9 @@ def describe_error(e: BaseException, device=None, where: str = "") -> tuple[str,
             what = f"an allocation of {size.group(1)} {size.group(2)} failed"
         else:
             what = first[:200] or type(e).__name__
-        return "oom", f"out of memory on the {on}{at} ({what}; fewer --num-envs or a smaller --image-size need less)"
+        return "oom", (f"out of memory on the {on}{at} ({what}; fewer --num-envs or --eval-envs, a smaller "
+                       f"--image-size or --horizon need less: --resume keeps a run's settings, so start a new run "
+                       f"with them)")
     return "failed", f"{type(e).__name__}{at}: {first}"[:500]
 
 

@@ -107,7 +107,8 @@ class SHACConfig:
     horizon: int = 32
     """Steps per SHAC window (the backpropagation horizon)."""
     seed: int = 0
-    """One seed for everything (networks, noise, resets). Same seed on the CPU gives identical metrics."""
+    """One seed for everything (networks, noise, resets), an integer in [-2**63, 2**63 - 1]. Same seed on the CPU
+    gives identical metrics."""
     gamma: float = 0.99
     """Discount."""
     lam: float = 0.95
@@ -260,6 +261,9 @@ class SHACConfig:
                              f"{', '.join(SIM_BACKENDS)}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"--precision: unknown precision {self.precision!r}; valid: {', '.join(PRECISIONS)}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not -2**63 <= self.seed < 2**63:
+            raise ValueError(f"--seed must be an integer in [-2**63, 2**63 - 1] (torch's 64-bit seed), got "
+                             f"{self.seed!r}")
         check_integers(self, ("iters", "horizon", "critic_iterations", "critic_batches", "image_size", "frames",
                               "render_detail", "eval_envs"), minimum=1)
         check_integers(self, ("num_envs", "lr_decay_iters", "trunk_dim", "episode_length"), minimum=1,

@@ -71,7 +71,7 @@ from ablations.reports.style import (
     load_floors,
     save_figure,
 )
-from ablations.run_folder import Run, find_runs, is_number
+from ablations.run_folder import Run, find_runs, is_number, say_metrics_notes
 
 __all__ = ["PlotConfig", "make_plots", "build_figures", "FIGURES", "RENDER_TERM_GROUPS", "plot_runs",
            "draw_learning_curves", "draw_difference_curves", "plot_performance_profiles"]
@@ -265,6 +265,9 @@ class _Drawer:
         self.figure = ""
         self.groups = group_runs(runs, label=label)
         for (task, lab), rs in list(self.groups.items()):
+            if shared_seed == "keep newest":
+                self.groups[(task, lab)] = self._newest_per_seed(task, lab, rs)
+                continue
             seen: dict[str, Run] = {}
             for r in rs:
                 if str(r.seed) in seen:
@@ -281,6 +284,22 @@ class _Drawer:
         self.arm_index = {lab: i for i, lab in enumerate(self.styles)}
         self.runs = [r for rs in self.groups.values() for r in rs]
         self.tasks = list(dict.fromkeys(t for t, _ in self.groups))
+
+    def _newest_per_seed(self, task: str, lab: str, rs: list[Run]) -> list[Run]:
+        """One run per seed: the one that started last (config.json's started_utc, then the folder's path); each
+        other one is named in ``left_out`` (a seed counted twice would be averaged as two seeds)."""
+        by_seed: dict[str, list[Run]] = {}
+        for r in rs:
+            by_seed.setdefault(str(r.seed), []).append(r)
+        kept = []
+        for seed, same in by_seed.items():
+            newest = max(same, key=lambda r: (r.started_utc or "", str(r.path)))
+            kept.append(newest)
+            for r in same:
+                if r is not newest:
+                    self.out.left_out.append(f"left out of every figure: {r.path} (arm {lab!r} of task {task!r} has "
+                                             f"another run of seed {seed}, {newest.path}, started later; it is drawn)")
+        return [r for r in rs if any(r is k for k in kept)]
 
     # ------------------------------------------------------------------------------------------ pieces
     def panels(self, nrows: int = 1):
@@ -623,13 +642,14 @@ def build_figures(runs: list[Run], *, floors: Floors | None = None, label: Calla
     :func:`run_labels`). A task without floors is named once in ``FigureSet.warnings`` and a UserWarning.
     shared_seed: what to do with an arm that has two runs of one task and seed (averaging them would count one
     seed twice): ``"leave out"`` that arm, named in ``FigureSet.left_out`` (as the seed statistics leave it
-    out), or ``"refuse"``: ValueError naming the two runs. Whatever else a figure leaves out is named there too.
+    out), ``"refuse"``: ValueError naming the two runs, or ``"keep newest"``: of each seed the run that started
+    last, the others named in ``FigureSet.left_out``. Whatever else a figure leaves out is named there too.
     """
     import matplotlib
 
     matplotlib.use("Agg")
-    if shared_seed not in ("leave out", "refuse"):
-        raise ValueError(f"shared_seed must be 'leave out' or 'refuse', got {shared_seed!r}")
+    if shared_seed not in ("leave out", "refuse", "keep newest"):
+        raise ValueError(f"shared_seed must be 'leave out', 'refuse' or 'keep newest', got {shared_seed!r}")
     if not runs:
         raise ValueError("no runs to plot")
     floors = load_floors() if floors is None else floors
@@ -661,9 +681,14 @@ def make_plots(runs: list[Run], out: str | os.PathLike, *, floors: Floors | None
 
 
 def plot_runs(cfg: PlotConfig) -> PlotResult:
-    """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``; runs
-    that share an arm and a seed are refused (one error line naming them), as the seed statistics refuse them."""
-    return make_plots(find_runs(list(cfg.runs)), cfg.out, floors=load_floors(cfg.floors), shared_seed="refuse")
+    """``ablate-plot``: the runs of ``cfg.runs`` drawn into ``cfg.out`` with the floors of ``cfg.floors``; of runs
+    that share an arm, a task and a seed (the same command run twice) the one that started last is drawn, the others
+    named as left out (the seed statistics of ``ablate-report`` refuse them)."""
+    if Path(cfg.out).exists() and not Path(cfg.out).is_dir():
+        raise ValueError(f"--out {cfg.out} is a file: give the folder the figures go in")
+    runs = find_runs(list(cfg.runs))
+    say_metrics_notes(runs)  # damaged lines skipped, iterations twice or out of order
+    return make_plots(runs, cfg.out, floors=load_floors(cfg.floors), shared_seed="keep newest")
 
 
 def plot_performance_profiles(profile: PerformanceProfile, path: str | Path, *,

@@ -80,7 +80,7 @@ from ablations.reports.plot import FIGURES, make_plots
 from ablations.reports.seeds import PROBE_FIGURES, SEED_FIGURES, arm_label, probe_section, seed_section
 from ablations.reports.stats import check_at_iteration
 from ablations.reports.style import Floors, PlotResult, group_runs, load_floors
-from ablations.run_folder import Run, RunFolder, find_runs
+from ablations.run_folder import Run, RunFolder, find_runs, say_metrics_notes
 from gradlab.files import atomic_write_text
 from vocabulary import PRESET_RASTER_MODEL
 
@@ -502,6 +502,7 @@ def build_report(cfg: ReportConfig) -> Path:
     except ValueError as e:
         raise ValueError(f"--at-iteration: {e}") from None
     runs = find_runs(list(cfg.runs)) if cfg.runs else []
+    say_metrics_notes(runs)  # damaged lines skipped, iterations twice or out of order
     sweeps = load_memory_sweeps(cfg.memory)
     benchmarks = [(Path(b), *load_benchmark(b)) for b in cfg.benchmark]
     floors = load_floors(cfg.floors)

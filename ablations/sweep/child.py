@@ -4,7 +4,8 @@
 
 Started by path (not ``-m``), so it imports nothing but the standard library before it execs. On Linux it asks
 for SIGKILL when its parent dies (PR_SET_PDEATHSIG survives exec): a worker killed by a node's out-of-memory
-killer, or a node going away, takes its run down with it instead of leaving it training unowned.
+killer, or a node going away, takes its run down with it instead of leaving it training unowned. SIGINT and
+SIGTERM reach the attempt with their default handling, whatever the worker did with them.
 """
 
 import ctypes
@@ -21,6 +22,11 @@ def main() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
         if os.getppid() != parent:  # the worker died before the request took effect
             sys.exit("ablate-sweep: the worker that started this run is gone")
+    # A Ray worker ignores or blocks SIGINT and SIGTERM, and both survive exec: ablate would then never see the
+    # signal that asks it to checkpoint and stop. Its own handlers start from the defaults.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     os.execv(sys.argv[2], sys.argv[2:])
 
 

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ablations.folder_lock import FolderLock
 from ablations.run_folder import RunFolder, check_writable
 from ablations.sweep.config import SweepConfig, parse_args, parse_set, parse_vary
 from ablations.sweep.grid import plan
@@ -127,6 +128,18 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
     out = Path(cfg.out).resolve()
     created = not out.exists()
     check_writable(out)
+    lock = FolderLock(out).acquire("sweep folder")  # one driver an --out: two would train each run twice
+    try:
+        return _run_locked(cfg, specs, set_table, vary_table, out, created, lock, command=command, arms=arms,
+                           program=program)
+    finally:
+        lock.release()
+
+
+def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict, out: Path, created: bool,
+                lock: FolderLock, *, command: Sequence[str] | None, arms: dict | None,
+                program: Sequence[str] | None) -> dict:
+    """:func:`run_sweep` once it holds the lock of ``out`` (``created``: made for this sweep)."""
     manifest, todo = prepare_manifest(cfg, specs, set_table, vary_table, None if command is None else list(command),
                                       arms)
     if not todo:
@@ -145,6 +158,7 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
             _check_resources(cfg)
         except ValueError:
             if created:
+                lock.release()  # first: the folder holds nothing else
                 with contextlib.suppress(OSError):
                     out.rmdir()  # made for this sweep, still empty
             raise
@@ -230,11 +244,26 @@ def run_sweep(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict 
 
 
 def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,
-            arms: dict | None = None) -> list[str]:
+            arms: dict | None = None, local_gpus: int | None = None) -> list[str]:
     """Print (and return) one line per job (a run, or a population followed by a line per member), with what a
-    (re)run would do with it; starts nothing."""
+    (re)run would do with it; starts nothing. ValueError for what the real run would refuse before it starts
+    (a changed grid; more GPUs a run than this machine has, ``local_gpus`` of them, None: as torch sees them)."""
     specs = plan(cfg, set_table, vary_table, arms=arms)
     out = Path(cfg.out)
+    # what the real run refuses before it starts anything, refused here too: a grid changed under a sweep.json,
+    # and (on this machine's own cluster) more GPUs a run than the machine has
+    prepare_manifest(cfg, specs, parse_set(cfg.set) if set_table is None else set_table,
+                     parse_vary(cfg.vary) if vary_table is None else vary_table, None, arms)
+    if cfg.gpus_per_run and cfg.address is None:
+        if cfg.num_gpus is not None or local_gpus is not None:
+            gpus = cfg.num_gpus if cfg.num_gpus is not None else local_gpus
+        else:
+            import torch
+
+            gpus = torch.cuda.device_count()
+        if cfg.gpus_per_run > gpus:
+            raise ValueError(f"--gpus-per-run {cfg.gpus_per_run}: this machine has {gpus} GPU(s); --gpus-per-run 0 "
+                             f"trains on the CPU")
     manifest = load_manifest(out) or {"runs": {}}
     jobs = plan_jobs(cfg, specs, manifest)
     lines = []

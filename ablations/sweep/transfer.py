@@ -42,7 +42,8 @@ def pack_run(run_dir: str | os.PathLike, *, checkpoints: int = 1, only: Iterable
             path = run_dir / name
             if Path(name).parent.name == CHECKPOINTS and path not in kept:
                 continue
-            if Path(name).name.startswith("."):  # a file being written atomically under a temporary name
+            # a file being written atomically under a temporary name, or a folder's lock (ablations.folder_lock)
+            if Path(name).name.startswith("."):
                 continue
             try:
                 data = path.read_bytes()

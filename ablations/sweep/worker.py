@@ -21,6 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from ablations.run_config import SWEEP_WIDE
 from ablations.run_folder import RESUME_FILES, MetricsTail, RunFolder
 from ablations.sweep.grid import attempt_command
 from ablations.sweep.store import FINISHED, common_checkpoint
@@ -86,6 +87,7 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
     env = dict(os.environ)
     if not opts["gpus_per_run"]:
         env["CUDA_VISIBLE_DEVICES"] = ""
+    env[SWEEP_WIDE] = "1"  # its flags are the grid's, given for every run (ablate exempts them)
     log = scratch / "ablate.log"
     node = ray.get_runtime_context().get_node_id()
     # where the job trains: Ray's GPU ids for this worker (its CUDA_VISIBLE_DEVICES), [] on the CPU

@@ -34,7 +34,8 @@ def strip_timing(rows: list[dict]) -> list[dict]:
 @pytest.mark.parametrize("task", ["cartpole", pytest.param("ant", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("mode", ["full", "decoupled", "state", "blind"])
 def test_smoke_every_mode(tmp_path, task, mode, capsys):
-    ablate("--task", task, "--mode", mode, "--iters", "2", "--cosine-every", "2", "--video-every", "2",
+    probes = ["--cosine-every", "2"] if mode in ("full", "decoupled") else []  # state, blind: no probes to give
+    ablate("--task", task, "--mode", mode, "--iters", "2", *probes, "--video-every", "2",
            "--video-steps", "3", "--out", str(tmp_path), "--name", "run", *TINY)
     run = tmp_path / "run"
     out = capsys.readouterr().out
@@ -105,6 +106,10 @@ def test_resume_equals_uninterrupted_and_same_seed_same_metrics(tmp_path):
         ck.unlink()
     ablate("--resume", str(cut), "--no-progress")
     assert strip_timing(read_metrics(cut)) == strip_timing(read_metrics(tmp_path / "whole"))
+    # each start of the run is recorded with its code (the resume's beside the first's)
+    starts = [json.loads(line) for line in (cut / "provenance.jsonl").read_text().splitlines()]
+    assert [(p["event"], p["iteration"]) for p in starts] == [("start", 0), ("resume", 2)]
+    assert starts[0]["tree_sha256"] == starts[1]["tree_sha256"] and len(starts[1]["tree_sha256"]) == 64
 
 
 def test_resume_starts_from_the_newest_readable_checkpoint(tmp_path, capsys):

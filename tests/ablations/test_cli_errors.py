@@ -70,6 +70,25 @@ CASES = [
     (["--name", ".."], "--name '..': the run folder's name inside --out, not a path"),
     # more threads than cores (two_cores) only wait
     (["--threads", "3"], "--threads 3 is more than the 2 cores this process may use (its CPU affinity)"),
+    # a member's values are typed and checked before the trainer is built
+    (["--member", "mode=decoupled,seed=abc"], "--member 'mode=decoupled,seed=abc': seed must be an integer, got "
+                                              "'abc'"),
+    (["--member", "mode=decoupled,seed=1.5"], "--member 'mode=decoupled,seed=1.5': seed must be an integer, got "
+                                              "'1.5'"),
+    (["--member", "mode=decoupled,betas=0.7"], "--member 'mode=decoupled,betas=0.7': betas takes 2 values "
+                                               "separated by '/', got 1: 0.7"),
+    (["--member", "mode=decoupled,mode=full"], "--member 'mode=decoupled,mode=full': mode is given twice"),
+    (["--seed", "99999999999999999999"], "--seed must be an integer in [-2**63, 2**63 - 1] (torch's 64-bit seed), "
+                                         "got 99999999999999999999"),
+    (["--member", f"mode=full,seed={2**64}"], f"--member 'mode=full,seed={2**64}': seed must be an integer in "
+                                              "[-2**63, 2**63 - 1]"),
+    # a flag given where it means nothing (check_given_flags)
+    (["--video-steps", "50", "--video-every", "0"], "--video-steps 50 means nothing with --video-every 0"),
+    (["--mode", "state", "--cosine-every", "1"], "--cosine-every 1 means nothing with --mode state"),
+    (["--mode", "state", "--sigma", "2.0"], "--sigma 2.0 means nothing with --mode state"),
+    (["--mode", "state", "--render-gamma", "0.5"], "--render-gamma 0.5 means nothing with --mode state"),
+    (["--eval-every", "0", "--video-every", "0", "--eval-envs", "64"], "--eval-envs 64 means nothing with "
+                                                                     "--eval-every 0 --video-every 0"),
 ]
 
 
@@ -96,7 +115,7 @@ def test_a_resume_refuses_the_flags_it_would_ignore_and_takes_the_ones_it_uses(t
     with pytest.raises(SystemExit):
         ablate_main(["--resume", str(run), "--iters", "9", "--threads", "1", "--device", "cpu", "--no-progress",
                      "--no-compile-helper", "--time-limit-min", "5", "--compile-cache", "off"])
-    assert "no config.json" in refusal(capsys.readouterr().err) and not run.exists()
+    assert f"{run}: no such folder" in refusal(capsys.readouterr().err) and not run.exists()
 
 
 def test_a_resume_of_a_tensor_core_run_on_the_cpu_says_it_needs_cuda(tmp_path, capsys, two_cores):
@@ -230,3 +249,67 @@ def test_ablate_memory_ctrl_c_is_one_line_not_a_traceback(tmp_path, capsys, monk
         memory_main(["--device", "cpu", "--out", str(tmp_path / "sweep")])
     err = capsys.readouterr().err
     assert e.value.code == 130 and err.count("\n") == 1 and err.startswith("interrupted: the points measured")
+
+
+def test_an_unknown_device_is_named_as_the_flag(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        ablate_main(["--device", "tpu", "--out", str(tmp_path / "runs"), "--no-progress"])
+    assert e.value.code == 2
+    assert refusal(capsys.readouterr().err) == "error: --device: unknown device 'tpu': use auto, cpu or cuda[:N]"
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("state", [{}, {"wall_s": 1.0, "config": {}}, "other mode"])
+def test_a_checkpoint_that_is_not_this_runs_is_one_line_and_the_folder_stays(tmp_path, capsys, state):
+    """A checkpoint without an iteration, or one of another run (its recorded config's mode differs from
+    config.json's), counts as damaged: with no other checkpoint the resume is refused in one line, nothing renamed."""
+    import dataclasses
+
+    from ablations.run_config import RunConfig
+    from gradlab.checkpoint import atomic_write_json, checkpoint_path, save_checkpoint
+
+    run = tmp_path / "run"
+    cfg = dataclasses.asdict(RunConfig(task="cartpole", mode="decoupled", device="cpu", out=tmp_path, iters=9))
+    del cfg["restart"]
+    atomic_write_json(run / "config.json", {"config": cfg})
+    if state == "other mode":
+        state = {"iteration": 2, "wall_s": 1.0, "config": dict(cfg, mode="state")}
+    path = checkpoint_path(run / "checkpoints", 2)
+    save_checkpoint(path, state)
+    before = sorted(p.name for p in run.rglob("*"))
+    with pytest.raises(SystemExit) as e:
+        ablate_main(["--resume", str(run), "--no-progress"])
+    line = refusal(capsys.readouterr().err)
+    assert e.value.code == 2 and f"no readable checkpoint of one iteration in common in {run / 'checkpoints'}: " \
+        f"{path} (" in line
+    assert ("its mode is 'state', config.json's 'decoupled'" if state.get("config") else
+            "holds no 'iteration' entry") in line
+    assert sorted(p.name for p in run.rglob("*")) == before
+
+
+def test_ablate_plot_out_pointed_at_a_file_is_one_line(tmp_path, capsys):
+    from ablations.cli import plot_main
+    from tests.ablations.conftest import write_run
+
+    write_run(tmp_path / "runs", task="cartpole", mode="decoupled", seed=0, iters=3)
+    (tmp_path / "figs").write_text("a file")
+    with pytest.raises(SystemExit) as e:
+        plot_main([str(tmp_path / "runs"), "--out", str(tmp_path / "figs")])
+    assert e.value.code == 2
+    assert refusal(capsys.readouterr().err) == f"error: --out {tmp_path / 'figs'} is a file: give the folder the " \
+        f"figures go in"
+
+
+def test_population_and_sweep_wide_flags_stay_exempt(monkeypatch):
+    """A population-wide flag that acts for some member is kept (--cosine-every over decoupled and blind members);
+    a sweep's ablate (its flags the grid's, for every run) is not checked for them."""
+    from ablations.cli import _checked_members, parse
+    from ablations.run_config import SWEEP_WIDE, AblateConfig
+
+    argv = ["--mode", "decoupled", "blind", "--cosine-every", "1", "--sigma", "2.0", "--device", "cpu"]
+    assert len(_checked_members(parse(AblateConfig, argv), argv)[0]) == 2
+    argv = ["--mode", "state", "--cosine-every", "1", "--device", "cpu"]
+    with pytest.raises(ValueError, match="--cosine-every 1 means nothing with --mode state"):
+        _checked_members(parse(AblateConfig, argv), argv)
+    monkeypatch.setenv(SWEEP_WIDE, "1")
+    assert len(_checked_members(parse(AblateConfig, argv), argv)[0]) == 1

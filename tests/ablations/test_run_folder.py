@@ -88,6 +88,23 @@ def test_a_resume_keeps_every_readable_metrics_line_and_sets_the_rest_aside_name
     assert RunFolder(tmp_path / "none").read_metrics() == []
 
 
+def test_a_damaged_line_that_is_not_utf8_is_set_aside_byte_for_byte(tmp_path):
+    """Bytes that are not UTF-8 make a line damaged (decoded strictly), and its .damaged-* copy holds them as they
+    were on disk (no U+FFFD in their place); the kept lines stay byte-identical."""
+    folder = RunFolder.create(tmp_path, "r")
+    for it in (1, 2, 3):
+        folder.append_metrics({"iter": it, "return_mean": float(it)})
+    lines = folder.metrics_path.read_bytes().splitlines(keepends=True)
+    bad = b'{"iter": 2, "return_mean": \xff\xfe\x00\x9c}\n'
+    folder.metrics_path.write_bytes(lines[0] + bad + lines[2])
+    assert [r["iter"] for r in read_metrics(folder.path)] == [1, 3]
+    notes = folder.settle_metrics(3)
+    damaged = next(tmp_path.glob("r/metrics.jsonl.damaged-*"))
+    assert damaged.read_bytes() == bad
+    assert folder.metrics_path.read_bytes() == lines[0] + lines[2]
+    assert "line 2 is damaged" in notes[0] and "xff" in notes[0], notes
+
+
 def test_a_restart_keeps_the_old_records_beside(tmp_path):
     folder = RunFolder.create(tmp_path, "r")
     folder.append_metrics({"iter": 1})

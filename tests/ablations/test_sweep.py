@@ -273,6 +273,21 @@ def fake_run(folder: Path, *, iters: int, checkpoints: list[int]) -> Path:
     return folder
 
 
+def test_dry_run_refuses_what_the_real_run_refuses(tmp_path, capsys):
+    """A grid changed under an existing sweep.json, and more GPUs a run than this machine has, are refused by
+    --dry-run as by the real run (it used to list the runs as done, and accept the GPUs)."""
+    out = tmp_path / "s"
+    dry_run(tiny_sweep(out, modes=("state",), seeds=(0,)))
+    specs = plan(tiny_sweep(out, modes=("state",), seeds=(0,)))
+    out.mkdir()
+    (out / "sweep.json").write_text(json.dumps({"version": 1, "id": "x", "runs": {
+        specs[0].run_id: {"args": [*specs[0].args[:-1], "changed"], "status": "done"}}}))
+    with pytest.raises(ValueError, match=f"run {specs[0].run_id} was made with the flags"):
+        dry_run(tiny_sweep(out, modes=("state",), seeds=(0,)))
+    with pytest.raises(ValueError, match=r"--gpus-per-run 1.0: this machine has 0 GPU\(s\)"):
+        dry_run(tiny_sweep(tmp_path / "t", modes=("state",), seeds=(0,), gpus_per_run=1.0, num_gpus=0))
+
+
 def test_pack_keeps_the_newest_checkpoint_and_whole_metrics_lines(tmp_path):
     run = fake_run(tmp_path / "run", iters=4, checkpoints=[2, 4])
     names = tarfile.open(fileobj=io.BytesIO(pack_run(run))).getnames()

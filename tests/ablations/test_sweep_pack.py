@@ -373,3 +373,30 @@ def test_a_member_that_stops_alone_is_failed_and_the_others_done(tmp_path):
     assert_complete_run(out / ok["folder"], 12)
     assert aborted["status"] == "failed" and aborted["summary_status"] == "nonfinite", aborted
     assert aborted["error"].startswith("nonfinite: ") and "abort" in aborted["error"], aborted["error"]
+
+
+def test_the_attempt_gets_sigint_and_sigterm_back_from_a_worker_that_ignores_and_blocks_them():
+    """A Ray worker ignores or blocks SIGINT; child.py resets both signals before it execs the attempt, so that
+    ablate's own handlers (checkpoint, then stop) get the signal a sweep's stop sends."""
+    import signal
+    import subprocess
+    import sys
+
+    from ablations.sweep.worker import _CHILD
+
+    code = ("import signal\n"
+            "print(signal.getsignal(signal.SIGINT) == signal.default_int_handler,\n"
+            "      signal.getsignal(signal.SIGTERM) == signal.SIG_DFL,\n"
+            "      bool(signal.pthread_sigmask(signal.SIG_BLOCK, []) & {signal.SIGINT, signal.SIGTERM}))\n")
+
+    def like_a_worker() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+    worker = ("import os, subprocess, sys\n"  # the worker starts child.py with its own pid, as run_attempt does
+              "sys.exit(subprocess.call([sys.argv[1], sys.argv[2], str(os.getpid()), *sys.argv[3:]]))\n")
+    proc = subprocess.Popen([sys.executable, "-c", worker, sys.executable, str(_CHILD), sys.executable, "-c", code],
+                            stdout=subprocess.PIPE, text=True, preexec_fn=like_a_worker)
+    out, _ = proc.communicate(timeout=60)
+    assert out.split() == ["True", "True", "False"], out
