@@ -28,7 +28,6 @@ record import it when they are called.
 from __future__ import annotations
 
 import datetime
-import hashlib
 import itertools
 import json
 import math
@@ -47,6 +46,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ablations.folder_lock import LOCK
+from ablations.tree_hash import tree_hash
 from gradlab.files import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:
@@ -56,7 +56,7 @@ if TYPE_CHECKING:
 
 __all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
-           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "PROVENANCE", "ABSENT_MEANS", "source_tree_hash",
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "PROVENANCE", "ABSENT_MEANS",
            "metrics_notes", "say_metrics_notes"]
 
 CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
@@ -70,8 +70,6 @@ RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS, PROVENANCE)
 ABSENT_MEANS: dict[str, object] = {
     "precision": "fp32",  # the --precision flag came later; every run before it trained in float32
 }
-#: The folders whose files :func:`source_tree_hash` covers (the code a run executes) and the project file.
-SOURCE_PARTS = ("ablations", "gradlab", "tasks", "diffrender", "vocabulary", "pyproject.toml")
 #: Installed distributions whose versions config.json records (by distribution name, from their metadata).
 RECORDED_PACKAGES = ("torch", "numpy", "mujoco", "pytorch-kinematics", "triton", "warp-lang", "opencv-python",
                      "opencv-python-headless")
@@ -368,15 +366,15 @@ class RunFolder:
     def append_provenance(self, event: str, iteration: int, repo: Path | None = None) -> dict:
         """One line of provenance.jsonl for this start of the run (``event``: "start", "resume" or "restart", from
         the checkpoint of ``iteration``; 0: from the first): the UTC time, the commit and whether the tree was
-        dirty (None where there is no repository), and :func:`source_tree_hash` (comparable across copies
-        without a repository). A dirty resume or restart keeps its own diff beside, git.diff.<event>-<time>
-        (the first start's is git.diff). Returns the line's record."""
+        dirty (None where there is no repository), and the training tree's hash (``ablations.tree_hash``, as
+        config.json records it: comparable across copies without a repository). A dirty resume or restart keeps
+        its own diff beside, git.diff.<event>-<time> (the first start's is git.diff). Returns the line's record."""
         repo = repo or Path(__file__).resolve().parents[1]
         commit, dirty, diff = _git_state(repo)
         entry = {"event": event, "iteration": iteration,
                  "utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                  "commit": commit or os.environ.get("PIXELGRAD_COMMIT"), "dirty": dirty,
-                 "tree_sha256": source_tree_hash(repo)}
+                 "tree_hash": tree_hash(repo).value}
         if dirty and event != "start":
             aside = _aside(self.path / GIT_DIFF, f".{event}-{_stamp()}")
             atomic_write_text(aside, diff)
@@ -585,32 +583,6 @@ def _git_state(repo: Path) -> tuple[str | None, bool | None, str]:
         return commit, dirty, git("diff", "HEAD") if dirty else ""
     except (OSError, RuntimeError, subprocess.TimeoutExpired):
         return None, None, ""
-
-
-def source_tree_hash(root: Path | None = None) -> str:
-    """SHA-256 over the path and bytes of every file of the code under ``root`` (:data:`SOURCE_PARTS`; default
-    this checkout), as they are on disk: in a repository the files git tracks there, in a copy without one (a
-    device's) every file but caches and dot files, so that both name the same code by the same hash."""
-    root = root or Path(__file__).resolve().parents[1]
-    try:
-        r = subprocess.run(["git", "-C", str(root), "ls-files", "-z", "--", *SOURCE_PARTS], capture_output=True,
-                           timeout=30)
-        names = sorted(n for n in r.stdout.decode().split("\0") if n) if r.returncode == 0 else None
-    except (OSError, subprocess.TimeoutExpired):
-        names = None
-    if names is None:
-        names = sorted(str(p.relative_to(root)) for part in SOURCE_PARTS
-                       for p in ([root / part] if (root / part).is_file() else (root / part).rglob("*"))
-                       if p.is_file() and "__pycache__" not in p.parts
-                       and not any(q.startswith(".") for q in p.relative_to(root).parts))
-    h = hashlib.sha256()
-    for name in names:
-        try:
-            data = (root / name).read_bytes()
-        except OSError:  # tracked but deleted in the working tree
-            data = b""
-        h.update(name.encode() + b"\0" + str(len(data)).encode() + b"\0" + data)
-    return h.hexdigest()
 
 
 def package_versions(names: tuple[str, ...] = RECORDED_PACKAGES) -> dict[str, str]:

@@ -109,7 +109,7 @@ def test_resume_equals_uninterrupted_and_same_seed_same_metrics(tmp_path):
     # each start of the run is recorded with its code (the resume's beside the first's)
     starts = [json.loads(line) for line in (cut / "provenance.jsonl").read_text().splitlines()]
     assert [(p["event"], p["iteration"]) for p in starts] == [("start", 0), ("resume", 2)]
-    assert starts[0]["tree_sha256"] == starts[1]["tree_sha256"] and len(starts[1]["tree_sha256"]) == 64
+    assert starts[0]["tree_hash"] == starts[1]["tree_hash"] and starts[1]["tree_hash"].startswith("sha256:")
 
 
 def test_resume_starts_from_the_newest_readable_checkpoint(tmp_path, capsys):

@@ -14,7 +14,8 @@ import pytest
 
 from ablations.population import prepare
 from ablations.run_config import RunConfig
-from ablations.run_folder import ABSENT_MEANS, PROVENANCE, RESUME_FILES, RunFolder, source_tree_hash
+from ablations.run_folder import ABSENT_MEANS, PROVENANCE, RESUME_FILES, RunFolder
+from ablations.tree_hash import tree_hash
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, save_checkpoint
 
 
@@ -35,19 +36,19 @@ def test_each_start_appends_its_code_and_a_dirty_resume_keeps_its_own_diff(tmp_p
     first = folder.append_provenance("start", 0, repo=repo)
     assert first["dirty"] is False and len(first["commit"]) == 40 and "diff" not in first
     (repo / "notes.txt").write_text("edited, but not code\n")
-    assert source_tree_hash(repo) == first["tree_sha256"]  # only the code counts
+    assert tree_hash(repo).value == first["tree_hash"]  # only the code counts
     (repo / "gradlab" / "a.py").write_text("x = 2\n")
     for _ in range(2):
         folder.append_provenance("resume", 4, repo=repo)
     starts = folder.read_provenance()
     assert [s["event"] for s in starts] == ["start", "resume", "resume"] and PROVENANCE in RESUME_FILES
-    assert starts[1]["dirty"] is True and starts[1]["tree_sha256"] != first["tree_sha256"]
+    assert starts[1]["dirty"] is True and starts[1]["tree_hash"] != first["tree_hash"]
     diffs = [folder.path / s["diff"] for s in starts[1:]]
     assert diffs[0] != diffs[1] and all("+x = 2" in d.read_text() for d in diffs)  # one diff each, none overwritten
     # a copy of the tree without its repository (a device's) names the same code by the same hash
     copy = tmp_path / "copy"
     shutil.copytree(repo, copy, ignore=shutil.ignore_patterns(".git"))
-    assert source_tree_hash(copy) == source_tree_hash(repo) == starts[2]["tree_sha256"]
+    assert tree_hash(copy).value == tree_hash(repo).value == starts[2]["tree_hash"]
     assert RunFolder(tmp_path / "old").read_provenance() == []  # a folder from before provenance: read as none
 
 
