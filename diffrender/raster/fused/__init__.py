@@ -59,8 +59,18 @@ setup kernels' PyTorch references). Without Triton the package imports, and rend
 
 from ..setup_kernels import NUM_COEFFS, face_setup
 from . import tuning
-from .rasterize import available, backward_splits, backward_tile, forward_splits, rasterize_fused
+from .rasterize import (
+    BinOverflowWarning,
+    available,
+    backward_splits,
+    backward_tile,
+    bin_capacity_needed,
+    bin_overflows,
+    forward_splits,
+    rasterize_fused,
+)
 from .reference import face_coefficients, super_block_boxes
 
-__all__ = ["NUM_COEFFS", "available", "backward_splits", "backward_tile", "face_coefficients", "face_setup",
-           "forward_splits", "rasterize_fused", "super_block_boxes", "tuning"]
+__all__ = ["NUM_COEFFS", "BinOverflowWarning", "available", "backward_splits", "backward_tile", "bin_capacity_needed",
+           "bin_overflows", "face_coefficients", "face_setup", "forward_splits", "rasterize_fused", "super_block_boxes",
+           "tuning"]
