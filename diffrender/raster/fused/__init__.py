@@ -18,7 +18,9 @@ backend), organised for the GPU:
   the block's faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online
   softmax (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). It writes
   the image and, when asked, each pixel's blend state (final maximum, denominator, the faces' weight and
-  coverage sums): no pair lists, no bins, no capacity to overflow. Where the faces make many super-blocks
+  coverage sums): by default no pair lists, no bins, no capacity to overflow (``tuning.FWD_BIN`` bins the
+  faces into fixed-capacity per-tile lists first, read by every forward walk; a tile whose list overflows walks
+  the blocks, and :func:`bin_overflows` reads the count outside any CUDA graph). Where the faces make many super-blocks
   (:func:`forward_splits`), each tile's walk is split between several programs, each blending its share of
   the super-blocks from an empty start, and a merge kernel combines their parts with the floor and background
   (online softmaxes merge exactly; the hard model keeps the nearest part, ties to the lowest face index).

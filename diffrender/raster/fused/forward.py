@@ -1,5 +1,6 @@
 """The fused rasterizer's forward kernels: :func:`_fused_forward` (one program per tile, environment and split
-of the faces' super-blocks) and :func:`_merge_forward` (the parts of a split walk combined), with the device
+of the faces' super-blocks; :func:`_binned_forward` the same reading per-tile face lists, which :func:`_bin_faces`
+makes) and :func:`_merge_forward` (the parts of a split walk combined), with the device
 functions they share with the backward kernels (:mod:`.backward` recomputes the forward's per-pair quantities).
 
 The arguments are laid out as :mod:`.rasterize` launches them: per-face coefficients (B, 45, Fp), face boxes
@@ -481,10 +482,32 @@ def _soft_colour(num_r, num_g, num_b, den, w_sum, cov_sum, cb_r, cb_g, cb_b):
 
 
 @triton.jit
-def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, bins_ptr,
-                   cnt_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
+def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, Fp,
+                   NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
                    FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr,
-                   COMPACT: tl.constexpr, DEFER: tl.constexpr, BIN: tl.constexpr = False, CAP: tl.constexpr = 1):
+                   COMPACT: tl.constexpr, DEFER: tl.constexpr):
+    """The forward without face lists: :func:`_forward_program` (its arguments and grid) with BIN off."""
+    _forward_program(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, box_ptr,
+                     box_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_, FB, SB, FS, SAVE, SPLIT, MODEL, COMPACT, DEFER,
+                     False, 1)
+
+
+@triton.jit
+def _binned_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, bins_ptr,
+                    cnt_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
+                    FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr,
+                    COMPACT: tl.constexpr, DEFER: tl.constexpr, CAP: tl.constexpr):
+    """The forward reading the tiles' face lists (``tuning.FWD_BIN``): :func:`_forward_program` with BIN on."""
+    _forward_program(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, bins_ptr,
+                     cnt_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_, FB, SB, FS, SAVE, SPLIT, MODEL, COMPACT, DEFER,
+                     True, CAP)
+
+
+@triton.jit
+def _forward_program(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, bins_ptr,
+                     cnt_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
+                     FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr,
+                     COMPACT: tl.constexpr, DEFER: tl.constexpr, BIN: tl.constexpr, CAP: tl.constexpr):
     """One program per (tile, environment, split). MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel
     (SAVE): soft models the blend's maximum, its denominator, the faces' weight sum and coverage sum; hard
     the maximum and the chosen face (-1: none).
@@ -508,9 +531,9 @@ def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_pt
         lt = env * tl.num_programs(0) + tile
         cnt = tl.load(cnt_ptr + lt)
         lbase = lt * CAP
-    else:
-        cnt = 0
-        lbase = 0
+    else:  # unused placeholders, of the types above
+        cnt = tile * 0
+        lbase = env * 0
     if SPLIT:
         zero = tl.zeros_like(xc)
         if MODEL == 0:

@@ -26,7 +26,7 @@ except ImportError:  # pragma: no cover - exercised on machines without triton
     triton = None
 else:
     from .backward import _fused_backward, _pixel_backward
-    from .forward import _bin_faces, _fused_forward, _merge_forward
+    from .forward import _bin_faces, _binned_forward, _fused_forward, _merge_forward
 
 #: numbers per pixel the forward keeps for the backward besides the image (see ``_fused_forward``)
 STATE_PER_PIXEL = 4
@@ -183,20 +183,18 @@ def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int
     state = out if state is None else state
     fs = min(fb, tuning.FWD_SUB_BLOCK)
     binned = bool(tuning.FWD_BIN)
-    cap = _bin_capacity() if binned else 1
+    cap = _bin_capacity() if binned else 0
     if binned:
-        bins, cnt = _bin(box, bbox, sbox, st, tile, fb, cap)
+        lists = _bin(box, bbox, sbox, st, tile, fb, cap)
         splits = min(splits, -(-cap // fs))  # a list of cap faces makes ceil(cap / fs) chunks to share out
-    else:
-        bins = cnt = box
     part = (torch.empty(splits, b, PART_PER_PIXEL, st.height, st.width, dtype=out.dtype, device=out.device)
             if splits > 1 else out)
-    _fused_forward[(ntiles, b, splits)](
-        coef, box, bbox, sbox, floor, prm, out, state, part, bins, cnt, coef.shape[2], bbox.shape[2], sbox.shape[2],
+    kernel, extra, binned_constants = (_binned_forward, lists, dict(CAP=cap)) if binned else (_fused_forward, (), {})
+    kernel[(ntiles, b, splits)](
+        coef, box, bbox, sbox, floor, prm, out, state, part, *extra, coef.shape[2], bbox.shape[2], sbox.shape[2],
         splits, st.height, st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], FS=fs, SAVE=save,
-        SPLIT=splits > 1, MODEL=model, COMPACT=tuning.FWD_COMPACT,
-        DEFER=tuning.FWD_DEFER_SHADING and not save, BIN=binned, CAP=cap,
-        num_warps=tuning.FWD_WARPS or _warps(tile, fs), **_max_registers(tuning.FWD_MAXNREG))
+        SPLIT=splits > 1, MODEL=model, COMPACT=tuning.FWD_COMPACT, DEFER=tuning.FWD_DEFER_SHADING and not save,
+        num_warps=tuning.FWD_WARPS or _warps(tile, fs), **binned_constants, **_max_registers(tuning.FWD_MAXNREG))
     if splits > 1:
         _merge_forward[(triton.cdiv(st.height * st.width, tuning.MERGE_BLOCK), b)](
             part, floor, prm, out, state, splits, st.height, st.width, BLOCK=tuning.MERGE_BLOCK, SAVE=save, MODEL=model,
