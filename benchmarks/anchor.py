@@ -10,13 +10,14 @@ Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up t
   (``source ../shared/tools/nvdiffrast-build.sh``). The backward is that of a fixed random weighting of the
   image, into the world vertices. nvdiffrast is timed first, so each fused row carries ``anchor_fwd_ms`` and
   ``anchor_fwdbwd_ms`` and the ratios; and the device time of one eager fwd+bwd by stage (torch.profiler,
-  kernels by name: ``raster_fwd_ms`` the forward kernels (walk and merge), ``raster_bwd_ms`` the backward
+  kernels by name: ``raster_fwd_ms`` the forward kernels (binning, walk and merge), ``raster_bwd_ms`` the backward
   kernels (per pixel and per face), ``setup_fwd_ms`` everything else of a no-grad render, i.e. the per-face
   setup with its box levels and the floor, and ``setup_bwd_ms`` the rest of the fwd+bwd: the backward's
   recompute of the setup and its autograd). ``--variants`` times the fused backend again with some of
   ``diffrender.raster.fused.tuning``'s constants changed (e.g. ``SUPER_BLOCK=1``, a single-level walk over
   the faces), each row tagged with its ``variant``; ``--compile on`` with the setup's PyTorch part compiled, as
-  the trainer runs it.
+  the trainer runs it. A variant with ``FWD_BIN=1`` (per-tile face lists of ``BIN_CAPACITY``) also records
+  ``bin_overflows``, the tile lists of its renders that overflowed (``fused.bin_overflows``).
 - ``iou``: the sharp-limit silhouette of each of our models and of the ray tracer against nvdiffrast's
   coverage (no floor, black background, white unlit robot), 64 ant poses: intersection over union and our
   mask's size relative to the anchor's.
@@ -24,6 +25,7 @@ Not a test. On a CUDA device, for the ant at 64 x 84 x 84 with extra meshes up t
     python benchmarks/anchor.py --out benchmarks/results/anchor.json            # both parts
     python benchmarks/anchor.py --faces 0 --models softmax --repeats 5         # a quick look
     python benchmarks/anchor.py --parts time --variants default COEF_ELEMS=16777216,SUPER_BLOCK=1
+    python benchmarks/anchor.py --parts time --batch 768 --faces 0 21000 --variants default FWD_BIN=1,BIN_CAPACITY=256
 
 The scene, poses and camera are ``benchmarks/_common.py``'s ``Scene`` (the ant task's tracking camera).
 """
@@ -45,6 +47,7 @@ from _common import FUSED_DEFAULTS, Scene, apply_fused_variant, commit, graphed,
 
 import diffrender as dr
 from diffrender.profiling import SavedTensorMeter
+from diffrender.raster import fused
 from diffrender.settings import RASTER_MODELS
 
 CUDA = torch.device("cuda")
@@ -65,7 +68,7 @@ def _stages(fn_fwd, fn_fwdbwd) -> dict:
             if e.device_type != torch.autograd.DeviceType.CUDA:
                 continue
             ms = e.time_range.elapsed_us() / 1e3
-            raster_fwd = "_fused_forward" in e.name or "_merge_forward" in e.name
+            raster_fwd = any(k in e.name for k in ("_fused_forward", "_binned_forward", "_merge_forward", "_bin_faces"))
             raster_bwd = "_fused_backward" in e.name or "_pixel_backward" in e.name
             key = "fwd" if raster_fwd else "bwd" if raster_bwd else "other"
             out[key] += ms
@@ -213,6 +216,8 @@ def _time_scene(args, faces: int, *, anchor_ok: bool) -> list[dict]:
             except Exception as e:  # an OOM or a failed capture is a result: record it and go on
                 row["error"] = f"{type(e).__name__}: {e}"
                 traceback.print_exc()
+            if constants["FWD_BIN"]:  # the row's tile lists that overflowed BIN_CAPACITY (read outside the graphs)
+                row["bin_overflows"] = fused.bin_overflows()
             if anchor_row is not None and "fwdbwd_eager_ms" in anchor_row:
                 row["anchor_fwd_ms"] = anchor_row["fwd_eager_ms"]
                 row["anchor_fwdbwd_ms"] = anchor_row["fwdbwd_eager_ms"]

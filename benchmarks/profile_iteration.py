@@ -41,7 +41,8 @@ from gradlab.networks import PixelEncoder
 
 #: The renderer's own Triton kernels by launch name (diffrender.raster.fused and diffrender.raster.setup_kernels):
 #: the rasterizer's walks and merge, and the per-face setup and floor around them.
-RASTER_KERNELS = ("_fused_forward", "_fused_backward", "_merge_forward", "_pixel_backward")
+RASTER_KERNELS = ("_fused_forward", "_fused_backward", "_merge_forward", "_pixel_backward", "_binned_forward",
+                  "_bin_faces")
 SETUP_KERNELS = ("_setup_forward", "_setup_backward", "_floor_forward", "_floor_backward", "_super_boxes")
 
 

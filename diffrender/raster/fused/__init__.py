@@ -18,7 +18,9 @@ backend), organised for the GPU:
   the block's faces at all the tile's pixels as one (FACE_BLOCK, TILE^2) array, and blends with an online
   softmax (a running per-pixel maximum, rescaling the sums when it grows; as in flash attention). It writes
   the image and, when asked, each pixel's blend state (final maximum, denominator, the faces' weight and
-  coverage sums): no pair lists, no bins, no capacity to overflow. Where the faces make many super-blocks
+  coverage sums): by default no pair lists, no bins, no capacity to overflow (``tuning.FWD_BIN`` bins the
+  faces into fixed-capacity per-tile lists first, read by every forward walk; a tile whose list overflows walks
+  the blocks, and :func:`bin_overflows` reads the count outside any CUDA graph). Where the faces make many super-blocks
   (:func:`forward_splits`), each tile's walk is split between several programs, each blending its share of
   the super-blocks from an empty start, and a merge kernel combines their parts with the floor and background
   (online softmaxes merge exactly; the hard model keeps the nearest part, ties to the lowest face index).
@@ -59,8 +61,18 @@ setup kernels' PyTorch references). Without Triton the package imports, and rend
 
 from ..setup_kernels import NUM_COEFFS, face_setup
 from . import tuning
-from .rasterize import available, backward_splits, backward_tile, forward_splits, rasterize_fused
+from .rasterize import (
+    BinOverflowWarning,
+    available,
+    backward_splits,
+    backward_tile,
+    bin_capacity_needed,
+    bin_overflows,
+    forward_splits,
+    rasterize_fused,
+)
 from .reference import face_coefficients, super_block_boxes
 
-__all__ = ["NUM_COEFFS", "available", "backward_splits", "backward_tile", "face_coefficients", "face_setup",
-           "forward_splits", "rasterize_fused", "super_block_boxes", "tuning"]
+__all__ = ["NUM_COEFFS", "BinOverflowWarning", "available", "backward_splits", "backward_tile", "bin_capacity_needed",
+           "bin_overflows", "face_coefficients", "face_setup", "forward_splits", "rasterize_fused", "super_block_boxes",
+           "tuning"]

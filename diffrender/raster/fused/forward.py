@@ -1,5 +1,6 @@
 """The fused rasterizer's forward kernels: :func:`_fused_forward` (one program per tile, environment and split
-of the faces' super-blocks) and :func:`_merge_forward` (the parts of a split walk combined), with the device
+of the faces' super-blocks; :func:`_binned_forward` the same reading per-tile face lists, which :func:`_bin_faces`
+makes) and :func:`_merge_forward` (the parts of a split walk combined), with the device
 functions they share with the backward kernels (:mod:`.backward` recomputes the forward's per-pair quantities).
 
 The arguments are laid out as :mod:`.rasterize` launches them: per-face coefficients (B, 45, Fp), face boxes
@@ -153,7 +154,35 @@ def _chunks(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB: tl.constexpr, FS: tl.cons
 
 
 @triton.jit
-def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp,
+def _blend_chunk(inbox, sd, zn, cr, cg, cb, inb, num_r, num_g, num_b, den, w_sum, cov_sum, m, sigma, gamma, cutoff,
+                 cap):
+    """Soft models: one chunk of faces (each (FS, P): box test, signed distance, depth, colour) added to the
+    online depth softmax and the weight and coverage sums."""
+    keep = inbox & inb[None, :] & (sd > -cutoff)
+    m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
+    scale = tl.exp((m - m_new) / gamma)
+    cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
+    w = tl.where(keep, cov * tl.exp(tl.minimum((zn - m_new[None, :]) / gamma, cap)), 0.0)
+    num_r = num_r * scale + tl.sum(w * cr, axis=0)
+    num_g = num_g * scale + tl.sum(w * cg, axis=0)
+    num_b = num_b * scale + tl.sum(w * cb, axis=0)
+    den = den * scale + tl.sum(w, axis=0)
+    w_sum = w_sum * scale + tl.sum(w, axis=0)
+    cov_sum = cov_sum + tl.sum(tl.where(keep, cov, 0.0), axis=0)
+    return num_r, num_g, num_b, den, w_sum, cov_sum, m_new
+
+
+@triton.jit
+def _listed_faces(bins_ptr, lbase, cnt, h, fo, FS: tl.constexpr):
+    """Slots ``h * FS ...`` of a tile's face list (:func:`_bin_faces`): their face indices (FS,) and which slots
+    hold one (past ``cnt`` the slots hold face 0, masked out)."""
+    slot = h * FS + fo
+    filled = slot < cnt
+    return tl.load(bins_ptr + lbase + slot, mask=filled, other=0), filled
+
+
+@triton.jit
+def _blend_walk(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp,
                 NB, NSB, sb0, NSPLIT,
                 xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
                 sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
@@ -174,33 +203,95 @@ def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den,
                         _, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near, rank, count,
                                                                     xc, yc, zfar, znear, lx, ly, lz, ambient,
                                                                     diffuse, FB, FS, COMPACT)
-                        keep = inbox & inb[None, :] & (sd > -cutoff)
-                        m_new = tl.maximum(m, tl.max(tl.where(keep, zn, -float("inf")), axis=0))
-                        scale = tl.exp((m - m_new) / gamma)
-                        cov = 1.0 / (1.0 + tl.exp(tl.minimum(-sd / sigma, 80.0)))
-                        w = tl.where(keep, cov * tl.exp(tl.minimum((zn - m_new[None, :]) / gamma, cap)), 0.0)
-                        num_r = num_r * scale + tl.sum(w * cr, axis=0)
-                        num_g = num_g * scale + tl.sum(w * cg, axis=0)
-                        num_b = num_b * scale + tl.sum(w * cb, axis=0)
-                        den = den * scale + tl.sum(w, axis=0)
-                        w_sum = w_sum * scale + tl.sum(w, axis=0)
-                        cov_sum = cov_sum + tl.sum(tl.where(keep, cov, 0.0), axis=0)
-                        m = m_new
+                        num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_chunk(
+                            inbox, sd, zn, cr, cg, cb, inb, num_r, num_g, num_b, den, w_sum, cov_sum, m, sigma,
+                            gamma, cutoff, cap)
     return num_r, num_g, num_b, den, w_sum, cov_sum, m
 
 
 @triton.jit
-def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
+def _blend_list(coef_ptr, box_ptr, bins_ptr, lbase, cnt, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp,
+                h0, NSPLIT, xc, yc, inb, sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
+                FS: tl.constexpr):
+    """Soft models: :func:`_blend_walk` over the tile's face list instead of the blocks, chunks h0, h0 + NSPLIT,
+    ... of FS listed faces (the same faces in the same order; the sums regrouped)."""
+    fo = tl.arange(0, FS)
+    cbase = coef_ptr + env * 45 * Fp
+    fbox = box_ptr + env * 4 * Fp
+    for h in range(h0, (cnt + FS - 1) // FS, NSPLIT):
+        f, filled = _listed_faces(bins_ptr, lbase, cnt, h, fo, FS)
+        inbox = _in_face_box(fbox, f, Fp, xc, yc) & filled[:, None]
+        sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                        ambient, diffuse)
+        num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_chunk(
+            inbox, sd, zn, cr, cg, cb, inb, num_r, num_g, num_b, den, w_sum, cov_sum, m, sigma, gamma, cutoff, cap)
+    return num_r, num_g, num_b, den, w_sum, cov_sum, m
+
+
+@triton.jit
+def _blend_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, bins_ptr, lbase, cnt, num_r, num_g, num_b, den, w_sum,
+                cov_sum, m, env, Fp, NB, NSB, sb0, NSPLIT,
+                xc, yc, inb, x_lo, x_hi, y_lo, y_hi,
+                sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz,
+                FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr, BIN: tl.constexpr,
+                CAP: tl.constexpr):
+    """Soft models' walk: with BIN and a tile whose list holds all its ``cnt`` faces (``cnt <= CAP``) over the
+    list (:func:`_blend_list`; split s takes list chunks s, s + NSPLIT, ...), else, as for an overflowing tile,
+    over the blocks (:func:`_blend_walk`; split s takes super-blocks s, s + NSPLIT, ...)."""
+    if BIN:
+        if cnt <= CAP:
+            num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_list(
+                coef_ptr, box_ptr, bins_ptr, lbase, cnt, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp, sb0,
+                NSPLIT, xc, yc, inb, sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz, FS)
+        else:
+            num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_walk(
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp, NB,
+                NSB, sb0, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap,
+                ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT)
+    else:
+        num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_walk(
+            coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, w_sum, cov_sum, m, env, Fp, NB, NSB,
+            sb0, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap, ambient,
+            diffuse, lx, ly, lz, FB, SB, FS, COMPACT)
+    return num_r, num_g, num_b, den, w_sum, cov_sum, m
+
+
+@triton.jit
+def _nearest_chunk(f, inbox, sd, zn, cr, cg, cb, inb, col_r, col_g, col_b, nearest, m, REPEATS: tl.constexpr,
+                   DEFER: tl.constexpr):
+    """Hard model: one chunk of faces (indices (FS,), each other (FS, P)) against the running nearest face:
+    the chunk's nearest kept face (lowest index among exact ties) replaces it where strictly nearer.
+    REPEATS: the chunk's empty slots repeat a face index (a compacted chunk or a list's tail), so a face's
+    colour is taken only where it is kept."""
+    keep = inbox & inb[None, :] & (sd >= 0)
+    zk = tl.where(keep, zn, -float("inf"))
+    best = tl.max(zk, axis=0)
+    first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
+    if not DEFER:
+        one = f[:, None] == first[None, :]
+        if REPEATS:
+            one = one & keep
+    upd = best > m
+    if not DEFER:
+        col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
+        col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
+        col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
+    nearest = tl.where(upd, first.to(nearest.dtype), nearest)
+    m = tl.where(upd, best, m)
+    return col_r, col_g, col_b, nearest, m
+
+
+@triton.jit
+def _nearest_walk(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB,
                   NSB, sb0, NSPLIT,
                   xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz,
                   FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr,
                   DEFER: tl.constexpr):
     """Hard model: among the faces of super-blocks sb0, sb0 + NSPLIT, ..., the nearest face whose
     triangle contains the pixel centre, strictly nearer than ``m`` (the floor or background); the lowest
-    face index among exact ties, as the faces come in order. Returns its colour, its index (as a float;
-    -1 for none; ``nearest`` must come in as -1) and its normalised depth. DEFER: the walk finds the face
-    by depth alone and shades only the chosen face of each pixel at the end (the same arithmetic, so the
-    same colour), instead of shading every face-pixel pair it meets. COMPACT: see :func:`_block_chunk`."""
+    face index among exact ties, as the faces come in order. Returns its colour (unshaded with DEFER), its
+    index (as a float; -1 for none; ``nearest`` must come in as -1) and its normalised depth. COMPACT: see
+    :func:`_block_chunk`."""
     fo = tl.arange(0, FS)
     cbase = coef_ptr + env * 45 * Fp
     fbox = box_ptr + env * 4 * Fp
@@ -215,21 +306,55 @@ def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, ne
                         f, inbox, sd, zn, cr, cg, cb = _block_chunk(cbase, fbox, fo, Fp, blk, h, near, rank, count,
                                                                     xc, yc, zfar, znear, lx, ly, lz, ambient,
                                                                     diffuse, FB, FS, COMPACT)
-                        keep = inbox & inb[None, :] & (sd >= 0)
-                        zk = tl.where(keep, zn, -float("inf"))
-                        best = tl.max(zk, axis=0)
-                        first = tl.min(tl.where(keep & (zk == best[None, :]), f[:, None], 2147483647), axis=0)
-                        if not DEFER:
-                            one = f[:, None] == first[None, :]
-                            if COMPACT:  # a compacted chunk's empty slots repeat a face index: not its colour
-                                one = one & keep
-                        upd = best > m
-                        if not DEFER:
-                            col_r = tl.where(upd, tl.sum(tl.where(one, cr, 0.0), axis=0), col_r)
-                            col_g = tl.where(upd, tl.sum(tl.where(one, cg, 0.0), axis=0), col_g)
-                            col_b = tl.where(upd, tl.sum(tl.where(one, cb, 0.0), axis=0), col_b)
-                        nearest = tl.where(upd, first.to(nearest.dtype), nearest)
-                        m = tl.where(upd, best, m)
+                        col_r, col_g, col_b, nearest, m = _nearest_chunk(f, inbox, sd, zn, cr, cg, cb, inb, col_r,
+                                                                         col_g, col_b, nearest, m, COMPACT, DEFER)
+    return col_r, col_g, col_b, nearest, m
+
+
+@triton.jit
+def _nearest_list(coef_ptr, box_ptr, bins_ptr, lbase, cnt, col_r, col_g, col_b, nearest, m, env, Fp, h0, NSPLIT,
+                  xc, yc, inb, znear, zfar, ambient, diffuse, lx, ly, lz, FS: tl.constexpr, DEFER: tl.constexpr):
+    """Hard model: :func:`_nearest_walk` over the tile's face list, chunks h0, h0 + NSPLIT, ... of FS listed
+    faces (the same faces in the same order: the same face at the same depth)."""
+    fo = tl.arange(0, FS)
+    cbase = coef_ptr + env * 45 * Fp
+    fbox = box_ptr + env * 4 * Fp
+    for h in range(h0, (cnt + FS - 1) // FS, NSPLIT):
+        f, filled = _listed_faces(bins_ptr, lbase, cnt, h, fo, FS)
+        inbox = _in_face_box(fbox, f, Fp, xc, yc) & filled[:, None]
+        sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                        ambient, diffuse)
+        col_r, col_g, col_b, nearest, m = _nearest_chunk(f, inbox, sd, zn, cr, cg, cb, inb, col_r, col_g, col_b,
+                                                         nearest, m, True, DEFER)
+    return col_r, col_g, col_b, nearest, m
+
+
+@triton.jit
+def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, bins_ptr, lbase, cnt, col_r, col_g, col_b, nearest, m, env,
+                  Fp, NB, NSB, sb0, NSPLIT,
+                  xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz,
+                  FB: tl.constexpr, SB: tl.constexpr, FS: tl.constexpr, COMPACT: tl.constexpr,
+                  DEFER: tl.constexpr, BIN: tl.constexpr, CAP: tl.constexpr):
+    """Hard model's walk (:func:`_nearest_walk`; with BIN over the tile's face list where it holds all the
+    tile's faces, as :func:`_blend_pass`). DEFER: the walk finds the face by depth alone and shades only the
+    chosen face of each pixel at the end (the same arithmetic, so the same colour), instead of shading every
+    face-pixel pair it meets."""
+    cbase = coef_ptr + env * 45 * Fp
+    if BIN:
+        if cnt <= CAP:
+            col_r, col_g, col_b, nearest, m = _nearest_list(
+                coef_ptr, box_ptr, bins_ptr, lbase, cnt, col_r, col_g, col_b, nearest, m, env, Fp, sb0, NSPLIT, xc,
+                yc, inb, znear, zfar, ambient, diffuse, lx, ly, lz, FS, DEFER)
+        else:
+            col_r, col_g, col_b, nearest, m = _nearest_walk(
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB, NSB, sb0,
+                NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS,
+                COMPACT, DEFER)
+    else:
+        col_r, col_g, col_b, nearest, m = _nearest_walk(
+            coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, nearest, m, env, Fp, NB, NSB, sb0, NSPLIT,
+            xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT,
+            DEFER)
     if DEFER:
         won = nearest >= 0
         face = tl.where(won, nearest, 0.0).to(tl.int32)
@@ -239,6 +364,34 @@ def _nearest_pass(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, col_r, col_g, col_b, ne
         col_g = tl.where(won, tl.sum(cg, axis=0), col_g)
         col_b = tl.where(won, tl.sum(cb, axis=0), col_b)
     return col_r, col_g, col_b, nearest, m
+
+
+@triton.jit
+def _bin_faces(box_ptr, bbox_ptr, sbox_ptr, bins_ptr, cnt_ptr, over_ptr, Fp, NB, NSB, H, W, TX,
+               TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr, CAP: tl.constexpr):
+    """One program per (tile, environment): the tile's face list, the faces whose boxes (the setup kernel's
+    ``face_box``) reach the tile's pixel centres, in face order, found by the forward's walk over super-block
+    and block boxes. Writes up to CAP face indices into ``bins_ptr`` (B, T, CAP) int32, the tile's count of such
+    faces (all of them, also past CAP) into ``cnt_ptr`` (B, T) int32, and adds 1 to the device counter
+    ``over_ptr`` (1,) int32 where the count passes CAP (the walks then take that tile's faces from the blocks)."""
+    tile = tl.program_id(0)
+    env = tl.program_id(1).to(tl.int64)
+    nt = tl.num_programs(0)
+    _, _, _, _, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, tl.load(box_ptr), TILE_)
+    fbox = box_ptr + env * 4 * Fp
+    lbase = (env * nt + tile) * CAP
+    c = tl.program_id(0) * 0
+    for sb in range(0, NSB):
+        if _block_touches_tile(sbox_ptr, env, NSB, sb, x_lo, x_hi, y_lo, y_hi):
+            for j in range(0, SB):
+                blk = sb * SB + j
+                if _block_touches_tile(bbox_ptr, env, NB, blk, x_lo, x_hi, y_lo, y_hi):
+                    near, rank, count = _touching_faces(fbox, Fp, blk, x_lo, x_hi, y_lo, y_hi, FB)
+                    slot = c + rank
+                    tl.store(bins_ptr + lbase + slot, blk * FB + tl.arange(0, FB), mask=near & (slot < CAP))
+                    c += count
+    tl.store(cnt_ptr + env * nt + tile, c)
+    tl.atomic_add(over_ptr, 1, mask=c > CAP)
 
 
 @triton.jit
@@ -333,6 +486,28 @@ def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_pt
                    NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
                    FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr,
                    COMPACT: tl.constexpr, DEFER: tl.constexpr):
+    """The forward without face lists: :func:`_forward_program` (its arguments and grid) with BIN off."""
+    _forward_program(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, box_ptr,
+                     box_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_, FB, SB, FS, SAVE, SPLIT, MODEL, COMPACT, DEFER,
+                     False, 1)
+
+
+@triton.jit
+def _binned_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, bins_ptr,
+                    cnt_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
+                    FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr,
+                    COMPACT: tl.constexpr, DEFER: tl.constexpr, CAP: tl.constexpr):
+    """The forward reading the tiles' face lists (``tuning.FWD_BIN``): :func:`_forward_program` with BIN on."""
+    _forward_program(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, bins_ptr,
+                     cnt_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_, FB, SB, FS, SAVE, SPLIT, MODEL, COMPACT, DEFER,
+                     True, CAP)
+
+
+@triton.jit
+def _forward_program(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_ptr, state_ptr, part_ptr, bins_ptr,
+                     cnt_ptr, Fp, NB, NSB, NSPLIT, H, W, TX, TILE_: tl.constexpr, FB: tl.constexpr, SB: tl.constexpr,
+                     FS: tl.constexpr, SAVE: tl.constexpr, SPLIT: tl.constexpr, MODEL: tl.constexpr,
+                     COMPACT: tl.constexpr, DEFER: tl.constexpr, BIN: tl.constexpr, CAP: tl.constexpr):
     """One program per (tile, environment, split). MODEL: 0 hard, 1 softmax, 2 alpha. State per pixel
     (SAVE): soft models the blend's maximum, its denominator, the faces' weight sum and coverage sum; hard
     the maximum and the chosen face (-1: none).
@@ -341,26 +516,37 @@ def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_pt
     Split: program s walks super-blocks s, s + NSPLIT, ... from an empty start and stores its part of the
     blend in ``part_ptr`` (NSPLIT, B, PART_PER_PIXEL, H, W): soft models the part's maximum, its colour
     sums (3), weight sum and coverage sum; hard the part's nearest depth, face and colour (3).
-    ``_merge_forward`` then combines the parts with the floor and background."""
+    ``_merge_forward`` then combines the parts with the floor and background.
+
+    BIN: the walks read the tile's face list (``bins_ptr`` (B, T, CAP) int32 and its count ``cnt_ptr`` (B, T),
+    :func:`_bin_faces`), split s taking its chunks s, s + NSPLIT, ...; a tile whose count passes CAP walks the
+    blocks as without BIN."""
     tile = tl.program_id(0)
     env = tl.program_id(1).to(tl.int64)  # offsets below pass 2^31 elements for large batches and images
     split = tl.program_id(2).to(tl.int64)
     sigma, gamma, znear, zfar, cutoff, cap, ambient, diffuse, lx, ly, lz = _load_params(prm)
     xc, yc, pix, inb, x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, W, H, TX, sigma, TILE_)
     HW = H * W
+    if BIN:
+        lt = env * tl.num_programs(0) + tile
+        cnt = tl.load(cnt_ptr + lt)
+        lbase = lt * CAP
+    else:  # unused placeholders, of the types above
+        cnt = tile * 0
+        lbase = env * 0
     if SPLIT:
         zero = tl.zeros_like(xc)
         if MODEL == 0:
             c_r, c_g, c_b, nearest, m = _nearest_pass(
-                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero - 1.0, zero - 1e4, env, Fp, NB,
-                NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly,
-                lz, FB, SB, FS, COMPACT, DEFER)
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, bins_ptr, lbase, cnt, zero, zero, zero, zero - 1.0, zero - 1e4,
+                env, Fp, NB, NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse,
+                lx, ly, lz, FB, SB, FS, COMPACT, DEFER, BIN, CAP)
             p1, p2, p3, p4, p5 = nearest, c_r, c_g, c_b, zero
         else:
             p1, p2, p3, _den, p4, p5, m = _blend_pass(
-                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, zero, zero, zero, zero, zero, zero, zero - 1e4, env, Fp,
-                NB, NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff,
-                cap, ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT)
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, bins_ptr, lbase, cnt, zero, zero, zero, zero, zero, zero,
+                zero - 1e4, env, Fp, NB, NSB, split, NSPLIT, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear,
+                zfar, cutoff, cap, ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT, BIN, CAP)
         pp = part_ptr + ((split * tl.num_programs(1) + env) * 6) * HW + pix
         tl.store(pp, m, mask=inb)
         tl.store(pp + HW, p1, mask=inb)
@@ -374,17 +560,17 @@ def _fused_forward(coef_ptr, box_ptr, bbox_ptr, sbox_ptr, floor_ptr, prm, out_pt
         if MODEL == 0:
             c_r, c_g, c_b, nearest, m = _hard_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b)
             out_r, out_g, out_b, nearest, m = _nearest_pass(
-                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, c_r, c_g, c_b, nearest, m, env, Fp, NB, NSB, 0, 1, xc,
-                yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT,
-                DEFER)
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, bins_ptr, lbase, cnt, c_r, c_g, c_b, nearest, m, env, Fp, NB,
+                NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, znear, zfar, ambient, diffuse, lx, ly, lz, FB, SB, FS,
+                COMPACT, DEFER, BIN, CAP)
             s1, s2, s3 = nearest, tl.zeros_like(m), tl.zeros_like(m)
         else:
             zero = tl.zeros_like(fzn)
             num_r, num_g, num_b, den, m = _soft_start(fzn, fr, fg, fb, fhit, bg_r, bg_g, bg_b, gamma, MODEL)
             num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_pass(
-                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, num_r, num_g, num_b, den, zero, zero, m, env, Fp, NB,
-                NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap,
-                ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT)
+                coef_ptr, box_ptr, bbox_ptr, sbox_ptr, bins_ptr, lbase, cnt, num_r, num_g, num_b, den, zero, zero, m,
+                env, Fp, NB, NSB, 0, 1, xc, yc, inb, x_lo, x_hi, y_lo, y_hi, sigma, gamma, znear, zfar, cutoff, cap,
+                ambient, diffuse, lx, ly, lz, FB, SB, FS, COMPACT, BIN, CAP)
             out_r, out_g, out_b = _soft_colour(num_r, num_g, num_b, den, w_sum, cov_sum, cb_r, cb_g, cb_b)
             s1, s2, s3 = den, w_sum, cov_sum
         _store_pixels(out_ptr, state_ptr, env, pix, inb, HW, out_r, out_g, out_b, m, s1, s2, s3, SAVE)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import os
+import warnings
 
 import torch
 
@@ -25,7 +26,7 @@ except ImportError:  # pragma: no cover - exercised on machines without triton
     triton = None
 else:
     from .backward import _fused_backward, _pixel_backward
-    from .forward import _fused_forward, _merge_forward
+    from .forward import _bin_faces, _binned_forward, _fused_forward, _merge_forward
 
 #: numbers per pixel the forward keeps for the backward besides the image (see ``_fused_forward``)
 STATE_PER_PIXEL = 4
@@ -108,12 +109,70 @@ def _max_registers(n: int | None) -> dict:
     return {} if n is None else {"maxnreg": n}
 
 
+class BinOverflowWarning(RuntimeWarning):
+    """Some forward tiles held more faces than ``tuning.BIN_CAPACITY``: they walked the face blocks instead
+    of their lists (the same images, at the unbinned walk's cost). Raise the capacity before capture."""
+
+
+#: per device, the (1,) int32 count of overflowing (tile, environment) lists since :func:`bin_overflows` last
+#: read it; made at a device's first binned render (before any capture: warm-up renders precede it)
+_OVERFLOWS: dict[torch.device, torch.Tensor] = {}
+_overflow_warned = False
+
+
+def _overflow_counter(device: torch.device) -> torch.Tensor:
+    if device not in _OVERFLOWS:
+        _OVERFLOWS[device] = torch.zeros(1, dtype=torch.int32, device=device)
+    return _OVERFLOWS[device]
+
+
+def bin_overflows() -> int:
+    """The (tile, environment) face lists that overflowed ``tuning.BIN_CAPACITY`` in the binned renders
+    (``tuning.FWD_BIN``) since the last call, over every device; resets the counters. One host transfer per
+    device that has rendered binned: call it outside CUDA graph capture, where the iteration synchronises
+    anyway. The first nonzero count of the process warns once (:class:`BinOverflowWarning`)."""
+    global _overflow_warned
+    total = 0
+    for counter in _OVERFLOWS.values():
+        total += int(counter.item())
+        counter.zero_()
+    if total and not _overflow_warned:
+        _overflow_warned = True
+        warnings.warn(f"{total} fused forward tile lists held more than tuning.BIN_CAPACITY = {tuning.BIN_CAPACITY} "
+                      "faces and walked the face blocks instead (same images, slower); raise BIN_CAPACITY "
+                      "(rasterize.bin_capacity_needed measures a frame)", BinOverflowWarning, stacklevel=2)
+    return total
+
+
+def _bin_capacity() -> int:
+    cap = tuning.BIN_CAPACITY
+    if not isinstance(cap, int) or isinstance(cap, bool) or cap < 1:
+        raise ValueError(f"tuning.BIN_CAPACITY must be a positive integer, got {cap!r}")
+    return cap
+
+
+def _bin(box, bbox, sbox, st: Static, tile: int, fb: int, cap: int,
+         counter: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """One chunk's face lists: (b, T, cap) int32 face indices and (b, T) int32 counts (``forward._bin_faces``;
+    ``cap`` 0: the counts alone, and an empty list tensor); overflows counted in ``counter`` (None: the
+    device's, :func:`bin_overflows`)."""
+    counter = _overflow_counter(box.device) if counter is None else counter
+    (ntiles, b), tx = _launch_grid(st, box.shape[0], tile)
+    bins = torch.empty(b, ntiles, cap, dtype=torch.int32, device=box.device)
+    cnt = torch.empty(b, ntiles, dtype=torch.int32, device=box.device)
+    _bin_faces[(ntiles, b)](box, bbox, sbox, bins, cnt, counter, box.shape[2], bbox.shape[2],
+                            sbox.shape[2], st.height, st.width, tx, TILE_=tile, FB=fb,
+                            SB=bbox.shape[2] // sbox.shape[2], CAP=cap, num_warps=max(1, min(4, fb // 32)))
+    return bins, cnt
+
+
 def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int, out: torch.Tensor,
                     state: torch.Tensor | None) -> None:
     """Blend one chunk's image into ``out`` (b, 3, H, W) and, if ``state`` (b, 4, H, W) is given, what the
     backward needs of each pixel's blend into it (see ``_fused_forward``): one launch, or, where the faces
     make enough super-blocks (:func:`forward_splits`), a split walk and a merge (two launches and a
-    transient (splits, b, PART_PER_PIXEL, H, W) of parts)."""
+    transient (splits, b, PART_PER_PIXEL, H, W) of parts). With ``tuning.FWD_BIN`` a binning launch first
+    (:func:`_bin`: transient face lists, 4 x T x BIN_CAPACITY bytes an environment)."""
     (ntiles, b), tx = _launch_grid(st, out.shape[0], tile)
     # the parts are a transient of splits x the chunk's pixels: bounded like the coefficients (PART_ELEMS)
     part_bound = tuning.PART_ELEMS // (b * PART_PER_PIXEL * st.height * st.width)
@@ -123,14 +182,19 @@ def _launch_forward(coef, box, bbox, sbox, floor, st: Static, tile: int, fb: int
     save = state is not None
     state = out if state is None else state
     fs = min(fb, tuning.FWD_SUB_BLOCK)
+    binned = bool(tuning.FWD_BIN)
+    cap = _bin_capacity() if binned else 0
+    if binned:
+        lists = _bin(box, bbox, sbox, st, tile, fb, cap)
+        splits = min(splits, -(-cap // fs))  # a list of cap faces makes ceil(cap / fs) chunks to share out
     part = (torch.empty(splits, b, PART_PER_PIXEL, st.height, st.width, dtype=out.dtype, device=out.device)
             if splits > 1 else out)
-    _fused_forward[(ntiles, b, splits)](
-        coef, box, bbox, sbox, floor, prm, out, state, part, coef.shape[2], bbox.shape[2], sbox.shape[2], splits,
-        st.height, st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], FS=fs, SAVE=save,
-        SPLIT=splits > 1, MODEL=model, COMPACT=tuning.FWD_COMPACT,
-        DEFER=tuning.FWD_DEFER_SHADING and not save, num_warps=tuning.FWD_WARPS or _warps(tile, fs),
-        **_max_registers(tuning.FWD_MAXNREG))
+    kernel, extra, binned_constants = (_binned_forward, lists, dict(CAP=cap)) if binned else (_fused_forward, (), {})
+    kernel[(ntiles, b, splits)](
+        coef, box, bbox, sbox, floor, prm, out, state, part, *extra, coef.shape[2], bbox.shape[2], sbox.shape[2],
+        splits, st.height, st.width, tx, TILE_=tile, FB=fb, SB=bbox.shape[2] // sbox.shape[2], FS=fs, SAVE=save,
+        SPLIT=splits > 1, MODEL=model, COMPACT=tuning.FWD_COMPACT, DEFER=tuning.FWD_DEFER_SHADING and not save,
+        num_warps=tuning.FWD_WARPS or _warps(tile, fs), **binned_constants, **_max_registers(tuning.FWD_MAXNREG))
     if splits > 1:
         _merge_forward[(triton.cdiv(st.height * st.width, tuning.MERGE_BLOCK), b)](
             part, floor, prm, out, state, splits, st.height, st.width, BLOCK=tuning.MERGE_BLOCK, SAVE=save, MODEL=model,
@@ -245,6 +309,32 @@ class _FusedRasterize(torch.autograd.Function):
                 else:
                     grads[i][sl] += g
         return (*grads, None, None, None, None, None, None, None, None)
+
+
+@torch.no_grad()
+def bin_capacity_needed(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
+                        faces: torch.Tensor, settings: RasterSettings, *, tile: int | None = None,
+                        face_block: int | None = None) -> int:
+    """The most faces any forward tile's list of this frame holds (``tuning.FWD_BIN``; arguments as
+    :func:`rasterize_fused`): the smallest ``tuning.BIN_CAPACITY`` with which no tile of it overflows. One host
+    transfer; measure before capture, set the capacity with headroom (poses move faces between tiles)."""
+    tile = tuning.TILE if tile is None else tile
+    face_block = tuning.FACE_BLOCK if face_block is None else face_block
+    if not available(verts.device):
+        raise ValueError(f"the fused backend runs on CUDA tensors (or on the CPU under TRITON_INTERPRET=1), "
+                         f"got {verts.device}")
+    st = Static.make(settings, focal=camera.focal, height=camera.height, width=camera.width, tile_h=tile,
+                     tile_w=tile)
+    nfp = max(1, -(-faces.shape[0] // face_block)) * face_block
+    chunk = max(1, tuning.COEF_ELEMS // (NUM_COEFFS * nfp))
+    setup = _setup_fn(bool(settings.compile))
+    scratch = torch.zeros(1, dtype=torch.int32, device=verts.device)
+    most = torch.zeros((), dtype=torch.int32, device=verts.device)
+    for sl in chunks(verts.shape[0], chunk):
+        _, box, bbox, sbox, _ = setup(verts[sl], rows(normals, sl), rows(colors, sl, shared_ok=True),
+                                      camera.rotation[sl], camera.eye[sl], faces, st, face_block, tuning.SUPER_BLOCK)
+        most = torch.maximum(most, _bin(box, bbox, sbox, st, tile, face_block, 0, scratch)[1].max())
+    return int(most.item())
 
 
 def rasterize_fused(verts: torch.Tensor, normals: torch.Tensor | None, colors: torch.Tensor, camera: Camera,
