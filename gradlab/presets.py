@@ -80,6 +80,8 @@ _TEACHER = {
     "hopper": dict(lr_decay_iters=2000),
     "ant": dict(lr_decay_iters=2000),
     "humanoid": dict(lr_decay_iters=2000),
+    # teacher/cheetah.yaml: max_epochs 2000, the rest as dva/cheetah.yaml (DiffRL's shac/cheetah.yaml agrees)
+    "cheetah": dict(lr_decay_iters=2000),
 }
 
 # D.Va examples/cfg/teacher_student/<task>.yaml: the student's actor_mlp units and max_epochs.
@@ -89,6 +91,7 @@ _STUDENT = {
     "hopper": dict(actor_hidden=(128, 64, 32), lr_decay_iters=10000),
     "ant": dict(actor_hidden=(128, 64, 32), lr_decay_iters=10000),
     "humanoid": dict(actor_hidden=(128, 64, 32), lr_decay_iters=40000),
+    "cheetah": dict(actor_hidden=(128, 64, 32), lr_decay_iters=10000),
 }
 
 _REFERENCE_TRAINER = dict(num_envs=64, actor_lr=2e-3, actor_init="default", obs_clip=0.0, bootstrap_last_step=True)

@@ -17,6 +17,7 @@ from gradlab.config import check_as_given
 from gradlab.distill import Distill, ReplayBuffer, load_expert, to_uint8
 from gradlab.networks import StateActor
 from gradlab.normalizer import RunningMeanStd
+from vocabulary import TASKS
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,8 @@ def test_student_settings_are_the_references():
     [128, 64, 32] (cartpole [64, 64]), the encoder's output its first width (models/actor.py); max_epochs 10000
     (humanoid 40000) as the decay length (algorithms/dagger.py:231-234)."""
     for task, hidden, decay in (("cartpole", (64, 64), 10000), ("hopper", (128, 64, 32), 10000),
-                                ("ant", (128, 64, 32), 10000), ("humanoid", (128, 64, 32), 40000)):
+                                ("ant", (128, 64, 32), 10000), ("humanoid", (128, 64, 32), 40000),
+                                ("cheetah", (128, 64, 32), 10000)):
         c = resolve_config(SHACConfig(task=task, mode="distill", expert="x"))
         assert (c.actor_hidden, c.trunk_dim, c.lr_decay_iters, c.actor_lr, c.num_envs) == (
             hidden, hidden[0], decay, 2e-3, 64)
@@ -66,11 +68,13 @@ def test_teacher_preset_is_the_references():
     """examples/cfg/teacher_student/teacher/<task>.yaml: num_actors 64 (the hopper too: DiffRL's state hopper has
     256), max_epochs 4000 cartpole, 2000 others; cartpole actor 1e-2 / critic 1e-3; hopper [128, 64, 32] /
     [64, 64], critic 2e-4, alpha 0.2; ant critic 2e-3; humanoid [256, 128] / [128, 128], critic 5e-4, alpha
-    0.995; actor 2e-3 elsewhere."""
+    0.995; cheetah (teacher/cheetah.yaml, max_epochs 2000) critic 2e-3 as dva/cheetah.yaml; actor 2e-3 elsewhere."""
     expect = {"cartpole": (1e-2, 1e-3, 0.2, (64, 64), (64, 64), 4000),
               "hopper": (2e-3, 2e-4, 0.2, (128, 64, 32), (64, 64), 2000),
               "ant": (2e-3, 2e-3, 0.2, (128, 64, 32), (64, 64), 2000),
-              "humanoid": (2e-3, 5e-4, 0.995, (256, 128), (128, 128), 2000)}
+              "humanoid": (2e-3, 5e-4, 0.995, (256, 128), (128, 128), 2000),
+              "cheetah": (2e-3, 2e-3, 0.2, (128, 64, 32), (64, 64), 2000)}
+    assert set(expect) | {"cartpole-swingup"} == set(TASKS)  # every task has a teacher and a student
     for task, values in expect.items():
         c = resolve_config(SHACConfig(task=task, mode="state", preset="teacher"))
         assert (c.actor_lr, c.critic_lr, c.target_alpha, c.actor_hidden, c.critic_hidden, c.lr_decay_iters) == values
