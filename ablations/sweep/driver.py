@@ -242,7 +242,7 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
     except KeyboardInterrupt:
         stopping[:] = pending.values()
         if store is not None and pending:
-            _stop_workers(store, pending, finish, manifest)
+            _stop_workers(store, pending, finish)
         # Runs still out go back to queued: a rerun resumes them from the checkpoints the folder holds.
         for job in pending.values():
             for run_id in job.run_ids:
@@ -261,7 +261,7 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
     return manifest
 
 
-def _stop_workers(store, pending: dict, finish, manifest: dict) -> None:
+def _stop_workers(store, pending: dict, finish) -> None:
     """The second stage of a Ctrl-C: raise the store's stop request, so that each worker sends its ablate SIGINT
     (a second one after its grace), sends the folder and returns; record each job's result as it comes, for
     :data:`STOP_WAIT_S` (and the workers' grace) at most. A second Ctrl-C asks for the second SIGINT at once; a
