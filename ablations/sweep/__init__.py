@@ -11,8 +11,9 @@ keeps at most (CPUs / ``--cpus-per-run``) runs in flight per node (:func:`run_sl
 The sweep folder::
 
     sweep.json                    the manifest (written atomically): grid, the command that made it, and per run
-                                  its status (queued / running / done / failed), error, folder, iteration,
-                                  latest return
+                                  its status (queued / running / done / failed / interrupted), error, folder,
+                                  iteration, checkpoint (the newest iteration the folder holds one of), latest
+                                  return
     runs/<run_id>/                each run folder as ``ablate`` writes it (config.json, metrics.jsonl,
                                   summary.json, videos/, the two newest checkpoints)
     runs/<population>/<member>/   with --pack: a population folder (population.json) and its members' run folders
@@ -22,7 +23,10 @@ The sweep folder::
                                   start needs an empty folder; nothing is deleted)
 
 A rerun with the same folder skips runs whose summary says they finished, resumes the others from their last
-checkpoint and starts the rest from scratch. Library use (the ``ablate-paper`` layer): build a
+checkpoint and starts the rest from scratch. Ctrl-C stops in two stages: the driver raises the store's stop
+request, each worker sends its ablate a SIGINT (a second one after ``worker.STOP_GRACE_S``), ships the folder and
+returns its runs "interrupted" (not retried); the driver waits for them (``driver.STOP_WAIT_S`` at most) and prints
+the iteration each kept. Library use (the ``ablate-paper`` layer): build a
 :class:`SweepConfig` (or :func:`parse_args`), then :func:`run_sweep` returns the manifest; :func:`plan` lists
 the runs without starting anything. Both take ``arms``: named sets of ablate flags, each with its own mode,
 that replace the modes axis (tasks x arms x seeds x --vary), for comparisons whose sides differ in more than

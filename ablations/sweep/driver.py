@@ -25,6 +25,11 @@ __all__ = ["run_sweep", "dry_run", "main", "run_slots", "quiet_token_notice", "D
 
 #: Seconds between the driver's looks at the runs (and table updates).
 DRIVER_POLL_S = 1.0
+#: Seconds a stopping sweep (Ctrl-C) waits for its workers to checkpoint and send their folders, on top of the
+#: workers' grace before their second SIGINT (``STOP_GRACE_S``); runs still out then go back to queued.
+STOP_WAIT_S = 120.0
+#: The workers' grace between their two SIGINTs (None: ``ablations.sweep.worker.STOP_GRACE_S``).
+STOP_GRACE_S: float | None = None
 #: Where a job trained, as its worker reports it and the manifest keeps it beside each run.
 PLACEMENT = ("node", "host", "gpus")
 #: The start of the line Ray logs whenever it starts a local cluster with token authentication, its default.
@@ -150,8 +155,9 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     started_here = _ray_init(cfg)
-    table = None
+    table = store = None
     pending: dict = {}
+    stopping: list = []  # the jobs out when Ctrl-C came
     accepted = False  # sweep.json is written once the cluster can run the sweep: a refused start leaves none
     try:
         try:
@@ -173,11 +179,34 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
         task = ray.remote(run_attempt).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
                                                max_retries=cfg.max_retries, retry_exceptions=[RunProcessDied])
         opts = {"sweep_id": manifest["id"], "gpus_per_run": cfg.gpus_per_run, "cpus_per_run": cfg.cpus_per_run,
-                "keep_checkpoints": cfg.keep_checkpoints, "program": None if program is None else list(program)}
+                "keep_checkpoints": cfg.keep_checkpoints, "program": None if program is None else list(program),
+                "stop_grace_s": STOP_GRACE_S}
         queue = list(todo)
         jobs = {job.job_id: job for job in todo}
         table = LiveTable(manifest, todo, enabled=cfg.progress)
         last_write = time.monotonic()
+        def finish(ref) -> None:
+            """Record the result of a job's task."""
+            job = pending.pop(ref)
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayError as e:
+                # Retries are spent (a worker death, a killed ablate) or the task itself broke.
+                tries = max(max(runs[r].get("attempts") or 0 for r in job.run_ids), 1)
+                error = f"{_describe_failure(e)} (attempt {tries}, --max-retries {cfg.max_retries})"
+                result = {"runs": {r: {"status": "failed", "error": error} for r in job.run_ids}}
+            where = {k: result[k] for k in PLACEMENT if k in result}
+            for run_id, outcome in result["runs"].items():
+                rec = runs[run_id]
+                rec.update({k: v for k, v in {**outcome, **where}.items()
+                            if k in ("status", "error", "iteration", "latest_return", "checkpoint", *PLACEMENT,
+                                     "summary_status")}, updated=_now())
+                rec["attempts"] = max(rec.get("attempts", 0), result.get("attempt", 0))
+            if not cfg.keep_checkpoints and all(runs[r]["status"] == "done" for r in job.run_ids):
+                for r in job.run_ids:
+                    RunFolder(out / runs[r]["folder"]).drop_checkpoints()
+                    runs[r]["checkpoint"] = None
+
         while queue or pending:
             if queue:
                 free = max(0, run_slots(cfg) - len(pending))
@@ -191,7 +220,7 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
                     rec = runs[run_id]
                     if rec["status"] in ("done", "failed") and info.get("attempts", 0) <= rec.get("attempts", 0):
                         continue
-                    new = {k: info[k] for k in (*PLACEMENT, "attempts", "resumed") if k in info}
+                    new = {k: info[k] for k in (*PLACEMENT, "attempts", "resumed", "checkpoint") if k in info}
                     new.update({k: v for k, v in (info.get("runs") or {}).get(run_id, {}).items()
                                 if k in ("iteration", "latest_return", "wall_s")})
                     if info.get("status") == "running" and rec["status"] == "queued":
@@ -200,24 +229,7 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
                         rec.update(new, updated=_now())
                         changed = changed or "status" in new
             for ref in ready:
-                job = pending.pop(ref)
-                try:
-                    result = ray.get(ref)
-                except ray.exceptions.RayError as e:
-                    # Retries are spent (a worker death, a killed ablate) or the task itself broke.
-                    tries = max(max(runs[r].get("attempts") or 0 for r in job.run_ids), 1)
-                    error = f"{_describe_failure(e)} (attempt {tries}, --max-retries {cfg.max_retries})"
-                    result = {"runs": {r: {"status": "failed", "error": error} for r in job.run_ids}}
-                where = {k: result[k] for k in PLACEMENT if k in result}
-                for run_id, outcome in result["runs"].items():
-                    rec = runs[run_id]
-                    rec.update({k: v for k, v in {**outcome, **where}.items()
-                                if k in ("status", "error", "iteration", "latest_return", *PLACEMENT,
-                                         "summary_status")}, updated=_now())
-                    rec["attempts"] = max(rec.get("attempts", 0), result.get("attempt", 0))
-                if not cfg.keep_checkpoints and all(runs[r]["status"] == "done" for r in job.run_ids):
-                    for r in job.run_ids:
-                        RunFolder(out / runs[r]["folder"]).drop_checkpoints()
+                finish(ref)
                 changed = True
             if changed or time.monotonic() - last_write > 10 * DRIVER_POLL_S:
                 write_manifest(out, manifest)
@@ -228,10 +240,16 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
             for run_id in jobs[job_id].run_ids:
                 runs[run_id]["attempts"] = max(runs[run_id].get("attempts", 0), info.get("attempts", 0))
     except KeyboardInterrupt:
-        # Unfinished runs go back to queued: a rerun resumes them from the checkpoints the folder holds.
+        stopping[:] = pending.values()
+        if store is not None and pending:
+            _stop_workers(store, pending, finish)
+        # Runs still out go back to queued: a rerun resumes them from the checkpoints the folder holds.
         for job in pending.values():
             for run_id in job.run_ids:
                 manifest["runs"][run_id]["status"] = "queued"
+        if table is not None:
+            table.update()
+        _print_kept(manifest, [r for job in stopping for r in job.run_ids])
         raise
     finally:
         if table is not None:
@@ -241,6 +259,44 @@ def _run_locked(cfg: SweepConfig, specs: list, set_table: dict, vary_table: dict
         if started_here:
             ray.shutdown()
     return manifest
+
+
+def _stop_workers(store, pending: dict, finish) -> None:
+    """The second stage of a Ctrl-C: raise the store's stop request, so that each worker sends its ablate SIGINT
+    (a second one after its grace), sends the folder and returns; record each job's result as it comes, for
+    :data:`STOP_WAIT_S` (and the workers' grace) at most. A second Ctrl-C asks for the second SIGINT at once; a
+    third stops waiting."""
+    import ray
+
+    from ablations.sweep.worker import STOP_GRACE_S as WORKER_GRACE
+
+    print(f"stopping: each running ablate checkpoints its last finished iteration and sends its folder (Ctrl-C "
+          f"again: at once; a third time: stop waiting) ({len(pending)} job(s))", file=sys.stderr, flush=True)
+    ray.get(store.stop.remote(1))
+    grace = WORKER_GRACE if STOP_GRACE_S is None else STOP_GRACE_S
+    deadline = time.monotonic() + grace + STOP_WAIT_S
+    presses = 1
+    while pending and time.monotonic() < deadline:
+        try:
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=DRIVER_POLL_S)
+            for ref in ready:
+                finish(ref)
+        except KeyboardInterrupt:
+            presses += 1
+            if presses >= 3:
+                break
+            ray.get(store.stop.remote(2))
+
+
+def _print_kept(manifest: dict, run_ids: list[str]) -> None:
+    """A line per run that was out when the sweep stopped: the iteration it kept, or that it left nothing."""
+    for run_id in run_ids:
+        rec = manifest["runs"][run_id]
+        ckpt = rec.get("checkpoint")
+        if rec["status"] == "done":
+            continue
+        kept = f"kept iteration {ckpt} of {rec.get('iters')}" if ckpt else "no checkpoint kept: starts afresh"
+        print(f"{rec['status']} {run_id}: {kept} ({rec.get('folder')})", file=sys.stderr, flush=True)
 
 
 def dry_run(cfg: SweepConfig, set_table: dict | None = None, vary_table: dict | None = None, *,

@@ -20,7 +20,8 @@ __all__ = ["MANIFEST", "STATUSES", "load_manifest", "prepare_manifest", "plan_jo
            "status_counts"]
 
 MANIFEST = "sweep.json"
-STATUSES = ("queued", "running", "done", "failed")
+#: A run's status; ``interrupted``: stopped by a Ctrl-C of the driver, its ``checkpoint`` kept (a rerun resumes it).
+STATUSES = ("queued", "running", "done", "failed", "interrupted")
 
 
 def load_manifest(out: str | os.PathLike) -> dict | None:
@@ -37,7 +38,8 @@ def load_manifest(out: str | os.PathLike) -> dict | None:
 def _new_record(spec: RunSpec) -> dict:
     return {"task": spec.task, "mode": spec.mode, "arm": spec.arm, "seed": spec.seed, "flags": spec.flags,
             "args": list(spec.args), "iters": spec.iters, "folder": run_path(".", spec.run_id).as_posix(),
-            "status": "queued", "error": None, "iteration": None, "latest_return": None, "attempts": 0,
+            "status": "queued", "error": None, "iteration": None, "checkpoint": None, "latest_return": None,
+            "attempts": 0,
             "resumed": False, "node": None, "host": None, "gpus": None, "updated": None}
 
 

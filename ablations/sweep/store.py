@@ -77,6 +77,16 @@ class RunStore:
         self.attempts = dict(attempts)
         self.current: dict[str, int] = {}
         self.progress: dict[str, dict] = {}
+        self.stop_level = 0
+
+    def stop(self, level: int = 1) -> None:
+        """The driver's stop request (Ctrl-C): 1, each attempt's ablate gets a SIGINT (it checkpoints once its
+        iteration ends); 2, a second one at once (it stops, keeping the last finished iteration)."""
+        self.stop_level = max(self.stop_level, level)
+
+    def stopping(self) -> int:
+        """The stop request the workers act on: 0 (none), 1 or 2 (see :meth:`stop`)."""
+        return self.stop_level
 
     def run_dir(self, run_id: str) -> Path:
         return run_path(self.root, run_id)

@@ -34,11 +34,13 @@ def _placement(rec: dict) -> str:
 
 
 def progress_text(rec: dict) -> str:
-    """How far a run is: 'it 31/100' or, for a time-limited run, 'time 3.2/60 min (it 31)'."""
+    """How far a run is: 'it 31/100' or, for a time-limited run, 'time 3.2/60 min (it 31)'; with ' ckpt 30' where
+    the sweep folder holds a checkpoint of the run (what a rerun resumes from)."""
     limit = time_limit_min(rec.get("args"))
+    ckpt = f" ckpt {rec['checkpoint']}" if rec.get("checkpoint") else ""
     if limit is None:
-        return f"it {rec.get('iteration') or 0}/{rec.get('iters')}"
-    return f"time {(rec.get('wall_s') or 0.0) / 60:.1f}/{limit:g} min (it {rec.get('iteration') or 0})"
+        return f"it {rec.get('iteration') or 0}/{rec.get('iters')}{ckpt}"
+    return f"time {(rec.get('wall_s') or 0.0) / 60:.1f}/{limit:g} min (it {rec.get('iteration') or 0}){ckpt}"
 
 
 class LiveTable:
@@ -99,7 +101,9 @@ class LiveTable:
                 else:
                     bar.n = round(min((rec.get("wall_s") or 0.0) / 60 for rec in recs), 1)
                 returns = [r["latest_return"] for r in recs if r.get("latest_return") is not None]
-                bar.set_postfix(ret=_fmt_return(sum(returns) / len(returns) if returns else None), refresh=False)
+                ckpts = [r.get("checkpoint") or 0 for r in recs]
+                bar.set_postfix(ret=_fmt_return(sum(returns) / len(returns) if returns else None),
+                                ckpt=min(ckpts) or "-", refresh=False)
                 bar.refresh()
             elif bar is not None:
                 self.free.append(bar.pos_)

@@ -29,10 +29,13 @@ from ablations.sweep.transfer import archive_names, pack_run, unpack_run
 from gradlab.checkpoint import checkpoint_path
 from vocabulary import POPULATION_RECORD
 
-__all__ = ["run_attempt", "RunProcessDied", "WORKER_POLL_S"]
+__all__ = ["run_attempt", "RunProcessDied", "WORKER_POLL_S", "STOP_GRACE_S"]
 
 #: Seconds between the worker's looks at its run folder.
 WORKER_POLL_S = 0.5
+#: Seconds a stopping attempt's ablate gets to finish its iteration after the first SIGINT, before the second
+#: (which stops it at once, keeping the last finished iteration). ``opts["stop_grace_s"]`` overrides it.
+STOP_GRACE_S = 30.0
 _CHILD = Path(__file__).with_name("child.py")
 
 
@@ -63,11 +66,19 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
     "gpus"}.
 
     ``job``: a :class:`~ablations.sweep.packing.Job` as a dict; ``store``: the RunStore actor; ``opts``: sweep_id,
-    cpus_per_run, gpus_per_run, keep_checkpoints and program (None: ablate).
+    cpus_per_run, gpus_per_run, keep_checkpoints, program (None: ablate) and stop_grace_s (None:
+    :data:`STOP_GRACE_S`).
+
+    Once the store's stop request is up (the driver's Ctrl-C), the attempt's ablate gets a SIGINT, and a second
+    one after ``stop_grace_s`` (or at once on a request of level 2); the folder is then sent to the store as at the
+    end of a run, and its unfinished runs come back "interrupted" with the iteration of their newest checkpoint
+    (``checkpoint``), not raised for a retry. An attempt that begins under a stop request starts nothing.
     """
     import ray
 
     job_id, run_ids = job["job_id"], list(job["run_ids"])
+    if ray.get(store.stopping.remote()):
+        return {"runs": {r: {"status": "interrupted"} for r in run_ids}, "attempt": 0}
     attempt, pack = ray.get(store.begin.remote(job_id, list(job["members"])))
     base = Path(tempfile.gettempdir()) / "ablate-sweep" / opts["sweep_id"]
     for stale in base.glob(f"{job_id}.attempt*"):  # left by an earlier attempt on this node that was killed
@@ -100,8 +111,19 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
                                               "gpus": gpus, "resumed": pack is not None})
         tails = [MetricsTail(f.metrics_path) for f in folders]
         reported: dict[str, object] = {}
+        grace = opts.get("stop_grace_s")
+        grace = STOP_GRACE_S if grace is None else float(grace)
+        sigints, first_sigint = 0, 0.0
         while True:
             returncode = proc.poll()
+            level = ray.get(store.stopping.remote()) if returncode is None else 0
+            if level and sigints < 2:
+                # ablate's first SIGINT checkpoints the iteration it is in once that ends; its second stops at
+                # once and checkpoints the held copy of the last finished one
+                if sigints == 0 or level >= 2 or time.monotonic() - first_sigint > grace:
+                    proc.send_signal(signal.SIGINT)
+                    sigints += 1
+                    first_sigint = first_sigint or time.monotonic()
             rows = {}
             for run_id, tail in zip(run_ids, tails):
                 last = tail.poll()
@@ -120,11 +142,12 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
                     ray.get(store.save.remote(job_id, attempt, data))
                     shipped = common
                     sent_videos.update(videos)
+                    store.report.remote(job_id, attempt, {"checkpoint": shipped})
             if returncode is not None:
                 break
             time.sleep(WORKER_POLL_S)
         ray.get(store.save_log.remote(job_id, attempt, log.read_text(errors="replace")))
-        if returncode < 0:
+        if returncode < 0 and not sigints:
             try:
                 name = signal.Signals(-returncode).name
             except ValueError:
@@ -139,8 +162,9 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
         data = pack_run(job_dir, only=[n for n in rest if n not in sent_videos],
                         checkpoints=1 if opts["keep_checkpoints"] or not all(done) else 0)
         ray.get(store.save.remote(job_id, attempt, data))
+        kept = common_checkpoint(folders)
         stopped = [s for s in summaries if s.get("status") == "interrupted"]
-        if stopped:
+        if stopped and not sigints:
             # ablate stopped on SIGINT/SIGTERM (a node being drained, a job scheduler) after checkpointing: like a
             # killed run, it is retried from that checkpoint
             raise RunProcessDied(f"ablate stopped on a signal on {platform.node()} (attempt {attempt}): "
@@ -148,6 +172,12 @@ def run_attempt(job: dict, store, opts: dict) -> dict:
         results = {}
         for run_id, folder, summary, ok, tail in zip(run_ids, folders, summaries, done, tails):
             last = tail.poll() or {}
+            if sigints and not ok:  # stopped by the driver: the rerun resumes it from the checkpoint it kept
+                results[run_id] = {"status": "interrupted", "error": None, "checkpoint": kept,
+                                   "summary_status": summary.get("status"),
+                                   "iteration": summary.get("iterations", last.get("iter")),
+                                   "latest_return": summary.get("final_return", last.get("return_mean"))}
+                continue
             results[run_id] = {"status": "done" if ok else "failed",
                                "error": None if ok else _run_error(log, returncode, folder, summary),
                                "summary_status": summary.get("status"),

@@ -20,7 +20,11 @@
         --member values; the GPUs it was given) to LOG, to measure how many runs overlap and where they ran.
         With --member: a population folder (population.json) holding a run folder per member, named as ablate
         names them; --resume continues from the newest checkpoint every run folder has (its metrics cut there),
-        so an attempt that repeats or skips an iteration shows in the metrics.
+        so an attempt that repeats or skips an iteration shows in the metrics. It checkpoints every
+        --checkpoint-every iterations (default 1) and the last, and stops on SIGINT as ablate does: the first lets
+        the iteration finish and checkpoints it, a second stops at once and checkpoints the last finished one;
+        either way the summary says "interrupted", the log line gives "interrupted" (the iteration kept) and the
+        exit status is 130.
 """
 
 from __future__ import annotations
@@ -129,6 +133,9 @@ def record(log: Path, seconds: float, args: list[str]) -> None:
         if names != [""]:
             (home / POPULATION).write_text(json.dumps({"members": names, "command": ["fake_ablate.py", *args]}))
     runs = [home / name for name in names]
+    every = int(_value(args, "--checkpoint-every") or 1)
+    sigints = []
+    signal.signal(signal.SIGINT, lambda *_: sigints.append(1))
     done = 0
     for run in runs:
         (run / "checkpoints").mkdir(parents=True, exist_ok=True)
@@ -142,21 +149,41 @@ def record(log: Path, seconds: float, args: list[str]) -> None:
             lines = (run / "metrics.jsonl").read_text().splitlines()
             kept = [line for line in lines if json.loads(line)["iter"] <= done]
             (run / "metrics.jsonl").write_text("".join(line + "\n" for line in kept))
+    stopped = None
     for it in range(done + 1, iters + 1):
-        time.sleep(seconds / iters)
+        end = time.monotonic() + seconds / iters
+        while time.monotonic() < end and len(sigints) < 2:
+            time.sleep(0.02)
+        if len(sigints) >= 2:  # stopped at once: this iteration is lost
+            stopped = it - 1
+            break
         for run in runs:
             with open(run / "metrics.jsonl", "a") as metrics:
                 metrics.write(json.dumps({"iter": it, "return_mean": float(it), "pid": os.getpid()}) + "\n")
+        if sigints or it % every == 0 or it == iters:
+            for run in runs:
+                (run / "checkpoints" / f"ckpt_{it:06d}.pt").write_bytes(b"fake state %d" % it)
+        if sigints:
+            stopped = it
+            break
+    if stopped is not None:
         for run in runs:
-            (run / "checkpoints" / f"ckpt_{it:06d}.pt").write_bytes(b"fake state %d" % it)
-    for run in runs:
-        (run / "summary.json").write_text(json.dumps({"status": "finished", "iterations": iters,
-                                                      "final_return": float(iters)}))
+            if stopped and not (run / "checkpoints" / f"ckpt_{stopped:06d}.pt").exists():
+                (run / "checkpoints" / f"ckpt_{stopped:06d}.pt").write_bytes(b"fake state %d" % stopped)
+            (run / "summary.json").write_text(json.dumps({"status": "interrupted", "iterations": stopped,
+                                                          "error": f"SIGINT after iteration {stopped}"}))
+    else:
+        for run in runs:
+            (run / "summary.json").write_text(json.dumps({"status": "finished", "iterations": iters,
+                                                          "final_return": float(iters)}))
     line = json.dumps({"run": run_id, "pid": os.getpid(), "start": start, "end": time.time(),
+                       "interrupted": stopped,
                        "threads": _value(args, "--threads"), "members": names, "resumed_from": done,
                        "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES")}) + "\n"
     with open(log, "a") as f:  # one short append per run: lines of concurrent runs do not interleave
         f.write(line)
+    if stopped is not None:
+        raise SystemExit(130)
 
 
 def main() -> None:

@@ -10,6 +10,8 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -409,7 +411,7 @@ def test_sweep_recovers_a_killed_worker_then_a_rerun_skips_everything(ray_cluste
     manifest = run_sweep(tiny_sweep(out, progress=True), program=program)  # the live table too
     runs = manifest["runs"]
     assert set(runs) == {killed, "cartpole_state_seed0"}
-    assert manifest["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0}
+    assert manifest["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0, "interrupted": 0}
     assert load_manifest(out) == manifest
     for run_id, rec in runs.items():
         assert rec["status"] == "done" and rec["error"] is None and rec["iteration"] == 12, (run_id, rec)
@@ -497,6 +499,105 @@ def test_a_run_stopped_by_a_signal_is_retried_from_its_checkpoint(ray_cluster, t
     assert_complete_run(out / rec["folder"], 12)
     first = (out / "logs" / f"{victim}.attempt1.log").read_text()
     assert "SIGTERM: stopping once this iteration has finished" in first and "Traceback" not in first
+
+
+def ctrl_c_after(out: Path, run_ids: list[str], lines: int) -> threading.Thread:
+    """A thread that presses Ctrl-C (a SIGINT to this process: KeyboardInterrupt in the driver) once each run's
+    attempt has written ``lines`` metrics lines in its worker's scratch folder."""
+    import _thread
+
+    def press() -> None:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            manifest = out / "sweep.json"
+            if manifest.exists():
+                base = Path(tempfile.gettempdir()) / "ablate-sweep" / json.loads(manifest.read_text())["id"]
+                counts = [sum(len(p.read_text().splitlines()) for p in base.glob(f"{r}.attempt*/{r}/metrics.jsonl"))
+                          for r in run_ids]
+                if all(n >= lines for n in counts):
+                    _thread.interrupt_main()
+                    return
+            time.sleep(0.05)
+
+    thread = threading.Thread(target=press, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.parametrize("stage", ["first", "second"])
+def test_ctrl_c_keeps_each_runs_last_finished_iteration_and_a_rerun_resumes_there(ray_cluster, tmp_path,
+                                                                                 monkeypatch, capsys, stage):
+    """Ctrl-C on the driver: each worker sends its ablate SIGINT (first: it finishes the iteration it is in and
+    checkpoints it; second, after a short grace with long iterations: a second SIGINT stops it at once, keeping
+    the last finished one), sends the folder and returns "interrupted", not retried. sweep.json records the kept
+    iteration, the driver prints it, and a rerun resumes from it (no periodic checkpoint in between)."""
+    import ablations.sweep.driver as driver
+
+    log = tmp_path / "spans.jsonl"
+    out = tmp_path / "sweep"
+    # 0.4 s an iteration, Ctrl-C after 2; or 4 s, after 1 (the second SIGINT comes well inside iteration 2)
+    seconds, lines = {"first": (8.0, 2), "second": (80.0, 1)}[stage]
+    if stage == "second":
+        monkeypatch.setattr(driver, "STOP_GRACE_S", 0.2)
+    cfg = SweepConfig(out=out, tasks=("cartpole",), modes=("decoupled", "state"), seeds=(0,),
+                      set=("iters=20", "checkpoint-every=100"), cpus_per_run=1.0, progress=False)
+    program = (sys.executable, str(FAKE_ABLATE), "record", str(log), str(seconds), "--")
+    run_ids = [s.run_id for s in plan(cfg)]
+    ctrl_c_after(out, run_ids, lines)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(cfg, program=program)
+    printed = capsys.readouterr()
+    err = printed.err
+    manifest = load_manifest(out)
+    spans = {s["run"]: s for s in map(json.loads, log.read_text().splitlines())}
+    for run_id in run_ids:
+        rec = manifest["runs"][run_id]
+        kept = spans[run_id]["interrupted"]
+        assert rec["status"] == "interrupted" and rec["attempts"] == 1 and rec["checkpoint"] == kept, rec
+        assert lines <= kept < 20
+        if stage == "second":
+            assert kept == 1  # the iteration under way when the SIGINTs came is lost, not waited for
+        run = out / rec["folder"]
+        assert [r["iter"] for r in read_metrics(run)] == list(range(1, kept + 1))
+        assert [p.name for p in (run / "checkpoints").iterdir()] == [f"ckpt_{kept:06d}.pt"]
+        assert json.loads((run / "summary.json").read_text())["status"] == "interrupted"
+        assert f"interrupted {run_id}: kept iteration {kept} of 20 (runs/{run_id})" in err
+        assert f"it {kept}/20 ckpt {kept}" in printed.out  # the status line: progress, the checkpoint beside it
+    assert manifest["counts"]["interrupted"] == 2 and not (out / "discarded").exists()
+    if stage == "second":
+        return
+    again = run_sweep(cfg, program=(sys.executable, str(FAKE_ABLATE), "record", str(log), "1", "--"))
+    resumed = {s["run"]: s["resumed_from"] for s in map(json.loads, log.read_text().splitlines()[2:])}
+    assert resumed == {r: spans[r]["interrupted"] for r in run_ids}
+    for run_id in run_ids:
+        rec = again["runs"][run_id]
+        assert rec["status"] == "done" and rec["attempts"] == 2 and rec["resumed"] is True, rec
+        assert [r["iter"] for r in read_metrics(out / rec["folder"])] == list(range(1, 21))
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_a_sweep_of_the_real_ablate_keeps_its_last_finished_iteration(ray_cluster, tmp_path, capsys):
+    """The real ablate (cartpole, 4 environments, no video, the default --checkpoint-every 50): Ctrl-C after its
+    third iteration leaves a checkpoint of an iteration from 3 on in the sweep folder, which a rerun resumes."""
+    out = tmp_path / "sweep"
+    cfg = SweepConfig(out=out, tasks=("cartpole",), modes=("decoupled",), seeds=(0,),
+                      set=("iters=12", "num-envs=4", "video-every=0", "eval-every=0", "device=cpu"),
+                      cpus_per_run=1.0, progress=False)
+    (run_id,) = [s.run_id for s in plan(cfg)]
+    ctrl_c_after(out, [run_id], 3)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(cfg)
+    rec = load_manifest(out)["runs"][run_id]
+    kept = rec["checkpoint"]
+    assert rec["status"] == "interrupted" and rec["attempts"] == 1 and 3 <= kept < 12, rec
+    run = out / rec["folder"]
+    assert (run / "checkpoints" / f"ckpt_{kept:06d}.pt").exists()
+    assert [r["iter"] for r in read_metrics(run)] == list(range(1, kept + 1))
+    assert json.loads((run / "summary.json").read_text())["status"] == "interrupted"
+    assert f"kept iteration {kept} of 12" in capsys.readouterr().err
+    again = run_sweep(cfg)["runs"][run_id]
+    assert again["status"] == "done" and again["resumed"] is True and again["attempts"] == 2, again
+    assert_complete_run(run, 12)
 
 
 def test_run_slots_divide_each_node_by_what_a_run_takes(monkeypatch):
