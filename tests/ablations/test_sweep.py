@@ -524,7 +524,7 @@ def ctrl_c_after(out: Path, run_ids: list[str], lines: int) -> threading.Thread:
     return thread
 
 
-@pytest.mark.parametrize("stage", ["first", "second"])
+@pytest.mark.parametrize("stage", ["first", pytest.param("second", marks=pytest.mark.slow)])
 def test_ctrl_c_keeps_each_runs_last_finished_iteration_and_a_rerun_resumes_there(ray_cluster, tmp_path,
                                                                                  monkeypatch, capsys, stage):
     """Ctrl-C on the driver: each worker sends its ablate SIGINT (first: it finishes the iteration it is in and
