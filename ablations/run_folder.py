@@ -538,6 +538,14 @@ class MetricsTail:
 
 
 # ---------------------------------------------------------------------------------------------- records
+def _git(repo: Path, *args: str) -> str:
+    """``git -C repo args``' output; RuntimeError with git's message where it fails."""
+    r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
+    if r.returncode != 0:
+        raise RuntimeError(r.stderr.strip())
+    return r.stdout
+
+
 def git_info(repo: Path | None = None) -> tuple[str, str]:
     """(git.txt text, full diff) of the source tree that runs; explains itself when git is unavailable. A copy of
     the tree without its repository (a GPU machine's detached runs start from one) records the commit that
@@ -545,18 +553,12 @@ def git_info(repo: Path | None = None) -> tuple[str, str]:
     ``_common.commit`` lets the variable win, for a copy whose repository lags its files)."""
     repo = repo or Path(__file__).resolve().parents[1]
 
-    def git(*args: str) -> str:
-        r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
-        if r.returncode != 0:
-            raise RuntimeError(r.stderr.strip())
-        return r.stdout
-
     try:
-        commit = git("rev-parse", "HEAD").strip()
-        branch = git("rev-parse", "--abbrev-ref", "HEAD").strip()
-        status = git("status", "--porcelain")
-        stat = git("diff", "HEAD", "--stat")
-        diff = git("diff", "HEAD")
+        commit = _git(repo, "rev-parse", "HEAD").strip()
+        branch = _git(repo, "rev-parse", "--abbrev-ref", "HEAD").strip()
+        status = _git(repo, "status", "--porcelain")
+        stat = _git(repo, "diff", "HEAD", "--stat")
+        diff = _git(repo, "diff", "HEAD")
     except (OSError, RuntimeError, subprocess.TimeoutExpired) as e:
         named = os.environ.get("PIXELGRAD_COMMIT")
         if named:
@@ -571,16 +573,10 @@ def git_info(repo: Path | None = None) -> tuple[str, str]:
 
 def _git_state(repo: Path) -> tuple[str | None, bool | None, str]:
     """(commit, dirty, diff against it) of the tree at ``repo``; (None, None, "") without a repository."""
-    def git(*args: str) -> str:
-        r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
-        if r.returncode != 0:
-            raise RuntimeError(r.stderr.strip())
-        return r.stdout
-
     try:
-        commit = git("rev-parse", "HEAD").strip()
-        dirty = bool(git("status", "--porcelain").strip())
-        return commit, dirty, git("diff", "HEAD") if dirty else ""
+        commit = _git(repo, "rev-parse", "HEAD").strip()
+        dirty = bool(_git(repo, "status", "--porcelain").strip())
+        return commit, dirty, _git(repo, "diff", "HEAD") if dirty else ""
     except (OSError, RuntimeError, subprocess.TimeoutExpired):
         return None, None, ""
 

@@ -34,12 +34,13 @@ with its conventions, without gradient.
 # Annotations are evaluated (no ``from __future__ import annotations``): Warp reads the kernels' closure types.
 # Literals in kernels are typed (``S(0.0)``) so that one source serves float32 and float64.
 
-import contextlib
 import functools
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
+
+from diffrender.raytrace import warp_on_torch_stream
 
 from .dynamics import ContactParams, Frames, LimitParams
 from .model import ArticulatedModel
@@ -591,21 +592,9 @@ class WarpSimulator:
                 for n, t in tensors.items()}
 
     def _stream_scope(self):
-        """Warp's work on torch's current stream (CUDA), inside ``ScopedCapture(external=True)`` while torch
-        captures a CUDA graph (as :class:`diffrender.raytrace.RayTracer`)."""
-        if self.device.type != "cuda":
-            return contextlib.nullcontext()
-        torch_stream = torch.cuda.current_stream(self.device)
-        stream = self._streams.get(torch_stream.cuda_stream)
-        if stream is None:
-            stream = self._streams[torch_stream.cuda_stream] = self._wp.stream_from_torch(torch_stream)
-        scope = self._wp.ScopedStream(stream, sync_enter=False)
-        if not torch.cuda.is_current_stream_capturing():
-            return scope
-        stack = contextlib.ExitStack()
-        stack.enter_context(scope)
-        stack.enter_context(self._wp.ScopedCapture(device=self._wp_device, stream=stream, external=True))
-        return stack
+        """Warp's work on torch's current stream, inside ``ScopedCapture(external=True)`` while torch captures a
+        CUDA graph (:func:`diffrender.raytrace.warp_on_torch_stream`)."""
+        return warp_on_torch_stream(self._wp, self.device, self._wp_device, self._streams)
 
     def _mass_inputs(self, w: dict, k: int, win: int) -> list:
         return [self._model_struct, w["Q"], k, win, w["mXr"], w["mXt"], w["mWr"], w["mWt"], w["mSv"], w["IJ"],

@@ -47,7 +47,7 @@ from ..render import _can_sync, _check_float
 from ..settings import RasterSettings
 from ..shading import unit_light
 
-__all__ = ["BVH_CONSTRUCTORS", "RayTracer", "render_raytraced"]
+__all__ = ["BVH_CONSTRUCTORS", "RayTracer", "render_raytraced", "warp_on_torch_stream"]
 
 #: Warp's BVH builders that a grouped mesh supports (``RayTracer(bvh_constructor=...)``).
 BVH_CONSTRUCTORS = ("sah", "median", "lbvh")
@@ -74,6 +74,30 @@ def _warp() -> tuple[Any, Any]:
 
 def _not_int(x) -> bool:
     return isinstance(x, bool) or not isinstance(x, int)
+
+
+def warp_on_torch_stream(wp: Any, device: torch.device, wp_device: Any, streams: dict):
+    """A context in which Warp launches go on PyTorch's current stream of ``device`` (CUDA; a no-op elsewhere),
+    so they are ordered with the surrounding PyTorch work and captured with it in a CUDA graph. ``streams`` caches
+    one Warp stream per torch stream handle. The stream is taken at call time: the autograd engine runs a
+    backward on its own thread and stream."""
+    if device.type != "cuda":
+        return contextlib.nullcontext()
+    torch_stream = torch.cuda.current_stream(device)
+    stream = streams.get(torch_stream.cuda_stream)
+    if stream is None:
+        stream = streams[torch_stream.cuda_stream] = wp.stream_from_torch(torch_stream)
+    # no sync on entry: the work is already ordered on this one stream, and a cross-stream wait would
+    # pull Warp's own stream into a graph being captured
+    scope = wp.ScopedStream(stream, sync_enter=False)
+    if not torch.cuda.is_current_stream_capturing():
+        return scope
+    # Inside a torch.cuda.graph capture Warp must know that a capture is under way (external=True), so that
+    # it allocates and launches in the capture-safe way instead of invalidating the capture.
+    stack = contextlib.ExitStack()
+    stack.enter_context(scope)
+    stack.enter_context(wp.ScopedCapture(device=wp_device, stream=stream, external=True))
+    return stack
 
 
 class RayTracer:
@@ -379,25 +403,8 @@ class RayTracer:
         return image if dtype == torch.float32 else image.to(dtype)
 
     def _stream_scope(self):
-        """Run Warp's work on PyTorch's current stream (CUDA), so it is ordered with the surrounding PyTorch
-        work and captured with it in a CUDA graph."""
-        if self.device.type != "cuda":
-            return contextlib.nullcontext()
-        torch_stream = torch.cuda.current_stream(self.device)
-        stream = self._streams.get(torch_stream.cuda_stream)
-        if stream is None:
-            stream = self._streams[torch_stream.cuda_stream] = self._wp.stream_from_torch(torch_stream)
-        # no sync on entry: the work is already ordered on this one stream, and a cross-stream wait would
-        # pull Warp's own stream into a graph being captured
-        scope = self._wp.ScopedStream(stream, sync_enter=False)
-        if not torch.cuda.is_current_stream_capturing():
-            return scope
-        # Inside a torch.cuda.graph capture Warp must know that a capture is under way (external=True), so that
-        # its BVH refit allocates and launches in the capture-safe way instead of invalidating the capture.
-        stack = contextlib.ExitStack()
-        stack.enter_context(scope)
-        stack.enter_context(self._wp.ScopedCapture(device=self._wp_device, stream=stream, external=True))
-        return stack
+        """Run Warp's work on PyTorch's current stream (:func:`warp_on_torch_stream`)."""
+        return warp_on_torch_stream(self._wp, self.device, self._wp_device, self._streams)
 
     def __repr__(self) -> str:
         return (f"RayTracer(num_envs={self.num_envs}, num_verts={self.num_verts}, num_faces={self.num_faces}, "
