@@ -12,7 +12,7 @@ import sys
 #: command -> "module:function", as pyproject.toml's [project.scripts] names them (ablate-<command>).
 COMMANDS = {"ablate": "ablations.cli:ablate_main", "memory": "ablations.cli:memory_main",
             "plot": "ablations.cli:plot_main", "report": "ablations.cli:report_main",
-            "sweep": "ablations.sweep:main", "paper": "ablations.paper:main"}
+            "sweep": "ablations.sweep:main", "paper": "ablations.paper:main", "plan": "ablations.cli:plan_main"}
 
 
 def main() -> None:

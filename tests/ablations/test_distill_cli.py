@@ -82,8 +82,9 @@ def test_ablate_distill_writes_the_usual_run_folder(tmp_path):
     trainer.train_iteration()
     (tmp_path / "expert" / "checkpoints").mkdir(parents=True)
     save_checkpoint(checkpoint_path(tmp_path / "expert" / "checkpoints", 1), trainer.state_dict())
-    ablate_main([*TINY, *STUDENT, "--expert", str(tmp_path / "expert"), "--iters", "2", "--eval-every", "0",
-                 "--out", str(tmp_path), "--name", "student"])
+    tiny = [a for i, a in enumerate(TINY) if a != "--eval-envs" and (i == 0 or TINY[i - 1] != "--eval-envs")]
+    ablate_main([*tiny, *STUDENT, "--expert", str(tmp_path / "expert"), "--iters", "2", "--eval-every", "0",
+                 "--out", str(tmp_path), "--name", "student"])  # nothing evaluated: --eval-envs would be refused
     record = json.loads((tmp_path / "student" / "config.json").read_text())
     assert record["expert"]["env_steps"] == 8 and record["expert"]["iterations"] == 1
     rows = read_metrics(tmp_path / "student")
