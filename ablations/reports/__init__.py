@@ -6,7 +6,8 @@ Its modules import one way, each only those above it in this list:
     stats/         statistics over seeds (curves, bootstrap estimates, paired comparisons, probes, verdicts)
     paper_numbers  the D.Va paper's numbers, each with its citation
     style          run grouping and labels, arm styles, floors, the mean band, palette PNGs
-    plot           the figures (``ablate-plot``)
+    seed_figures   the seed statistics' figures (learning curves, paired differences, performance profiles)
+    plot           the figures of run folders' metrics (``ablate-plot``)
     parts          what every report section builds with: run facts, markdown tables, relative links
     arms           each run's arm, each arm's iteration time alone
     seeds          the seed-statistics and probe sections

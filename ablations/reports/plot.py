@@ -47,34 +47,34 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import tyro
 
-from ablations.reports.stats import LOOKING_FRACTION, PerformanceProfile, looking_probes
+from ablations.reports.seed_figures import plot_performance_profiles
+from ablations.reports.stats import LOOKING_FRACTION, looking_probes
 from ablations.reports.style import (
     FLOOR_LINES,
     MARKERS,
     Aggregate,
-    ArmStyle,
     FigureSet,
     Floors,
     PlotResult,
     aggregate,
     arm_styles,
-    draw_band,
-    draw_floor_lines,
     group_runs,
     load_floors,
+    plain_tick_labels,
     save_figure,
 )
 from ablations.run_folder import Run, find_runs, is_number, say_metrics_notes
 
+# plot_performance_profiles (ablations.reports.seed_figures) is importable from here beside the other figures.
 __all__ = ["PlotConfig", "make_plots", "build_figures", "FIGURES", "RENDER_TERM_GROUPS", "plot_runs",
-           "draw_learning_curves", "draw_difference_curves", "plot_performance_profiles"]
+           "plot_performance_profiles"]
 
 _EVAL = ("Stars: the deterministic evaluation return of each run (bar: +- std over its evaluation episodes, "
          "where recorded); dotted and dash-dotted lines: the zero- and random-action return floors.")
@@ -135,88 +135,6 @@ class PlotConfig:
     """task-floors JSON with the zero- and random-action return floors; None: docs/floors.json of this checkout."""
 
 
-
-
-def draw_learning_curves(task: str, bands: dict[str, dict], path: str | os.PathLike, *,
-                         floors: dict[str, dict] | None = None, styles: dict[str, ArmStyle] | None = None,
-                         confidence: float = 0.95, exact_max_n: int = 10) -> Path:
-    """One task's learning curves per arm in two panels, the deterministic **evaluation return** and the
-    **training return** (the exploring policy's last 100 episodes), against iterations: arm -> {"evaluation":
-    Band, "training": Band} (``ablations.reports.stats.mean_band``), the band the mean's bootstrap interval over seeds
-    (shaded where 2 or more runs have the point; a single run's stretch dotted), the zero- and random-action
-    floors as horizontal lines; the legend gives each arm's runs."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11.0, 3.8), layout="constrained")
-    for ax, kind, ylabel in ((axes[0], "evaluation", "evaluation return\n(deterministic policy)"),
-                             (axes[1], "training", "training return\n(last 100 episodes, exploring)")):
-        for arm, b in bands.items():
-            band = b.get(kind)
-            if band is not None and band.x.size:
-                draw_band(ax, band, (styles or {}).get(arm), f"{arm} (n={int(band.n.max())})")
-        draw_floor_lines(ax, floors)
-        ax.set_xlabel("iteration")
-        ax.set_ylabel(ylabel)
-        ax.grid(alpha=0.3)
-        _one_line_per_axis_value(ax)
-    axes[0].set_title(f"{task}: evaluation return")
-    axes[1].set_title(f"{task}: training return")
-    fig.suptitle(f"mean over seeds; shaded: {confidence:.0%} bootstrap interval of the mean (exact up to "
-                 f"{exact_max_n} seeds)\nwhere 2 or more runs have the point; dotted: a point only one run has",
-                 fontsize=8)
-    handles, labels = axes[0].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="outside right upper", fontsize=8)
-    path = Path(path)
-    save_figure(fig, path)
-    return path
-
-
-def draw_difference_curves(task: str, curves: dict[tuple[str, str], object], path: str | os.PathLike, *,
-                           styles: dict[str, ArmStyle] | None = None, reference: str = "decoupled") -> Path:
-    """One task's paired differences against ``reference`` along the training budget
-    (``ablations.reports.stats.difference_curves``: (arm, axis) -> DifferenceCurve): a panel in iterations and one in
-    modelled wall-clock where given; per arm the mean difference (line), the median (thin, dashed) and the mean's
-    interval at each evaluation (shaded), and zero."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    axes_used = [a for a in ("iteration", "wall-clock") if any(k[1] == a for k in curves)]
-    fig, axes = plt.subplots(1, max(len(axes_used), 1), figsize=(5.6 * max(len(axes_used), 1), 3.8), squeeze=False,
-                             layout="constrained")
-    conf = next(iter(curves.values())).confidence if curves else 0.95
-    for ax, axis in zip(axes[0], axes_used):
-        for (arm, a), dc in curves.items():
-            if a != axis:
-                continue
-            style = (styles or {}).get(arm)
-            look = {"color": style.color} if style is not None else {}
-            (line,) = ax.plot(dc.x, dc.mean, lw=1.6, marker="o", ms=3, label=f"{arm} (n={int(dc.n.max())})",
-                              gid="mean", ls=style.linestyle if style is not None else "-", **look)
-            ax.plot(dc.x, dc.median, lw=0.9, ls="--", color=line.get_color(), gid="median", label=f"_{arm} median")
-            ax.fill_between(dc.x, dc.ci_low, dc.ci_high, color=line.get_color(), alpha=0.18, lw=0)
-        ax.axhline(0.0, color="0.15", lw=1.0, zorder=1.5)
-        ax.set_xlabel("iteration" if axis == "iteration" else "modelled training time [s] (iterations x the arm's "
-                      "iteration time alone)")
-        ax.set_ylabel(f"final return: arm − {reference}\n(paired by seed)")
-        ax.set_title(f"{task}: at equal {'iterations' if axis == 'iteration' else 'wall-clock'}")
-        ax.grid(alpha=0.3)
-        _one_line_per_axis_value(ax)
-    fig.suptitle(f"line: mean paired difference, dashed: median, shaded: {conf:.0%} bootstrap interval of the "
-                 "mean\nat each evaluation (pointwise, not corrected for the many budgets)", fontsize=8)
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="outside right upper", fontsize=8)
-    path = Path(path)
-    save_figure(fig, path)
-    return path
-
-
 def _frame_keys(runs: list[Run]) -> list[str]:
     """The image_sensitivity_f<i> keys present in the runs, by frame index."""
     keys = {k for r in runs for m in r.metrics for k in m if k.startswith("image_sensitivity_f")}
@@ -238,16 +156,6 @@ def _markevery(points: int, arm: int, arms: int):
         return None
     step = math.ceil(points / _MARKS)
     return (arm * step // max(arms, 1)) % step, step
-
-
-def _one_line_per_axis_value(ax) -> None:
-    """Plain tick labels on linear axes: no offset such as ``1e-5+9.9999e-1`` above the ticks."""
-    from matplotlib.ticker import ScalarFormatter
-
-    for axis in (ax.xaxis, ax.yaxis):
-        fmt = axis.get_major_formatter()
-        if isinstance(fmt, ScalarFormatter):
-            fmt.set_useOffset(False)
 
 
 #: Colours of the quantities of a multi-quantity figure (probe norms, render-term groups, frames).
@@ -414,7 +322,7 @@ class _Drawer:
         if log:
             ax.set_yscale("log")
         ax.grid(True, alpha=0.3)
-        _one_line_per_axis_value(ax)
+        plain_tick_labels(ax)
 
     def keep(self, name: str, fig, drawn: bool, why: str) -> None:
         if drawn:
@@ -689,30 +597,3 @@ def plot_runs(cfg: PlotConfig) -> PlotResult:
     runs = find_runs(list(cfg.runs))
     say_metrics_notes(runs)  # damaged lines skipped, iterations twice or out of order
     return make_plots(runs, cfg.out, floors=load_floors(cfg.floors), shared_seed="keep newest")
-
-
-def plot_performance_profiles(profile: PerformanceProfile, path: str | Path, *,
-                              styles: Mapping | None = None) -> Path:
-    """Draw one task's profiles (fraction of runs above each threshold, the CI shaded) to a PNG, written
-    atomically; the legend sits outside the axes. ``styles``: arm -> ``ablations.reports.style.ArmStyle`` (the arm's
-    colour and line style in every other figure); arms it does not name take matplotlib's next colour."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    for arm, p in profile.arms.items():
-        style = (styles or {}).get(arm)
-        look = {"color": style.color, "ls": style.linestyle} if style is not None else {}
-        (line,) = ax.plot(profile.thresholds, p.fraction, label=f"{arm} (n={p.n})", lw=1.6, **look)
-        ax.fill_between(profile.thresholds, p.ci_low, p.ci_high, color=line.get_color(), alpha=0.2, linewidth=0)
-    ax.set_xlabel(f"final evaluation return (mean of the last {profile.final_evals})")
-    ax.set_ylabel("fraction of runs above")
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_title(f"{profile.task}: performance profile (shaded: {profile.confidence:.0%} CI, "
-                 f"{profile.reps} bootstrap resamples)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
-    path = Path(path)
-    save_figure(fig, path)
-    return path

@@ -32,7 +32,7 @@ from ablations.reports.parts import (
     markdown_table,
     report_path,
 )
-from ablations.reports.plot import draw_difference_curves, draw_learning_curves, plot_performance_profiles
+from ablations.reports.seed_figures import draw_difference_curves, draw_learning_curves, plot_performance_profiles
 from ablations.reports.style import Floors, PlotResult, arm_styles, group_runs
 from ablations.run_folder import Run, is_number
 from vocabulary import (

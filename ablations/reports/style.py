@@ -24,7 +24,8 @@ if TYPE_CHECKING:
 
 __all__ = ["group_runs", "run_labels", "ArmStyle", "arm_styles", "MODE_COLORS", "VARIANT_KEYS", "Floors",
            "load_floors", "DEFAULT_FLOORS", "Aggregate", "aggregate", "PlotResult", "FigureSet", "PNG_METADATA",
-           "FIGURE_DPI", "png_bytes", "save_figure", "MARKERS", "FLOOR_LINES", "draw_floor_lines", "draw_band"]
+           "FIGURE_DPI", "png_bytes", "save_figure", "MARKERS", "FLOOR_LINES", "draw_floor_lines", "draw_band",
+           "plain_tick_labels"]
 
 
 MODE_COLORS = {"full": "tab:red", "decoupled": "tab:blue", "state": "tab:green", "blind": "tab:gray"}
@@ -290,3 +291,12 @@ def draw_band(ax, band, style: ArmStyle | None, label: str, *, lw: float = 1.6) 
                 marker=".", ms=3, gid="single run", label=f"_{label} (1 run)")
     ax.fill_between(band.x, band.ci_low, band.ci_high, where=many, color=line.get_color(), alpha=0.18, lw=0)
 
+
+def plain_tick_labels(ax) -> None:
+    """Plain tick labels on linear axes: no offset such as ``1e-5+9.9999e-1`` above the ticks."""
+    from matplotlib.ticker import ScalarFormatter
+
+    for axis in (ax.xaxis, ax.yaxis):
+        fmt = axis.get_major_formatter()
+        if isinstance(fmt, ScalarFormatter):
+            fmt.set_useOffset(False)

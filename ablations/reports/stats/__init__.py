@@ -36,7 +36,7 @@ precipice", 2021), computed here with numpy so that no resampling library (and n
 * **differences along the budget** (``difference_curves``, ``sign_holds``): the paired difference at every
   evaluation, in iterations and in modelled wall-clock, so that no single cut decides what a curve says;
 * **performance profiles** (``performance_profiles``): the fraction of an arm's runs whose final return exceeds
-  each threshold, with CIs, as data (``ablations.reports.plot.plot_performance_profiles`` draws them);
+  each threshold, with CIs, as data (``ablations.reports.seed_figures.plot_performance_profiles`` draws them);
 * **looking probes** (``looking_probes``): the probe iterations where the policy's image sensitivity is above a
   fraction (``LOOKING_FRACTION``) of its first probe's, and the probe statistics over those only;
 * **the verdict** (``verdict``): an arm is read against the reference (decoupled) only where the reference beats
