@@ -23,7 +23,28 @@ its own slots (index ``k`` of every buffer), so the adjoint of substep ``k`` rep
 import functools
 from typing import Any
 
-__all__ = ["kernels", "load_warp"]
+__all__ = ["MODEL_ARRAYS", "kernels", "load_warp"]
+
+#: The model struct's arrays, name -> element type: "int" (int32) or the precision's "S" (scalar), "vec3", "mat33".
+#: One entry an element of the articulated model (b_ a body, h_ a hinge/slide joint, f_ a free joint, d_ a dof,
+#: c_ a contact point); :class:`tasks.warp_sim.WarpSimulator` fills each by name.
+MODEL_ARRAYS = {
+    "b_parent": "int",  # parent body, nb for the world
+    "b_off_R": "mat33", "b_off_t": "vec3",
+    "b_free": "int",  # free joint index or -1
+    "b_j0": "int", "b_j1": "int",  # hinge/slide joints [j0, j1) of the body
+    "b_d0": "int", "b_d1": "int",  # dofs [d0, d1) of the body
+    "b_mass": "S", "b_ipos": "vec3", "b_inertia": "mat33",
+    "h_hinge": "S",  # 1 hinge, 0 slide
+    "h_axis": "vec3", "h_anchor": "vec3", "h_qadr": "int", "h_dof": "int", "h_qpos0": "S", "h_stiff": "S",
+    "h_springref": "S", "h_lo": "S", "h_hi": "S",
+    "f_body": "int", "f_qadr": "int", "f_dof": "int",
+    "d_body": "int",
+    "d_vsrc": "int",  # the dof whose running velocity moves this dof's axis (dS/dt)
+    "d_damping": "S", "d_armature": "S",
+    "d_anc": "int",  # (nv * nv) [i * nv + j] = 1: i ancestor-or-self of j
+    "c_body": "int", "c_pos": "vec3", "c_dist": "S",
+}
 
 
 @functools.cache
@@ -62,38 +83,6 @@ def kernels(precision: str) -> dict[str, Any]:
         nv: int
         nc: int
         root_free: int  # 1: body 0 carries a free joint whose position is the reference point
-        b_parent: wp.array(dtype=int)  # parent body, nb for the world
-        b_off_R: wp.array(dtype=mat33)
-        b_off_t: wp.array(dtype=vec3)
-        b_free: wp.array(dtype=int)  # free joint index or -1
-        b_j0: wp.array(dtype=int)  # hinge/slide joints [j0, j1) of the body
-        b_j1: wp.array(dtype=int)
-        b_d0: wp.array(dtype=int)  # dofs [d0, d1) of the body
-        b_d1: wp.array(dtype=int)
-        b_mass: wp.array(dtype=S)
-        b_ipos: wp.array(dtype=vec3)
-        b_inertia: wp.array(dtype=mat33)
-        h_hinge: wp.array(dtype=S)  # 1 hinge, 0 slide
-        h_axis: wp.array(dtype=vec3)
-        h_anchor: wp.array(dtype=vec3)
-        h_qadr: wp.array(dtype=int)
-        h_dof: wp.array(dtype=int)
-        h_qpos0: wp.array(dtype=S)
-        h_stiff: wp.array(dtype=S)
-        h_springref: wp.array(dtype=S)
-        h_lo: wp.array(dtype=S)
-        h_hi: wp.array(dtype=S)
-        f_body: wp.array(dtype=int)
-        f_qadr: wp.array(dtype=int)
-        f_dof: wp.array(dtype=int)
-        d_body: wp.array(dtype=int)
-        d_vsrc: wp.array(dtype=int)  # the dof whose running velocity moves this dof's axis (dS/dt)
-        d_damping: wp.array(dtype=S)
-        d_armature: wp.array(dtype=S)
-        d_anc: wp.array(dtype=int)  # (nv * nv) [i * nv + j] = 1: i ancestor-or-self of j
-        c_body: wp.array(dtype=int)
-        c_pos: wp.array(dtype=vec3)
-        c_dist: wp.array(dtype=S)
         a0: vec3  # -gravity: the base's upward acceleration
         ground: S
         ke: S
@@ -104,6 +93,8 @@ def kernels(precision: str) -> dict[str, Any]:
         lim_kd: S
         lim_violated: int  # 0: limit damping on every hinge/slide dof (dflex), 1: only outside the range
 
+    element = {"int": int, "S": S, "vec3": vec3, "mat33": mat33}
+    Model.__annotations__.update({name: wp.array(dtype=element[kind]) for name, kind in MODEL_ARRAYS.items()})
     Model.__module__ = __name__
     Model = wp.struct(Model, module=module)
 

@@ -28,7 +28,7 @@ from diffrender.raytrace import warp_on_torch_stream
 
 from .dynamics import ContactParams, Frames, LimitParams
 from .model import ArticulatedModel
-from .warp_kernels import kernels, load_warp
+from .warp_kernels import MODEL_ARRAYS, kernels, load_warp
 
 __all__ = ["WarpSimulator"]
 
@@ -128,47 +128,40 @@ class WarpSimulator:
         k = self._k
         keep: list[torch.Tensor] = []
 
-        def arr(x, wdtype=None, *, integer=False, width=None):
+        def arr(x, kind: str):
+            integer = kind == "int"
             x = np.asarray(x, dtype=np.int32 if integer else np.float64)
             if x.shape[0] == 0:  # Warp arrays of zero length: pad (the loops' counts stay 0)
                 x = np.zeros((1, *x.shape[1:]), dtype=x.dtype)
             t = torch.as_tensor(x, dtype=torch.int32 if integer else dtype, device=device).contiguous()
             keep.append(t)
-            return wp.from_torch(t, dtype=wdtype if wdtype is not None else (wp.int32 if integer else k["S"]))
+            return wp.from_torch(t, dtype=wp.int32 if integer else k[kind])
 
         j0, j1 = _contiguous_ranges(model.hs_body, nb, "hinge/slide joints")
         d0, d1 = _contiguous_ranges(model.dof_body, nb, "dofs")
         vsrc = np.arange(nv)
         for d in model.free_dof:
             vsrc[d + 3 : d + 6] = d + 2  # a free joint's rotation axes move with its translation only
+        arrays = {
+            "b_parent": np.where(model.body_parent < 0, nb, model.body_parent), "b_off_R": model.body_rot,
+            "b_off_t": model.body_pos, "b_free": model.body_free, "b_j0": j0, "b_j1": j1, "b_d0": d0, "b_d1": d1,
+            "b_mass": model.body_mass, "b_ipos": model.body_ipos, "b_inertia": model.body_inertia,
+            "h_hinge": model.hs_hinge.astype(np.float64), "h_axis": model.hs_axis.reshape(nh, 3),
+            "h_anchor": model.hs_anchor.reshape(nh, 3), "h_qadr": model.hs_qadr, "h_dof": model.hs_dof,
+            "h_qpos0": model.hs_qpos0, "h_stiff": model.hs_stiffness, "h_springref": model.hs_springref,
+            "h_lo": np.where(model.hs_limited, model.hs_range[:, 0], -_BIG) if nh else np.zeros(0),
+            "h_hi": np.where(model.hs_limited, model.hs_range[:, 1], _BIG) if nh else np.zeros(0),
+            "f_body": model.free_body, "f_qadr": model.free_qadr, "f_dof": model.free_dof,
+            "d_body": model.dof_body, "d_vsrc": vsrc, "d_damping": model.dof_damping,
+            "d_armature": model.dof_armature, "d_anc": model.dof_anc.reshape(-1) != 0,
+            "c_body": model.contact_body, "c_pos": model.contact_pos.reshape(nc, 3), "c_dist": model.contact_dist,
+        }
+        assert arrays.keys() == MODEL_ARRAYS.keys(), "every array of the model struct is filled"
         st = k["Model"]()
         st.nb, st.nh, st.nf, st.nv, st.nc = nb, nh, nf, nv, nc
         st.root_free = int(nb > 0 and model.body_free[0] >= 0)
-        st.b_parent = arr(np.where(model.body_parent < 0, nb, model.body_parent), integer=True)
-        st.b_off_R = arr(model.body_rot, k["mat33"])
-        st.b_off_t = arr(model.body_pos, k["vec3"])
-        st.b_free = arr(model.body_free, integer=True)
-        st.b_j0, st.b_j1 = arr(j0, integer=True), arr(j1, integer=True)
-        st.b_d0, st.b_d1 = arr(d0, integer=True), arr(d1, integer=True)
-        st.b_mass = arr(model.body_mass)
-        st.b_ipos = arr(model.body_ipos, k["vec3"])
-        st.b_inertia = arr(model.body_inertia, k["mat33"])
-        st.h_hinge = arr(model.hs_hinge.astype(np.float64))
-        st.h_axis = arr(model.hs_axis.reshape(nh, 3), k["vec3"])
-        st.h_anchor = arr(model.hs_anchor.reshape(nh, 3), k["vec3"])
-        st.h_qadr, st.h_dof = arr(model.hs_qadr, integer=True), arr(model.hs_dof, integer=True)
-        st.h_qpos0 = arr(model.hs_qpos0)
-        st.h_stiff, st.h_springref = arr(model.hs_stiffness), arr(model.hs_springref)
-        st.h_lo = arr(np.where(model.hs_limited, model.hs_range[:, 0], -_BIG) if nh else np.zeros(0))
-        st.h_hi = arr(np.where(model.hs_limited, model.hs_range[:, 1], _BIG) if nh else np.zeros(0))
-        st.f_body, st.f_qadr = arr(model.free_body, integer=True), arr(model.free_qadr, integer=True)
-        st.f_dof = arr(model.free_dof, integer=True)
-        st.d_body, st.d_vsrc = arr(model.dof_body, integer=True), arr(vsrc, integer=True)
-        st.d_damping, st.d_armature = arr(model.dof_damping), arr(model.dof_armature)
-        st.d_anc = arr(model.dof_anc.reshape(-1) != 0, integer=True)
-        st.c_body = arr(model.contact_body, integer=True)
-        st.c_pos = arr(model.contact_pos.reshape(nc, 3), k["vec3"])
-        st.c_dist = arr(model.contact_dist)
+        for name, x in arrays.items():
+            setattr(st, name, arr(x, MODEL_ARRAYS[name]))
         S = k["S"]
         st.a0 = k["vec3"](*(-model.gravity).tolist())
         cp = self.contact
