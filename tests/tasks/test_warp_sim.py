@@ -31,7 +31,7 @@ from tasks import load_model
 from tasks.task import ASSETS
 
 from .helpers import directional_fd_check
-from .test_dynamics import mujoco_reference, random_states
+from .mujoco_checks import assert_float64_matches_mujoco, mujoco_reference, random_states
 
 pytest.importorskip("warp")
 
@@ -70,17 +70,7 @@ def test_kinematics_inertia_and_qacc_match_mujoco_float64(robot):
     """As test_dynamics.test_forward_dynamics_matches_mujoco, with the float64 Warp kernels (slow: their module's
     first compile)."""
     m, model, sim = _sims(robot, torch.float64)
-    qs, vs, ts = random_states(m, model, 16, seed=1)
-    ref = mujoco_reference(m, qs, vs, ts)
-    q, v, t = (torch.tensor(x) for x in (qs, vs, ts))
-    qacc = sim.forward_dynamics(q, v, t)
-    rel = ((qacc - ref["qacc"]).norm(dim=-1) / ref["qacc"].norm(dim=-1)).max().item()
-    assert rel < 1e-8, f"{robot}: qacc relative error {rel:.3e}"
-    M = sim.mass_matrix(q)
-    assert torch.allclose(M, ref["M"], rtol=1e-9, atol=1e-10 * ref["M"].abs().max())
-    fr = sim.frames(q)
-    assert torch.allclose(fr.pos, ref["xpos"], atol=1e-10)
-    assert torch.allclose(fr.rot, ref["xmat"], atol=1e-10)
+    assert_float64_matches_mujoco(sim, m, model)
 
 
 def _start(robot: str, num_envs: int = 2, **overrides):
