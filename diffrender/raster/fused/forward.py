@@ -173,12 +173,19 @@ def _blend_chunk(inbox, sd, zn, cr, cg, cb, inb, num_r, num_g, num_b, den, w_sum
 
 
 @triton.jit
-def _listed_faces(bins_ptr, lbase, cnt, h, fo, FS: tl.constexpr):
-    """Slots ``h * FS ...`` of a tile's face list (:func:`_bin_faces`): their face indices (FS,) and which slots
-    hold one (past ``cnt`` the slots hold face 0, masked out)."""
+def _list_chunk(cbase, fbox, bins_ptr, lbase, cnt, h, fo, Fp, xc, yc, zfar, znear, lx, ly, lz, ambient, diffuse,
+                FS: tl.constexpr):
+    """Chunk ``h`` of a tile's face list (:func:`_bin_faces`), slots ``h * FS ...``, at the tile's pixels, as
+    :func:`_block_chunk` gives a block's: the faces' indices (FS,; past ``cnt`` the slots hold face 0, masked out
+    of the box test), whether each pixel centre lies in each face's box, and each pair's signed distance,
+    normalised depth and colour (``_candidate``), each (FS, P)."""
     slot = h * FS + fo
     filled = slot < cnt
-    return tl.load(bins_ptr + lbase + slot, mask=filled, other=0), filled
+    f = tl.load(bins_ptr + lbase + slot, mask=filled, other=0)
+    inbox = _in_face_box(fbox, f, Fp, xc, yc) & filled[:, None]
+    sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
+                                    ambient, diffuse)
+    return f, inbox, sd, zn, cr, cg, cb
 
 
 @triton.jit
@@ -219,10 +226,8 @@ def _blend_list(coef_ptr, box_ptr, bins_ptr, lbase, cnt, num_r, num_g, num_b, de
     cbase = coef_ptr + env * 45 * Fp
     fbox = box_ptr + env * 4 * Fp
     for h in range(h0, (cnt + FS - 1) // FS, NSPLIT):
-        f, filled = _listed_faces(bins_ptr, lbase, cnt, h, fo, FS)
-        inbox = _in_face_box(fbox, f, Fp, xc, yc) & filled[:, None]
-        sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                        ambient, diffuse)
+        _, inbox, sd, zn, cr, cg, cb = _list_chunk(cbase, fbox, bins_ptr, lbase, cnt, h, fo, Fp, xc, yc, zfar, znear,
+                                                   lx, ly, lz, ambient, diffuse, FS)
         num_r, num_g, num_b, den, w_sum, cov_sum, m = _blend_chunk(
             inbox, sd, zn, cr, cg, cb, inb, num_r, num_g, num_b, den, w_sum, cov_sum, m, sigma, gamma, cutoff, cap)
     return num_r, num_g, num_b, den, w_sum, cov_sum, m
@@ -320,10 +325,8 @@ def _nearest_list(coef_ptr, box_ptr, bins_ptr, lbase, cnt, col_r, col_g, col_b, 
     cbase = coef_ptr + env * 45 * Fp
     fbox = box_ptr + env * 4 * Fp
     for h in range(h0, (cnt + FS - 1) // FS, NSPLIT):
-        f, filled = _listed_faces(bins_ptr, lbase, cnt, h, fo, FS)
-        inbox = _in_face_box(fbox, f, Fp, xc, yc) & filled[:, None]
-        sd, zn, cr, cg, cb = _candidate(cbase + f[:, None], Fp, xc[None, :], yc[None, :], zfar, znear, lx, ly, lz,
-                                        ambient, diffuse)
+        f, inbox, sd, zn, cr, cg, cb = _list_chunk(cbase, fbox, bins_ptr, lbase, cnt, h, fo, Fp, xc, yc, zfar, znear,
+                                                   lx, ly, lz, ambient, diffuse, FS)
         col_r, col_g, col_b, nearest, m = _nearest_chunk(f, inbox, sd, zn, cr, cg, cb, inb, col_r, col_g, col_b,
                                                          nearest, m, True, DEFER)
     return col_r, col_g, col_b, nearest, m
