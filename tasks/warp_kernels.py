@@ -136,6 +136,13 @@ def kernels(precision: str) -> dict[str, Any]:
         return hinge * (a - R * a) + (S(1.0) - hinge) * th * u
 
     @func
+    def joint_motion(m: Model, q: wp.array3d(dtype=S), kq: int, e: int, h: int):
+        """(rotation, translation) of hinge/slide joint h at the state in slot ``kq`` of ``q``."""
+        th = q[kq, e, m.h_qadr[h]] - m.h_qpos0[h]
+        R = joint_R(m.h_hinge[h], m.h_axis[h], th)
+        return R, joint_t(m.h_hinge[h], m.h_axis[h], m.h_anchor[h], th, R)
+
+    @func
     def free_origin(m: Model, q: wp.array3d(dtype=S), k: int, e: int):
         o = vec3(S(0.0), S(0.0), S(0.0))
         if m.root_free != 0:
@@ -184,15 +191,11 @@ def kernels(precision: str) -> dict[str, Any]:
                         Wt[k, e, h] = Xr[k, e, p] * m.b_off_t[b] + Xt[k, e, p]
                     else:
                         g = h - 1
-                        thg = q[kq, e, m.h_qadr[g]] - m.h_qpos0[g]
-                        Rg = joint_R(m.h_hinge[g], m.h_axis[g], thg)
-                        tg = joint_t(m.h_hinge[g], m.h_axis[g], m.h_anchor[g], thg, Rg)
+                        Rg, tg = joint_motion(m, q, kq, e, g)
                         Wr[k, e, h] = Wr[k, e, g] * Rg
                         Wt[k, e, h] = Wr[k, e, g] * tg + Wt[k, e, g]
                 hl = j1 - 1
-                thl = q[kq, e, m.h_qadr[hl]] - m.h_qpos0[hl]
-                Rl = joint_R(m.h_hinge[hl], m.h_axis[hl], thl)
-                tl = joint_t(m.h_hinge[hl], m.h_axis[hl], m.h_anchor[hl], thl, Rl)
+                Rl, tl = joint_motion(m, q, kq, e, hl)
                 Xr[k, e, b] = Wr[k, e, hl] * Rl
                 Xt[k, e, b] = Wr[k, e, hl] * tl + Wt[k, e, hl]
 
