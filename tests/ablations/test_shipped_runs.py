@@ -15,7 +15,7 @@ from ablations.run_folder import CONFIG, evaluation_of, find_runs
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
-EXPERIMENTS = ("seeded", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200")
+EXPERIMENTS = ("seeded", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200", "humanoid_h200")
 #: The arms of the shipped runs (names from vocabulary.ARMS).
 SHIPPED_ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
 
@@ -125,6 +125,27 @@ def test_every_arm_of_the_seeded_experiment_has_its_iteration_time_measured_alon
         if task != "ant":  # full-hard costs full-hard-dva's (the preset changes the schedule, not the work)
             assert t.ms["full-hard"] == t.ms["full-hard-dva"]
     assert times["cartpole-swingup"].ms["state"] < times["cartpole-swingup"].ms["blind"]
+
+
+def test_the_humanoid_from_pixels_is_three_decoupled_seeds_of_one_population_and_its_readme_quotes_them(shipped):
+    # docs/humanoid_h200: decoupled x seeds 0-2, one compiled population on one H200, stopped by its 19-minute budget
+    from ablations.reports.stats.estimates import iqm_estimate
+
+    runs = find_runs([shipped / "humanoid_h200" / "runs"])
+    assert sorted(r.seed for r in runs) == [0, 1, 2]
+    assert {(r.task, r.mode, r.setting("preset")) for r in runs} == {("humanoid", "decoupled", "dva")}
+    assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("time_limit", 2461)}
+    assert all(r.config["compile"] and r.environment["gpu"] == "NVIDIA H200" for r in runs)
+    assert {r.population["folder"] for r in runs} == {"humanoid_decoupled_pop3"}
+    final = {}
+    for r in runs:
+        evals = {row["iter"]: evaluation_of(row)[0] for row in r.metrics if evaluation_of(row) is not None}
+        assert sorted(evals)[-3:] == [2000, 2250, 2461]
+        final[r.seed] = sum(evals[i] for i in (2000, 2250, 2461)) / 3
+    readme = (ROOT / "docs" / "humanoid_h200" / "README.md").read_text()
+    assert f"IQM {iqm_estimate(list(final.values())).value:.1f}" in readme
+    assert f"per seed {final[0]:.0f}, {final[1]:.0f} and {final[2]:.0f}" in readme
+    assert round(runs[0].summary["median_iter_ms"], 1) == 410.6 and "410.6 ms" in readme
 
 
 def test_every_experiment_ships_its_run_folders_as_one_archive(shipped):
