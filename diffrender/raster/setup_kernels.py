@@ -115,6 +115,15 @@ if triton is not None:
         return ok
 
     @triton.jit
+    def _kept_corners(u0, v0, z0, u1, v1, z1, u2, v2, z2, real, znear, area_eps, CULL: tl.constexpr):
+        """:func:`_kept`, and the corners with a dropped face's replaced by the triangle (0, 0), (1, 0), (0, 1)
+        at depth 1, as the reference does: no inf/NaN is ever formed from a dropped face."""
+        ok = _kept(u0, v0, z0, u1, v1, z1, u2, v2, z2, real, znear, area_eps, CULL)
+        return (ok, tl.where(ok, u0, 0.0), tl.where(ok, v0, 0.0), tl.where(ok, z0, 1.0),
+                tl.where(ok, u1, 1.0), tl.where(ok, v1, 0.0), tl.where(ok, z1, 1.0),
+                tl.where(ok, u2, 0.0), tl.where(ok, v2, 1.0), tl.where(ok, z2, 1.0))
+
+    @triton.jit
     def _edge_rows(ex, ey, ua, va, inv_area, abs_area):
         """Edge k's rows: barycentric lambda_k (LA, LX, LY), position along the edge (PA, PX, PY), height
         H_k, squared length."""
@@ -123,6 +132,26 @@ if triton is not None:
         return ((ey * ua - ex * va) * inv_area, -ey * inv_area, ex * inv_area,
                 -(ex * ua + ey * va) * inv_len2, ex * inv_len2, ey * inv_len2,
                 abs_area * tl.sqrt(inv_len2), len2)
+
+    @triton.jit
+    def _store_edge_rows(cp, k, Fp, stored, ex, ey, ua, va, inv_area, abs_area):
+        """Edge k's eight rows (:func:`_edge_rows`) into rows k, k + 3, ..., k + 21 of the block's coefficients."""
+        la, lx, ly, pa, px, py, h, l2 = _edge_rows(ex, ey, ua, va, inv_area, abs_area)
+        tl.store(cp + k * Fp, la, mask=stored)
+        tl.store(cp + (k + 3) * Fp, lx, mask=stored)
+        tl.store(cp + (k + 6) * Fp, ly, mask=stored)
+        tl.store(cp + (k + 9) * Fp, pa, mask=stored)
+        tl.store(cp + (k + 12) * Fp, px, mask=stored)
+        tl.store(cp + (k + 15) * Fp, py, mask=stored)
+        tl.store(cp + (k + 18) * Fp, h, mask=stored)
+        tl.store(cp + (k + 21) * Fp, l2, mask=stored)
+
+    @triton.jit
+    def _edge_grads_at(gp, k, Fp, ex, ey, ua, va, inv_area, abs_area):
+        """:func:`_edge_grads` of edge k, its eight rows' gradients read from rows k, k + 3, ..., k + 21."""
+        return _edge_grads(ex, ey, ua, va, inv_area, abs_area, tl.load(gp + k * Fp), tl.load(gp + (k + 3) * Fp),
+                           tl.load(gp + (k + 6) * Fp), tl.load(gp + (k + 9) * Fp), tl.load(gp + (k + 12) * Fp),
+                           tl.load(gp + (k + 15) * Fp), tl.load(gp + (k + 18) * Fp), tl.load(gp + (k + 21) * Fp))
 
     @triton.jit
     def _edge_grads(ex, ey, ua, va, inv_area, abs_area, gla, glx, gly, gpa, gpx, gpy, gh, gl2):
@@ -164,17 +193,8 @@ if triton is not None:
         stored = f < Fp
         env_v = env * V * 3
         i0, i1, i2, u0, v0, z0, u1, v1, z1, u2, v2, z2 = _corners(uvz_ptr, faces_ptr, f, real, env_v)
-        ok = _kept(u0, v0, z0, u1, v1, z1, u2, v2, z2, real, znear, area_eps, CULL)
-        # a dropped face gets the triangle (0, 0), (1, 0), (0, 1) at depth 1: no inf/NaN is ever formed
-        u0 = tl.where(ok, u0, 0.0)
-        v0 = tl.where(ok, v0, 0.0)
-        z0 = tl.where(ok, z0, 1.0)
-        u1 = tl.where(ok, u1, 1.0)
-        v1 = tl.where(ok, v1, 0.0)
-        z1 = tl.where(ok, z1, 1.0)
-        u2 = tl.where(ok, u2, 0.0)
-        v2 = tl.where(ok, v2, 1.0)
-        z2 = tl.where(ok, z2, 1.0)
+        ok, u0, v0, z0, u1, v1, z1, u2, v2, z2 = _kept_corners(u0, v0, z0, u1, v1, z1, u2, v2, z2, real, znear,
+                                                               area_eps, CULL)
         # edge k runs from corner k+1 to corner k+2
         ex0 = u2 - u1
         ey0 = v2 - v1
@@ -183,33 +203,9 @@ if triton is not None:
         inv_area = 1.0 / area
         abs_area = tl.abs(area)
         cp = coef_ptr + env * 45 * Fp + f
-        la, lx, ly, pa, px, py, h, l2 = _edge_rows(ex0, ey0, u1, v1, inv_area, abs_area)
-        tl.store(cp, la, mask=stored)
-        tl.store(cp + 3 * Fp, lx, mask=stored)
-        tl.store(cp + 6 * Fp, ly, mask=stored)
-        tl.store(cp + 9 * Fp, pa, mask=stored)
-        tl.store(cp + 12 * Fp, px, mask=stored)
-        tl.store(cp + 15 * Fp, py, mask=stored)
-        tl.store(cp + 18 * Fp, h, mask=stored)
-        tl.store(cp + 21 * Fp, l2, mask=stored)
-        la, lx, ly, pa, px, py, h, l2 = _edge_rows(u0 - u2, v0 - v2, u2, v2, inv_area, abs_area)
-        tl.store(cp + Fp, la, mask=stored)
-        tl.store(cp + 4 * Fp, lx, mask=stored)
-        tl.store(cp + 7 * Fp, ly, mask=stored)
-        tl.store(cp + 10 * Fp, pa, mask=stored)
-        tl.store(cp + 13 * Fp, px, mask=stored)
-        tl.store(cp + 16 * Fp, py, mask=stored)
-        tl.store(cp + 19 * Fp, h, mask=stored)
-        tl.store(cp + 22 * Fp, l2, mask=stored)
-        la, lx, ly, pa, px, py, h, l2 = _edge_rows(u1 - u0, v1 - v0, u0, v0, inv_area, abs_area)
-        tl.store(cp + 2 * Fp, la, mask=stored)
-        tl.store(cp + 5 * Fp, lx, mask=stored)
-        tl.store(cp + 8 * Fp, ly, mask=stored)
-        tl.store(cp + 11 * Fp, pa, mask=stored)
-        tl.store(cp + 14 * Fp, px, mask=stored)
-        tl.store(cp + 17 * Fp, py, mask=stored)
-        tl.store(cp + 20 * Fp, h, mask=stored)
-        tl.store(cp + 23 * Fp, l2, mask=stored)
+        _store_edge_rows(cp, 0, Fp, stored, ex0, ey0, u1, v1, inv_area, abs_area)
+        _store_edge_rows(cp, 1, Fp, stored, u0 - u2, v0 - v2, u2, v2, inv_area, abs_area)
+        _store_edge_rows(cp, 2, Fp, stored, u1 - u0, v1 - v0, u0, v0, inv_area, abs_area)
         tl.store(cp + 24 * Fp, 1.0 / z0, mask=stored)
         tl.store(cp + 25 * Fp, 1.0 / z1, mask=stored)
         tl.store(cp + 26 * Fp, 1.0 / z2, mask=stored)
@@ -258,6 +254,13 @@ if triton is not None:
         tl.atomic_add(ptr, g, mask=mask & (g != 0.0))
 
     @triton.jit
+    def _add_corner(q, gu, gv, gz, mask):
+        """:func:`_add_nonzero` of one corner's (u, v, z) gradient into its projected vertex at ``q``."""
+        _add_nonzero(q, gu, mask)
+        _add_nonzero(q + 1, gv, mask)
+        _add_nonzero(q + 2, gz, mask)
+
+    @triton.jit
     def _setup_backward(uvz_ptr, faces_ptr, prm, gcoef_ptr, guvz_ptr, gnormals_ptr, gcolors_ptr, NF, V, Fp,
                         COLOR_ENV_STRIDE, FB: tl.constexpr, CULL: tl.constexpr, NEED_UVZ: tl.constexpr,
                         NEED_NORMALS: tl.constexpr, NEED_COLORS: tl.constexpr):
@@ -271,17 +274,9 @@ if triton is not None:
         gp = gcoef_ptr + env * 45 * Fp + f
         i0, i1, i2, u0, v0, z0, u1, v1, z1, u2, v2, z2 = _corners(uvz_ptr, faces_ptr, f, real, env_v)
         if NEED_UVZ:
-            ok = _kept(u0, v0, z0, u1, v1, z1, u2, v2, z2, real, tl.load(prm), tl.load(prm + 2), CULL)
             # dropped faces: the constant triangle, no gradient (their lanes are masked off below)
-            u0 = tl.where(ok, u0, 0.0)
-            v0 = tl.where(ok, v0, 0.0)
-            z0 = tl.where(ok, z0, 1.0)
-            u1 = tl.where(ok, u1, 1.0)
-            v1 = tl.where(ok, v1, 0.0)
-            z1 = tl.where(ok, z1, 1.0)
-            u2 = tl.where(ok, u2, 0.0)
-            v2 = tl.where(ok, v2, 1.0)
-            z2 = tl.where(ok, z2, 1.0)
+            ok, u0, v0, z0, u1, v1, z1, u2, v2, z2 = _kept_corners(u0, v0, z0, u1, v1, z1, u2, v2, z2, real,
+                                                                   tl.load(prm), tl.load(prm + 2), CULL)
             ex0 = u2 - u1
             ey0 = v2 - v1
             ex1 = u0 - u2
@@ -292,18 +287,9 @@ if triton is not None:
             area = tl.where(raw == 0, 1.0, raw)
             inv_area = 1.0 / area
             abs_area = tl.abs(area)
-            gx0, gy0, gua0, gva0, gia0, gaa0 = _edge_grads(
-                ex0, ey0, u1, v1, inv_area, abs_area, tl.load(gp), tl.load(gp + 3 * Fp), tl.load(gp + 6 * Fp),
-                tl.load(gp + 9 * Fp), tl.load(gp + 12 * Fp), tl.load(gp + 15 * Fp), tl.load(gp + 18 * Fp),
-                tl.load(gp + 21 * Fp))
-            gx1, gy1, gua1, gva1, gia1, gaa1 = _edge_grads(
-                ex1, ey1, u2, v2, inv_area, abs_area, tl.load(gp + Fp), tl.load(gp + 4 * Fp), tl.load(gp + 7 * Fp),
-                tl.load(gp + 10 * Fp), tl.load(gp + 13 * Fp), tl.load(gp + 16 * Fp), tl.load(gp + 19 * Fp),
-                tl.load(gp + 22 * Fp))
-            gx2, gy2, gua2, gva2, gia2, gaa2 = _edge_grads(
-                ex2, ey2, u0, v0, inv_area, abs_area, tl.load(gp + 2 * Fp), tl.load(gp + 5 * Fp),
-                tl.load(gp + 8 * Fp), tl.load(gp + 11 * Fp), tl.load(gp + 14 * Fp), tl.load(gp + 17 * Fp),
-                tl.load(gp + 20 * Fp), tl.load(gp + 23 * Fp))
+            gx0, gy0, gua0, gva0, gia0, gaa0 = _edge_grads_at(gp, 0, Fp, ex0, ey0, u1, v1, inv_area, abs_area)
+            gx1, gy1, gua1, gva1, gia1, gaa1 = _edge_grads_at(gp, 1, Fp, ex1, ey1, u2, v2, inv_area, abs_area)
+            gx2, gy2, gua2, gva2, gia2, gaa2 = _edge_grads_at(gp, 2, Fp, ex2, ey2, u0, v0, inv_area, abs_area)
             # area (1 where its formula gives exactly 0: a constant, no gradient) through 1 / area and |area|
             g_area = -(gia0 + gia1 + gia2) * inv_area * inv_area + (gaa0 + gaa1 + gaa2) * tl.where(area > 0, 1.0,
                                                                                                      -1.0)
@@ -320,18 +306,9 @@ if triton is not None:
             gz0 = -tl.load(gp + 24 * Fp) / (z0 * z0)
             gz1 = -tl.load(gp + 25 * Fp) / (z1 * z1)
             gz2 = -tl.load(gp + 26 * Fp) / (z2 * z2)
-            q0 = guvz_ptr + env_v + i0 * 3
-            q1 = guvz_ptr + env_v + i1 * 3
-            q2 = guvz_ptr + env_v + i2 * 3
-            _add_nonzero(q0, gu0, ok)
-            _add_nonzero(q0 + 1, gv0, ok)
-            _add_nonzero(q0 + 2, gz0, ok)
-            _add_nonzero(q1, gu1, ok)
-            _add_nonzero(q1 + 1, gv1, ok)
-            _add_nonzero(q1 + 2, gz1, ok)
-            _add_nonzero(q2, gu2, ok)
-            _add_nonzero(q2 + 1, gv2, ok)
-            _add_nonzero(q2 + 2, gz2, ok)
+            _add_corner(guvz_ptr + env_v + i0 * 3, gu0, gv0, gz0, ok)
+            _add_corner(guvz_ptr + env_v + i1 * 3, gu1, gv1, gz1, ok)
+            _add_corner(guvz_ptr + env_v + i2 * 3, gu2, gv2, gz2, ok)
         for c in tl.static_range(3):
             idx = i0 if c == 0 else (i1 if c == 1 else i2)
             for j in tl.static_range(3):
