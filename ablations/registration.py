@@ -259,7 +259,7 @@ def check_runs(reg: Registration, runs) -> list[str]:
     and arm, a task, arm or seed the registration does not have. Raises RegistrationError for a registration
     whose tree hash is not pinned."""
     if reg.tree_hash is None:
-        raise RegistrationError(f"{reg.path}: tree_hash is not pinned (ablate-plan --pin {reg.path}): no run can "
+        raise RegistrationError(f"{reg.path}: tree_hash is not pinned (ablate-plan --pin --registration {reg.path}): no run can "
                                 "be checked against it")
     problems: list[str] = []
     first: dict[tuple, tuple[str, object]] = {}

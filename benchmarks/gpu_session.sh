@@ -139,10 +139,18 @@ for spec in "$@"; do
        # machine goes back: DETACH_NAME its folder under /tmp/runs, DETACH_ARGS its flags, DETACH_GPU the GPU;
        # its output goes to /tmp/runs/DETACH_NAME.log. Follow with "progress" calls, end with "collect" well before
        # the machine's 30 minutes are up: it goes back then even in the middle of a call, and the runs with it.
-       mkdir -p /tmp/runs; export PATH=/tmp/site/bin:$PATH
-       CUDA_VISIBLE_DEVICES=${DETACH_GPU:-0} setsid nohup python3 -m ablations ablate ${DETACH_ARGS:-} --device cuda \
-         --out /tmp/runs --name "${DETACH_NAME:?}" --no-progress > "/tmp/runs/$DETACH_NAME.log" 2>&1 < /dev/null &
-       echo "detached $DETACH_NAME on GPU ${DETACH_GPU:-0} (pid $!)";;
+       # It runs from its own copy of the packages, /tmp/tree_DETACH_NAME: the next call replaces the working tree,
+       # and a run imports some modules late. DETACH_TREE (a tar of the packages, e.g. `git archive PIN ablations
+       # gradlab tasks diffrender vocabulary docs/floors.json`, carried) runs that tree instead: a registered run's
+       # pinned tree (docs/confirmatory/README.md).
+       mkdir -p /tmp/runs; export PATH=/tmp/site/bin:$PATH; tree=/tmp/tree_${DETACH_NAME:?}; rm -rf "$tree"; mkdir -p "$tree"
+       if [ -n "${DETACH_TREE:-}" ]; then tar -xf "$DETACH_TREE" -C "$tree" || { echo "cannot unpack $DETACH_TREE"; exit 1; }
+       else cp -r ablations gradlab tasks diffrender vocabulary "$tree"/; mkdir -p "$tree/docs"; cp docs/floors.json "$tree/docs/"; fi
+       (cd "$tree" && PYTHONPATH=/tmp/site:$tree CUDA_VISIBLE_DEVICES=${DETACH_GPU:-0} setsid nohup python3 -m ablations ablate \
+         ${DETACH_ARGS:-} --device cuda --out /tmp/runs --name "$DETACH_NAME" --no-progress > "/tmp/runs/$DETACH_NAME.log" 2>&1 \
+         < /dev/null &)
+       echo "detached $DETACH_NAME on GPU ${DETACH_GPU:-0} from $tree (${DETACH_TREE:-the working tree packages})"
+       python3 -c "import sys; sys.path.insert(0, '$tree'); from ablations.tree_hash import tree_hash; print('tree hash', tree_hash('$tree').value)";;
     progress) # where the detached runs stand (benchmarks/run_progress.py), waiting PROGRESS_WAIT seconds first
        sleep "${PROGRESS_WAIT:-0}"; python3 benchmarks/run_progress.py /tmp/runs
        nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader;;
