@@ -259,8 +259,8 @@ def check_runs(reg: Registration, runs) -> list[str]:
     and arm, a task, arm or seed the registration does not have. Raises RegistrationError for a registration
     whose tree hash is not pinned."""
     if reg.tree_hash is None:
-        raise RegistrationError(f"{reg.path}: tree_hash is not pinned (ablate-plan --pin --registration {reg.path}): no run can "
-                                "be checked against it")
+        raise RegistrationError(f"{reg.path}: tree_hash is not pinned (ablate-plan --pin --registration {reg.path}): "
+                                "no run can be checked against it")
     problems: list[str] = []
     first: dict[tuple, tuple[str, object]] = {}
     seeds = set(reg.looks[-1].seeds)
