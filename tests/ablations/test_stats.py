@@ -195,6 +195,33 @@ def test_equal_iterations_and_equal_wall_clock_cut_at_the_right_points(tmp_path)
         stats.common_wall_s(curves, {"decoupled": 100.0})
 
 
+def test_a_distilled_students_expert_time_is_charged_before_its_first_iteration(tmp_path):
+    # distill: the student's metrics carry its expert's training time (expert_wall_s, 4 s for seed 0, 6 s for
+    # seed 1), charged before its first iteration as the reference charges it; then 100 iterations at 100 ms.
+    # decoupled: 100 iterations at 100 ms, nothing charged. Evaluations every 10 iterations, return = iteration.
+    for s, charged in ((0, 4.0), (1, 6.0)):
+        write_run(tmp_path / "dec", f"s{s}", seed=s, evals=[float(10 * (i + 1)) for i in range(10)])
+        write_run(tmp_path / "dis", f"s{s}", seed=s, mode="distill", evals=[float(10 * (i + 1)) for i in range(10)],
+                  extra={it: {"expert_wall_s": charged} for it in range(1, 101)})
+    curves = stats.load_arms({"decoupled": [tmp_path / "dec"], "distill": [tmp_path / "dis"]})
+    assert {(c.arm, c.seed): c.charged_s for c in curves} == {("decoupled", 0): 0.0, ("decoupled", 1): 0.0,
+                                                               ("distill", 0): 4.0, ("distill", 1): 6.0}
+    ms = {"decoupled": 100.0, "distill": 100.0}
+    assert stats.common_wall_s(curves, ms) == pytest.approx(10.0)  # decoupled's end; distill ends at 14 and 16 s
+    cut = {(c.arm, c.seed): c.last_iter for c in stats.truncate_at_wall_s(curves, ms, 10.0)}
+    assert cut == {("decoupled", 0): 100, ("decoupled", 1): 100, ("distill", 0): 60, ("distill", 1): 40}
+    assert [c.last_iter for c in stats.truncate_at_wall_s(curves, ms, 5.0) if c.arm == "distill"] == [10, 0]
+    ts = stats.task_statistics(curves, iter_ms_alone=ms, reps=FEW)["hopper"]
+    assert ts.equal_iters.differences["distill"].diff == {0: 0.0, 1: 0.0}  # equal iterations charge nothing
+    # at 10 s the students reach 60 and 40 iterations; the arm's window is the evaluations both have, 20-40
+    assert ts.iters_at_wall == {"decoupled": 100, "distill": 60}
+    assert ts.equal_wall.arms["distill"].final == {0: 30.0, 1: 30.0}
+    # along the wall-clock, each seed's student is read at its own charged offset: at 10 s, 60 and 40 iterations
+    dc = stats.difference_curves(curves, iter_ms_alone=ms, reps=FEW)[("distill", "wall-clock")]
+    assert dc.x[0] == pytest.approx(7.0) and dc.x[-1] == pytest.approx(10.0)  # from seed 1's first evaluation
+    assert dc.mean[-1] == pytest.approx(((50.0 - 90.0) + (30.0 - 90.0)) / 2)
+
+
 def test_the_run_that_sets_the_time_budget_keeps_its_last_iteration():
     # 30 x 33.3 ms = 0.999 s sets the budget: its round trip through floating point must not lose iteration 30;
     # the other arm (100 x 20 ms) gets floor(999 / 20) = 49 iterations, its evaluations at 10..40

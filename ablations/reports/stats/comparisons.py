@@ -251,10 +251,17 @@ def _iter_ms(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float]) -> dic
     return ms
 
 
+def _end_s(curve: Curve, ms: Mapping[str, float], iteration: int | None = None) -> float:
+    """The modelled training time [s] at the end of ``iteration`` (default: the curve's last) of ``curve``:
+    what was charged to it before its first iteration plus that many iterations of its arm alone."""
+    return curve.charged_s + (curve.last_iter if iteration is None else iteration) * ms[curve.arm] / 1e3
+
+
 def common_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float], *,
                   not_setting: Collection[str] = ()) -> float:
     """The training-time budget every run reached, in seconds: the minimum over the runs of
-    last_iter x iter_ms_alone[arm] / 1000. The time is *modelled*: each arm's iteration time measured alone
+    charged_s + last_iter x iter_ms_alone[arm] / 1000 (``Curve.charged_s``: a distilled student's expert's
+    training time, else 0). The time is *modelled*: each arm's iteration time measured alone
     (a benchmark's ms per iteration of that arm as the only work on its device), never a run's logged
     ``wall_s``, which for a population member is the whole population's time and includes compilation. So
     it leaves out what the measurement alone left out (typically compilation, evaluation rollouts, and the
@@ -268,15 +275,17 @@ def common_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float], *
         raise ValueError("no runs to compare")
     ms = _iter_ms(curves, iter_ms_alone)
     setting = [c for c in curves if c.arm not in not_setting] or list(curves)
-    return min(c.last_iter * ms[c.arm] / 1e3 for c in setting)
+    return min(_end_s(c, ms) for c in setting)
 
 
 def truncate_at_wall_s(curves: Sequence[Curve], iter_ms_alone: Mapping[str, float], wall_s: float) -> list[Curve]:
     """Each curve cut to the iterations its arm completes within ``wall_s`` seconds of modelled training time
-    (iteration i ends at i x iter_ms_alone[arm] / 1000 s; see ``common_wall_s``)."""
+    (iteration i ends at charged_s + i x iter_ms_alone[arm] / 1000 s; see ``common_wall_s``); a run charged more
+    than ``wall_s`` keeps no iteration."""
     ms = _iter_ms(curves, iter_ms_alone)
     # a relative tolerance so that the run that sets the budget keeps its own last iteration despite rounding
-    return [truncate_at_iteration([c], math.floor(wall_s * 1e3 / ms[c.arm] * (1 + 1e-12)))[0] for c in curves]
+    return [truncate_at_iteration([c], max(0, math.floor((wall_s - c.charged_s) * 1e3 / ms[c.arm] * (1 + 1e-12))))[0]
+            for c in curves]
 
 
 def check_at_iteration(at_iteration: int | None) -> None:
@@ -341,7 +350,7 @@ def task_statistics(curves: Sequence[Curve], *, reference: str | None = "decoupl
             cut = truncate_at_wall_s(timed, iter_ms_alone, budget)
             ms = _iter_ms(timed, iter_ms_alone)
             ended = tuple(a for a in ms if a in not_setting_wall
-                          and all(c.last_iter * ms[a] / 1e3 < budget for c in timed if c.arm == a))
+                          and all(_end_s(c, ms) < budget for c in timed if c.arm == a))
             stats = replace(stats, wall_s=budget, iter_ms_alone=ms, equal_wall=compare(cut, window="per arm", **kw),
                             iters_at_wall={a: max(c.last_iter for c in cut if c.arm == a) for a in ms},
                             ended_before_wall=ended, untimed_at_wall=untimed)
@@ -449,21 +458,24 @@ def difference_curves(curves: Sequence[Curve], *, reference: str = "decoupled",
                                                       **point_stats(list(diffs)))
         if ms is None or arm not in ms:
             continue
+        # per seed, the modelled times of the evaluations every seed of the arm has (a run's charged time,
+        # a distilled student's expert's, differs by seed)
         own = {}
         for name, cs in ((arm, [runs[s] for s in seeds]), (reference, [ref[s] for s in seeds])):
             it = np.array(sorted(set.intersection(*(set(c.iters.tolist()) for c in cs))), dtype=np.int64)
-            own[name] = (it, it * ms[name] / 1e3, {c.seed: _window_means(c, it, final_evals) for c in cs})
-        end = min(c.last_iter * ms[c.arm] / 1e3 for c in pair)
+            own[name] = (it, {c.seed: c.charged_s + it * ms[name] / 1e3 for c in cs},
+                         {c.seed: _window_means(c, it, final_evals) for c in cs})
+        end = min(_end_s(c, ms) for c in pair)
         if not (own[arm][0].size and own[reference][0].size):
             continue
-        start = max(own[arm][1][0], own[reference][1][0])
-        grid = np.unique(np.concatenate([own[arm][1], own[reference][1]]))
+        start = max(float(t[0]) for name in (arm, reference) for t in own[name][1].values())
+        grid = np.unique(np.concatenate([t for name in (arm, reference) for t in own[name][1].values()]))
         grid = grid[(grid >= start) & (grid <= end * (1 + 1e-12))]
         if not grid.size:
             continue
 
         def at(name: str, s: int, grid=grid, own=own) -> np.ndarray:
-            times, means = own[name][1], own[name][2][s]
+            times, means = own[name][1][s], own[name][2][s]
             return means[np.searchsorted(times, grid * (1 + 1e-12), side="right") - 1]
 
         diffs = np.stack([at(arm, s) - at(reference, s) for s in seeds], axis=1)

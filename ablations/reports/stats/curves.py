@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,10 @@ class Curve:
     ``iters`` (E,) int: the training iterations the evaluations followed (a metrics line's ``iter``: iterations
     done, 1-based); ``returns`` (E,) float: the evaluation return there (undiscounted, deterministic policy);
     ``last_iter``: the run's last metrics line's ``iter`` (how far it trained, evaluated or not); ``key``: the
-    metrics key the returns came from (``EVAL_KEYS``), None when the run has no evaluation.
+    metrics key the returns came from (``EVAL_KEYS``), None when the run has no evaluation; ``charged_s``: the
+    seconds of training charged to the run before its first iteration (a distilled student's expert's training
+    time, its metrics' ``expert_wall_s``, as the reference charges it; 0 for every other run), which a cut at
+    equal wall-clock adds to the run's modelled time.
     """
 
     task: str
@@ -44,6 +47,7 @@ class Curve:
     returns: np.ndarray
     last_iter: int
     key: str | None = None
+    charged_s: float = 0.0
 
 
 def curve_of(run, arm: str) -> Curve:
@@ -59,10 +63,11 @@ def curve_of(run, arm: str) -> Curve:
     rows = run.metrics
     key = next((k for k in EVAL_KEYS if any(is_finite_number(r.get(k)) for r in rows)), None)
     pts = sorted((r["iter"], r[key]) for r in rows if key is not None and is_finite_number(r.get(key)))
+    charged = next((float(r["expert_wall_s"]) for r in rows if is_finite_number(r.get("expert_wall_s"))), 0.0)
     return Curve(task=str(cfg["task"]), arm=arm, seed=int(cfg["seed"]), path=str(run.path),
                  iters=np.array([p[0] for p in pts], dtype=np.int64),
                  returns=np.array([p[1] for p in pts], dtype=np.float64),
-                 last_iter=int(max((r["iter"] for r in rows), default=0)), key=key)
+                 last_iter=int(max((r["iter"] for r in rows), default=0)), key=key, charged_s=charged)
 
 
 def load_arms(arms: Mapping[str, Iterable[str | Path]]) -> list[Curve]:
@@ -119,8 +124,7 @@ def window_statistic(curve: Curve, kind: str, start: int, end: int) -> float:
         return math.nan
     if kind == "window":
         return float(np.mean(curve.returns[inside]))
-    return auc(Curve(curve.task, curve.arm, curve.seed, curve.path, curve.iters[inside], curve.returns[inside],
-                     curve.last_iter, curve.key))
+    return auc(replace(curve, iters=curve.iters[inside], returns=curve.returns[inside]))
 
 
 def collapse_rate(curve: Curve) -> float:
