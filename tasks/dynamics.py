@@ -102,8 +102,8 @@ class _WorldFrames(torch.autograd.Function):
     Forward, the depth rounds: ``X_e = P_a0 P_a1 ... P_e`` over the entry's ancestor chain (``chain (D, E)``,
     row ``d`` the ancestor at depth ``d`` or ``E``, the appended identity ``eye4``). Compiled, each round is one
     kernel with a thread per matrix element of every entry. Written entry by entry instead, the rounds fuse into
-    one kernel with a thread per frame, but inductor gives each thread 8 frames and the simulator is slower
-    (BENCHMARKS.md section 3, the variants not kept at 4096 ants).
+    one kernel with a thread per frame, but inductor gives each thread 8 frames and the simulator is slower at
+    4096 ants.
 
     Backward, subtree sums instead of a leaf-to-root sweep. Entry ``d`` in the subtree of ``k`` has
     ``X_d = X_k (X_k^-1 X_d)``, so everything below ``k`` sends ``k`` the gradient
