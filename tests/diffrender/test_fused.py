@@ -243,19 +243,22 @@ def test_compacted_backward_lanes_give_every_face_the_same_gradient(ant64, monke
     """The backward with ``BWD_COMPACT`` (a program's lanes hold only the faces whose boxes reach its tile, in
     sub-blocks of 8 here, of 16-face blocks) against the block-wise lanes: the same gradients, bit for bit (each
     face sums the same pixels' terms in the same order), so the dense reference's as the block-wise ones are.
-    A 6 x 6 image, one backward tile (partly outside the image), reached by 449 of the 944 faces, 1-16 of each
-    block's 16, so blocks of one and of two sub-blocks; the blend state kept, so the forward runs once a render
-    (the backward's recompute of it is another test's: test_fused_matches_dense_on_the_ant)."""
+    The ant's first 480 faces (its torso and first legs: 30 blocks, 15 super-blocks, the backward's walk split
+    between 7 programs) in a 6 x 6 image, one backward tile (partly outside the image) that 218 of them reach,
+    1-16 of each block's 16: blocks of one and of two sub-blocks. The blend state kept, so the forward runs once a
+    render (the backward's recompute of it is another test's: test_fused_matches_dense_on_the_ant)."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, BWD_SUB_BLOCK=8)
     q = ant_pose(1, seed=2).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
+    faces = ant64.faces[:480]
     cam = ant_camera(q, size=6)
     settings = dr.RasterSettings(backend="fused", raster_model=model, save_blend_state=True)
+    assert fused.backward_splits(15) == 7
     grads = {}
     for compact in (False, True):
         _set(monkeypatch, BWD_COMPACT=compact)
         v = verts.clone().requires_grad_()
-        img = dr.render(v, ant64.faces, ant64.colors, cam, settings)
+        img = dr.render(v, faces, ant64.colors, cam, settings)
         w = torch.linspace(-1, 1, img.numel(), dtype=img.dtype, device=img.device).view_as(img)
         (img * w).sum().backward()
         grads[compact] = v.grad
