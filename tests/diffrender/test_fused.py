@@ -340,14 +340,14 @@ def test_fused_gradcheck_tiny_scene(monkeypatch, model):
     """torch.autograd.gradcheck in float64 of the image in the vertices, colours and camera eye. Super-blocks of
     one block: the default 16 would give the setup kernel 15 padding blocks to write per render (15/16 of its
     interpreter time here; the padding's empty boxes are test_fused_matches_dense_on_the_ant's and the setup
-    tests')."""
+    tests'). 5 x 4 px: two forward tiles, the second one row deep; one backward tile, partly outside."""
     monkeypatch.setattr(tuning, "SUPER_BLOCK", 1)
     verts, faces, colors = (x.to(DEV) for x in tiny_scene())
     eye, target, _ = (x.to(DEV) if isinstance(x, torch.Tensor) else x for x in tiny_camera())
     s = tiny_settings(backend="fused", cull_backfaces=False, raster_model=model)
 
     def fn(v, c, e):
-        cam = dr.Camera.look_at(e, target, (0.0, 0.0, 1.0), 40.0, 7, 6)
+        cam = dr.Camera.look_at(e, target, (0.0, 0.0, 1.0), 40.0, 5, 4)
         return dr.render(v, faces, c, cam, s)
 
     torch.autograd.gradcheck(fn, (verts.clone().requires_grad_(), colors.clone().requires_grad_(),
