@@ -209,16 +209,18 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, env=env, timeout=120)
 
 
+# slow: the refusals test_cli_errors.py also gives ablate_main in-process (the same path, no folder made either)
 @pytest.mark.parametrize(("args", "message"), [
     (["--task", "cartpol"],
      "unknown task 'cartpol'; valid tasks: cartpole, cartpole-swingup, hopper, ant, humanoid, cheetah"),
-    (["--mode", "ful"], "full"),  # tyro lists the valid choices
+    pytest.param(["--mode", "ful"], "full", marks=pytest.mark.slow),  # tyro lists the valid choices
     (["--num-envs", "0"], "--num-envs must be a positive integer, got 0"),
     (["--horizon", "-2"], "--horizon must be a positive integer"),
     (["--iters", "0"], "--iters must be a positive integer"),
-    (["--device", "tpu"], "unknown device 'tpu'"),
-    (["--preset", "paper"], "--preset"),  # tyro names the flag and lists dva, shac-diffrender
-    (["--raster-model", "blurry"], "--raster-model"),
+    pytest.param(["--device", "tpu"], "unknown device 'tpu'", marks=pytest.mark.slow),
+    # tyro names the flag and lists dva, shac-diffrender
+    pytest.param(["--preset", "paper"], "--preset", marks=pytest.mark.slow),
+    pytest.param(["--raster-model", "blurry"], "--raster-model", marks=pytest.mark.slow),
     (["--mode", "full", "--renderer", "warp"], "--renderer warp renders without gradient, but --mode full"),
     (["--actor-lr", "nan"], "--actor-lr must be in (0, inf), got nan"),
     (["--critic-lr", "-1"], "--critic-lr must be in (0, inf), got -1.0"),

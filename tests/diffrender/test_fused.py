@@ -67,9 +67,11 @@ def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
                                 pytest.param(dict(raster_model="hard"), marks=pytest.mark.slow),
                                 dict(raster_model="hard", cull_backfaces=False, floor=None, save_blend_state=True)])
 def test_fused_matches_dense_on_the_ant(ant64, kw):
+    """Two ants at 10 x 10 px with the default blocks (944 faces: 15 of 64, one super-block): 9 forward tiles
+    and 4 backward ones, each side's last tile partly outside the image."""
     q = ant_pose(2, seed=1).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
-    _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=16), kw)
+    _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=10), kw)
 
 
 @pytest.mark.parametrize("model", [pytest.param(m, marks=pytest.mark.slow) for m in ("hard", "softmax", "alpha")])
@@ -110,7 +112,7 @@ def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits
         colors[3 * face:3 * face + 3] = torch.tensor(rgb, dtype=F64)
     faces = torch.arange(96 * 3).view(96, 3)
     eye, target, _ = tiny_camera(1)
-    cam = dr.Camera.look_at(eye.to(DEV), target.to(DEV), (0.0, 0.0, 1.0), 40.0, 16, 16)
+    cam = dr.Camera.look_at(eye.to(DEV), target.to(DEV), (0.0, 0.0, 1.0), 40.0, 10, 10)
     kw = dict(sigma=0.5, gamma=0.05, znear=0.5, zfar=10.0, cull_backfaces=False, raster_model=model)
     _compare(verts.to(DEV), faces.to(DEV), colors.to(DEV), cam, kw)
     img = dr.render(verts.to(DEV), faces.to(DEV), colors.to(DEV), cam, dr.RasterSettings(backend="fused", **kw))
@@ -181,24 +183,31 @@ def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     _assert_same_blend(model, *results)
 
 
-@pytest.mark.parametrize(("model", "walk", "split_counts"), [
-    pytest.param("hard", dict(FWD_COMPACT=True), (1, 3), marks=pytest.mark.slow),
-    pytest.param("hard", dict(FWD_COMPACT=True, FWD_DEFER_SHADING=True), (1, 3), marks=pytest.mark.slow),
-    # the default walk of images rendered with nothing saved; split in three, the case with part boundaries (the
-    # default walk split and unsplit agree: test_split_forward_keeps_the_unsplit_blend_state)
-    ("hard", dict(FWD_DEFER_SHADING=True), (3,)),
-    pytest.param("hard", dict(FWD_DEFER_SHADING=True), (1,), marks=pytest.mark.slow),
-    pytest.param("softmax", dict(FWD_COMPACT=True), (1, 3), marks=pytest.mark.slow),
-    pytest.param("alpha", dict(FWD_COMPACT=True), (1, 3), marks=pytest.mark.slow)])
-def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch, model, walk, split_counts):
+@pytest.mark.parametrize(("model", "walk", "split_counts", "sub_block"), [
+    # FWD_COMPACT is off by default: its cases run with -m slow (and at task size on a GPU)
+    pytest.param("hard", dict(FWD_COMPACT=True), (1, 3), 4, marks=pytest.mark.slow),
+    pytest.param("hard", dict(FWD_COMPACT=True, FWD_DEFER_SHADING=True), (1, 3), 4, marks=pytest.mark.slow),
+    # the default walk of images rendered with nothing saved, in whole-block chunks as the defaults walk
+    # (FWD_SUB_BLOCK = FACE_BLOCK); split in three, the case with part boundaries (the default walk split and
+    # unsplit agree: test_split_forward_keeps_the_unsplit_blend_state)
+    ("hard", dict(FWD_DEFER_SHADING=True), (3,), 16),
+    pytest.param("hard", dict(FWD_DEFER_SHADING=True), (1,), 16, marks=pytest.mark.slow),
+    # blocks walked in chunks of 4, several per block: a duplicate of the chunk loop the compacted cases cover
+    pytest.param("hard", dict(FWD_DEFER_SHADING=True), (3,), 4, marks=pytest.mark.slow),
+    pytest.param("softmax", dict(FWD_COMPACT=True), (1, 3), 4, marks=pytest.mark.slow),
+    pytest.param("alpha", dict(FWD_COMPACT=True), (1, 3), 4, marks=pytest.mark.slow)])
+def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch, model, walk, split_counts,
+                                                              sub_block):
     """The forward's walk variants against the block-wise walk that shades every pair, on 16-face blocks in
-    chunks of 4 (the ant's 944 faces: blocks that reach a tile with none, some and more than one chunk of
-    faces whose boxes reach it), unsplit and split in three (``split_counts``): ``FWD_COMPACT`` (of each block near a
-    tile, only the faces whose boxes reach it, packed into chunks) and the hard model's ``FWD_DEFER_SHADING``
-    (the chosen face alone shaded, in images rendered with nothing saved): the hard model's state bit for bit
-    and image to the last place (bit for bit under the interpreter), the soft models' to float64 rounding (their
-    sums are regrouped); with the state kept and without."""
-    _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=4)
+    chunks of ``sub_block`` (the ant's 944 faces; in chunks of 4, blocks that reach a tile with none, some and
+    more than one chunk of faces whose boxes reach it), unsplit and split in three (``split_counts``):
+    ``FWD_COMPACT`` (of each block near a tile, only the faces whose boxes reach it, packed into chunks) and the
+    hard model's ``FWD_DEFER_SHADING`` (the chosen face alone shaded, in images rendered with nothing saved): the
+    hard model's state bit for bit and image to the last place (bit for bit under the interpreter), the soft
+    models' to float64 rounding (their sums are regrouped); with the state kept and without. Slow-only: the
+    compacted walk (off by default), the unsplit deferred walk and the deferred walk in chunks smaller than a
+    block (4x the interpreter's time for the chunk loop the compacted cases cover)."""
+    _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SPLIT_SUPER_BLOCKS=4, FWD_SUB_BLOCK=sub_block)
     settings = dr.RasterSettings(backend="fused", raster_model=model, cull_backfaces=model != "alpha")
     st, setup = _two_ants_set_up(ant64, settings, seed=5)
     for splits in split_counts:
@@ -215,10 +224,13 @@ def test_forward_walk_variants_keep_the_image_and_blend_state(ant64, monkeypatch
             torch.testing.assert_close(images[True], images[False], rtol=1e-12, atol=1e-14)
 
 
-@pytest.mark.parametrize("model", ["softmax", pytest.param("hard", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["softmax", "hard"])
 def test_compacted_forward_walk_matches_dense(ant64, monkeypatch, model):
     """Images and gradients of the compacted forward walk (the backward recomputes its blend state with it;
-    the hard model's chosen face alone shaded) against the dense reference."""
+    the hard model's chosen face alone shaded) against the dense reference. Slow-only: ``FWD_COMPACT`` is off
+    by default (45 s a case under the interpreter; at task size on a GPU in
+    test_compacted_forward_walk_at_task_size_float32)."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, FWD_SUB_BLOCK=4, FWD_COMPACT=True, FWD_DEFER_SHADING=True)
     q = ant_pose(1, seed=1).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
@@ -230,16 +242,23 @@ def test_compacted_forward_walk_matches_dense(ant64, monkeypatch, model):
 def test_compacted_backward_lanes_give_every_face_the_same_gradient(ant64, monkeypatch, model):
     """The backward with ``BWD_COMPACT`` (a program's lanes hold only the faces whose boxes reach its tile, in
     sub-blocks of 8 here, of 16-face blocks) against the block-wise lanes: the same gradients, bit for bit (each
-    face sums the same pixels' terms in the same order), so the dense reference's as the block-wise ones are."""
+    face sums the same pixels' terms in the same order), so the dense reference's as the block-wise ones are.
+    The ant's first 480 faces (its torso and first legs: 30 blocks, 15 super-blocks, the backward's walk split
+    between 7 programs) in a 6 x 6 image, one backward tile (partly outside the image) that 218 of them reach,
+    1-16 of each block's 16: blocks of one and of two sub-blocks. The blend state kept, so the forward runs once a
+    render (the backward's recompute of it is another test's: test_fused_matches_dense_on_the_ant)."""
     _set(monkeypatch, FACE_BLOCK=16, SUPER_BLOCK=2, BWD_SUB_BLOCK=8)
     q = ant_pose(1, seed=2).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
-    cam = ant_camera(q, size=8)
+    faces = ant64.faces[:480]
+    cam = ant_camera(q, size=6)
+    settings = dr.RasterSettings(backend="fused", raster_model=model, save_blend_state=True)
+    assert fused.backward_splits(15) == 7
     grads = {}
     for compact in (False, True):
         _set(monkeypatch, BWD_COMPACT=compact)
         v = verts.clone().requires_grad_()
-        img = dr.render(v, ant64.faces, ant64.colors, cam, dr.RasterSettings(backend="fused", raster_model=model))
+        img = dr.render(v, faces, ant64.colors, cam, settings)
         w = torch.linspace(-1, 1, img.numel(), dtype=img.dtype, device=img.device).view_as(img)
         (img * w).sum().backward()
         grads[compact] = v.grad
@@ -317,13 +336,18 @@ def test_fused_matches_dense_with_given_normals_and_per_env_colors(ant64):
 
 
 @pytest.mark.parametrize("model", ["softmax", "alpha", pytest.param("hard", marks=pytest.mark.slow)])
-def test_fused_gradcheck_tiny_scene(model):
+def test_fused_gradcheck_tiny_scene(monkeypatch, model):
+    """torch.autograd.gradcheck in float64 of the image in the vertices, colours and camera eye. Super-blocks of
+    one block: the default 16 would give the setup kernel 15 padding blocks to write per render (15/16 of its
+    interpreter time here; the padding's empty boxes are test_fused_matches_dense_on_the_ant's and the setup
+    tests'). 5 x 4 px: two forward tiles, the second one row deep; one backward tile, partly outside."""
+    monkeypatch.setattr(tuning, "SUPER_BLOCK", 1)
     verts, faces, colors = (x.to(DEV) for x in tiny_scene())
     eye, target, _ = (x.to(DEV) if isinstance(x, torch.Tensor) else x for x in tiny_camera())
     s = tiny_settings(backend="fused", cull_backfaces=False, raster_model=model)
 
     def fn(v, c, e):
-        cam = dr.Camera.look_at(e, target, (0.0, 0.0, 1.0), 40.0, 7, 6)
+        cam = dr.Camera.look_at(e, target, (0.0, 0.0, 1.0), 40.0, 5, 4)
         return dr.render(v, faces, c, cam, s)
 
     torch.autograd.gradcheck(fn, (verts.clone().requires_grad_(), colors.clone().requires_grad_(),
@@ -343,7 +367,8 @@ def test_fused_degenerate_faces_match_dense(cull):
     """Zero-area, collinear, edge-on, behind-camera, znear-straddling faces and a vertex at the eye: finite,
     equal to the dense reference, and the dropped faces get no gradient."""
     verts, faces, colors, cam = degenerate_scene()
-    cam = dr.Camera(rotation=cam.rotation.to(DEV), eye=cam.eye.to(DEV), focal=cam.focal, height=16, width=16)
+    # the scene's view at 8 x 8 px (half its focal length): one backward tile, four forward ones
+    cam = dr.Camera(rotation=cam.rotation.to(DEV), eye=cam.eye.to(DEV), focal=cam.focal / 2, height=8, width=8)
     verts, faces, colors = verts.to(DEV), faces.to(DEV), colors.to(DEV)
     kw = dict(cull_backfaces=cull, sigma=0.7, gamma=1e-3, znear=0.1, zfar=8.0)
     _compare(verts, faces, colors, cam, kw)
@@ -358,8 +383,9 @@ def test_fused_degenerate_faces_match_dense(cull):
 def test_images_without_gradient_equal_the_differentiable_ones(ant64, model):
     """What decoupled rollouts, evaluation and videos render (no_grad: the forward kernel saves nothing) is the
     image the differentiable path renders, with the blend state kept for the backward or recomputed by it: bit
-    for bit under the interpreter, to float64 rounding on a GPU (other kernel specialisations)."""
-    q = ant_pose(2, seed=6).to(DEV)
+    for bit under the interpreter, to float64 rounding on a GPU (other kernel specialisations). One ant: the
+    images of a batch without the state are test_fused_matches_dense_on_the_ant's (the default keeps none)."""
+    q = ant_pose(1, seed=6).to(DEV)
     verts, _ = ant64.world_vertices_and_normals(q)
     cam = ant_camera(q, size=8)
     with torch.no_grad():
