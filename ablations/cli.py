@@ -169,8 +169,9 @@ class _SignalsWhileImporting:
 def _ablate(argv: list[str] | None, startup) -> None:
     # not at the top: these import torch, and ablate starts before torch is imported (ablate_main imports them
     # once Startup.before_torch has run)
-    from ablations.population import AblateConfig, closing_lines, home_of
-    from ablations.runs import NothingToDo, RunFailed, describe_error, run
+    from ablations.population import AblateConfig, NothingToDo, closing_lines, home_of
+    from ablations.runs import run
+    from ablations.stopping import RunFailed, describe_error
 
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse(AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")

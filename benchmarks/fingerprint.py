@@ -11,8 +11,9 @@ content) and what a run resumed from a checkpoint file computes next. A tool, no
 ``--checkpoints DIR``: resume from the checkpoint files in DIR where they exist (written by an earlier run of this
 script, e.g. by the code before a change: checkpoints it wrote must still load), else write them there first.
 Compare two outputs with ``cmp``: the file is written with sorted keys, so equal arithmetic gives equal bytes.
-Every answer is recorded as a list of members' values (a run alone: a list of one), so that the output of a
-trainer that answers a run alone with one dict equals that of one that answers with a list.
+Every answer is recorded as a list of members' values (a run alone: a list of one), and a checkpoint file
+holding one run's dict (as the trainer wrote them when it answered a run alone with one dict) loads as a list of
+one, so that outputs of the code before and after that change compare.
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ def _plain(x):
 
 
 def _members(x) -> list:
-    """An answer of the trainer as a list of members' values (one run's dict: a list of one)."""
+    """A list of members' values (one run's config, dict or checkpoint: a list of one)."""
     return x if isinstance(x, list) else [x]
 
 
@@ -85,7 +86,7 @@ def _run(name: str, cfg, ckpt_dir: Path | None, *, batching: str = "grouped", po
     fresh trainer from a checkpoint file of it and record its next iteration. ``poison``: the member index whose
     actor goes non-finite after the first iteration."""
     out: dict = {"iterations": [], "evaluations": []}
-    trainer = SHAC(cfg, device="cpu", batching=batching)
+    trainer = SHAC(_members(cfg), device="cpu", batching=batching)
     out["order"] = ([dataclasses.asdict(m.cfg)["mode"] + f"/{m.cfg.seed}/{m.cfg.raster_model}"
                      for m in trainer.members])
     for it in range(ITERS):
@@ -111,8 +112,8 @@ def _run(name: str, cfg, ckpt_dir: Path | None, *, batching: str = "grouped", po
         import copy
 
         state = copy.deepcopy(state)
-    resumed = SHAC(cfg, device="cpu", batching=batching)
-    resumed.load_state_dict(state)
+    resumed = SHAC(_members(cfg), device="cpu", batching=batching)
+    resumed.load_state_dict(_members(state))
     out["resumed"] = _plain(_members(resumed.train_iteration()))
     out["resumed_state"] = _state(resumed.state_dict())
     return out

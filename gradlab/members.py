@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 import tasks
-from gradlab.config import ModePlan, SHACConfig, resolve_config
+from gradlab.config import ModePlan, SHACConfig
 from gradlab.networks import Critic, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
 from gradlab.presets import SILHOUETTE_RASTER_MODEL
@@ -35,7 +35,7 @@ from vocabulary import MEMBER_FIELDS
 
 __all__ = ["MEMBER_FIELDS", "Member", "actor_input", "alt_raster", "blank_images", "build_member", "check_memory",
            "check_population", "images", "input_kind", "joined_state", "make_renderers", "make_task", "match_states",
-           "member_state", "member_sums", "population_order", "render_order", "restore_member", "sample",
+           "member_state", "member_sums", "render_order", "restore_member", "sample",
            "stacked_stats", "window_bytes"]
 
 def _flag(name: str) -> str:
@@ -115,12 +115,6 @@ def render_order(cfg: SHACConfig) -> tuple:
     """Members sorted by this key render in as few calls as possible: one per raster model (and gradient)."""
     plan = ModePlan.of(cfg.mode)
     return plan.actor_input == "blank", cfg.raster_model or "", not plan.grad_through_images
-
-
-def population_order(cfgs: Sequence[SHACConfig]) -> list[int]:
-    """The order of :attr:`SHAC.members` for these configs: indices into ``cfgs`` (resolved or not)."""
-    resolved = [resolve_config(c) for c in cfgs]
-    return sorted(range(len(cfgs)), key=lambda i: render_order(resolved[i]))
 
 
 def alt_raster(raster_model: str) -> str:
@@ -339,12 +333,29 @@ def _config_key(config: dict[str, Any]) -> tuple:
 
 
 def match_states(members: Sequence[Member], states: Sequence[dict]) -> list[dict]:
-    """Checkpoints of a population's members, given in any order, in the order of ``members`` (matched by their
-    member settings); raises ValueError where they are of other members or of different iterations."""
-    by_config = {_config_key(s["config"]): s for s in states}
-    ordered = [by_config.get(_config_key(dataclasses.asdict(m.cfg))) for m in members]
-    if any(s is None for s in ordered):
-        raise ValueError("the checkpoints are of other members than this population's")
+    """Checkpoints of the members, given in any order, in the order of ``members``; ValueError where they are of
+    other members, or of a member trained in a population of another size.
+
+    A run alone's checkpoint is its own whatever its config says (a run resumed with other settings, e.g. a
+    config.json restored by hand); a population's are matched by their member settings. A member of several
+    draws its noise from a generator of its own, which its checkpoint holds; a run alone draws from torch's
+    default generator: a checkpoint of the one cannot resume the other exactly, so it is refused."""
+    states = list(states)
+    if len(states) != len(members):
+        raise ValueError(f"{len(states)} member states for a population of {len(members)}")
+    if len(members) == 1:
+        ordered = states
+    else:
+        by_config = {_config_key(s["config"]): s for s in states}
+        ordered = [by_config.get(_config_key(dataclasses.asdict(m.cfg))) for m in members]
+        if any(s is None for s in ordered):
+            raise ValueError("the checkpoints are of other members than this population's")
+    for m, s in zip(members, ordered):
+        if (m.generator is None) != ("generator" not in s):
+            trained, here = ("a member of a population", "a run alone") if m.generator is None else \
+                ("a run alone", f"a member of a population of {len(members)}")
+            raise ValueError(f"the checkpoint of {trained} cannot resume exactly as {here} (its action noise "
+                             f"comes from another generator): resume it as it was trained")
     return ordered
 
 

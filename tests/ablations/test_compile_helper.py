@@ -224,7 +224,7 @@ def test_a_helper_that_finished_is_not_announced(tmp_path):
 def test_a_run_starts_helpers_only_where_it_pays(tmp_path, monkeypatch):
     """On a GPU of a machine with enough cores, fresh, with a cache and no artifact file for the settings: yes;
     otherwise no."""
-    from ablations.runs import RunConfig
+    from ablations.run_config import RunConfig
     from ablations.startup import helpers as compile_helper
     from ablations.startup.cache import CompileCache
     from ablations.startup.wing import wants_helpers

@@ -127,7 +127,7 @@ def test_member_folder_names_write_tuple_values_as_the_sweep_does():
     """A member setting that is a tuple (betas) names its folder as ablate-sweep writes flag values
     (``ablations.sweep.config.slug``): no brackets, commas or spaces in folder names."""
     from ablations.population import member_name
-    from ablations.runs import RunConfig
+    from ablations.run_config import RunConfig
 
     members = [RunConfig(task="cartpole", mode="decoupled", seed=0, betas=b) for b in ((0.7, 0.95), (0.5, 0.9))]
     assert [member_name(m, members) for m in members] == ["cartpole_decoupled_betas0.7-0.95_seed0",

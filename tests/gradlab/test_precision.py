@@ -156,7 +156,7 @@ def test_ablate_records_the_precision_and_refuses_what_cannot_apply(tmp_path, ca
 def test_one_precision_flag_gives_every_member_of_a_seeded_population_its_value():
     from ablations.cli import ABLATE_GROUPS, parse
     from ablations.population import AblateConfig
-    from ablations.runs import shac_part
+    from ablations.run_config import shac_part
     from gradlab.config import resolve_config
 
     cfg = parse(AblateConfig, ["--task", "hopper", "--mode", "decoupled", "full", "--seed", "0", "1", "2", "3", "4",
