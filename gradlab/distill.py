@@ -25,9 +25,9 @@ student's ``wall_s`` and ``env_steps``.
 
 Members: ``Distill([cfg, ...])`` trains several students in one process over one batched simulation, member m on
 environments ``m * B .. (m + 1) * B``, each with its own expert, student, optimiser, buffer and sampling
-generator; ``Distill(cfg)`` is a run alone. The trainer has :class:`gradlab.SHAC`'s interface where ``ablate``
-uses it (``train_iteration``, ``evaluate``, ``state_dict``, ``load_state_dict``, ``members``), so that the run
-path of ``ablations/runs.py`` trains either. Metrics keys follow SHAC's: ``actor_loss`` is the distillation
+generator; ``Distill([cfg])`` is a run alone. The trainer has :class:`gradlab.SHAC`'s list interface where
+``ablate`` uses it (``train_iteration``, ``evaluate``, ``state_dict``, ``load_state_dict``, ``members``), so that
+the run path of ``ablations/runs.py`` trains either. Metrics keys follow SHAC's: ``actor_loss`` is the distillation
 loss of the iteration's last update (None before the updates start), ``fwd_ms`` the rollout and labelling,
 ``bwd_ms`` the updates, ``critic_loss`` None (there is no critic).
 

@@ -6,8 +6,9 @@ abort guard (docs/design.md, "Populations"). This module holds what the training
 do with the members' rows, so that the two share it: the task of E environments per member, the renderers and
 the images (one renderer call per run of adjacent members of one raster model), the actor's input, the members'
 observation statistics and action noise laid out on their rows, the per-member sums of a loss; what the
-population must agree on (:func:`check_population`) and the order its members train in; and a member's
-checkpoint, a single run's format holding the member's rows of the trainer's state.
+population must agree on (:func:`check_population`) and the order its members train in (:func:`render_order`;
+``gradlab.roster`` applies both, once); the routes of the image gradients; and a member's checkpoint, a single
+run's format holding the member's rows of the trainer's state, matched to its member on resume.
 """
 
 from __future__ import annotations
@@ -35,8 +36,8 @@ from vocabulary import MEMBER_FIELDS
 
 __all__ = ["MEMBER_FIELDS", "Member", "actor_input", "alt_raster", "blank_images", "build_member", "check_memory",
            "check_population", "images", "input_kind", "joined_state", "make_renderers", "make_task", "match_states",
-           "member_state", "member_sums", "render_order", "restore_member", "sample",
-           "stacked_stats", "window_bytes"]
+           "member_state", "member_sums", "probe_routes", "render_order", "restore_member", "sample",
+           "stacked_stats", "why_all_stopped", "window_bytes"]
 
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
@@ -185,6 +186,28 @@ def build_member(index: int, cfg: SHACConfig, task: tasks.Task, device: torch.de
     per_member = cfg.num_envs
     return Member(index, cfg, plan, slice(index * per_member, (index + 1) * per_member), actor, critic,
                   target_critic, actor_opt, critic_opt, RunningMeanStd(task.num_obs, device=device), generator)
+
+
+def probe_routes(members: Sequence[Member]) -> dict[str, tuple[str | None, ...]]:
+    """Where each backward pass sends each member's image gradient (``ImageGate.set_route``): ``train``, the
+    gradient every member trains with (last, so it stays in ``.grad``); on probe iterations first ``other``, the
+    estimator it does not train with, and, where a member trains full, ``alt``, its full gradient through the
+    other raster model's image of the same states."""
+    full = [m.plan.grad_through_images for m in members]
+    sees = [m.plan.renders for m in members]
+    routes = {"train": tuple("image" if f else None for f in full),
+              "other": tuple("image" if s and not f else None for s, f in zip(sees, full))}
+    if any(full):
+        routes["alt"] = tuple("alt" if f else None for f in full)
+    return routes
+
+
+def why_all_stopped(members: Sequence[Member]) -> str:
+    """Why the training ended once every member stopped: each member's reason; a run alone's as it is, without
+    a member's number (the closing lines and summary.json of a run alone name no members)."""
+    if len(members) == 1:
+        return members[0].failed
+    return "every member of the population stopped: " + "; ".join(f"member {m.index}: {m.failed}" for m in members)
 
 
 # ---------------------------------------------------------------------- the members' rows of one batch

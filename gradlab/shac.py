@@ -137,7 +137,7 @@ class SHAC:
         # A blind actor's input: one fixed tensor (a captured window reads it at a fixed address).
         self.blank_images = members.blank_images(cfg, n * B, self.device) if self.input_kind == "blank" else None
         self.gate = ImageGate(members=n, rows=B, device=self.device)
-        self._routes = self._probe_routes()
+        self._routes = members.probe_routes(self.members)
         for route in self._routes.values():  # each route's masks now, outside any CUDA graph capture
             self.gate.set_route(route)
         self.flags = FiniteFlags(cfg.horizon, _FLAG_NAMES, self.device, members=n)
@@ -159,19 +159,6 @@ class SHAC:
                                    device=self.device, capture=self.graphs,
                                    critic=self.critic_fit if self.graphs and cfg.overlap_critic else None,
                                    generators=[m.generator for m in self.members if m.generator is not None])
-
-    def _probe_routes(self) -> dict[str, tuple[str | None, ...]]:
-        """Where each backward pass sends each member's image gradient (``ImageGate.set_route``): ``train``, the
-        gradient every member trains with (last, so it stays in ``.grad``); on probe iterations first ``other``,
-        the estimator it does not train with, and, where a member trains full, ``alt``, its full gradient through
-        the other raster model's image of the same states."""
-        full = [m.plan.grad_through_images for m in self.members]
-        sees = [m.plan.renders for m in self.members]
-        routes = {"train": tuple("image" if f else None for f in full),
-                  "other": tuple("image" if s and not f else None for s, f in zip(sees, full))}
-        if any(full):
-            routes["alt"] = tuple("alt" if f else None for f in full)
-        return routes
 
     # ------------------------------------------------------------------ compiling
     def compile_table(self) -> dict[str, tuple]:
@@ -402,7 +389,7 @@ class SHAC:
         critics' update waits for both. Overlapped, a window whose actor step then aborts (non-finite or runaway
         gradient) has fitted the critic already; the run stops there either way and keeps no checkpoint of it.
         Members fit in the groups of ``gradlab.critic.critic_groups``: batched kernels fit those that share
-        iterations and minibatches in one pass; a member alone (a single run) and ``"modules"`` batching fit
+        iterations and minibatches in one pass; a member alone in its group (a run alone) and ``"modules"`` batching fit
         member by member."""
         return fit_member_critics(self._critic_groups, buf, gamma=self.cfg.gamma, lam=self.cfg.lam)
 
@@ -484,7 +471,7 @@ class SHAC:
                               f"abort_grad_norm {m.cfg.abort_grad_norm:.3g} (the reference stops here too)")
         live = [m for m in live if m.failed is None]
         if not live:
-            raise NonFiniteError(_every_member_stopped(self.members))
+            raise NonFiniteError(members.why_all_stopped(self.members))
         for m in live:
             m.actor_opt.step()
 
@@ -607,11 +594,3 @@ class SHAC:
         set_rng_state(first["rng"])
         if self._started:
             self._commit_state()
-
-
-def _every_member_stopped(stopped: Sequence[Member]) -> str:
-    """Why the training ended: each member's reason; a run alone's is told as it is, without a member's number
-    (the closing lines and summary.json of a run alone name no members)."""
-    if len(stopped) == 1:
-        return stopped[0].failed
-    return "every member of the population stopped: " + "; ".join(f"member {m.index}: {m.failed}" for m in stopped)
