@@ -12,8 +12,8 @@ content) and what a run resumed from a checkpoint file computes next. A tool, no
 script, e.g. by the code before a change: checkpoints it wrote must still load), else write them there first.
 Compare two outputs with ``cmp``: the file is written with sorted keys, so equal arithmetic gives equal bytes.
 Every answer is recorded as a list of members' values (a run alone: a list of one), and a checkpoint file
-holding one run's dict (as the trainer wrote them when it answered a run alone with one dict) loads as a list of
-one, so that outputs of the code before and after that change compare.
+holding one run's dict (a run folder's format) loads as a list of one: the outputs of trainers that answer a run
+alone with one dict or with a list of one compare, and so do their checkpoint files.
 """
 
 from __future__ import annotations

@@ -48,9 +48,9 @@ def _same(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(eq(a[k], b[k]) for k in a if k not in _UNCOMPARED)
 
 
-#: What a run alone of ``replace(BASE, mode="full", seed=4)`` computed in its first three iterations on the CPU,
-#: when the trainer built a run alone apart from a population (``SHAC(cfg)``, its noise from torch's default
-#: generator): a population of one must compute it still.
+#: What a run alone of ``replace(BASE, mode="full", seed=4)`` computes in its first three iterations on the CPU,
+#: recorded: a population of one is a run alone (its noise from torch's default generator, its own modules, its
+#: critic fitted alone), so it must compute exactly this.
 RUN_ALONE = [
     {"actor_loss": 10.400460243225098, "critic_loss": 1026.7991943359375, "grad_norm": 39.249176025390625,
      "grad_norm_clipped": 1.0000000487658953, "return_mean": None, "action_std": 0.3671444356441498,
