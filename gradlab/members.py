@@ -101,12 +101,11 @@ def _memory_of(device: torch.device) -> int:
 
 
 def check_memory(cfgs: Sequence[SHACConfig], device: torch.device) -> None:
-    """Refuse, before any work, a population whose window would not fit the device. One member is not refused:
-    the estimate is there to pack runs into processes, and one run cannot be split further."""
-    if len(cfgs) < 2:
-        return
+    """Refuse, before any work, members whose window would not fit the device together while each would alone:
+    the estimate is there to pack runs into processes, and what fewer members per process cannot mend (a run
+    alone, or a member that would not fit alone either) is left to the device to tell."""
     need, have = window_bytes(cfgs), _memory_of(device)
-    if need > have:
+    if need > have and all(window_bytes([c]) <= have for c in cfgs):
         raise ValueError(f"a population of {len(cfgs)} members keeps about {need / 2**30:.1f} GiB for one window's "
                          f"backward (estimated), more than the {have / 2**30:.1f} GiB of {device}: "
                          "train fewer members per process (fewer --seed/--mode values, or --pack)")

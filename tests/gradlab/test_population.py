@@ -246,6 +246,10 @@ def test_a_population_too_large_for_the_devices_memory_is_refused(monkeypatch):
         SHAC(MIXED, device="cpu")
     monkeypatch.setattr(members, "_memory_of", lambda device: need)
     SHAC(MIXED, device="cpu")
+    # what fewer members per process cannot mend is not refused: a run alone, or a member too large alone too
+    monkeypatch.setattr(members, "_memory_of", lambda device: full - 1)
+    SHAC([MIXED[1]], device="cpu")
+    SHAC(MIXED, device="cpu")
 
 
 def test_the_window_estimate_is_the_bulk_of_what_a_window_keeps():
