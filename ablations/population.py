@@ -24,13 +24,19 @@ from ablations.folder_lock import LOCK, FolderLocks
 from ablations.naming import claim_folder, folder_name, member_name
 from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
-from ablations.run_folder import ABSENT_MEANS, RunFolder, check_writable, set_aside_damaged_checkpoint
+from ablations.run_folder import (
+    ABSENT_MEANS,
+    POPULATION_RECORD,
+    RunFolder,
+    check_writable,
+    set_aside_damaged_checkpoint,
+)
 from gradlab import precision
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, read_checkpoint
 from gradlab.config import SHACConfig
 from gradlab.roster import Roster
 from gradlab.seeding import resolve_device
-from vocabulary import POPULATION_RECORD, PRESET_FIELDS, PRESETS
+from vocabulary import PRESET_FIELDS, PRESETS
 
 __all__ = ["AblateConfig", "POPULATION", "PopulationFolder", "Prepared", "NothingToDo", "prepare", "check_resume",
            "closing_lines", "home_of", "member_name", "is_population"]
