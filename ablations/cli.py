@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 from typing import Annotated, Any, NoReturn, TypeVar
 
+from ablations.command import command_errors
 from tasks.command_line import check_argv, tyro_one_line
 
 __all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "plan_main", "parse", "ABLATE_GROUPS"]
@@ -257,14 +258,10 @@ def memory_main(argv: list[str] | None = None) -> None:
     from ablations.memory import MemoryConfig, sweep
 
     cfg = parse(MemoryConfig, argv, prog="ablate-memory")
-    try:
+    # interrupted: the sweep has stopped its workers; what they measured is in memory.csv
+    with command_errors(lambda: f"interrupted: the points measured so far are kept in {cfg.out}; the same command "
+                                f"continues the sweep"):
         rows = sweep(cfg)
-    except ValueError as e:
-        _fail(str(e))
-    except KeyboardInterrupt:  # the sweep has stopped its workers; what they measured is in memory.csv
-        print(f"interrupted: the points measured so far are kept in {cfg.out}; the same command continues the "
-              f"sweep", file=sys.stderr)
-        raise SystemExit(130) from None
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
