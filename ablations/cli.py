@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 from typing import Annotated, Any, NoReturn, TypeVar
 
+from ablations.command import command_errors
 from tasks.command_line import check_argv, tyro_one_line
 
 __all__ = ["ablate_main", "memory_main", "plot_main", "report_main", "plan_main", "parse", "ABLATE_GROUPS"]
@@ -169,8 +170,9 @@ class _SignalsWhileImporting:
 def _ablate(argv: list[str] | None, startup) -> None:
     # not at the top: these import torch, and ablate starts before torch is imported (ablate_main imports them
     # once Startup.before_torch has run)
-    from ablations.population import AblateConfig, closing_lines, home_of
-    from ablations.runs import NothingToDo, RunFailed, describe_error, run
+    from ablations.population import AblateConfig, NothingToDo, closing_lines, home_of
+    from ablations.runs import run
+    from ablations.stopping import RunFailed, describe_error
 
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse(AblateConfig, argv, groups=ABLATE_GROUPS, prog="ablate")
@@ -256,14 +258,10 @@ def memory_main(argv: list[str] | None = None) -> None:
     from ablations.memory import MemoryConfig, sweep
 
     cfg = parse(MemoryConfig, argv, prog="ablate-memory")
-    try:
+    # interrupted: the sweep has stopped its workers; what they measured is in memory.csv
+    with command_errors(lambda: f"interrupted: the points measured so far are kept in {cfg.out}; the same command "
+                                f"continues the sweep"):
         rows = sweep(cfg)
-    except ValueError as e:
-        _fail(str(e))
-    except KeyboardInterrupt:  # the sweep has stopped its workers; what they measured is in memory.csv
-        print(f"interrupted: the points measured so far are kept in {cfg.out}; the same command continues the "
-              f"sweep", file=sys.stderr)
-        raise SystemExit(130) from None
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1

@@ -15,6 +15,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from ablations.command import command_errors
 from ablations.reports import load_floors
 from ablations.reports.paper import build_paper_report
 from ablations.reports.report import (
@@ -166,7 +167,7 @@ def main(argv: list[str] | None = None) -> None:
     from ablations.cli import parse
 
     cfg = parse(PaperConfig, argv, prog="ablate-paper")
-    try:
+    with command_errors(lambda: f"interrupted; rerun the same command to resume ({cfg.out})"):
         if cfg.report_only is not None:
             print(build_paper_report(cfg.report_only, out=cfg.report, benchmark=cfg.benchmark, memory=cfg.memory,
                                      floors=cfg.floors))
@@ -199,12 +200,6 @@ def main(argv: list[str] | None = None) -> None:
         manifest = run_sweep(sweep, arms=arms, command=command)
         print(build_paper_report(cfg.out, out=cfg.report, benchmark=cfg.benchmark, memory=cfg.memory,
                                  floors=cfg.floors))
-    except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
-    except KeyboardInterrupt:
-        print(f"interrupted; rerun the same command to resume ({cfg.out})", file=sys.stderr)
-        raise SystemExit(130) from None
     failed = [k for k, r in manifest["runs"].items() if r["status"] == "failed"]
     for run_id in failed:
         print(f"failed {run_id}: {manifest['runs'][run_id]['error']}", file=sys.stderr)

@@ -24,13 +24,19 @@ from ablations.folder_lock import LOCK, FolderLocks
 from ablations.naming import claim_folder, folder_name, member_name
 from ablations.reports import load_floors
 from ablations.run_config import RESUMABLE, AblateConfig, RunConfig, check_shared, default_threads, shac_part
-from ablations.run_folder import ABSENT_MEANS, RunFolder, check_writable, set_aside_damaged_checkpoint
+from ablations.run_folder import (
+    ABSENT_MEANS,
+    POPULATION_RECORD,
+    RunFolder,
+    check_writable,
+    set_aside_damaged_checkpoint,
+)
 from gradlab import precision
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, read_checkpoint
-from gradlab.config import resolve_config
-from gradlab.members import check_population, population_order
+from gradlab.config import SHACConfig
+from gradlab.roster import Roster
 from gradlab.seeding import resolve_device
-from vocabulary import POPULATION_RECORD, PRESET_FIELDS, PRESETS
+from vocabulary import PRESET_FIELDS, PRESETS
 
 __all__ = ["AblateConfig", "POPULATION", "PopulationFolder", "Prepared", "NothingToDo", "prepare", "check_resume",
            "closing_lines", "home_of", "member_name", "is_population"]
@@ -77,7 +83,9 @@ class PopulationFolder:
     @classmethod
     def of(cls, path: str | Path) -> PopulationFolder | None:
         """The population of ``path``: a population folder, or a member's run folder (its config.json names it);
-        None for anything else (a run alone's folder)."""
+        None for anything else (a run alone's folder). ValueError for a member's folder whose population folder
+        has lost its population.json: resumed alone, the member would draw its action noise from torch's default
+        generator instead of the generator its checkpoint holds, an inexact resume, so it is refused."""
         path = Path(path)
         if is_population(path):
             return cls(path)
@@ -85,9 +93,16 @@ class PopulationFolder:
             record = RunFolder(path).read_record()
         except ValueError:
             record = {}
-        if isinstance(record.get("population"), dict) and is_population(path.parent):
+        trained_in = record.get("population")
+        if not isinstance(trained_in, dict):
+            return None
+        if is_population(path.parent):
             return cls(path.parent)
-        return None
+        names = trained_in.get("members") if isinstance(trained_in.get("members"), list) else []
+        raise ValueError(f"{path} trained as a member of a population of {len(names) or 'several'}, and "
+                         f"{path.parent / POPULATION} is gone: alone it would not resume exactly (its action noise "
+                         f"comes from a generator of the population's); restore {POPULATION} (its members: "
+                         f"{', '.join(map(str, names)) or 'see config.json'}) and resume {path.parent}")
 
     def write_record(self, record: dict) -> None:
         atomic_write_json(self.path / POPULATION, record)
@@ -119,6 +134,8 @@ class Prepared:
     """What :func:`prepare` settled: one entry per member, in the trainer's member order (a single run: one)."""
 
     cfgs: list[RunConfig]
+    #: The members, built once: each trainer config resolved, checked and ordered (what the trainer is built of).
+    roster: Roster
     folders: list[RunFolder]
     device: torch.device
     #: The checkpoint states to resume from, one per member; None: a fresh start (or a resume with no checkpoint).
@@ -183,12 +200,11 @@ def _prepare(members: list[RunConfig], resume_flags: Collection[str] | None, loc
         if members[0].restart:
             raise ValueError("--restart goes with --resume RUN_FOLDER (a folder that holds no checkpoint)")
         for member in members:
-            member.validate()
+            member.check_run_options()  # the trainer's settings: by the roster, as it resolves them
     check_shared(members)
-    check_population([resolve_config(shac_part(m)) for m in members])
-    order = population_order([shac_part(m) for m in members])
+    roster = Roster.of([shac_part(m) for m in members])
     threads = members[0].threads or default_threads()
-    members = [dataclasses.replace(members[i], threads=threads) for i in order]
+    members = [dataclasses.replace(m, threads=threads) for m in roster.arrange(members)]
     try:
         device = resolve_device(members[0].device)
     except ValueError as e:
@@ -201,10 +217,10 @@ def _prepare(members: list[RunConfig], resume_flags: Collection[str] | None, loc
         raise ValueError(f"--resume {resume}: it trains at --precision {members[0].precision}, which needs a CUDA "
                          f"device (it was given --device {members[0].device})") from None
     if resume is not None:
-        prepared = Prepared(members, [folders[i] for i in order], device, None, population, locks)
+        prepared = Prepared(members, roster, roster.arrange(folders), device, None, population, locks)
         try:
             prepared.states = _resume_states(prepared.folders, device, restart=members[0].restart,
-                                             cfgs=prepared.cfgs)
+                                             resolved=roster.cfgs)
         except ValueError as e:
             raise ValueError(f"--resume {resume}: {e}") from None
         check_resume(prepared)
@@ -220,7 +236,7 @@ def _prepare(members: list[RunConfig], resume_flags: Collection[str] | None, loc
     else:
         population, folders = PopulationFolder.create(first.out, name, [member_name(m, members) for m in members])
     _lock(locks, folders, population)
-    return Prepared(members, folders, device, None, population, locks)
+    return Prepared(members, roster, folders, device, None, population, locks)
 
 
 def _stored_config(folder: RunFolder, overrides: RunConfig, given: Collection[str] | None = None) -> RunConfig:
@@ -277,15 +293,15 @@ CHECKPOINT_IDENTITY = ("task", "mode", "seed", "num_envs", "horizon", "image_siz
                        "critic_hidden", "raster_model")
 
 
-def _not_this_runs(state: dict, cfg: RunConfig | None) -> str | None:
+def _not_this_runs(state: dict, resolved: SHACConfig | None) -> str | None:
     """Why a checkpoint dict cannot be this run's (None: it can): no iteration, or a recorded config that
-    differs from config.json in :data:`CHECKPOINT_IDENTITY`."""
+    differs from config.json's (``resolved``: its trainer settings, resolved) in :data:`CHECKPOINT_IDENTITY`."""
     if isinstance(state.get("iteration"), bool) or not isinstance(state.get("iteration"), int):
         return "holds no 'iteration' entry: not a checkpoint written by ablate"
     recorded = state.get("config")
-    if cfg is None or not isinstance(recorded, dict):
+    if resolved is None or not isinstance(recorded, dict):
         return None
-    ours = dataclasses.asdict(resolve_config(shac_part(cfg)))
+    ours = dataclasses.asdict(resolved)
     for k in CHECKPOINT_IDENTITY:
         theirs, mine = recorded.get(k), ours.get(k)
         if k in recorded and (list(theirs) if isinstance(theirs, (list, tuple)) else theirs) != \
@@ -295,15 +311,15 @@ def _not_this_runs(state: dict, cfg: RunConfig | None) -> str | None:
 
 
 def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: bool = False,
-                   cfgs: list[RunConfig] | None = None) -> list[dict] | None:
+                   resolved: Sequence[SHACConfig] | None = None) -> list[dict] | None:
     """Every member's checkpoint state of the newest iteration all of them hold a readable checkpoint of; None
     where none holds one (the runs start over in their folders, with --restart where they trained before).
     Damaged newer files are named on stderr and renamed aside (``.damaged`` appended), so that they no longer
     count among the newest when the resumed run prunes, and stay for inspection; when no iteration is left,
     None with ``restart`` (its checkpoints are then set aside with the rest), else ValueError naming every file
-    that did not load, or each member's iterations, and --restart. ``cfgs``: the members' settings (config.json's),
-    which each checkpoint's own record must match (:func:`_not_this_runs`); a checkpoint that does not counts as
-    damaged."""
+    that did not load, or each member's iterations, and --restart. ``resolved``: the members' trainer settings
+    (config.json's, resolved), which each checkpoint's own record must match (:func:`_not_this_runs`); a
+    checkpoint that does not counts as damaged."""
     have = [f.checkpoint_iterations() for f in folders]
     if not any(have):
         return None
@@ -313,7 +329,7 @@ def _resume_states(folders: list[RunFolder], device: torch.device, *, restart: b
         for k, folder in enumerate(folders):
             path = checkpoint_path(folder.checkpoint_dir, iteration)
             state, why = read_checkpoint(path, map_location=device)
-            if state is not None and (why := _not_this_runs(state, None if cfgs is None else cfgs[k])):
+            if state is not None and (why := _not_this_runs(state, None if resolved is None else resolved[k])):
                 state = None
             if state is None:
                 damaged.append((path, why))

@@ -109,6 +109,11 @@ class RunConfig(SHACConfig):
     def validate(self) -> None:
         """SHACConfig's checks plus the run options'; every error names its flag."""
         super().validate()
+        self.check_run_options()
+
+    def check_run_options(self) -> None:
+        """The run options' checks alone (the trainer's settings are checked where they are resolved:
+        ``gradlab.roster.Roster``); every error names its flag."""
         check_integers(self, ("eval_final_every",), minimum=0)
         check_integers(self, ("eval_final_from",), minimum=1, optional=True)
         if bool(self.eval_final_every) != (self.eval_final_from is not None):

@@ -56,13 +56,16 @@ if TYPE_CHECKING:
 
 __all__ = ["RunFolder", "Run", "MetricsTail", "load_run", "find_runs", "read_metrics", "check_writable", "thin_copy",
            "git_info", "environment_info", "package_versions", "evaluation_of", "is_number", "CONFIG", "METRICS",
-           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "PROVENANCE", "ABSENT_MEANS",
+           "SUMMARY", "CHECKPOINTS", "VIDEOS", "RESUME_FILES", "PROVENANCE", "ABSENT_MEANS", "POPULATION_RECORD",
            "metrics_notes", "say_metrics_notes"]
 
 CONFIG, GIT, GIT_DIFF, METRICS, SUMMARY = "config.json", "git.txt", "git.diff", "metrics.jsonl", "summary.json"
 CHECKPOINTS, VIDEOS = "checkpoints", "videos"
 #: One JSON line per start of the run in this folder (its first, each resume, a restart): the code that ran.
 PROVENANCE = "provenance.jsonl"
+#: The record a population folder holds beside its members' run folders (the other folder format: a run alone's
+#: folder is a run folder itself).
+POPULATION_RECORD = "population.json"
 #: What ``ablate --resume`` needs besides a checkpoint (the git records keep a copied folder complete).
 RESUME_FILES = (CONFIG, GIT, GIT_DIFF, METRICS, PROVENANCE)
 #: What a setting missing from an older config.json means: the behaviour the code had before the setting existed.

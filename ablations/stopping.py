@@ -1,7 +1,8 @@
 """How a run stops without losing work silently: a signal as a request to stop at the end of the iteration
 (:class:`StopOnSignal`), the copy of the last finished iteration the loop holds between checkpoints
-(:func:`copy_state`) and its checkpoint after a stop mid-iteration (:func:`rescue`), and the one line an error
-that stopped a run is told in (:func:`describe_error`, :class:`RunFailed`). Every member of a population (a single
+(:func:`copy_state`) and its checkpoint after a stop mid-iteration (:func:`rescue`), both kept by a loop's
+:class:`Keeper`, and the one line an error that stopped a run is told in (:func:`describe_error`,
+:class:`RunFailed`). Every member of a population (a single
 run: one) is checkpointed alike (docs/design.md, "Run folders and resume").
 """
 
@@ -23,7 +24,8 @@ from ablations.memory.worker import is_oom
 from ablations.run_folder import RunFolder
 from gradlab.probes import NonFiniteError
 
-__all__ = ["RunFailed", "describe_error", "copy_state", "rescue", "checkpoint", "StopOnSignal", "plain_warnings"]
+__all__ = ["Keeper", "RunFailed", "StopOnSignal", "checkpoint", "copy_state", "describe_error", "plain_warnings",
+           "rescue"]
 
 
 class RunFailed(RuntimeError):
@@ -109,6 +111,68 @@ def checkpoint(states: list, folders: list[RunFolder], iteration: int, keep: int
         folder.save_checkpoint(iteration, state)
     for folder in folders:
         folder.prune_checkpoints(keep)
+
+
+class Keeper:
+    """The members' checkpoints while a loop trains them (one per member, in ``folders``' order), and the one
+    rescue for every way out of it (:meth:`rescue`).
+
+    ``done`` is the newest iteration whose metrics every member's folder holds, ``checkpointed`` the newest one on
+    disk, ``held`` (iteration, states) a copy of the newest finished iteration that is not on disk yet, and
+    ``between`` whether the live trainer is at a finished iteration (not inside one), so that its own state is
+    that iteration's; ``lost``: what a rescue could not keep.
+    """
+
+    def __init__(self, trainer, folders: list[RunFolder], *, keep: int, device: torch.device):
+        self.trainer, self.folders, self.keep, self.device = trainer, folders, keep, device
+        self.done = self.checkpointed = trainer.iteration
+        self.held: tuple[int, object] | None = None
+        self.between = True
+        self.lost: str | None = None
+
+    def begin(self) -> None:
+        """An iteration starts: the live trainer is inside it until :meth:`finished`."""
+        self.between = False
+
+    def finished(self, iteration: int, *, save: bool) -> None:
+        """Iteration ``iteration`` is finished and recorded: checkpoint it (``save``), else hold a copy of it."""
+        self.done, self.between = iteration, True
+        if save:
+            self.save()
+        else:
+            self.held = None  # the older copy first: two at once would double what it holds
+            self.held = (iteration, copy_state(self.trainer.state_dict()))
+            if self.device.type == "cuda":  # waited for here, outside the next iteration's measured time
+                torch.cuda.synchronize(self.device)
+
+    def save(self) -> None:
+        """Checkpoint the live trainer's iteration, unless it is on disk already."""
+        if self.checkpointed != self.trainer.iteration:
+            checkpoint(self.trainer.state_dict(), self.folders, self.trainer.iteration, self.keep)
+            self.checkpointed = self.trainer.iteration
+        self.held = None
+
+    def rescue(self, e: BaseException, *, ran: bool, home) -> tuple[str, str]:
+        """After ``e`` stopped the loop (a second signal, an error, SystemExit and its like): the last finished
+        iteration checkpointed where it can be (:func:`rescue`), and (status, line) for the summary of every
+        member still training. ``ran``: an iteration had started (else the stop came while building, recording
+        or compiling ahead); ``home``: the folder ``ablate --resume`` takes."""
+        done = self.done
+        where = (f"during iteration {done + 1}" if not self.between else
+                 f"before iteration {done + 1}" if not ran else f"after iteration {done}")
+        kept, lost = rescue(self.trainer.state_dict, self.folders, self.between, self.held, done,
+                            self.checkpointed, self.keep)
+        self.checkpointed, self.lost = kept, lost
+        if isinstance(e, KeyboardInterrupt):
+            name = str(e) or "SIGINT"  # Python's own handler raises it without one
+            why = f"{name} {where}: stopped at once" + (f", iteration {done + 1} is lost" if not self.between else "")
+            return "interrupted", why + (f"; {lost}" if lost else (f"; resumes from iteration {kept}" if kept else ""))
+        if isinstance(e, Exception):
+            status, text = describe_error(e, self.device, where)  # a NonFiniteError names its iteration itself
+            return status, text + (f"; {lost}" if lost else f"; the run resumes from iteration {kept}: ablate "
+                                                            f"--resume {home}"
+                                   if kept else "; no iteration finished, nothing to resume")
+        return "failed", f"{type(e).__name__} after iteration {done}"
 
 
 class StopOnSignal:

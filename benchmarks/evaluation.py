@@ -37,7 +37,7 @@ def timed_evaluation(trainer, device) -> tuple[float, list[dict]]:
     out = trainer.evaluate()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-    return time.perf_counter() - start, out if isinstance(out, list) else [out]
+    return time.perf_counter() - start, out
 
 
 def measure(task: str, members: int, args) -> list[dict]:
@@ -50,7 +50,7 @@ def measure(task: str, members: int, args) -> list[dict]:
     arms = [MEMBER_ARMS[i % len(MEMBER_ARMS)] for i in range(members)]
     cfgs = [dataclasses.replace(base, mode=a.mode, raster_model=a.raster_flag, preset=a.preset, seed=i)
             for i, a in enumerate(arms)]
-    trainer = SHAC(cfgs if members > 1 else cfgs[0], device=args.device)
+    trainer = SHAC(cfgs, device=args.device)
     device = trainer.device
     first_s, reference = timed_evaluation(trainer, device)  # compiles the evaluation's shapes, then captures
     rows = [{"task": task, "members": members, "variant": "first evaluation (compiling, capturing)",

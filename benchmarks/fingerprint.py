@@ -11,6 +11,9 @@ content) and what a run resumed from a checkpoint file computes next. A tool, no
 ``--checkpoints DIR``: resume from the checkpoint files in DIR where they exist (written by an earlier run of this
 script, e.g. by the code before a change: checkpoints it wrote must still load), else write them there first.
 Compare two outputs with ``cmp``: the file is written with sorted keys, so equal arithmetic gives equal bytes.
+Every answer is recorded as a list of members' values (a run alone: a list of one), and a checkpoint file
+holding one run's dict (a run folder's format) loads as a list of one: the outputs of trainers that answer a run
+alone with one dict or with a list of one compare, and so do their checkpoint files.
 """
 
 from __future__ import annotations
@@ -68,11 +71,14 @@ def _plain(x):
     return _hash(x) if hasattr(x, "shape") else repr(x)
 
 
-def _state(state: dict | list[dict]) -> dict | list:
-    """A state_dict (a population's: one per member) less its clock reading."""
-    if isinstance(state, list):
-        return [_state(s) for s in state]
-    return _plain({k: v for k, v in state.items() if k != "wall_s"})
+def _members(x) -> list:
+    """A list of members' values (one run's config, dict or checkpoint: a list of one)."""
+    return x if isinstance(x, list) else [x]
+
+
+def _state(state: dict | list[dict]) -> list:
+    """A state_dict (one per member) less its clock reading."""
+    return [_plain({k: v for k, v in s.items() if k != "wall_s"}) for s in _members(state)]
 
 
 def _run(name: str, cfg, ckpt_dir: Path | None, *, batching: str = "grouped", poison: int | None = None) -> dict:
@@ -80,21 +86,21 @@ def _run(name: str, cfg, ckpt_dir: Path | None, *, batching: str = "grouped", po
     fresh trainer from a checkpoint file of it and record its next iteration. ``poison``: the member index whose
     actor goes non-finite after the first iteration."""
     out: dict = {"iterations": [], "evaluations": []}
-    trainer = SHAC(cfg, device="cpu", batching=batching)
+    trainer = SHAC(_members(cfg), device="cpu", batching=batching)
     out["order"] = ([dataclasses.asdict(m.cfg)["mode"] + f"/{m.cfg.seed}/{m.cfg.raster_model}"
                      for m in trainer.members])
     for it in range(ITERS):
         try:
-            out["iterations"].append(_plain(trainer.train_iteration()))
+            out["iterations"].append(_plain(_members(trainer.train_iteration())))
         except NonFiniteError as e:
             out["iterations"].append({"raised": str(e)})
             return out
         if it == 0:
-            out["evaluations"].append(_plain(trainer.evaluate(video_steps=2, video_size=16)))
+            out["evaluations"].append(_plain(_members(trainer.evaluate(video_steps=2, video_size=16))))
             if poison is not None:
                 with torch.no_grad():
                     next(trainer.members[poison].actor.parameters()).fill_(float("nan"))
-    out["evaluations"].append(_plain(trainer.evaluate()))
+    out["evaluations"].append(_plain(_members(trainer.evaluate())))
     state = trainer.state_dict()
     out["state"] = _state(state)
     if ckpt_dir is not None:
@@ -106,9 +112,9 @@ def _run(name: str, cfg, ckpt_dir: Path | None, *, batching: str = "grouped", po
         import copy
 
         state = copy.deepcopy(state)
-    resumed = SHAC(cfg, device="cpu", batching=batching)
-    resumed.load_state_dict(state)
-    out["resumed"] = _plain(resumed.train_iteration())
+    resumed = SHAC(_members(cfg), device="cpu", batching=batching)
+    resumed.load_state_dict(_members(state))
+    out["resumed"] = _plain(_members(resumed.train_iteration()))
     out["resumed_state"] = _state(resumed.state_dict())
     return out
 

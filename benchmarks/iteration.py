@@ -80,17 +80,19 @@ def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_crit
         # each arm is timed at the size `ablate` trains it
         row["num_envs"] = resolve_config(cfg).num_envs
         t0 = time.perf_counter()
-        trainer = SHAC(cfg, device=args.device)
+        trainer = SHAC([cfg], device=args.device)
         row["setup_s"] = time.perf_counter() - t0
-        if trainer.renderer is not None:  # which rasterizer backend "auto" resolved to (fused / tiled)
-            row["render_backend"] = diffrender.backend_for(trainer.renderer.settings, trainer.device)
-            row["faces"] = trainer.renderer.num_faces
-            row["raster_model"] = trainer.cfg.raster_model
+        (member,) = trainer.members
+        renderer = trainer.renderers.get(member.cfg.raster_model) if member.plan.renders else None
+        if renderer is not None:  # which rasterizer backend "auto" resolved to (fused / tiled)
+            row["render_backend"] = diffrender.backend_for(renderer.settings, trainer.device)
+            row["faces"] = renderer.num_faces
+            row["raster_model"] = member.cfg.raster_model
         t0 = time.perf_counter()
         for _ in range(args.warmup):
             trainer.train_iteration()
         row["warmup_s"] = time.perf_counter() - t0
-        rows = [trainer.train_iteration() for _ in range(args.iters)]
+        rows = [trainer.train_iteration()[0] for _ in range(args.iters)]
         row["critic_overlapped"] = bool(rows) and all(r["critic_overlapped"] for r in rows)
         for k in KEYS:
             vals = [r[k] for r in rows if r.get(k) is not None]
@@ -103,7 +105,7 @@ def _measure(task: str, mode: str, args, *, renderer: str = "soft", overlap_crit
             trainer.train_iteration()
             if args.compile:
                 trainer.train_iteration()
-            probed = [trainer.train_iteration() for _ in range(max(1, args.iters // 2))]
+            probed = [trainer.train_iteration()[0] for _ in range(max(1, args.iters // 2))]
             p_iter = median([r["iter_ms"] for r in probed])
             row["probed_iter_ms"] = p_iter
             row["probed_bwd_ms"] = median([r["bwd_ms"] for r in probed])

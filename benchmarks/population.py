@@ -72,7 +72,7 @@ def child(args) -> None:
         t0 = time.perf_counter()
         # process-wide, before the trainer is built (on the CPU a dry run: no TF32 there, bf16 emulated)
         precision.use(cfgs[0].precision, args.device, allow_cpu=True)
-        trainer = SHAC(cfgs if job["members"] > 1 else cfgs[0], device=args.device, batching=job["batching"])
+        trainer = SHAC(cfgs, device=args.device, batching=job["batching"])
         for _ in range(args.warmup):
             trainer.train_iteration()
         row["warmup_s"] = round(time.perf_counter() - t0, 1)
@@ -93,8 +93,7 @@ def child(args) -> None:
                 torch.cuda.reset_peak_memory_stats()
             rows = []
             for _ in range(args.iters):
-                out = trainer.train_iteration()
-                rows.append(out if isinstance(out, dict) else next(r for r in out if r is not None))
+                rows.append(next(r for r in trainer.train_iteration() if r is not None))
             row["iter_ms"] = round(statistics.median(r["iter_ms"] for r in rows), 2)
             row["fwd_ms"] = round(statistics.median(r["fwd_ms"] for r in rows), 2)
             row["bwd_ms"] = round(statistics.median(r["bwd_ms"] for r in rows), 2)

@@ -78,20 +78,21 @@ def agreement(task: str, mode: str, args) -> list[dict]:
     trainers = {}
     for variant in args.candidates:
         apply(variant, device)
-        trainers[variant] = SHAC(dataclasses.replace(cfg, precision=variant.removesuffix("-ieee")), device=device)
+        trainers[variant] = SHAC([dataclasses.replace(cfg, precision=variant.removesuffix("-ieee"))], device=device)
     apply("fp32", device)
-    run = SHAC(cfg, device=device)
+    run = SHAC([cfg], device=device)
     sees = ModePlan.of(mode).renders
     at = points(args.iters)
     rows = []
     for it in range(args.iters + 1):
         snapshot = copy.deepcopy(run.state_dict()) if it in at else None
         apply("fp32", device)
-        ref = run.train_iteration()
+        (ref,) = run.train_iteration()
         if snapshot is None:
             continue
-        g_ref = flat_grad(run.actor.parameters())
-        e_ref = flat_grad(run.actor.encoder.parameters()) if sees else None
+        actor = run.members[0].actor
+        g_ref = flat_grad(actor.parameters())
+        e_ref = flat_grad(actor.encoder.parameters()) if sees else None
         after = rng_state()  # the run goes on with its own noise, whatever the candidates drew
         for variant, trainer in trainers.items():
             row = {"task": task, "mode": mode, "iteration": it, "candidate": variant, "status": "ok"}
@@ -99,13 +100,13 @@ def agreement(task: str, mode: str, args) -> list[dict]:
                 apply(variant, device)
                 # a copy each time: loading keeps some tensors of the dict (optimiser state) and steps them in place
                 trainer.load_state_dict(copy.deepcopy(snapshot))
-                out = trainer.train_iteration()
-                g = flat_grad(trainer.actor.parameters())
+                (out,) = trainer.train_iteration()
+                g = flat_grad(trainer.members[0].actor.parameters())
                 row.update(cos=float(cosine(g, g_ref)), norm_ratio=out["grad_norm"] / ref["grad_norm"],
                            grad_norm=out["grad_norm"], grad_norm_fp32=ref["grad_norm"],
                            loss_rel_diff=_rel(out["actor_loss"], ref["actor_loss"]), graph=out["graph"])
                 if sees:
-                    row["cos_encoder"] = float(cosine(flat_grad(trainer.actor.encoder.parameters()), e_ref))
+                    row["cos_encoder"] = float(cosine(flat_grad(trainer.members[0].actor.encoder.parameters()), e_ref))
             except torch.OutOfMemoryError as e:
                 row.update(status="oom", error=str(e).splitlines()[0])
             except Exception as e:  # a benchmark reports a failing point and goes on

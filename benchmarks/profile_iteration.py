@@ -98,7 +98,7 @@ def profile_trainer(task: str, mode: str, precision_: str, args) -> dict:
                      image_size=args.image_size, iters=10_000, cosine_every=0, seed=0, compile=True,
                      precision=precision_)
     precision.use(precision_, "cuda")  # process-wide: before the trainer (its encoder) is built
-    trainer = SHAC(cfg, device="cuda")
+    trainer = SHAC([cfg], device="cuda")
     for _ in range(4):  # 2 eager warm-up iterations, the capture, one replay
         trainer.train_iteration()
     graph = trainer.window.captured[False]  # the plain (not probe) window's forward and backward graphs

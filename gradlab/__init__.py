@@ -6,8 +6,10 @@ policy gradients through the renderer), ``decoupled`` (D.Va: the image detached 
 the mode decides; presets (``gradlab.presets``) hold the reference code's hyperparameters. Probes measure
 both gradients of one rollout, their norms, cosine and split by parameter group, and the policy's sensitivity
 to each frame; every iteration reports CUDA-synchronised times and peak memory; a NaN/inf stops the run
-naming the iteration, the horizon step and the tensor. With ``--compile`` the trainer compiles the parts of its
-``compile_table`` (``COMPILE_PARTS``) and replays its iterations from CUDA graphs on a GPU.
+naming the iteration, the horizon step and the tensor. The trainer trains members (``SHAC([cfg, ...])``, a run
+alone ``SHAC([cfg])``), built once as a ``Roster``, and answers with one entry per member. With ``--compile``
+the trainer compiles the parts of its ``compile_table`` (``COMPILE_PARTS``) and replays its iterations from CUDA
+graphs on a GPU.
 """
 
 from tasks.lazy import lazy_names
@@ -18,7 +20,7 @@ _WHERE = {
     "MODES": ".config", "ModePlan": ".config", "SHACConfig": ".config", "resolve_config": ".config",
     "PRESETS": ".presets", "preset_record": ".presets", "preset_values": ".presets", "ImageGate": ".probes",
     "NonFiniteError": ".probes", "cosine": ".probes", "flat_grad": ".probes", "resolve_device": ".seeding",
-    "seed_everything": ".seeding", "COMPILE_PARTS": ".shac", "SHAC": ".shac",
+    "seed_everything": ".seeding", "COMPILE_PARTS": ".shac", "SHAC": ".shac", "Roster": ".roster",
 }
 
 __all__ = [
@@ -29,6 +31,7 @@ __all__ = [
     "SHACConfig",
     "PRESETS",
     "ImageGate",
+    "Roster",
     "NonFiniteError",
     "cosine",
     "flat_grad",

@@ -25,7 +25,7 @@ student's ``wall_s`` and ``env_steps``.
 
 Members: ``Distill([cfg, ...])`` trains several students in one process over one batched simulation, member m on
 environments ``m * B .. (m + 1) * B``, each with its own expert, student, optimiser, buffer and sampling
-generator; ``Distill(cfg)`` is a run alone. The trainer has :class:`gradlab.SHAC`'s training interface
+generator; ``Distill([cfg])`` is a run alone. The trainer has :class:`gradlab.SHAC`'s list interface
 (``train_iteration``, ``evaluate``, ``state_dict``, ``load_state_dict``, ``members``), so that code driving a run
 trains either the same way. Metrics keys follow SHAC's: ``actor_loss`` is the distillation
 loss of the iteration's last update (None before the updates start), ``fwd_ms`` the rollout and labelling,
@@ -52,12 +52,12 @@ from torch import nn
 
 from gradlab import members
 from gradlab.checkpoint import load_checkpoint, load_newest_readable
-from gradlab.config import ModePlan, SHACConfig, resolve_config
+from gradlab.config import ModePlan, SHACConfig
 from gradlab.evaluation import Evaluator
-from gradlab.members import check_population
 from gradlab.networks import MLP, MemberStack, PixelEncoder, StateActor, orthogonal_init
 from gradlab.normalizer import RunningMeanStd
 from gradlab.probes import NonFiniteError
+from gradlab.roster import Roster
 from gradlab.seeding import resolve_device, rng_state, seed_everything, set_rng_state
 from tasks.vision import FrameStack
 
@@ -215,21 +215,21 @@ class DistillMember:
 
 
 class Distill:
-    """The distillation trainer of one run or a population of runs (module docstring).
+    """The distillation trainer of a population of runs (a run alone: one), with :class:`gradlab.SHAC`'s list
+    interface (module docstring).
 
     Args:
-        cfg: a ``--mode distill`` configuration (None fields resolved by the preset), or one per member (they
-            share every setting but :data:`vocabulary.MEMBER_FIELDS`: a population's students differ in seed and
-            expert).
+        roster: the members (a :class:`gradlab.roster.Roster`), or their ``--mode distill`` configurations, one
+            per member (None fields resolved by the preset; they share every setting but
+            :data:`vocabulary.MEMBER_FIELDS`: a population's students differ in seed and expert).
         device: "auto" | "cpu" | "cuda[:N]".
     """
 
     COMPILE_SITES: ClassVar[dict[str, str]] = {}  # nothing compiled: the progress display names no sites
 
-    def __init__(self, cfg: SHACConfig | Sequence[SHACConfig], *, device: str | torch.device = "auto"):
-        self.single = isinstance(cfg, SHACConfig)
-        cfgs = [resolve_config(c) for c in ([cfg] if self.single else cfg)]
-        check_population(cfgs)
+    def __init__(self, roster: Roster | Sequence[SHACConfig], *, device: str | torch.device = "auto"):
+        self.roster = roster = roster if isinstance(roster, Roster) else Roster.of(roster)
+        cfgs = list(roster.cfgs)
         if cfgs[0].mode != "distill":
             raise ValueError(f"--mode: gradlab.Distill trains --mode distill, got --mode {cfgs[0].mode}")
         self.n = n = len(cfgs)
@@ -253,7 +253,6 @@ class Distill:
                 torch.optim.Adam(student.parameters(), lr=c.actor_lr, betas=c.betas), expert,
                 ReplayBuffer(c.distill_buffer, image_shape, self.task.num_act, self.device), generator,
                 RunningMeanStd(self.task.num_obs, device=self.device)))
-        self.actor = self.members[0].actor
         self.actors = MemberStack([m.actor for m in self.members], batching="modules")
         self.frames = FrameStack(cfg.frames)
         self.evaluator = Evaluator(self.members, self.actors, cfg, self.device)
@@ -346,8 +345,8 @@ class Distill:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
 
-    def train_iteration(self) -> dict | list[dict]:
-        """One iteration (segment, labels, updates); its metrics: a single run's dict, or one per member."""
+    def train_iteration(self) -> list[dict]:
+        """One iteration (segment, labels, updates); its metrics, one dict per member."""
         cfg = self.cfg
         if not self._started:
             t_start = time.perf_counter()
@@ -398,19 +397,18 @@ class Distill:
                 "probed": False,
                 "graph": False,
             })
-        return out[0] if self.single else out
+        return out
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, *, video_steps: int = 0, video_size: int = 256) -> dict | list[dict]:
+    def evaluate(self, *, video_steps: int = 0, video_size: int = 256) -> list[dict]:
         """Each student's deterministic policy ``tanh(student(frames))`` on the toolkit's evaluation (whole
         episodes of ``eval_envs`` environments from the fixed evaluation seed; ``gradlab.evaluation``), as
         :meth:`gradlab.SHAC.evaluate` returns it."""
-        out = self.evaluator(capture=False, video_steps=video_steps, video_size=video_size)
-        return out[0] if self.single else out
+        return self.evaluator(capture=False, video_steps=video_steps, video_size=video_size)
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict | list[dict]:
-        """Per member (a single run: one dict) everything but its buffer (module docstring): the clock, the
+    def state_dict(self) -> list[dict]:
+        """Per member everything but its buffer (module docstring): the clock, the
         student, its optimiser and generator, its rows of the task, frames and episode counters, where its expert
         came from."""
         task, frames = self.task.get_state(), self.frames.state_dict()
@@ -430,14 +428,12 @@ class Distill:
                 "expert": {"source": m.expert.source, "wall_s": m.expert.wall_s, "env_steps": m.expert.env_steps,
                            "iterations": m.expert.iterations},
                 "rng": rng_state()})
-        return states[0] if self.single else states
+        return states
 
-    def load_state_dict(self, state: dict | Sequence[dict]) -> None:
-        """Restore :meth:`state_dict`; the buffers start empty and refill (module docstring)."""
-        states = [state] if self.single else list(state)
-        if len(states) != self.n:
-            raise ValueError(f"{len(states)} member states for a population of {self.n}")
-        ordered = states if self.single else members.match_states(self.members, states)
+    def load_state_dict(self, states: Sequence[dict]) -> None:
+        """Restore :meth:`state_dict` (one dict per member, in any order: ``members.match_states``); the buffers
+        start empty and refill (module docstring)."""
+        ordered = members.match_states(self.members, states)
         first = ordered[0]
         self.iteration, self.wall_s, self._started = first["iteration"], first["wall_s"], first["started"]
         for m, s in zip(self.members, ordered):

@@ -6,8 +6,9 @@ abort guard (docs/design.md, "Populations"). This module holds what the training
 do with the members' rows, so that the two share it: the task of E environments per member, the renderers and
 the images (one renderer call per run of adjacent members of one raster model), the actor's input, the members'
 observation statistics and action noise laid out on their rows, the per-member sums of a loss; what the
-population must agree on (:func:`check_population`) and the order its members train in; and a member's
-checkpoint, a single run's format holding the member's rows of the trainer's state.
+population must agree on (:func:`check_population`) and the order its members train in (:func:`render_order`;
+``gradlab.roster`` applies both, once); the routes of the image gradients; and a member's checkpoint, a single
+run's format holding the member's rows of the trainer's state, matched to its member on resume.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import torch
 from torch import nn
 
 import tasks
-from gradlab.config import ModePlan, SHACConfig, resolve_config
+from gradlab.config import ModePlan, SHACConfig
 from gradlab.networks import Critic, StateActor, VisualActor
 from gradlab.normalizer import RunningMeanStd
 from gradlab.presets import SILHOUETTE_RASTER_MODEL
@@ -35,8 +36,8 @@ from vocabulary import MEMBER_FIELDS
 
 __all__ = ["MEMBER_FIELDS", "Member", "actor_input", "alt_raster", "blank_images", "build_member", "check_memory",
            "check_population", "images", "input_kind", "joined_state", "make_renderers", "make_task", "match_states",
-           "member_state", "member_sums", "population_order", "render_order", "restore_member", "sample",
-           "stacked_stats", "window_bytes"]
+           "member_state", "member_sums", "probe_routes", "render_order", "restore_member", "sample",
+           "stacked_stats", "why_all_stopped", "window_bytes"]
 
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
@@ -100,12 +101,11 @@ def _memory_of(device: torch.device) -> int:
 
 
 def check_memory(cfgs: Sequence[SHACConfig], device: torch.device) -> None:
-    """Refuse, before any work, a population whose window would not fit the device. One member is not refused:
-    the estimate is there to pack runs into processes, and one run cannot be split further."""
-    if len(cfgs) < 2:
-        return
+    """Refuse, before any work, members whose window would not fit the device together while each would alone:
+    the estimate is there to pack runs into processes, and what fewer members per process cannot mend (a run
+    alone, or a member that would not fit alone either) is left to the device to tell."""
     need, have = window_bytes(cfgs), _memory_of(device)
-    if need > have:
+    if need > have and all(window_bytes([c]) <= have for c in cfgs):
         raise ValueError(f"a population of {len(cfgs)} members keeps about {need / 2**30:.1f} GiB for one window's "
                          f"backward (estimated), more than the {have / 2**30:.1f} GiB of {device}: "
                          "train fewer members per process (fewer --seed/--mode values, or --pack)")
@@ -115,12 +115,6 @@ def render_order(cfg: SHACConfig) -> tuple:
     """Members sorted by this key render in as few calls as possible: one per raster model (and gradient)."""
     plan = ModePlan.of(cfg.mode)
     return plan.actor_input == "blank", cfg.raster_model or "", not plan.grad_through_images
-
-
-def population_order(cfgs: Sequence[SHACConfig]) -> list[int]:
-    """The order of :attr:`SHAC.members` for these configs: indices into ``cfgs`` (resolved or not)."""
-    resolved = [resolve_config(c) for c in cfgs]
-    return sorted(range(len(cfgs)), key=lambda i: render_order(resolved[i]))
 
 
 def alt_raster(raster_model: str) -> str:
@@ -191,6 +185,28 @@ def build_member(index: int, cfg: SHACConfig, task: tasks.Task, device: torch.de
     per_member = cfg.num_envs
     return Member(index, cfg, plan, slice(index * per_member, (index + 1) * per_member), actor, critic,
                   target_critic, actor_opt, critic_opt, RunningMeanStd(task.num_obs, device=device), generator)
+
+
+def probe_routes(members: Sequence[Member]) -> dict[str, tuple[str | None, ...]]:
+    """Where each backward pass sends each member's image gradient (``ImageGate.set_route``): ``train``, the
+    gradient every member trains with (last, so it stays in ``.grad``); on probe iterations first ``other``, the
+    estimator it does not train with, and, where a member trains full, ``alt``, its full gradient through the
+    other raster model's image of the same states."""
+    full = [m.plan.grad_through_images for m in members]
+    sees = [m.plan.renders for m in members]
+    routes = {"train": tuple("image" if f else None for f in full),
+              "other": tuple("image" if s and not f else None for s, f in zip(sees, full))}
+    if any(full):
+        routes["alt"] = tuple("alt" if f else None for f in full)
+    return routes
+
+
+def why_all_stopped(members: Sequence[Member]) -> str:
+    """Why the training ended once every member stopped: each member's reason; a run alone's as it is, without
+    a member's number (the closing lines and summary.json of a run alone name no members)."""
+    if len(members) == 1:
+        return members[0].failed
+    return "every member of the population stopped: " + "; ".join(f"member {m.index}: {m.failed}" for m in members)
 
 
 # ---------------------------------------------------------------------- the members' rows of one batch
@@ -339,12 +355,29 @@ def _config_key(config: dict[str, Any]) -> tuple:
 
 
 def match_states(members: Sequence[Member], states: Sequence[dict]) -> list[dict]:
-    """Checkpoints of a population's members, given in any order, in the order of ``members`` (matched by their
-    member settings); raises ValueError where they are of other members or of different iterations."""
-    by_config = {_config_key(s["config"]): s for s in states}
-    ordered = [by_config.get(_config_key(dataclasses.asdict(m.cfg))) for m in members]
-    if any(s is None for s in ordered):
-        raise ValueError("the checkpoints are of other members than this population's")
+    """Checkpoints of the members, given in any order, in the order of ``members``; ValueError where they are of
+    other members, or of a member trained in a population of another size.
+
+    A run alone's checkpoint is its own whatever its config says (a run resumed with other settings, e.g. a
+    config.json restored by hand); a population's are matched by their member settings. A member of several
+    draws its noise from a generator of its own, which its checkpoint holds; a run alone draws from torch's
+    default generator: a checkpoint of the one cannot resume the other exactly, so it is refused."""
+    states = list(states)
+    if len(states) != len(members):
+        raise ValueError(f"{len(states)} member states for a population of {len(members)}")
+    if len(members) == 1:
+        ordered = states
+    else:
+        by_config = {_config_key(s["config"]): s for s in states}
+        ordered = [by_config.get(_config_key(dataclasses.asdict(m.cfg))) for m in members]
+        if any(s is None for s in ordered):
+            raise ValueError("the checkpoints are of other members than this population's")
+    for m, s in zip(members, ordered):
+        if (m.generator is None) != ("generator" not in s):
+            trained, here = ("a member of a population", "a run alone") if m.generator is None else \
+                ("a run alone", f"a member of a population of {len(members)}")
+            raise ValueError(f"the checkpoint of {trained} cannot resume exactly as {here} (its action noise "
+                             f"comes from another generator): resume it as it was trained")
     return ordered
 
 

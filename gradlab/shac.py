@@ -19,13 +19,15 @@ One iteration, top to bottom (docs/design.md, "A SHAC window"):
    the actor's gradient, so with CUDA graphs it runs alongside the backward of step 3 (``overlap_critic``).
 
 The trainer always trains **members** (docs/design.md, "Populations"): ``SHAC([cfg, ...])`` several runs in one
-process as one batched simulation, ``SHAC(cfg)`` a population of one. Member ``m`` owns environments
-``m * B .. (m + 1) * B`` of one task, and its own actor, critic, target critic, optimisers, observation
-statistics, action noise, learning-rate schedule, gradient clipping and abort guard (``gradlab.members``); the
-members' networks run as batched kernels (``MemberStack``), their losses are summed (no member's loss reaches
-another member's parameters) and each member's metrics are its own. Only where results are handed out does a
-single run differ: its caller gets one run's dict, not a list of one, and a failure raises instead of stopping a
-member. Evaluation (``gradlab.evaluation``) and the critics' fit in groups (``gradlab.critic``) live beside.
+process as one batched simulation, ``SHAC([cfg])`` a run alone, a population of one; its answers are lists, one
+entry per member. Member ``m`` owns environments ``m * B .. (m + 1) * B`` of one task, and its own actor, critic,
+target critic, optimisers, observation statistics, action noise, learning-rate schedule, gradient clipping and
+abort guard (``gradlab.members``); the members' networks run as batched kernels (``MemberStack``), their losses
+are summed (no member's loss reaches another member's parameters) and each member's metrics are its own. A
+population of one computes what a run alone computes, bit for bit, through four arithmetic choices made where
+they live: torch's default generator for its noise (``members.build_member``), its own modules in
+``MemberStack``, and a critic group of one whose Adam steps alone (``gradlab.critic``). Evaluation
+(``gradlab.evaluation``) and the critics' fit in groups live beside.
 
 With ``--compile`` the parts in :meth:`SHAC.compile_table` run through ``torch.compile``, and on a CUDA device the
 window (steps 1-3) and the critic fit are CUDA graphs replayed every iteration; ``gradlab.graphs`` holds that
@@ -48,20 +50,21 @@ from torch import nn
 
 import tasks
 from gradlab import members
-from gradlab.config import ModePlan, SHACConfig, resolve_config
+from gradlab.config import ModePlan, SHACConfig
 from gradlab.critic import critic_groups, fit_member_critics, polyak_update
 from gradlab.evaluation import EVAL_SEED, EvaluationState, Evaluator
 from gradlab.graphs import WARMUP_ITERS, GraphedCriticPhase, LiveState, WindowGraphs, zero_grads_
-from gradlab.members import MEMBER_FIELDS, Member, check_population, population_order, window_bytes
+from gradlab.members import MEMBER_FIELDS, Member, check_population, window_bytes
 from gradlab.networks import MemberStack
 from gradlab.normalizer import RunningMeanStd
 from gradlab.probes import FiniteFlags, ImageGate, NonFiniteError, cosine, flat_grad, group_norms, image_sensitivity
+from gradlab.roster import Roster
 from gradlab.seeding import resolve_device, seed_everything, set_rng_state
 from gradlab.timing import RegionTimer
 from tasks.vision import FrameStack
 
-__all__ = ["COMPILE_PARTS", "EVAL_SEED", "MEMBER_FIELDS", "SHAC", "Member", "NonFiniteError", "check_population",
-           "population_order", "window_bytes"]
+__all__ = ["COMPILE_PARTS", "EVAL_SEED", "MEMBER_FIELDS", "SHAC", "Member", "NonFiniteError", "Roster",
+           "check_population", "window_bytes"]
 
 #: What ``--compile`` compiles (:meth:`SHAC.compile_table`), in parts that are each their own graphs and compile
 #: work, so that separate processes can compile them at the same time into one cache: the physics' own parts
@@ -72,14 +75,14 @@ _FLAG_NAMES = ["state_obs", "reward", "terminal_value", "image", "action", "qpos
 
 
 class SHAC:
-    """The SHAC / D.Va trainer of one run or a population of runs.
+    """The SHAC / D.Va trainer of a population of runs (a run alone: a population of one).
 
     Args:
-        cfg: the configuration (None fields are resolved to the task's reference values), or one per member of a
-            population (:func:`check_population` says which settings they share). With one config the trainer
-            is a single run: :meth:`train_iteration`, :meth:`evaluate`, :meth:`state_dict` take and give one
-            run's values; with a list, one per member in the order of :attr:`members` (sorted so that members of
-            one image model render together; ``member.cfg`` tells which is which).
+        roster: the members (a :class:`Roster`), or their configurations, one per member (None fields are
+            resolved to the task's reference values; :func:`check_population` says which settings they share).
+            :meth:`train_iteration`, :meth:`evaluate`, :meth:`state_dict` and :meth:`load_state_dict` take and
+            give lists, one entry per member in the order of :attr:`members` (the roster's: members of one image
+            model render together; ``member.cfg`` tells which is which).
         device: "auto" | "cpu" | "cuda[:N]".
         batching: how a population's networks run as one batch (``MemberStack``): ``"grouped"`` (batched kernels),
             ``"loop"`` (one convolution per member), ``"modules"`` (each member's own modules, a run alone's exact
@@ -95,18 +98,14 @@ class SHAC:
         "physics step": "task.step", "renderer": "_render", "actor": "_actor_mean", "critic": "_target_value",
         "backward pass": "window.backward"}
 
-    def __init__(self, cfg: SHACConfig | Sequence[SHACConfig], *, device: str | torch.device = "auto",
+    def __init__(self, roster: Roster | Sequence[SHACConfig], *, device: str | torch.device = "auto",
                  batching: str = "grouped"):
-        # the API's edge: a single run's caller gets one run's values, not lists of one (and a failure raises)
-        self.single = isinstance(cfg, SHACConfig)
-        cfgs = [resolve_config(c) for c in ([cfg] if self.single else cfg)]
-        check_population(cfgs)
-        if cfgs[0].mode == "distill":
+        self.roster = roster = roster if isinstance(roster, Roster) else Roster.of(roster)
+        cfgs = list(roster.cfgs)
+        if roster.shared.mode == "distill":
             raise ValueError("--mode distill is trained by gradlab.Distill, not SHAC")
-        cfgs.sort(key=members.render_order)
         self.n = n = len(cfgs)
-        self.cfg = cfg = cfgs[0]  # the population's shared settings (a single run's config)
-        self.plan = ModePlan.of(cfg.mode)
+        self.cfg = cfg = roster.shared  # the settings every member shares (outside MEMBER_FIELDS)
         self.device = device if isinstance(device, torch.device) else resolve_device(device)
         members.check_memory(cfgs, self.device)
         B = cfg.num_envs
@@ -118,16 +117,11 @@ class SHAC:
         rasters = [c.raster_model for c, p in zip(cfgs, plans) if p.renders]
         rasters += [members.alt_raster(c.raster_model) for c, p in zip(cfgs, plans) if p.grad_through_images]
         self.renderers = members.make_renderers(self.task, cfg, rasters)
-        self.renderer = self.renderers.get(cfg.raster_model) if self.plan.renders else None
 
         self.graphs = cfg.compile and self.device.type == "cuda"
         # several members draw their noise from generators of their own; one draws from torch's, as a run alone
         self.members = [members.build_member(i, c, self.task, self.device, own_generator=n > 1,
                                              capturable=self.graphs) for i, c in enumerate(cfgs)]
-        m0 = self.members[0]
-        # the first member's parts by a single run's names
-        self.actor, self.critic, self.target_critic = m0.actor, m0.critic, m0.target_critic
-        self.actor_opt, self.critic_opt, self.obs_rms = m0.actor_opt, m0.critic_opt, m0.obs_rms
         self.actors = MemberStack([m.actor for m in self.members], batching=batching)
         self.target_critics = MemberStack([m.target_critic for m in self.members], batching=batching)
         # What the rollout calls every step (both differentiated through); compiled in place (compile_table).
@@ -139,12 +133,11 @@ class SHAC:
 
         self.input_kind = members.input_kind(self.members)  # what the actors see: "images", "state" or "blank"
         self.sees = self.input_kind == "images"  # some member's actor sees rendered images
-        self.on_state = self.input_kind == "state"
         self.frames = FrameStack(cfg.frames)
         # A blind actor's input: one fixed tensor (a captured window reads it at a fixed address).
         self.blank_images = members.blank_images(cfg, n * B, self.device) if self.input_kind == "blank" else None
         self.gate = ImageGate(members=n, rows=B, device=self.device)
-        self._routes = self._probe_routes()
+        self._routes = members.probe_routes(self.members)
         for route in self._routes.values():  # each route's masks now, outside any CUDA graph capture
             self.gate.set_route(route)
         self.flags = FiniteFlags(cfg.horizon, _FLAG_NAMES, self.device, members=n)
@@ -166,19 +159,6 @@ class SHAC:
                                    device=self.device, capture=self.graphs,
                                    critic=self.critic_fit if self.graphs and cfg.overlap_critic else None,
                                    generators=[m.generator for m in self.members if m.generator is not None])
-
-    def _probe_routes(self) -> dict[str, tuple[str | None, ...]]:
-        """Where each backward pass sends each member's image gradient (``ImageGate.set_route``): ``train``, the
-        gradient every member trains with (last, so it stays in ``.grad``); on probe iterations first ``other``,
-        the estimator it does not train with, and, where a member trains full, ``alt``, its full gradient through
-        the other raster model's image of the same states."""
-        full = [m.plan.grad_through_images for m in self.members]
-        sees = [m.plan.renders for m in self.members]
-        routes = {"train": tuple("image" if f else None for f in full),
-                  "other": tuple("image" if s and not f else None for s, f in zip(sees, full))}
-        if any(full):
-            routes["alt"] = tuple("alt" if f else None for f in full)
-        return routes
 
     # ------------------------------------------------------------------ compiling
     def compile_table(self) -> dict[str, tuple]:
@@ -409,7 +389,7 @@ class SHAC:
         critics' update waits for both. Overlapped, a window whose actor step then aborts (non-finite or runaway
         gradient) has fitted the critic already; the run stops there either way and keeps no checkpoint of it.
         Members fit in the groups of ``gradlab.critic.critic_groups``: batched kernels fit those that share
-        iterations and minibatches in one pass; a member alone (a single run) and ``"modules"`` batching fit
+        iterations and minibatches in one pass; a member alone in its group (a run alone) and ``"modules"`` batching fit
         member by member."""
         return fit_member_critics(self._critic_groups, buf, gamma=self.cfg.gamma, lam=self.cfg.lam)
 
@@ -453,9 +433,9 @@ class SHAC:
         if self.on_status is not None:
             self.on_status(text)
 
-    def train_iteration(self) -> dict | list[dict | None]:
-        """Run one iteration; returns its metrics (Python scalars): a single run's dict, or one per member of a
-        population (None for a member that has stopped; ``member.failed`` says why)."""
+    def train_iteration(self) -> list[dict | None]:
+        """Run one iteration; returns its metrics (Python scalars), one dict per member (None for a member that
+        has stopped; ``member.failed`` says why). Raises NonFiniteError once every member has stopped."""
         cfg = self.cfg
         if cfg.compile and self.compiled is None:
             self.compile()
@@ -491,8 +471,7 @@ class SHAC:
                               f"abort_grad_norm {m.cfg.abort_grad_norm:.3g} (the reference stops here too)")
         live = [m for m in live if m.failed is None]
         if not live:
-            raise NonFiniteError("every member of the population stopped: " +
-                                 "; ".join(f"member {m.index}: {m.failed}" for m in self.members))
+            raise NonFiniteError(members.why_all_stopped(self.members))
         for m in live:
             m.actor_opt.step()
 
@@ -556,36 +535,29 @@ class SHAC:
             }
             metrics.update({k: float(v) for (i, k), v in window.probe_metrics.items() if i == m.index})
             out.append(metrics)
-        return out[0] if self.single else out
+        return out
 
     def _stop(self, member: Member, why: str) -> None:
         """A member stops training (the others go on): no more actor steps, no more target-critic updates or
         metrics, its loss out of the backward; its environments keep the batch's shape (CUDA graphs replay fixed
         shapes), and so does the critic fit, which goes on fitting its critic with the others' (one batched,
-        possibly captured call): nothing it acts with or reports. A single run stops by raising
-        ``NonFiniteError`` with the reason, its caller's contract."""
-        if self.single:
-            raise NonFiniteError(why)
-        self._stopped(member, why)
-
-    def _stopped(self, member: Member, why: str) -> None:
+        possibly captured call): nothing it acts with or reports."""
         member.failed = why
         self.alive[member.index] = False
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, *, video_steps: int = 0, video_size: int = 256) -> dict | list[dict | None]:
+    def evaluate(self, *, video_steps: int = 0, video_size: int = 256) -> list[dict | None]:
         """The deterministic policy (``tanh`` of its mean action) of every member, on a separate task of
         ``eval_envs`` environments per member started from the fixed seed :data:`EVAL_SEED` (the same initial
         states at every evaluation, for every run), each for one whole episode; the training state and random
         streams are untouched (``gradlab.evaluation``).
 
-        Returns per member (a single run: one dict) ``eval_return_mean``, ``eval_return_std`` (undiscounted
+        Returns per member ``eval_return_mean``, ``eval_return_std`` (undiscounted
         return over the episodes), ``eval_length_mean`` (steps) and ``frames``: with ``video_steps``, RGB uint8
         frames (H, W, 3) of the member's first environment from the task camera at ``video_size`` pixels, for its
         first ``video_steps`` steps (else empty). None for a member that has stopped.
         """
-        out = self.evaluator(capture=self.graphs, video_steps=video_steps, video_size=video_size)
-        return out[0] if self.single else out
+        return self.evaluator(capture=self.graphs, video_steps=video_steps, video_size=video_size)
 
     @property
     def _evaluation(self) -> EvaluationState | None:
@@ -593,22 +565,17 @@ class SHAC:
         return self.evaluator.state
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict | list[dict]:
-        """Everything that determines the future of the run (resume == uninterrupted on the CPU): a single run's
-        dict, or one per member of a population, each in a single run's format (``members.member_state``)."""
-        states = [members.member_state(m, iteration=self.iteration, wall_s=self.wall_s, started=self._started,
+    def state_dict(self) -> list[dict]:
+        """Everything that determines the future of the runs (resume == uninterrupted on the CPU): one dict per
+        member, each in a run alone's checkpoint format (``members.member_state``)."""
+        return [members.member_state(m, iteration=self.iteration, wall_s=self.wall_s, started=self._started,
                                        task=self.task.get_state(), frames=self.frames.state_dict(),
                                        episode_return=self.episode_return, episode_length=self.episode_length)
-                  for m in self.members]
-        return states[0] if self.single else states
+                for m in self.members]
 
-    def load_state_dict(self, state: dict | Sequence[dict]) -> None:
-        """Restore :meth:`state_dict` (a population: one dict per member, in any order, matched by config)."""
-        states = [state] if self.single else list(state)
-        if len(states) != self.n:
-            raise ValueError(f"{len(states)} member states for a population of {self.n}")
-        # a run's own checkpoint is its own whatever its config says; a population's are matched by config
-        ordered = states if self.single else members.match_states(self.members, states)
+    def load_state_dict(self, states: Sequence[dict]) -> None:
+        """Restore :meth:`state_dict`: one dict per member, in any order (``members.match_states``)."""
+        ordered = members.match_states(self.members, states)
         iterations = {s["iteration"] for s in ordered}
         if len(iterations) != 1:
             raise ValueError(f"the members' checkpoints are of different iterations: {sorted(iterations)}")
@@ -617,7 +584,7 @@ class SHAC:
         for m, s in zip(self.members, ordered):
             members.restore_member(m, s)
             if s.get("failed"):
-                self._stopped(m, s["failed"])
+                self._stop(m, s["failed"])
         task, frames, episode_return, episode_length = members.joined_state(ordered)
         self.task.set_state(task)
         self.frames.load_state_dict(frames, device=self.device)

@@ -102,7 +102,7 @@ def test_compiled_task_renderer_matches_eager(name):
 @pytest.mark.parametrize("mode", ["full", "decoupled", "state", "blind"])
 def test_shac_iteration_on_cuda(mode):
     cfg = SHACConfig(task="ant", mode=mode, num_envs=8, horizon=4, iters=10, cosine_every=1, critic_iterations=2)
-    m = SHAC(cfg, device="cuda").train_iteration()
+    (m,) = SHAC([cfg], device="cuda").train_iteration()
     assert m["peak_alloc_mb"] > 0 and m["peak_reserved_mb"] >= m["peak_alloc_mb"]
     assert np.isfinite(m["grad_norm"]) and m["fwd_ms"] > 0 and m["bwd_ms"] > 0
     if mode in ("full", "decoupled"):
@@ -119,17 +119,16 @@ def test_a_checkpoint_loaded_onto_the_gpu_resumes_as_if_uninterrupted(tmp_path, 
 
     cfgs = [SHACConfig(task="cartpole", mode="decoupled", num_envs=4, horizon=4, iters=4, critic_iterations=2,
                        image_size=32, seed=s) for s in range(members)]
-    straight = SHAC(cfgs if members > 1 else cfgs[0], device="cuda")
+    straight = SHAC(cfgs, device="cuda")
     straight.train_iteration()
     state = straight.state_dict()
     path = tmp_path / "ckpt.pt"
     torch.save(state, path)
     after = straight.train_iteration()
-    resumed = SHAC(cfgs if members > 1 else cfgs[0], device="cuda")
+    resumed = SHAC(cfgs, device="cuda")
     resumed.load_state_dict(load_checkpoint(path, map_location="cuda"))
     again = resumed.train_iteration()
-    pairs = zip(after, again) if members > 1 else [(after, again)]
-    for a, b in pairs:
+    for a, b in zip(after, again, strict=True):
         assert b["grad_norm"] == pytest.approx(a["grad_norm"], rel=1e-4)
 
 
@@ -173,8 +172,8 @@ def test_captured_iterations_match_eager(task, mode, renderer):
     def run(compile_: bool):
         cfg = SHACConfig(task=task, mode=mode, num_envs=8, horizon=4, iters=100, cosine_every=3, critic_iterations=2,
                          image_size=48, seed=5, compile=compile_, renderer=renderer)
-        trainer = SHAC(cfg, device="cuda")
-        return [trainer.train_iteration() for _ in range(6)]
+        trainer = SHAC([cfg], device="cuda")
+        return [trainer.train_iteration()[0] for _ in range(6)]
 
     eager, graphed = run(False), run(True)
     # Iterations 0 and 1 run eagerly (warm-up); 2 captures the plain window, 3 (a probe) the probe window.
@@ -234,8 +233,8 @@ def test_critic_fit_beside_the_backward_gives_the_numbers_of_the_fit_after_it(mo
     def run(overlap: bool):
         cfg = SHACConfig(task="cartpole", mode="decoupled", num_envs=8, horizon=4, iters=100, cosine_every=0,
                          critic_iterations=2, image_size=48, seed=3, compile=True, overlap_critic=overlap)
-        trainer = SHAC(cfg, device="cuda")
-        metrics = [trainer.train_iteration() for _ in range(3)]  # the third captures and replays the window
+        trainer = SHAC([cfg], device="cuda")
+        metrics = [trainer.train_iteration()[0] for _ in range(3)]  # the third captures and replays the window
         if overlap:
             assert trainer.window.capture_stream != trainer.critic_fit.stream
         window = trainer.window.captured[False]
@@ -245,7 +244,7 @@ def test_critic_fit_beside_the_backward_gives_the_numbers_of_the_fit_after_it(mo
             m.setattr(GraphedCriticPhase, "__call__", late_fit)
             m.setattr(graphs, "MemoryProbe", _NoMemoryProbe)
             trainer.timer.__class__ = _UnsyncedTimer
-            metrics += [trainer.train_iteration() for _ in range(4)]
+            metrics += [trainer.train_iteration()[0] for _ in range(4)]
         torch.cuda.synchronize()
         return trainer, metrics
 
@@ -253,7 +252,7 @@ def test_critic_fit_beside_the_backward_gives_the_numbers_of_the_fit_after_it(mo
     assert [m["critic_overlapped"] for m in m_beside] == [False, False, True, True, True, True, True]
     assert not any(m["critic_overlapped"] for m in m_after)
     for name in ("critic", "target_critic", "actor"):
-        a, b = getattr(after, name).state_dict(), getattr(beside, name).state_dict()
+        a, b = getattr(after.members[0], name).state_dict(), getattr(beside.members[0], name).state_dict()
         for k in a:
             torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=lambda m, k=k, n=name: f"{n}.{k}: {m}")
     assert [m["critic_loss"] for m in m_beside] == pytest.approx([m["critic_loss"] for m in m_after], rel=1e-5)
@@ -263,8 +262,8 @@ def test_critic_fit_beside_the_backward_is_timed_on_its_stream():
     """With the trainer's own timers the overlapped fit reports its own (non-zero) milliseconds."""
     cfg = SHACConfig(task="cartpole", mode="decoupled", num_envs=8, horizon=4, iters=100, cosine_every=0,
                      critic_iterations=2, image_size=48, seed=3, compile=True)
-    trainer = SHAC(cfg, device="cuda")
-    metrics = [trainer.train_iteration() for _ in range(4)]
+    trainer = SHAC([cfg], device="cuda")
+    metrics = [trainer.train_iteration()[0] for _ in range(4)]
     assert [m["critic_overlapped"] for m in metrics] == [False, False, True, True]
     assert all(m["critic_ms"] > 0 and m["bwd_ms"] > 0 for m in metrics)
 
@@ -274,10 +273,10 @@ def test_probe_window_runs_eagerly_once_before_its_capture():
     probe iteration runs eagerly (compiling the grad-mode render), the next is captured and replayed."""
     cfg = SHACConfig(task="cartpole", mode="decoupled", num_envs=8, horizon=4, iters=100, cosine_every=0,
                      critic_iterations=2, image_size=48, seed=1, compile=True)
-    trainer = SHAC(cfg, device="cuda")
-    plain = [trainer.train_iteration() for _ in range(3)]
+    trainer = SHAC([cfg], device="cuda")
+    plain = [trainer.train_iteration()[0] for _ in range(3)]
     trainer.cfg.cosine_every = 1
-    probed = [trainer.train_iteration() for _ in range(3)]
+    probed = [trainer.train_iteration()[0] for _ in range(3)]
     assert [m["graph"] for m in plain + probed] == [False, False, True, False, True, True]
     assert all(m["probed"] for m in probed)
     assert all(np.isfinite(m["cos_full_decoupled"]) and np.isfinite(m["grad_norm"]) for m in probed)

@@ -59,7 +59,7 @@ def test_each_member_follows_its_run_alone_on_cuda():
     population = SHAC(MIXED, device="cuda")
     together = population.train_iteration()
     for m in population.members:
-        alone = SHAC(m.cfg, device="cuda").train_iteration()
+        (alone,) = SHAC([m.cfg], device="cuda").train_iteration()
         for k in ("actor_loss", "critic_loss", "grad_norm", "grad_norm_full", "action_std"):
             if k in alone:
                 assert together[m.index][k] == pytest.approx(alone[k], rel=2e-3, abs=1e-5), (_key(m), k)

@@ -19,7 +19,6 @@ def test_it_imports_without_torch():
 
 
 def test_the_torch_bound_code_takes_its_lists_from_it():
-    import ablations.population
     import diffrender.settings
     import gradlab.config
     import gradlab.presets
@@ -31,7 +30,6 @@ def test_the_torch_bound_code_takes_its_lists_from_it():
     assert diffrender.settings.RASTER_MODELS == vocabulary.RASTER_MODELS
     assert tasks.vision.RENDERERS is vocabulary.RENDERERS
     assert gradlab.presets.PRESETS is vocabulary.PRESETS
-    assert ablations.population.POPULATION is vocabulary.POPULATION_RECORD
     for preset, raster in vocabulary.PRESET_RASTER_MODEL.items():
         assert gradlab.presets.preset_values(preset, "hopper", "full")["raster_model"] == raster
     import gradlab.members
@@ -60,7 +58,7 @@ def test_arms():
 def test_no_other_module_defines_the_lists_or_arms():
     """grep: the arms and lists are assigned in vocabulary only (other modules import them)."""
     pattern = re.compile(r"^\s*(ARMS|PAPER_ARMS|_POPULATION_BENCHMARK_ARMS|DEFAULT_ARMS|TASKS|MODES|RENDERERS|"
-                         r"RASTER_MODELS|PRESETS|MEMBER_DEFAULTS|NOT_ARM_SETTINGS|IMAGELESS_MODES|POPULATION_RECORD|"
+                         r"RASTER_MODELS|PRESETS|MEMBER_DEFAULTS|NOT_ARM_SETTINGS|IMAGELESS_MODES|"
                          r"PRESET_FIELDS)\s*(:[^=]*)?=", re.M)
     found = []
     for path in ROOT.rglob("*.py"):

@@ -16,7 +16,7 @@ from types import MappingProxyType
 __all__ = ["TASKS", "MODES", "IMAGELESS_MODES", "STATE_INPUT_MODES", "RENDERERS", "RASTER_MODELS", "PRESETS",
            "SILHOUETTE_RASTER_MODEL", "PRESET_RASTER_MODEL", "PRESET_FIELDS", "MEMBER_FIELDS", "MEMBER_DEFAULTS",
            "NOT_ARM_SETTINGS",
-           "POPULATION_RECORD", "Arm", "ARMS", "DEFAULT_ARMS", "ARM_ORDER", "POPULATION_BENCHMARK_ARMS",
+           "Arm", "ARMS", "DEFAULT_ARMS", "ARM_ORDER", "POPULATION_BENCHMARK_ARMS",
            "REFERENCE_ARM", "CONTROL_ARM", "arm_of", "SIM_BACKENDS"]
 
 #: The tasks, in the order tables list them (``tasks.make`` builds each; ``tasks/registry.py`` holds the classes).
@@ -67,8 +67,6 @@ NOT_ARM_SETTINGS = frozenset({
     "checkpoint_every", "keep_checkpoints", "video_every", "video_steps", "compile", "compile_cache",
     "compile_helper", "threads", "device", "time_limit_min", "iters", "cosine_every", "eval_every", "eval_envs",
     "warmup_iters", "overlap_critic", "expert", "sim_backend"})
-#: The record a population folder holds beside its members' run folders.
-POPULATION_RECORD = "population.json"
 
 
 @dataclass(frozen=True)

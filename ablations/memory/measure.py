@@ -57,14 +57,14 @@ def measure_point(point: dict, progress: Callable[[dict], None]) -> dict:
         # No probe iterations: they differentiate twice and would measure neither mode. The cost of a random
         # policy is what is measured here, so the learning-stability abort is off (the NaN guard stays on).
         cosine_every=0, abort_grad_norm=math.inf)
-    trainer = SHAC(cfg, device=device)
+    trainer = SHAC([cfg], device=device)
     faces, nverts = scene_size(trainer)
     env = environment_info(device)
     progress({"scene_faces": faces, "scene_verts": nverts, "gpu": env.get("gpu")})
 
     measured = []
     for i in range(warmup + iters):
-        m = trainer.train_iteration()
+        (m,) = trainer.train_iteration()
         if i >= warmup:
             measured.append(m)
 

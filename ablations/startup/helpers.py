@@ -362,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = spec["config"]
     horizon = min(cfg.horizon, max(HORIZON, -(-cfg.critic_batches // cfg.num_envs)))
     precision.use(cfg.precision, device)  # as the run does: the same graphs, so the same cache entries
-    trainer = SHAC(dataclasses.replace(cfg, horizon=horizon), device=device)
+    trainer = SHAC([dataclasses.replace(cfg, horizon=horizon)], device=device)
     trainer.compile(parts=parts)
     watch = CompileWatch()
     seconds["trainer"], mark = time.perf_counter() - mark, time.perf_counter()

@@ -80,11 +80,12 @@ class Startup:
         return cls(CompileHelpers.standby_for(argv))
 
     # ------------------------------------------------------------------ 2. run folder and device known
-    def open(self, cfg: Any, trainer_cfg: Any, device: Any, run_dir: Path, *, resuming: bool) -> None:
-        """Once the run folder and the device are known. ``cfg``: the RunConfig (``compile``, ``compile_cache``,
-        ``compile_helper``); ``trainer_cfg``: its trainer settings (a SHACConfig; a population's: one per member,
-        whose artifact file is the population's own and which compiles without helpers, as they would compile a
-        single run's shapes); ``resuming``: a resumed run.
+    def open(self, cfgs: Sequence[Any], resolved: Sequence[Any], device: Any, run_dir: Path, *,
+             resuming: bool) -> None:
+        """Once the run folder and the device are known. ``cfgs``: the members' RunConfigs as given (their shared
+        ``compile``, ``compile_cache``, ``compile_helper``); ``resolved``: their trainer settings, resolved
+        (``gradlab.roster.Roster.cfgs``: a run alone's one; a population's artifact file is its own, and it
+        compiles without helpers, as they would compile a single run's shapes); ``resuming``: a resumed run.
 
         With --compile: the cache folder is checked (one unusable is a warning, and torch's own caches are used);
         where the run wants helpers (:func:`wants_helpers`) this process takes its CUDA context first (on a GPU in
@@ -93,26 +94,25 @@ class Startup:
         theirs too: they activate it themselves); helpers not wanted are let go. Then torch is pointed at the
         cache, this setting's artifact file loaded and inductor's compile workers started."""
         standby, self.standby = self.standby, None
+        cfg = cfgs[0]
         try:
             if cfg.compile:
                 import torch
 
                 from ablations.startup.cache import start_compile_workers
                 from ablations.startup.helpers import CompileHelpers
-                from gradlab.config import resolve_config
 
                 _show_cache_warnings_plainly()
-                members = [trainer_cfg] if not isinstance(trainer_cfg, (list, tuple)) else list(trainer_cfg)
-                resolved = resolve_config(members[0])
-                kind = resolved.mode if len(members) == 1 else "population-" + "-".join(sorted(
+                members, first = list(cfgs), resolved[0]
+                kind = first.mode if len(members) == 1 else "population-" + "-".join(sorted(
                     {f"{c.mode}{'' if c.raster_model is None else '.' + c.raster_model}" for c in members}))
                 count = len(members) if len(members) > 1 else ""
-                self.label = f"{resolved.task}_{kind}{count}_{resolved.num_envs}envs_{resolved.image_size}px"
+                self.label = f"{first.task}_{kind}{count}_{first.num_envs}envs_{first.image_size}px"
                 cache = _open_cache(cfg.compile_cache, device)
                 if len(members) == 1 and wants_helpers(cfg, device, cache, self.label, resuming=resuming):
                     torch.empty(1, device=device)
                     self.helpers, standby = (standby or CompileHelpers.spawn()), None
-                    self.helpers.assign(resolved, device, cache.folder.parent, run_dir)
+                    self.helpers.assign(first, device, cache.folder.parent, run_dir)
                 if cache is not None:
                     self.cache = _activate_cache(cache, self.label)
                 start_compile_workers(device)  # after activating: the workers inherit the cache folder

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ablations.command import command_errors
 from ablations.folder_lock import FolderLock
 from ablations.run_folder import RunFolder, check_writable
 from ablations.sweep.config import SweepConfig, parse_args, parse_set, parse_vary
@@ -348,19 +349,13 @@ def main(argv: list[str] | None = None, *, program: Sequence[str] | None = None)
 
     ``program``: the test seam of :func:`run_sweep`.
     """
-    try:
+    with command_errors(lambda: f"interrupted; rerun the same command to resume ({Path(cfg.out) / MANIFEST})"):
         cfg, set_table, vary_table = parse_args(argv)
         if cfg.dry_run:
             dry_run(cfg, set_table, vary_table)
             return
         command = None if argv is None else ["ablate-sweep", *argv]
         manifest = run_sweep(cfg, set_table, vary_table, command=command, program=program)
-    except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
-    except KeyboardInterrupt:
-        print(f"interrupted; rerun the same command to resume ({Path(cfg.out) / MANIFEST})", file=sys.stderr)
-        raise SystemExit(130) from None
     counts = manifest["counts"]
     print(f"{Path(cfg.out) / MANIFEST}: " + ", ".join(f"{n} {s}" for s, n in counts.items()))
     for run_id, rec in manifest["runs"].items():

@@ -49,7 +49,7 @@ class RunSpec:
     #: ``args`` without the member's own settings: what the members of its population share.
     shared: tuple[str, ...] = ()
     #: Runs with the same group can train in one process: the same value of every other setting, all on the state
-    #: vector or none (gradlab.shac.check_population).
+    #: vector or none (gradlab.members.check_population).
     group: str = ""
 
 

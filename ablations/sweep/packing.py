@@ -24,8 +24,7 @@ import tyro
 from ablations.naming import member_name, sweep_population_id
 from ablations.run_config import AblateConfig, RunConfig, shac_part
 from ablations.sweep.grid import RUN_ARGS, RunSpec
-from gradlab.config import resolve_config
-from gradlab.members import check_population
+from gradlab.roster import Roster
 
 __all__ = ["Job", "pack_runs", "assign_jobs", "member_entry"]
 
@@ -93,7 +92,7 @@ def _population(job_id: str, specs: list[RunSpec]) -> Job:
     ids = ", ".join(s.run_id for s in specs)
     try:
         members = tyro.cli(AblateConfig, args=[*args, *RUN_ARGS]).members()
-        check_population([resolve_config(shac_part(m)) for m in members])
+        Roster.of([shac_part(m) for m in members])
     except SystemExit:  # tyro has printed what it rejected
         raise ValueError(f"runs {ids}: ablate rejects their population's flags: {' '.join(args)}") from None
     except ValueError as e:

@@ -13,10 +13,9 @@ import shutil
 import time
 from pathlib import Path
 
-from ablations.run_folder import VIDEOS, RunFolder
+from ablations.run_folder import POPULATION_RECORD, VIDEOS, RunFolder
 from ablations.sweep.transfer import KEPT_CHECKPOINTS, pack_run, unpack_run
 from gradlab.files import atomic_write_bytes
-from vocabulary import POPULATION_RECORD
 
 __all__ = ["RunStore", "FINISHED", "run_path", "run_state", "job_state", "resumable", "common_checkpoint"]
 

@@ -22,12 +22,11 @@ import time
 from pathlib import Path
 
 from ablations.run_config import SWEEP_WIDE
-from ablations.run_folder import RESUME_FILES, MetricsTail, RunFolder
+from ablations.run_folder import POPULATION_RECORD, RESUME_FILES, MetricsTail, RunFolder
 from ablations.sweep.grid import attempt_command
 from ablations.sweep.store import FINISHED, common_checkpoint
 from ablations.sweep.transfer import archive_names, pack_run, unpack_run
 from gradlab.checkpoint import checkpoint_path
-from vocabulary import POPULATION_RECORD
 
 __all__ = ["run_attempt", "RunProcessDied", "WORKER_POLL_S", "STOP_GRACE_S"]
 

@@ -37,7 +37,7 @@ import sys
 import time
 from pathlib import Path
 
-from vocabulary import POPULATION_RECORD
+from ablations.run_folder import POPULATION_RECORD
 
 #: Seconds a run waits for the sweep folder to receive its checkpoint before it gives up killing its worker.
 WAIT_FOR_STORE_S = 120.0

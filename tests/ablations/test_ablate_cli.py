@@ -14,8 +14,10 @@ from pathlib import Path
 import pytest
 
 from ablations.cli import ABLATE_GROUPS, _one_paragraph, ablate_main
+from ablations.population import prepare
+from ablations.run_config import RunConfig
 from ablations.run_folder import read_metrics
-from ablations.runs import PROBE_KEYS, REQUIRED_KEYS, TIMING_KEYS, RunConfig, prepare
+from ablations.runs import PROBE_KEYS, REQUIRED_KEYS, TIMING_KEYS
 from ablations.tree_hash import tree_hash
 from gradlab.checkpoint import atomic_write_json, checkpoint_path, save_checkpoint
 
@@ -357,7 +359,7 @@ def test_the_thread_count_is_applied_and_recorded(tmp_path):
 @pytest.mark.parametrize(("cores", "omp", "expected"), [
     (2, None, 1), (3, None, 1), (16, None, 8), (64, None, 8), (1, None, 1), (16, "3", 3), (2, "junk", 1)])
 def test_default_threads_is_half_the_usable_cores_capped_or_omp_num_threads(monkeypatch, cores, omp, expected):
-    from ablations.runs import default_threads
+    from ablations.run_config import default_threads
 
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)))
     if omp is None:
@@ -372,25 +374,25 @@ def test_default_threads_is_half_the_usable_cores_capped_or_omp_num_threads(monk
 
 
 def test_the_summary_has_the_final_and_best_evaluation_return_in_either_form():
-    from ablations.runs import _summary
+    from ablations.run_log import summary
 
     cfg = RunConfig(task="hopper", warmup_iters=0, threads=1)
     rows = [{"iter": 1, "env_steps": 8, "wall_s": 1.0, "return_mean": None},
             {"iter": 2, "env_steps": 16, "wall_s": 2.0, "return_mean": 5.0, "eval_return": 40.0},  # older lines
             {"iter": 3, "env_steps": 24, "wall_s": 3.0, "return_mean": 6.0, "eval_return_mean": 30.0,
              "eval_return_std": 2.5, "eval_length_mean": 1000.0}]
-    s = _summary(rows, cfg, "finished", None, 0.0)
+    s = summary(rows, cfg, "finished", None, 0.0)
     assert (s["final_eval_return"], s["final_eval_std"], s["final_eval_iter"], s["best_eval_return"]) == \
         (30.0, 2.5, 3, 40.0)
-    s = _summary(rows[:2], cfg, "finished", None, 0.0)
+    s = summary(rows[:2], cfg, "finished", None, 0.0)
     assert (s["final_eval_return"], s["final_eval_std"], s["best_eval_return"]) == (40.0, None, 40.0)
-    s = _summary(rows[:1], cfg, "finished", None, 0.0)
+    s = summary(rows[:1], cfg, "finished", None, 0.0)
     assert s["final_eval_return"] is None and s["best_eval_return"] is None
 
 
 def test_closing_lines_set_the_returns_against_the_floors(tmp_path):
+    from ablations.population import closing_lines
     from ablations.reports import load_floors
-    from ablations.runs import closing_lines
     from tests.ablations.conftest import write_run
 
     floors = tmp_path / "floors.json"
@@ -422,7 +424,7 @@ def test_stop_on_signal_defers_the_first_signal_to_the_end_of_the_iteration(caps
     the second stops at once. Outside ``with`` the previous handlers are back."""
     import signal
 
-    from ablations.runs import StopOnSignal
+    from ablations.stopping import StopOnSignal
 
     before = signal.getsignal(signal.SIGTERM)
     with StopOnSignal() as stop:
@@ -440,7 +442,7 @@ def test_stop_on_signal_defers_the_first_signal_to_the_end_of_the_iteration(caps
 def test_warnings_are_one_plain_line_each_once(capsys):
     import warnings
 
-    from ablations.runs import plain_warnings
+    from ablations.stopping import plain_warnings
     from diffrender import BinCapacityWarning
 
     with warnings.catch_warnings(), plain_warnings():

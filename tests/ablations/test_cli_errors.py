@@ -166,7 +166,7 @@ def test_every_ablations_command_refuses_in_one_line(tmp_path, capsys, command, 
 
 def test_what_only_tyro_refuses_is_folded_into_one_line(capsys):
     from ablations.cli import parse
-    from ablations.runs import RunConfig
+    from ablations.run_config import RunConfig
 
     with pytest.raises(SystemExit) as e:
         parse(RunConfig, ["stray"], prog="ablate")  # a positional where there is none: tyro's box
@@ -218,7 +218,7 @@ def test_no_console_scripts_default_output_is_a_shipped_file():
     from ablations.memory import MemoryConfig
     from ablations.paper import PaperConfig
     from ablations.reports import PlotConfig, ReportConfig
-    from ablations.runs import RunConfig
+    from ablations.run_config import RunConfig
     from ablations.sweep import SweepConfig
     from tasks.floors import FloorsConfig
     from tasks.snapshots import SnapshotsConfig

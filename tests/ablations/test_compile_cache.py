@@ -311,11 +311,11 @@ def test_the_compile_phases_say_where_compiling_went(monkeypatch):
 def test_a_run_summary_has_its_time_to_the_first_iteration(tmp_path, monkeypatch):
     import time
 
-    from ablations import runs
+    from ablations import run_log, runs
 
-    assert 0.0 <= time.time() - runs._process_started() < 24 * 3600  # the real start time is plausible
+    assert 0.0 <= time.time() - run_log.process_started() < 24 * 3600  # the real start time is plausible
     before = time.time()
-    monkeypatch.setattr(runs, "_process_started", lambda: before - 100.0)  # as if the process began 100 s earlier
+    monkeypatch.setattr(run_log, "process_started", lambda: before - 100.0)  # as if the process began 100 s earlier
     cfg = runs.RunConfig(task="cartpole", mode="state", iters=2, num_envs=2, horizon=2, critic_iterations=1,
                          device="cpu", out=tmp_path, name="r", video_every=0, progress=False)
     summary = json.loads((runs.run(cfg) / "summary.json").read_text())

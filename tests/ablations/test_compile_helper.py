@@ -224,7 +224,7 @@ def test_a_helper_that_finished_is_not_announced(tmp_path):
 def test_a_run_starts_helpers_only_where_it_pays(tmp_path, monkeypatch):
     """On a GPU of a machine with enough cores, fresh, with a cache and no artifact file for the settings: yes;
     otherwise no."""
-    from ablations.runs import RunConfig
+    from ablations.run_config import RunConfig
     from ablations.startup import helpers as compile_helper
     from ablations.startup.cache import CompileCache
     from ablations.startup.wing import wants_helpers
@@ -264,13 +264,13 @@ _RUN = textwrap.dedent("""
                                     compile=True, seed=3))
     CompileCache(root, torch.device("cpu")).activate()
     helpers = CompileHelpers.spawn().assign(cfg, torch.device("cpu"), root, root) if with_helper else None
-    trainer = SHAC(cfg, device="cpu")
+    trainer = SHAC([cfg], device="cpu")
     trainer.compile()
     watch = CompileWatch()
     if helpers is not None:
         compile_physics_ahead(trainer, RUN_SHARE)
         assert helpers.wait(timeout=900), [Path(h.log).read_text()[-3000:] for h in helpers.helpers]
-    metrics = [trainer.train_iteration() for _ in range(2)]
+    metrics = [row for (row,) in (trainer.train_iteration() for _ in range(2))]
     print(json.dumps({"losses": [m["actor_loss"] for m in metrics], "critic": [m["critic_loss"] for m in metrics],
                       "compiles": watch.compiles, "recompiles": watch.recompiles, **compile_counters()}))
 """)

@@ -77,11 +77,11 @@ def test_ablate_distill_writes_the_usual_run_folder(tmp_path):
     from gradlab.checkpoint import checkpoint_path, save_checkpoint
 
     torch.set_num_threads(1)
-    trainer = SHAC(SHACConfig(task="cartpole", mode="state", iters=1, num_envs=2, horizon=4, critic_iterations=1,
-                              critic_batches=1), device="cpu")
+    trainer = SHAC([SHACConfig(task="cartpole", mode="state", iters=1, num_envs=2, horizon=4, critic_iterations=1,
+                               critic_batches=1)], device="cpu")
     trainer.train_iteration()
     (tmp_path / "expert" / "checkpoints").mkdir(parents=True)
-    save_checkpoint(checkpoint_path(tmp_path / "expert" / "checkpoints", 1), trainer.state_dict())
+    save_checkpoint(checkpoint_path(tmp_path / "expert" / "checkpoints", 1), trainer.state_dict()[0])
     tiny = [a for i, a in enumerate(TINY) if a != "--eval-envs" and (i == 0 or TINY[i - 1] != "--eval-envs")]
     ablate_main([*tiny, *STUDENT, "--expert", str(tmp_path / "expert"), "--iters", "2", "--eval-every", "0",
                  "--out", str(tmp_path), "--name", "student"])  # nothing evaluated: --eval-envs would be refused

@@ -127,7 +127,7 @@ def test_member_folder_names_write_tuple_values_as_the_sweep_does():
     """A member setting that is a tuple (betas) names its folder as ablate-sweep writes flag values
     (``ablations.sweep.config.slug``): no brackets, commas or spaces in folder names."""
     from ablations.population import member_name
-    from ablations.runs import RunConfig
+    from ablations.run_config import RunConfig
 
     members = [RunConfig(task="cartpole", mode="decoupled", seed=0, betas=b) for b in ((0.7, 0.95), (0.5, 0.9))]
     assert [member_name(m, members) for m in members] == ["cartpole_decoupled_betas0.7-0.95_seed0",
@@ -240,3 +240,56 @@ def test_a_resumed_population_leaves_a_stopped_members_metrics_as_they_are(tmp_p
     assert not list((home / stopped[0]).glob("metrics.jsonl.*"))
     (live,) = set(names) - set(stopped)
     assert [r["iter"] for r in read_metrics(home / live)] == list(range(1, 7))
+
+
+def test_a_member_folder_whose_population_record_is_gone_is_not_resumed_alone(tmp_path, capsys):
+    """A member draws its noise from a generator of the population's; resumed alone it would draw from torch's
+    default one: with population.json gone, ``--resume`` of the member's folder is refused in one line, naming
+    the missing file and the members, and nothing in the folder changes."""
+    ablate(*TINY, "--mode", "state", "--seed", "0", "1", "--iters", "2", "--video-every", "0", "--out",
+           str(tmp_path), "--name", "pop")
+    home = tmp_path / "pop"
+    names = json.loads((home / POPULATION).read_text())["members"]
+    (home / POPULATION).unlink()
+    member = home / names[0]
+    before = {p.name: p.stat().st_mtime_ns for p in member.rglob("*")}
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        ablate("--resume", str(member), "--iters", "4", "--no-progress")
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"{home / POPULATION} is gone" in err and "a population of 2" in err and names[1] in err
+    assert {p.name: p.stat().st_mtime_ns for p in member.rglob("*")} == before
+
+
+def test_each_member_is_validated_at_most_three_times_and_resolved_once(tmp_path, monkeypatch):
+    """From the command line to the trainer's first iteration: the roster resolves each member once (its checks
+    before and after the preset fills in), after the command line's own check, and nothing checks again; a
+    resume reads each member's config.json (one check) and resolves it once."""
+    import gradlab.config
+    import gradlab.roster
+    from gradlab.config import SHACConfig
+
+    validated, resolved = [], []
+    validate, resolve = SHACConfig.validate, gradlab.config.resolve_config
+
+    def counted_validate(self):
+        validated.append((self.mode, self.seed))
+        return validate(self)
+
+    def counted_resolve(cfg):
+        resolved.append((cfg.mode, cfg.seed))
+        return resolve(cfg)
+
+    monkeypatch.setattr(SHACConfig, "validate", counted_validate)
+    monkeypatch.setattr(gradlab.roster, "resolve_config", counted_resolve)
+    keys = [(m, s) for m in ("decoupled", "blind") for s in (0, 1)]
+    ablate(*TINY, "--mode", "decoupled", "blind", "--seed", "0", "1", "--iters", "1", "--video-every", "0",
+           "--out", str(tmp_path), "--name", "pop")
+    assert sorted(resolved) == sorted(keys)
+    assert all(validated.count(k) <= 3 for k in keys), validated
+    validated.clear(), resolved.clear()
+    ablate("--resume", str(tmp_path / "pop"), "--iters", "2", "--no-progress")
+    assert sorted(resolved) == sorted(keys)
+    assert all(validated.count(k) <= 3 for k in keys), validated

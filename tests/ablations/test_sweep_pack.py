@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from ablations.run_folder import RunFolder, read_metrics
+from ablations.run_folder import POPULATION_RECORD, RunFolder, read_metrics
 from ablations.sweep import (
     Job,
     RunStore,
@@ -37,7 +37,6 @@ from tests.ablations.test_sweep import (
     kill_worker_once,
     ray_cluster,  # noqa: F401 - the module's Ray cluster fixture
 )
-from vocabulary import POPULATION_RECORD
 
 
 def jobs_of(cfg: SweepConfig, arms: dict | None = None) -> list[Job]:

@@ -24,11 +24,12 @@ from vocabulary import TASKS
 def expert(tmp_path_factory):
     """A tiny cartpole state expert's checkpoint (one iteration of the teacher preset)."""
     torch.set_num_threads(1)
-    trainer = SHAC(SHACConfig(task="cartpole", mode="state", preset="teacher", iters=1, num_envs=2, horizon=4,
-                              critic_iterations=1, critic_batches=1, seed=5), device="cpu")
+    trainer = SHAC([SHACConfig(task="cartpole", mode="state", preset="teacher", iters=1, num_envs=2, horizon=4,
+                               critic_iterations=1, critic_batches=1, seed=5)], device="cpu")
     trainer.train_iteration()
     path = tmp_path_factory.mktemp("expert") / "ckpt_000001.pt"
-    save_checkpoint(path, trainer.state_dict())
+    (state,) = trainer.state_dict()  # a run folder's checkpoint: one run's state
+    save_checkpoint(path, state)
     return path
 
 
@@ -122,7 +123,7 @@ def test_buffer_is_a_fifo_that_drops_the_overflow_at_the_wrap():
 
 # ---------------------------------------------------------------------------------------------- the loop
 def test_segments_resume_from_the_previous_end_with_the_students_own_actions(expert):
-    d = Distill(tiny(expert), device="cpu")
+    d = Distill([tiny(expert)], device="cpu")
     d.train_iteration()
     state, frames = d.task.get_state(), d.frames.state_dict()
     start_obs = d.task.state_obs().clone()
@@ -135,12 +136,12 @@ def test_segments_resume_from_the_previous_end_with_the_students_own_actions(exp
     d.frames.load_state_dict(frames)
     assert torch.equal(to_uint8(d.frames.stacked()), images[0])
     with torch.no_grad():
-        obs, *_ = d.task.step(torch.tanh(d.actor.mean(images[0].float() / 255.0)))
+        obs, *_ = d.task.step(torch.tanh(d.members[0].actor.mean(images[0].float() / 255.0)))
     assert torch.equal(obs, states[1])
 
 
 def test_labels_are_the_experts_deterministic_action_and_the_loss_is_their_mse(expert):
-    d = Distill(tiny(expert, distill_updates=1, distill_loss_threshold=0.0), device="cpu")
+    d = Distill([tiny(expert, distill_updates=1, distill_loss_threshold=0.0)], device="cpu")
     d.train_iteration()
     _, states = d._segment()  # what the next iteration would store: label it as the reference does
     ckpt = torch.load(expert, weights_only=False)
@@ -160,27 +161,27 @@ def test_labels_are_the_experts_deterministic_action_and_the_loss_is_their_mse(e
     d.members[0].generator.set_state(gen)
     frames, labels = buf.sample(4, d.members[0].generator)
     with torch.no_grad():
-        expected = float(F.mse_loss(d.actor.mean(frames), labels))
+        expected = float(F.mse_loss(d.members[0].actor.mean(frames), labels))
     d.members[0].generator.set_state(gen)
     loss, _, steps = d._update(d.members[0])
     assert steps == 1 and loss == pytest.approx(expected, rel=1e-6)
 
 
 def test_updates_start_at_distill_starts_and_stop_at_the_threshold(expert):
-    d = Distill(tiny(expert, distill_loss_threshold=0.0), device="cpu")
-    rows = [d.train_iteration() for _ in range(3)]
+    d = Distill([tiny(expert, distill_loss_threshold=0.0)], device="cpu")
+    rows = [row for (row,) in (d.train_iteration() for _ in range(3))]
     assert [r["buffer_size"] for r in rows] == [8, 16, 20] and [r["updates"] for r in rows] == [0, 3, 3]
     assert rows[0]["actor_loss"] is None and rows[0]["grad_norm"] is None and rows[1]["actor_loss"] is not None
     # linear decay per Adam step over lr_decay_iters x distill_updates steps (algorithms/dagger.py:231-234)
     c = d.members[0].cfg
     assert rows[2]["actor_lr"] == pytest.approx(2e-3 + (1e-5 - 2e-3) * 5 / (c.lr_decay_iters * 3))
-    d = Distill(tiny(expert, distill_loss_threshold=1e9), device="cpu")  # the first minibatch is below it
-    assert [d.train_iteration()["updates"] for _ in range(3)] == [0, 1, 1]
+    d = Distill([tiny(expert, distill_loss_threshold=1e9)], device="cpu")  # the first minibatch is below it
+    assert [d.train_iteration()[0]["updates"] for _ in range(3)] == [0, 1, 1]
 
 
 def test_expert_time_and_steps_are_charged(expert):
-    d = Distill(tiny(expert), device="cpu")
-    row = d.train_iteration()
+    d = Distill([tiny(expert)], device="cpu")
+    (row,) = d.train_iteration()
     ckpt = torch.load(expert, weights_only=False)
     assert row["expert_wall_s"] == ckpt["wall_s"] > 0 and row["expert_env_steps"] == 1 * 4 * 2
     assert row["wall_s"] == pytest.approx(ckpt["wall_s"] + row["student_wall_s"])
@@ -188,14 +189,14 @@ def test_expert_time_and_steps_are_charged(expert):
 
 
 def test_resume_restores_everything_but_the_buffer(expert):
-    a = Distill(tiny(expert), device="cpu")
+    a = Distill([tiny(expert)], device="cpu")
     for _ in range(3):
         a.train_iteration()
     state = a.state_dict()
-    b = Distill(tiny(expert), device="cpu")
+    b = Distill([tiny(expert)], device="cpu")
     b.load_state_dict(state)
     assert len(b.members[0].buffer) == 0 and b.members[0].updates == a.members[0].updates > 0
-    ra, rb = a.train_iteration(), b.train_iteration()
+    (ra,), (rb,) = a.train_iteration(), b.train_iteration()
     # the same segment (student, task, frames restored; a's third one was cut at the wrap, so its fourth starts at
     # 0), and b refills its buffer before updating again
     assert torch.equal(a.members[0].buffer.images[:8], b.members[0].buffer.images[:8])
@@ -204,10 +205,10 @@ def test_resume_restores_everything_but_the_buffer(expert):
 
 
 def test_a_population_member_trains_as_it_would_alone(expert):
-    alone = Distill(tiny(expert, seed=2), device="cpu")
+    alone = Distill([tiny(expert, seed=2)], device="cpu")
     pop = Distill([tiny(expert, seed=1), tiny(expert, seed=2)], device="cpu")
     for _ in range(3):
-        r_alone, (_, r_pop) = alone.train_iteration(), pop.train_iteration()
+        (r_alone,), (_, r_pop) = alone.train_iteration(), pop.train_iteration()
     assert r_alone["actor_loss"] == r_pop["actor_loss"] and r_alone["buffer_size"] == r_pop["buffer_size"]
     assert torch.equal(alone.members[0].buffer.actions, pop.members[1].buffer.actions)
     evaluated = pop.evaluate()
@@ -216,7 +217,7 @@ def test_a_population_member_trains_as_it_would_alone(expert):
 
 # ---------------------------------------------------------------------------------------------- bad input
 def test_bad_experts_are_refused_naming_the_flag(expert, tmp_path):
-    task = Distill(tiny(expert), device="cpu").task
+    task = Distill([tiny(expert)], device="cpu").task
     ckpt = torch.load(expert, weights_only=False)
     for config, message in ((dict(mode="decoupled"), "a --mode decoupled run, not a state run"),
                             (dict(task="hopper"), "an expert of task hopper, not --task cartpole")):
@@ -246,4 +247,4 @@ def test_settings_that_mean_nothing_are_refused():
     with pytest.raises(ValueError, match="cannot share a population with the other modes"):
         Distill([SHACConfig(mode="distill", expert="x"), dataclasses.replace(SHACConfig(), seed=1)])
     with pytest.raises(ValueError, match=r"trained by gradlab.Distill, not SHAC"):
-        SHAC(SHACConfig(mode="distill", expert="x"))
+        SHAC([SHACConfig(mode="distill", expert="x")])

@@ -106,13 +106,12 @@ def test_member_stack_refuses_encoders_of_different_precisions():
 @pytest.mark.parametrize("p", precision.PRECISIONS)
 def test_the_config_reaches_the_encoders_of_a_run_and_of_a_population(p):
     precision.use(p, "cpu", allow_cpu=True)  # as ablate's start-up does (which refuses tf32/bf16 on the CPU)
-    single = SHAC(dataclasses.replace(TINY, precision=p), device="cpu")
+    single = SHAC([dataclasses.replace(TINY, precision=p)], device="cpu")
     population = SHAC([dataclasses.replace(TINY, precision=p, mode=m) for m in ("decoupled", "full")], device="cpu")
-    assert single.actor.encoder.precision == p
+    assert single.members[0].actor.encoder.precision == p
     assert {m.actor.encoder.precision for m in population.members} == {p}
     for trainer in (single, population):
         rows = trainer.train_iteration()
-        rows = rows if isinstance(rows, list) else [rows]
         assert all(torch.isfinite(torch.tensor(r["grad_norm"])) for r in rows)
 
 
@@ -126,7 +125,7 @@ def test_the_cpu_trains_in_fp32_only_and_says_so_in_one_line():
                                 "train in fp32: drop --precision or give --precision fp32")
     assert precision.current() == "fp32"  # a refusal changes nothing
     with pytest.raises(ValueError, match="--precision: unknown precision 'half'"):
-        SHAC(dataclasses.replace(TINY, precision="half"), device="cpu")
+        SHAC([dataclasses.replace(TINY, precision="half")], device="cpu")
 
 
 def test_a_population_shares_one_precision():
@@ -156,7 +155,7 @@ def test_ablate_records_the_precision_and_refuses_what_cannot_apply(tmp_path, ca
 def test_one_precision_flag_gives_every_member_of_a_seeded_population_its_value():
     from ablations.cli import ABLATE_GROUPS, parse
     from ablations.population import AblateConfig
-    from ablations.runs import shac_part
+    from ablations.run_config import shac_part
     from gradlab.config import resolve_config
 
     cfg = parse(AblateConfig, ["--task", "hopper", "--mode", "decoupled", "full", "--seed", "0", "1", "2", "3", "4",

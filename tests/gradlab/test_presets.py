@@ -132,15 +132,15 @@ def test_full_mode_refuses_the_ray_tracer():
 
 
 def test_learning_rate_decays_over_lr_decay_iters_not_iters():
-    trainer = SHAC(tiny(mode="state", iters=4, lr_decay_iters=8, actor_lr=1e-3), device="cpu")
-    lrs = [trainer.train_iteration()["actor_lr"] for _ in range(4)]
+    trainer = SHAC([tiny(mode="state", iters=4, lr_decay_iters=8, actor_lr=1e-3)], device="cpu")
+    lrs = [trainer.train_iteration()[0]["actor_lr"] for _ in range(4)]
     expected = [1e-3 + (1e-5 - 1e-3) * i / 8 for i in range(4)]
     assert lrs == pytest.approx(expected)
 
 
 def test_actor_init_option():
-    default = SHAC(tiny(mode="state", actor_init="default"), device="cpu").actor
-    ortho = SHAC(tiny(mode="state", actor_init="orthogonal"), device="cpu").actor
+    default = SHAC([tiny(mode="state", actor_init="default")], device="cpu").members[0].actor
+    ortho = SHAC([tiny(mode="state", actor_init="orthogonal")], device="cpu").members[0].actor
     last_default, last_ortho = default.mu[-1].weight.detach(), ortho.mu[-1].weight.detach()
     # orthogonal: the last layer scaled to 0.01 (mean actions near 0); nn.Linear's init: U(-1/sqrt(in), ..)
     assert float(last_ortho.abs().max()) < 0.02 < float(last_default.abs().max())
@@ -156,7 +156,7 @@ def test_observation_clip_zero_disables_clipping():
 
 
 def test_bootstrap_last_step_zeroes_only_early_terminations():
-    trainer = SHAC(tiny(), device="cpu")
+    trainer = SHAC([tiny()], device="cpu")
     f, t = torch.tensor(False), torch.tensor(True)
     # (terminated, invalid, time_limit) -> zero value with / without bootstrapping the last step
     cases = [((t, f, f), True, True), ((t, f, t), False, True), ((t, t, t), True, True), ((f, f, t), False, False)]
@@ -169,9 +169,10 @@ def test_bootstrap_last_step_zeroes_only_early_terminations():
 
 
 def test_decoupled_trains_on_ray_traced_images_and_probes_with_the_rasterizer(monkeypatch):
-    trainer = SHAC(tiny(renderer="warp", cosine_every=2), device="cpu")
+    trainer = SHAC([tiny(renderer="warp", cosine_every=2)], device="cpu")
     calls = {"warp": 0, "soft": 0}
-    real_call, real_soft = type(trainer.renderer).__call__, type(trainer.renderer).soft
+    renderer = type(trainer.renderers[trainer.members[0].cfg.raster_model])
+    real_call, real_soft = renderer.__call__, renderer.soft
 
     def traced(self, qpos):
         calls["warp"] += 1
@@ -180,11 +181,11 @@ def test_decoupled_trains_on_ray_traced_images_and_probes_with_the_rasterizer(mo
     def soft(self, qpos):
         calls["soft"] += 1
         return real_soft(self, qpos)
-    monkeypatch.setattr(type(trainer.renderer), "__call__", traced)
-    monkeypatch.setattr(type(trainer.renderer), "soft", soft)
-    probe = trainer.train_iteration()  # iteration 0 is a probe: every frame through the rasterizer
+    monkeypatch.setattr(renderer, "__call__", traced)
+    monkeypatch.setattr(renderer, "soft", soft)
+    (probe,) = trainer.train_iteration()  # iteration 0 is a probe: every frame through the rasterizer
     assert probe["probed"] and calls["soft"] == 4 and calls["warp"] == 1  # + the first frame at start
     assert probe["grad_norm_full"] > 0
-    plain = trainer.train_iteration()
+    (plain,) = trainer.train_iteration()
     assert not plain["probed"] and calls["warp"] == 5 and calls["soft"] == 4
     assert plain["grad_norm"] > 0
