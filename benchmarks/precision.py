@@ -10,8 +10,10 @@ difference; then the median over the points. The gradients are read after clippi
 uniformly (the cosine is the raw gradients'). A candidate ``fp32`` is a second float32 trainer: on a GPU two
 float32 computations of one window already differ (atomic accumulations in backward), which is the floor any other
 precision is read against; ``fp32-ieee`` is float32 with cuDNN's TF32 convolutions off too (the default lets cuDNN
-use TF32: what today's fp32 already deviates from strict float32). The TF32 switches are the process's: they are
-set for each trainer before each of its iterations (a captured graph keeps the kernels it was captured with).
+use TF32: what today's fp32 already deviates from strict float32); ``fp32-warp-sim`` is float32 with the Warp
+simulator (``--sim-backend warp``) loading the PyTorch simulator's run state: the simulator backends' learning
+check. The TF32 switches are the process's: they are set for each trainer before each of its iterations (a
+captured graph keeps the kernels it was captured with).
 
 **Time.** ``iteration.py`` once per precision, each in a process of its own (its own switches, its own memory):
 median forward, backward and iteration time of one run, CUDA-synchronised after warm-up, peak allocated and reserved
@@ -22,6 +24,8 @@ say nothing of a GPU, and the output says so.
 
     python benchmarks/precision.py --compile --tasks hopper ant --modes decoupled full --iters 200 \\
         --out benchmarks/results/precision.json
+    python benchmarks/precision.py --compile --tasks hopper ant --modes decoupled full --iters 200 \\
+        --candidates fp32 fp32-warp-sim --parts agreement --out benchmarks/results/sim_agreement.json
     python benchmarks/precision.py --device cpu --tasks cartpole --modes decoupled full --iters 4 --num-envs 2 \\
         --horizon 2 --image-size 16 --time-warmup 1 --time-iters 1 --out /tmp/precision.json
 """
@@ -47,15 +51,27 @@ from gradlab import SHAC, ModePlan, SHACConfig, precision, resolve_device
 from gradlab.probes import cosine, flat_grad
 from gradlab.seeding import rng_state, set_rng_state
 
-#: What a candidate may be: a precision of SHACConfig, or float32 with every TF32 switch off ("fp32-ieee").
-VARIANTS = (*precision.PRECISIONS, "fp32-ieee")
+#: What a candidate may be: a precision of SHACConfig, float32 with every TF32 switch off ("fp32-ieee"), or
+#: float32 with the Warp simulator (``--sim-backend warp``) in place of the PyTorch one ("fp32-warp-sim").
+VARIANTS = (*precision.PRECISIONS, "fp32-ieee", "fp32-warp-sim")
+
+
+def _precision_of(variant: str) -> str:
+    return variant.split("-")[0]
+
+
+def candidate_config(cfg: SHACConfig, variant: str) -> SHACConfig:
+    """The float32 run's config as ``variant`` trains it: its precision, and the Warp simulator for
+    ``fp32-warp-sim``."""
+    return dataclasses.replace(cfg, precision=_precision_of(variant),
+                               sim_backend="warp" if variant == "fp32-warp-sim" else cfg.sim_backend)
 CPU_NOTE = ("on the CPU: no TF32 (tf32 and fp32-ieee compute what fp32 does) and bf16 is the CPU's emulated "
             "autocast; a dry run of the benchmark, not a measurement")
 
 
 def apply(variant: str, device: torch.device) -> None:
     """This process's switches (and the precision of encoders built from now on) for ``variant``."""
-    precision.use(variant.removesuffix("-ieee"), device, allow_cpu=True)
+    precision.use(_precision_of(variant), device, allow_cpu=True)
     if variant == "fp32-ieee" and device.type == "cuda":
         torch.backends.cudnn.allow_tf32 = False
 
@@ -78,7 +94,7 @@ def agreement(task: str, mode: str, args) -> list[dict]:
     trainers = {}
     for variant in args.candidates:
         apply(variant, device)
-        trainers[variant] = SHAC([dataclasses.replace(cfg, precision=variant.removesuffix("-ieee"))], device=device)
+        trainers[variant] = SHAC([candidate_config(cfg, variant)], device=device)
     apply("fp32", device)
     run = SHAC([cfg], device=device)
     sees = ModePlan.of(mode).renders
@@ -194,7 +210,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--modes", nargs="+", choices=["decoupled", "full"], default=["decoupled", "full"])
     p.add_argument("--candidates", nargs="+", choices=VARIANTS, default=["fp32", "tf32", "bf16"],
                    help="precisions compared with the float32 run (fp32: a second float32 trainer, the floor; "
-                        "fp32-ieee: float32 with cuDNN's TF32 off too)")
+                        "fp32-ieee: float32 with cuDNN's TF32 off too; fp32-warp-sim: float32 on the Warp "
+                        "simulator)")
     p.add_argument("--iters", type=int, default=200, help="N: the float32 run's iterations; points at 0, N/4 .. N")
     p.add_argument("--compile", action="store_true", help="the trainer's --compile path (CUDA graphs on a GPU)")
     p.add_argument("--parts", nargs="+", choices=["agreement", "time"], default=["agreement", "time"])

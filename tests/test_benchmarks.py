@@ -350,6 +350,20 @@ def test_precision_compares_each_candidate_with_the_float32_run_from_the_same_st
     assert "NOTE on the CPU: no TF32" in printed and "median cos" in printed
 
 
+def test_precision_compares_the_warp_simulator_with_the_pytorch_one_from_the_same_state(tmp_path, benchmark_script):
+    """``precision.py --candidates fp32-warp-sim``: the Warp simulator loads the PyTorch simulator's run state and
+    its float32 gradient agrees (issue 56's learning check; on the CPU both are float32 on the same numbers)."""
+    precision = benchmark_script("precision")
+    doc = precision.main(["--device", "cpu", "--tasks", "hopper", "--modes", "decoupled", "--iters", "2",
+                          "--candidates", "fp32-warp-sim", "--num-envs", "2", "--horizon", "4", "--image-size", "16",
+                          "--parts", "agreement", "--out", str(tmp_path / "p.json")])
+    rows = doc["agreement"]
+    assert [(r["iteration"], r["candidate"], r["status"]) for r in rows] == [
+        (i, "fp32-warp-sim", "ok") for i in (0, 1, 2)], rows
+    assert all(r["cos"] > 1 - 1e-9 and abs(r["norm_ratio"] - 1) < 1e-4 for r in rows), rows
+    assert precision.candidate_config(precision.SHACConfig(task="hopper"), "fp32-warp-sim").sim_backend == "warp"
+
+
 @pytest.mark.slow
 def test_precision_times_each_precision_in_a_process_of_its_own(tmp_path, benchmark_script):
     precision = benchmark_script("precision")
