@@ -294,8 +294,6 @@ class SHACConfig:
             if not self.distill_batch <= self.distill_starts <= self.distill_buffer:
                 raise ValueError(f"--distill-starts {self.distill_starts} must lie between --distill-batch "
                                  f"{self.distill_batch} and --distill-buffer {self.distill_buffer}")
-            if self.compile:
-                raise ValueError("--compile: --mode distill trains eagerly (gradlab/distill.py); drop --compile")
         if self.num_envs is not None and self.critic_batches > self.num_envs * self.horizon:
             raise ValueError(f"--critic-batches {self.critic_batches} cannot exceed --num-envs x --horizon "
                              f"({self.num_envs * self.horizon})")

@@ -50,6 +50,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+import tasks
 from gradlab import members
 from gradlab.checkpoint import load_checkpoint, load_newest_readable
 from gradlab.config import ModePlan, SHACConfig
@@ -225,7 +226,12 @@ class Distill:
         device: "auto" | "cpu" | "cuda[:N]".
     """
 
-    COMPILE_SITES: ClassVar[dict[str, str]] = {}  # nothing compiled: the progress display names no sites
+    #: What ``--compile`` compiles (:meth:`compile`): the rollouts' physics parts (``tasks.PHYSICS_PARTS``) and the
+    #: renderer's PyTorch work. The students' updates stay eager, and nothing is captured as a CUDA graph: a
+    #: segment runs without gradient, so its cost is the simulator's and the renderer's small kernels.
+    COMPILE_PARTS: ClassVar[tuple[str, ...]] = (*tasks.PHYSICS_PARTS, "renderer")
+    #: Where the trainer calls what it compiles, by the name a progress display gives its compilations.
+    COMPILE_SITES: ClassVar[dict[str, str]] = {"physics step": "task.step", "renderer": "_render"}
 
     def __init__(self, roster: Roster | Sequence[SHACConfig], *, device: str | torch.device = "auto"):
         self.roster = roster = roster if isinstance(roster, Roster) else Roster.of(roster)
@@ -256,8 +262,8 @@ class Distill:
         self.actors = MemberStack([m.actor for m in self.members], batching="modules")
         self.frames = FrameStack(cfg.frames)
         self.evaluator = Evaluator(self.members, self.actors, cfg, self.device)
-        self.graphs = False  # eager only (SHACConfig.validate refuses --compile)
-        self.compiled = None
+        self.graphs = False  # no CUDA graphs: a segment's steps run one by one (compiled with --compile)
+        self.compiled: tuple[str, ...] | None = None  # the parts of COMPILE_PARTS compiled (compile)
         self.on_status = None
         self.iteration = 0
         self.wall_s = 0.0  # the students' own training time; each adds its expert's (Expert.wall_s)
@@ -265,6 +271,21 @@ class Distill:
         self._started = False
         self.episode_return = torch.zeros(n * B, device=self.device)
         self.episode_length = torch.zeros(n * B, device=self.device, dtype=torch.long)
+
+    # ------------------------------------------------------------------ compiling
+    def compile(self, parts: Sequence[str] = COMPILE_PARTS) -> None:
+        """Compile ``parts`` (of :attr:`COMPILE_PARTS`) where the rollouts call them, each at its first call: the
+        task's physics parts (``Task.compile_table``) and the renderers (``TaskRenderer.compile``). Once per
+        trainer, before its first iteration."""
+        if isinstance(parts, str) or not set(parts) <= set(self.COMPILE_PARTS):
+            raise ValueError(f"compile parts are some of {self.COMPILE_PARTS}, got {parts!r}")
+        if self.compiled is not None:
+            raise RuntimeError(f"this trainer compiled {self.compiled} already")
+        physics = self.task.compile_table()
+        for part in parts:
+            for entry in (physics[part],) if part in physics else self.renderers.values():
+                entry.compile()
+        self.compiled = tuple(parts)
 
     # ------------------------------------------------------------------ the rollout segment
     def _render(self) -> torch.Tensor:
@@ -348,6 +369,8 @@ class Distill:
     def train_iteration(self) -> list[dict]:
         """One iteration (segment, labels, updates); its metrics, one dict per member."""
         cfg = self.cfg
+        if cfg.compile and self.compiled is None:
+            self.compile()
         if not self._started:
             t_start = time.perf_counter()
             self._start()

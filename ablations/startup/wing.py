@@ -27,10 +27,12 @@ def wants_helpers(cfg: Any, device: Any, cache: Any, label: str, *, resuming: bo
     """Whether a run of ``cfg`` (a RunConfig) starts compile helpers (``ablations.startup.helpers``): with
     --compile on a CUDA device (on the CPU inductor's C++ compiles leave no cores to spare) of a machine with
     ``MIN_CORES`` cores or more, with a compile cache folder to share, on a fresh run whose settings (``label``)
-    have no artifact file yet (a warm start loads everything in seconds), unless --no-compile-helper."""
+    have no artifact file yet (a warm start loads everything in seconds), unless --no-compile-helper. Not for
+    --mode distill: a helper builds a SHAC trainer, whose graphs a distilled student's rollouts do not use."""
     from ablations.startup import helpers
 
     return (cfg.compile and cfg.compile_helper and cache is not None and device.type == "cuda" and not resuming
+            and cfg.mode != "distill"
             and helpers.cores() >= helpers.MIN_CORES and not cache.artifact_path(label).exists())
 
 
