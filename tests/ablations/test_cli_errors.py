@@ -89,6 +89,18 @@ CASES = [
     (["--mode", "state", "--render-gamma", "0.5"], "--render-gamma 0.5 means nothing with --mode state"),
     (["--eval-every", "0", "--video-every", "0", "--eval-envs", "64"], "--eval-envs 64 means nothing with "
                                                                      "--eval-every 0 --video-every 0"),
+    # values out of range, each naming its flag as typed
+    (["--num-envs", "0"], "--num-envs must be a positive integer, got 0"),
+    (["--horizon", "-2"], "--horizon must be a positive integer"),
+    (["--iters", "0"], "--iters must be a positive integer"),
+    (["--raster-model", "blurry"], "--raster-model"),
+    (["--actor-lr", "nan"], "--actor-lr must be in (0, inf), got nan"),
+    (["--critic-lr", "-1"], "--critic-lr must be in (0, inf), got -1.0"),
+    (["--sigma", "-1"], "--sigma must be in (0, inf), got -1.0"),
+    (["--render-gamma", "-1"], "--render-gamma must be in (0, inf), got -1.0"),
+    (["--gamma", "nan"], "--gamma must be in (0, 1], got nan"),
+    (["--threads", "0"], "--threads must be a positive integer, got 0"),
+    (["--time-limit-min", "nan"], "--time-limit-min must be in (0, inf), got nan"),
 ]
 
 
