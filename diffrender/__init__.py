@@ -11,11 +11,14 @@ Public API:
     render(verts, faces, colors, camera, settings, *, normals)  the soft rasterizer
     backend_for(settings, device)  which rasterizer backend render() uses there
     measure_bin_capacity(verts, faces, camera, settings)  a tiled-backend bin capacity for a frame
+    bin_overflows()  the fused backend's binned tile lists that overflowed since the last call (0 unbinned)
     BinCapacityWarning  the tiled backend's automatic bin capacity grew (given once per process)
     RasterSettings, FloorSettings  keyword-only frozen settings
     RayTracer(faces, *, num_envs, num_verts, device, settings, shadows)  forward-only Warp ray tracer of the
         same scene (the rasterizer's sharp limit; no gradient), render_raytraced(...) its functional form
 """
+
+import sys
 
 import torch
 
@@ -36,12 +39,23 @@ __all__ = [
     "RobotModel",
     "RobotPose",
     "backend_for",
+    "bin_overflows",
     "focal_length",
     "measure_bin_capacity",
     "render",
     "render_raytraced",
     "tracking_camera",
 ]
+
+
+def bin_overflows() -> int:
+    """The (tile, environment) face lists of the fused backend's binned forward (``FWD_BIN``) that overflowed
+    their capacity since the last call, over every device, and the counters reset
+    (:func:`diffrender.raster.fused.bin_overflows`: the first nonzero count warns once). 0 where the fused
+    backend has not rendered in this process: it is not imported for the question. Call it outside CUDA graph
+    capture, after a synchronisation: one host transfer per device that rendered binned."""
+    fused = sys.modules.get(f"{__name__}.raster.fused")
+    return 0 if fused is None else fused.bin_overflows()
 
 
 def measure_bin_capacity(verts: torch.Tensor, faces: torch.Tensor, camera: Camera, settings: RasterSettings) -> int:

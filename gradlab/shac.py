@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from torch import nn
 
+import diffrender
 import tasks
 from gradlab import members
 from gradlab.config import ModePlan, SHACConfig
@@ -509,6 +510,8 @@ class SHAC:
             "peak_reserved_mb": window.memory.peak_reserved_mb,
             "saved_mb": window.saved_bytes / 2**20,
         }
+        if overflows := diffrender.bin_overflows():  # binned renders' overflowing tiles, read after the sync above
+            shared["bin_overflows"] = overflows
         losses, critic_losses = loss.detach().cpu().unbind(0), critic_loss.detach().cpu().unbind(0)
         out: list[dict | None] = []
         for m in self.members:

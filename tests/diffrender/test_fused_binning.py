@@ -200,6 +200,9 @@ def test_an_overflow_warns_once_and_the_counter_reads_outside_a_graph(monkeypatc
         warnings.simplefilter("error")
         assert fused.bin_overflows() == expected
         assert fused.bin_overflows() == 0
+    with torch.no_grad():  # the package's door reads the same counters (what the trainer calls each iteration)
+        dr.render(verts, faces, colors, cam, settings)
+    assert dr.bin_overflows() == expected and dr.bin_overflows() == 0
 
 
 def test_bin_capacity_must_be_a_positive_integer(monkeypatch):

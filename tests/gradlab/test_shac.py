@@ -93,6 +93,16 @@ def test_metrics_keys_and_types():
     assert m["peak_alloc_mb"] is None  # CPU: torch keeps no peak statistics
 
 
+def test_binned_renders_overflowing_tiles_are_in_the_iterations_metrics_only_when_there_are(monkeypatch):
+    import diffrender
+
+    trainer = SHAC([tiny()], device="cpu")
+    counts = iter([0, 7])
+    monkeypatch.setattr(diffrender, "bin_overflows", lambda: next(counts))
+    first, second = trainer.train_iteration()[0], trainer.train_iteration()[0]
+    assert "bin_overflows" not in first and second["bin_overflows"] == 7
+
+
 def test_full_mode_saves_more_for_backward_than_decoupled():
     full = SHAC([tiny(mode="full")], device="cpu").train_iteration()[0]
     dec = SHAC([tiny(mode="decoupled")], device="cpu").train_iteration()[0]

@@ -36,21 +36,21 @@ FWD_COMPACT = False
 #: shades every pair whatever this says: there the deferred walk timed slower (BENCHMARKS.md section 2.5). The
 #: soft models shade every pair they blend.
 FWD_DEFER_SHADING = True
-#: Whether every render bins its faces once per chunk of environments before the forward walks (off by
-#: default). A binning kernel (``forward._bin_faces``, one program per forward tile of TILE x TILE pixels and
-#: environment) lists, for each tile, the faces whose boxes (the setup kernel's ``face_box``) reach the tile's pixel
-#: centres, in face order, into a fixed-capacity list (B, T, BIN_CAPACITY) int32 with each tile's count (B, T)
-#: (T tiles in row-major order); every forward walk (hard, softmax and alpha, with the blend state kept or not,
-#: and the backward's recompute of the state) then evaluates only its tile's listed faces, in chunks of
-#: FWD_SUB_BLOCK. A tile with more than BIN_CAPACITY such faces walks the blocks instead, on the device (the
-#: same image), and counts itself in a device counter that :func:`.rasterize.bin_overflows` reads outside any
-#: CUDA graph (one warning, ``BinOverflowWarning``). The same faces in the same order: the hard model's face,
-#: depth and image bit for bit, the soft models' sums regrouped (float rounding). The lists are transients of
-#: the forward (4 x T x BIN_CAPACITY bytes an environment), never saved for the backward, whose walk keeps its
-#: own packing (BWD_COMPACT) at its own tile (BWD_TILE). BIN_CAPACITY is a compile-time constant: fixed before
-#: any capture (:func:`.rasterize.bin_capacity_needed` measures a frame's busiest tile). With binning, a tile's
-#: walk is split between at most ceil(BIN_CAPACITY / FWD_SUB_BLOCK) programs (split s takes list chunks s,
-#: s + S, ...).
+#: Whether every render bins its faces once per chunk of environments before the forward walks (off by default). A
+#: binning kernel (``forward._bin_faces``, one program per forward tile of TILE x TILE pixels and environment) lists,
+#: for each tile, the faces whose boxes (the setup kernel's ``face_box``) reach the tile's pixel centres, in face order,
+#: into a fixed-capacity list (B, T, BIN_CAPACITY) int32 with each tile's count (B, T) (T tiles in row-major order);
+#: every forward walk (hard, softmax and alpha, with the blend state kept or not, and the backward's recompute of the
+#: state) then evaluates only its tile's listed faces, in chunks of FWD_SUB_BLOCK. A tile with more than BIN_CAPACITY
+#: such faces walks the blocks instead, on the device (the same image), and counts itself in a device counter that
+#: :func:`.rasterize.bin_overflows` reads outside any CUDA graph (one warning, ``BinOverflowWarning``; the trainer reads
+#: it after each iteration's synchronising transfer and logs a nonzero count as the metrics key ``bin_overflows``). The
+#: same faces in the same order: the hard model's face, depth and image bit for bit, the soft models' sums regrouped
+#: (float rounding). The lists are transients of the forward (4 x T x BIN_CAPACITY bytes an environment), never saved
+#: for the backward, whose walk keeps its own packing (BWD_COMPACT) at its own tile (BWD_TILE). BIN_CAPACITY is a
+#: compile-time constant: fixed before any capture (:func:`.rasterize.bin_capacity_needed` measures a frame's busiest
+#: tile). With binning, a tile's walk is split between at most ceil(BIN_CAPACITY / FWD_SUB_BLOCK) programs (split s
+#: takes list chunks s, s + S, ...).
 FWD_BIN = False
 BIN_CAPACITY = 256
 #: The forward's walk over the super-blocks is split between up to FWD_MAX_SPLITS programs per tile (program s
