@@ -6,7 +6,7 @@
 # in ~95 s (H100) before a stage prints its first row.
 # Stages: env, nvdiffrast, anchor, cuda-tests, population, fused-tests, graph-test, sim, sim-variants, sim-par, config-replay,
 # profile, render, render-fused, raytrace, iter, iter-compiled, iter-warp, startup, learn, paper, sweep, detach, progress,
-# collect (see each case below).
+# collect, sim-agreement (see each case below).
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 # once per machine: a later call must not rewrite the packages under a detached run that imports from them
@@ -110,6 +110,11 @@ for spec in "$@"; do
        # in parts of 15 MB: a file over 16 MiB does not come back from the GPU machine (cat paper.tgz.* | tar -xz)
        out=${PAPER_OUT:-/tmp/paper}; tar -C "$(dirname "$out")" --exclude=checkpoints -cz "$(basename "$out")" \
          | split -b 15M -d - "$OUT/paper.tgz.";;
+    sim-agreement) # the Warp simulator's actor gradient against the PyTorch one's from shared run states
+       # (benchmarks/precision.py --candidates fp32-warp-sim; needs the Warp bundle unpacked, see above)
+       run "$secs" python3 benchmarks/precision.py --device cuda --compile --tasks ${TASKS:-hopper ant} \
+         --modes ${MODES:-decoupled full} --candidates fp32 fp32-warp-sim --parts agreement --iters ${AGREE_ITERS:-200} \
+         --out "$OUT/sim_agreement.json";;
     raytrace) # the Warp ray tracer's variants (refit vs trace, eager vs graph) on the ant, 20k and 100k faces
        run "$secs" python3 benchmarks/raytrace.py --device cuda ${RAYTRACE_ARGS:-} --out "$OUT/raytrace.json";;
     iter-warp) # decoupled iterations with the soft rasterizer's forward against the ray tracer, one process;
