@@ -18,7 +18,8 @@ from tqdm.auto import tqdm
 
 from ablations.population import Prepared
 from ablations.run_config import RunConfig, shac_part
-from ablations.run_folder import environment_info, evaluation_of
+from ablations.run_folder import evaluation_of
+from ablations.run_records import environment_info
 from ablations.tree_hash import tree_hash
 from gradlab.config import SHACConfig
 from gradlab.presets import preset_record

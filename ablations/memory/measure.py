@@ -41,7 +41,7 @@ def measure_point(point: dict, progress: Callable[[dict], None]) -> dict:
 
     import torch
 
-    from ablations.run_folder import environment_info
+    from ablations.run_records import environment_info
     from gradlab.config import SHACConfig
     from gradlab.shac import SHAC
     from gradlab.timing import median

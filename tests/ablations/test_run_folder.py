@@ -16,12 +16,12 @@ import pytest
 from ablations.run_folder import (
     MetricsTail,
     RunFolder,
-    environment_info,
     evaluation_of,
     find_runs,
     load_run,
     read_metrics,
 )
+from ablations.run_records import environment_info
 from tests.ablations.conftest import write_run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -262,7 +262,7 @@ def test_a_thin_copy_keeps_the_records_every_kth_iteration_probes_and_evaluation
 def test_a_copy_of_the_tree_without_its_repository_records_the_commit_it_is_named(tmp_path, monkeypatch):
     """git.txt of a run started from a copy of the tree with no repository (a GPU machine's detached runs): the
     commit $PIXELGRAD_COMMIT names, and why it is named; without the variable, that git is unavailable."""
-    from ablations.run_folder import git_info
+    from ablations.run_records import git_info
 
     monkeypatch.delenv("PIXELGRAD_COMMIT", raising=False)
     text, diff = git_info(tmp_path)
