@@ -69,11 +69,12 @@ MIN_CORES = 8
 HELPER_SHARES = (("factorize", "finish"), ("renderer",), ("networks",))
 
 
-def helper_shares(cfg) -> list[tuple[str, ...]]:
-    """The shares of :data:`HELPER_SHARES` with something to compile for the resolved ``cfg`` (a SHACConfig)."""
+def helper_shares(cfgs) -> list[tuple[str, ...]]:
+    """The shares of :data:`HELPER_SHARES` with something to compile for the resolved members ``cfgs`` (SHACConfigs:
+    a run alone's one, a population's members)."""
     from gradlab.config import ModePlan
 
-    renders = ModePlan.of(cfg.mode).renders
+    renders = any(ModePlan.of(c.mode).renders for c in cfgs)
     return [share for share in HELPER_SHARES if renders or share != ("renderer",)]
 
 
@@ -127,16 +128,16 @@ class CompileHelper:
             return None
         return cls(process, Path(early))
 
-    def assign(self, cfg, device, cache_root: Path, log: Path, *, parts: Sequence[str]) -> bool:
-        """Give the helper its share: compile ``parts`` (of gradlab.shac.COMPILE_PARTS) of the resolved ``cfg``
-        (a SHACConfig) on ``device`` into the cache under ``cache_root``, writing its output to ``log``. False,
-        with one warning and the helper dismissed, where the log's folder cannot be made or the settings cannot
-        be sent; a helper that has ended already is told by :meth:`wait` (its exit code)."""
+    def assign(self, cfgs, device, cache_root: Path, log: Path, *, parts: Sequence[str]) -> bool:
+        """Give the helper its share: compile ``parts`` (of gradlab.shac.COMPILE_PARTS) of a trainer of the resolved
+        members ``cfgs`` (SHACConfigs, in the roster's order) on ``device`` into the cache under ``cache_root``, writing
+        its output to ``log``. False, with one warning and the helper dismissed, where the log's folder cannot be made
+        or the settings cannot be sent; a helper that has ended already is told by :meth:`wait` (its exit code)."""
         self.parts = tuple(parts)
         try:
             log.parent.mkdir(parents=True, exist_ok=True)
             log.touch()
-            payload = pickle.dumps({"config": cfg, "device": str(device), "cache_root": str(cache_root),
+            payload = pickle.dumps({"configs": list(cfgs), "device": str(device), "cache_root": str(cache_root),
                                     "parts": self.parts, "log": str(log)})
         except (OSError, pickle.PicklingError) as e:
             self._warn(f"could not be given its share ({type(e).__name__}: {e}); the run compiles that itself")
@@ -242,12 +243,12 @@ class CompileHelpers:
             return None
         return cls.spawn()
 
-    def assign(self, cfg, device, cache_root: Path, folder: Path, *,
+    def assign(self, cfgs, device, cache_root: Path, folder: Path, *,
                shares: Sequence[Sequence[str]] | None = None) -> CompileHelpers:
-        """Give each share (None: :func:`helper_shares` of ``cfg``) to a helper, each logging to
+        """Give each share (None: :func:`helper_shares` of the resolved members ``cfgs``) to a helper, each logging to
         ``folder/compile_helper_<share>.log``; helpers left over are dismissed, and shares without one are
         spawned a helper. Returns self."""
-        shares = helper_shares(cfg) if shares is None else [tuple(share) for share in shares]
+        shares = helper_shares(cfgs) if shares is None else [tuple(share) for share in shares]
         for helper in self.helpers[len(shares):]:
             helper.dismiss()
         self.helpers = self.helpers[:len(shares)]
@@ -257,7 +258,7 @@ class CompileHelpers:
                 break
             self.helpers.append(helper)
         self.helpers = [helper for helper, share in zip(self.helpers, shares, strict=False)
-                        if helper.assign(cfg, device, cache_root, folder / f"compile_helper_{'_'.join(share)}.log",
+                        if helper.assign(cfgs, device, cache_root, folder / f"compile_helper_{'_'.join(share)}.log",
                                          parts=share)]
         return self
 
@@ -359,10 +360,11 @@ def main(argv: list[str] | None = None) -> int:
     CompileCache(spec["cache_root"], device).activate()
     start_compile_workers(device)
     seconds["cache"], mark = time.perf_counter() - mark, time.perf_counter()
-    cfg = spec["config"]
-    horizon = min(cfg.horizon, max(HORIZON, -(-cfg.critic_batches // cfg.num_envs)))
-    precision.use(cfg.precision, device)  # as the run does: the same graphs, so the same cache entries
-    trainer = SHAC([dataclasses.replace(cfg, horizon=horizon)], device=device)
+    cfgs = spec["configs"]
+    # the members share the horizon and the batch; the window covers every member's critic minibatches
+    horizon = min(cfgs[0].horizon, max(HORIZON, *(-(-c.critic_batches // c.num_envs) for c in cfgs)))
+    precision.use(cfgs[0].precision, device)  # as the run does: the same graphs, so the same cache entries
+    trainer = SHAC([dataclasses.replace(c, horizon=horizon) for c in cfgs], device=device)
     trainer.compile(parts=parts)
     watch = CompileWatch()
     seconds["trainer"], mark = time.perf_counter() - mark, time.perf_counter()

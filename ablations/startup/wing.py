@@ -86,8 +86,8 @@ class Startup:
              resuming: bool) -> None:
         """Once the run folder and the device are known. ``cfgs``: the members' RunConfigs as given (their shared
         ``compile``, ``compile_cache``, ``compile_helper``); ``resolved``: their trainer settings, resolved
-        (``gradlab.roster.Roster.cfgs``: a run alone's one; a population's artifact file is its own, and it
-        compiles without helpers, as they would compile a single run's shapes); ``resuming``: a resumed run.
+        (``gradlab.roster.Roster.cfgs``, in its order: a helper builds a trainer of the same members, so it compiles
+        the population's shapes); ``resuming``: a resumed run.
 
         With --compile: the cache folder is checked (one unusable is a warning, and torch's own caches are used);
         where the run wants helpers (:func:`wants_helpers`) this process takes its CUDA context first (on a GPU in
@@ -111,10 +111,10 @@ class Startup:
                 count = len(members) if len(members) > 1 else ""
                 self.label = f"{first.task}_{kind}{count}_{first.num_envs}envs_{first.image_size}px"
                 cache = _open_cache(cfg.compile_cache, device)
-                if len(members) == 1 and wants_helpers(cfg, device, cache, self.label, resuming=resuming):
+                if wants_helpers(cfg, device, cache, self.label, resuming=resuming):
                     torch.empty(1, device=device)
                     self.helpers, standby = (standby or CompileHelpers.spawn()), None
-                    self.helpers.assign(first, device, cache.folder.parent, run_dir)
+                    self.helpers.assign(list(resolved), device, cache.folder.parent, run_dir)
                 if cache is not None:
                     self.cache = _activate_cache(cache, self.label)
                 start_compile_workers(device)  # after activating: the workers inherit the cache folder

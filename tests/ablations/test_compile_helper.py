@@ -34,7 +34,7 @@ def _cfg(**kw):
 def _start(cache_root, log, *, parts, command):
     """A stand-in helper (``command``) spawned and given its share, as the run does; None where that failed."""
     helper = CompileHelper.spawn(command=command)
-    return helper if helper is not None and helper.assign(_cfg(), CPU, cache_root, log, parts=parts) else None
+    return helper if helper is not None and helper.assign([_cfg()], CPU, cache_root, log, parts=parts) else None
 
 
 def test_a_helper_that_fails_warns_once_and_the_run_goes_on(tmp_path):
@@ -162,6 +162,38 @@ def _failing_run(tmp_path, monkeypatch, where: str):
     return helpers, tmp_path / "runs" / "r"
 
 
+def test_a_population_gives_its_helpers_every_member_in_the_rosters_order(tmp_path, monkeypatch):
+    """A population's graphs have the population's shapes (every member's batch, its members in render order):
+    its helpers build a trainer of the same members, in the roster's order, not of its first member's."""
+    from ablations import runs
+    from ablations.startup import helpers as compile_helper
+    from ablations.startup import wing
+    from gradlab.roster import Roster
+
+    given = []
+    monkeypatch.setattr(wing, "wants_helpers", lambda *a, **k: True)
+    monkeypatch.setattr(compile_helper.CompileHelpers, "spawn", classmethod(lambda cls, *a, **k: cls([])))
+    monkeypatch.setattr(compile_helper.CompileHelpers, "assign",
+                        lambda self, cfgs, *a, **k: given.append(list(cfgs)) or self)
+    cfg = runs.RunConfig(task="cartpole", num_envs=2, image_size=16, horizon=4, iters=1, compile=True, device="cpu",
+                         out=tmp_path / "runs", name="p", progress=False, compile_cache=str(tmp_path / "cache"),
+                         video_every=0)
+    members = [runs.RunConfig(**{**vars(cfg), "mode": mode, "seed": seed})
+               for mode, seed in [("blind", 0), ("decoupled", 1), ("blind", 2)]]
+    import gradlab.shac
+
+    def built(*args, **kwargs):  # the helpers have their shares before the trainer is built: no need to train
+        raise RuntimeError("stop after the start-up")
+
+    monkeypatch.setattr(gradlab.shac.SHAC, "__init__", built)
+    with pytest.raises(RuntimeError, match="stop after the start-up"):
+        runs.run(members)
+    roster = Roster.of([resolve_config(SHACConfig(task="cartpole", mode=m.mode, seed=m.seed, num_envs=2, image_size=16,
+                                                  horizon=4, compile=True)) for m in members])
+    assert len(given) == 1
+    assert [(c.mode, c.seed) for c in given[0]] == [(c.mode, c.seed) for c in roster.cfgs]
+
+
 @pytest.mark.parametrize("where", ["building the trainer", "compiling ahead"])
 def test_a_run_that_fails_stops_its_helpers(tmp_path, monkeypatch, where):
     helpers, run_dir = _failing_run(tmp_path, monkeypatch, where)
@@ -203,9 +235,11 @@ def test_the_work_is_shared_by_what_the_mode_compiles():
     them every part of a --compile trainer, each once."""
     from gradlab.shac import COMPILE_PARTS
 
-    assert helper_shares(_cfg()) == list(HELPER_SHARES)
-    assert helper_shares(resolve_config(SHACConfig(task="cartpole", mode="state", compile=True))) == [
-        share for share in HELPER_SHARES if share != ("renderer",)]
+    state = resolve_config(SHACConfig(task="cartpole", mode="state", compile=True))
+    assert helper_shares([_cfg()]) == list(HELPER_SHARES)
+    assert helper_shares([state]) == [share for share in HELPER_SHARES if share != ("renderer",)]
+    blind = resolve_config(SHACConfig(task="cartpole", mode="blind", compile=True))
+    assert helper_shares([blind, _cfg()]) == list(HELPER_SHARES)  # a population renders if one member does
     parts = [*RUN_SHARE, *(p for share in HELPER_SHARES for p in share)]
     assert sorted(parts) == sorted(COMPILE_PARTS)
 
@@ -259,39 +293,40 @@ _RUN = textwrap.dedent("""
     from gradlab.config import SHACConfig, resolve_config
     from gradlab.shac import SHAC
 
-    root, with_helper = Path(sys.argv[1]), sys.argv[2] == "1"
-    cfg = resolve_config(SHACConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4,
-                                    compile=True, seed=3))
+    root, with_helper, seeds = Path(sys.argv[1]), sys.argv[2] == "1", [int(s) for s in sys.argv[3].split(",")]
+    cfgs = [resolve_config(SHACConfig(task="cartpole", mode="decoupled", num_envs=2, image_size=16, horizon=4,
+                                      compile=True, seed=seed)) for seed in seeds]
     CompileCache(root, torch.device("cpu")).activate()
-    helpers = CompileHelpers.spawn().assign(cfg, torch.device("cpu"), root, root) if with_helper else None
-    trainer = SHAC([cfg], device="cpu")
+    helpers = CompileHelpers.spawn().assign(cfgs, torch.device("cpu"), root, root) if with_helper else None
+    trainer = SHAC(cfgs, device="cpu")
     trainer.compile()
     watch = CompileWatch()
     if helpers is not None:
         compile_physics_ahead(trainer, RUN_SHARE)
         assert helpers.wait(timeout=900), [Path(h.log).read_text()[-3000:] for h in helpers.helpers]
-    metrics = [row for (row,) in (trainer.train_iteration() for _ in range(2))]
+    metrics = [row for rows in (trainer.train_iteration() for _ in range(2)) for row in rows]
     print(json.dumps({"losses": [m["actor_loss"] for m in metrics], "critic": [m["critic_loss"] for m in metrics],
                       "compiles": watch.compiles, "recompiles": watch.recompiles, **compile_counters()}))
 """)
 
 
-def _run(root: Path, with_helper: bool) -> dict:
-    out = subprocess.run([sys.executable, "-c", _RUN, str(root), "1" if with_helper else "0"], capture_output=True,
-                         text=True, timeout=900)
+def _run(root: Path, with_helper: bool, seeds: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", _RUN, str(root), "1" if with_helper else "0", seeds],
+                         capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 @pytest.mark.slow
-def test_the_run_finds_the_helpers_graphs_in_the_cache_and_trains_to_the_same_numbers(tmp_path):
-    alone = _run(tmp_path / "alone", with_helper=False)
-    helped = _run(tmp_path / "helped", with_helper=True)
+@pytest.mark.parametrize("seeds", ["3", "3,4"], ids=["run-alone", "population"])
+def test_the_run_finds_the_helpers_graphs_in_the_cache_and_trains_to_the_same_numbers(tmp_path, seeds):
+    alone = _run(tmp_path / "alone", with_helper=False, seeds=seeds)
+    helped = _run(tmp_path / "helped", with_helper=True, seeds=seeds)
     # everything but the substep came from the helpers: the run compiled (missed) only the substep's two graphs
     # (forward, backward); the other physics parts' graphs and the networks' were hits
     assert helped["fxgraph_cache_miss"] == 2, helped
     assert helped["fxgraph_cache_hit"] + helped["fxgraph_cache_miss"] >= alone["fxgraph_cache_miss"]
-    for share in helper_shares(resolve_config(SHACConfig(task="cartpole", mode="decoupled", compile=True))):
+    for share in helper_shares([resolve_config(SHACConfig(task="cartpole", mode="decoupled", compile=True))]):
         log = (tmp_path / "helped" / f"compile_helper_{'_'.join(share)}.log").read_text()
         assert f"compile helper ({', '.join(share)}): imports" in log  # where its time went
     # compiling ahead used the training windows' guards: no graph more, no recompile more
