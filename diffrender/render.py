@@ -69,41 +69,12 @@ def _triton_installed() -> bool:
     return True
 
 
-def render(
-    verts: torch.Tensor,
-    faces: torch.Tensor,
-    colors: torch.Tensor,
-    camera: Camera,
-    settings: RasterSettings | None = None,
-    *,
-    normals: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """Rasterize triangle meshes over the analytic floor with the image model ``settings.raster_model``.
-
-    Args:
-        verts: (B, V, 3) [m] world-frame vertices, float32 or float64.
-        faces: (F, 3) long (or int32) vertex indices, shared by all environments; winding counter-clockwise
-            seen from outside (needed for back-face culling).
-        colors: (V, 3) or (B, V, 3) albedo in [0, 1], same dtype as ``verts``.
-        camera: :class:`~diffrender.Camera` with B (or 1, broadcast) cameras, same dtype/device.
-        settings: :class:`~diffrender.RasterSettings` (defaults if None).
-        normals: optional (B, V, 3) unit world-frame vertex normals (e.g. ``RobotModel.world_normals``);
-            None computes area-weighted normals from the mesh inside the renderer (no extra saved memory).
-    Returns:
-        (B, 3, H, W) image in [0, 1], differentiable w.r.t. ``verts``, ``normals``, ``colors`` and the
-        camera's rotation and eye (hence the look-at eye and target).
-
-    Raises:
-        ValueError: wrong types, shapes, dtypes (e.g. float32 mixed with float64) or devices, naming the
-            argument; non-finite vertices/normals/colours/camera; face indices out of range.
-        RuntimeError: the tiled backend's bins overflowed (the message gives the environment, the counts,
-            the capacity and how to raise it).
-
-    Host synchronisation: with ``settings.sync_checks`` (default) one sync at the end of the call reads the
-    overflow and finiteness flags (plus one the first time a faces tensor is seen, to range-check it).
-    With ``sync_checks=False``, or inside CUDA-graph capture / ``torch.compile``, nothing syncs and an
-    overflowing environment renders as NaN.
-    """
+def check_inputs(verts: torch.Tensor, faces: torch.Tensor, colors: torch.Tensor, camera: Camera,
+                 settings: RasterSettings | None, *, normals: torch.Tensor | None
+                 ) -> tuple[RasterSettings, torch.Tensor, Camera]:
+    """:func:`render`'s argument checks, shared by every renderer that takes its arguments
+    (:func:`diffrender.render_raytraced`): ValueError naming the argument for a wrong type, shape, dtype or device.
+    Returns the settings (the defaults for None), ``faces`` as int64 and the camera expanded to the batch."""
     settings = RasterSettings() if settings is None else settings
     if not isinstance(settings, RasterSettings):
         raise ValueError(f"settings must be a RasterSettings, got {type(settings).__name__}")
@@ -143,6 +114,46 @@ def render(
     if camera.batch_size not in (1, b):
         raise ValueError(f"camera has {camera.batch_size} views but verts has {b} environments")
     camera = camera.expand(b)
+    return settings, faces, camera
+
+
+def render(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    colors: torch.Tensor,
+    camera: Camera,
+    settings: RasterSettings | None = None,
+    *,
+    normals: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Rasterize triangle meshes over the analytic floor with the image model ``settings.raster_model``.
+
+    Args:
+        verts: (B, V, 3) [m] world-frame vertices, float32 or float64.
+        faces: (F, 3) long (or int32) vertex indices, shared by all environments; winding counter-clockwise
+            seen from outside (needed for back-face culling).
+        colors: (V, 3) or (B, V, 3) albedo in [0, 1], same dtype as ``verts``.
+        camera: :class:`~diffrender.Camera` with B (or 1, broadcast) cameras, same dtype/device.
+        settings: :class:`~diffrender.RasterSettings` (defaults if None).
+        normals: optional (B, V, 3) unit world-frame vertex normals (e.g. ``RobotModel.world_normals``);
+            None computes area-weighted normals from the mesh inside the renderer (no extra saved memory).
+    Returns:
+        (B, 3, H, W) image in [0, 1], differentiable w.r.t. ``verts``, ``normals``, ``colors`` and the
+        camera's rotation and eye (hence the look-at eye and target).
+
+    Raises:
+        ValueError: wrong types, shapes, dtypes (e.g. float32 mixed with float64) or devices, naming the
+            argument; non-finite vertices/normals/colours/camera; face indices out of range.
+        RuntimeError: the tiled backend's bins overflowed (the message gives the environment, the counts,
+            the capacity and how to raise it).
+
+    Host synchronisation: with ``settings.sync_checks`` (default) one sync at the end of the call reads the
+    overflow and finiteness flags (plus one the first time a faces tensor is seen, to range-check it).
+    With ``sync_checks=False``, or inside CUDA-graph capture / ``torch.compile``, nothing syncs and an
+    overflowing environment renders as NaN.
+    """
+    settings, faces, camera = check_inputs(verts, faces, colors, camera, settings, normals=normals)
+    nv, device = verts.shape[1], verts.device
 
     sync = settings.sync_checks and _can_sync(device)
     if sync and faces.numel():

@@ -43,7 +43,7 @@ import torch
 
 from ..camera import Camera
 from ..raster.kernel import vertex_normals
-from ..render import _can_sync, _check_float
+from ..render import _can_sync, _check_float, check_inputs
 from ..settings import RasterSettings
 from ..shading import unit_light
 
@@ -431,23 +431,19 @@ def render_raytraced(
 ) -> torch.Tensor:
     """Ray-trace what :func:`diffrender.render` would rasterize, in its sharp limit, without a gradient.
 
-    Takes :func:`diffrender.render`'s arguments (same shapes, dtypes and conventions) plus ``shadows`` (see
-    :class:`RayTracer`); returns (B, 3, H, W) in the dtype of ``verts``. A :class:`RayTracer` per faces
-    tensor, batch size, vertex count, device, settings and ``shadows`` is kept and reused, so repeated calls
-    refit one BVH; for full control (and to drop the cache's references) use :class:`RayTracer` directly.
+    Takes :func:`diffrender.render`'s arguments (same shapes, dtypes and conventions, checked by the same
+    :func:`diffrender.render.check_inputs`) plus ``shadows`` (see :class:`RayTracer`); returns (B, 3, H, W) in the dtype
+    of ``verts``. A :class:`RayTracer` per faces tensor, batch size, vertex count, device, settings and ``shadows`` is
+    kept and reused, so repeated calls refit one BVH; for full control (and to drop the cache's references) use
+    :class:`RayTracer` directly.
 
     Raises:
         RuntimeError: an input requires grad while grad mode is enabled.
         ValueError: see :class:`RayTracer` and :meth:`RayTracer.__call__`.
     """
-    _check_float("verts", verts, "(B, V, 3)")
-    if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] == 0 or verts.shape[1] == 0:
-        raise ValueError(f"verts must have shape (B, V, 3) with B, V >= 1, got {tuple(verts.shape)}")
-    if not isinstance(faces, torch.Tensor):
-        raise ValueError(f"faces must be an int64/int32 tensor of shape (F, 3), got {type(faces).__name__}")
-    if faces.device != verts.device:
-        raise ValueError(f"faces is on {faces.device} but verts is on {verts.device}")
-    settings = RasterSettings() if settings is None else settings
+    settings, _, _ = check_inputs(verts, faces, colors, camera, settings, normals=normals)
+    if verts.shape[1] == 0:
+        raise ValueError(f"verts must have shape (B, V, 3) with V >= 1, got {tuple(verts.shape)}")
     b, nv = int(verts.shape[0]), int(verts.shape[1])
     key = (faces.data_ptr(), faces._version, tuple(faces.shape), faces.dtype, verts.device, b, nv, settings,
            bool(shadows))

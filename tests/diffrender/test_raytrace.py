@@ -2,6 +2,7 @@
 at their task cameras, the floor, environments kept apart, BVH refits, back-face culling, shadows, errors."""
 
 import dataclasses
+import re
 
 import pytest
 import torch
@@ -395,6 +396,22 @@ def test_bad_input_is_named():
                              torch.tensor([0.0, 0.0, 0.7], dtype=F64), (0.0, 0.0, 1.0), 40.0, 7, 6)
     with pytest.raises(ValueError, match="camera has 4 views but the ray tracer renders 2 environments"):
         tracer(verts, colors, four)
+
+
+def test_render_raytraced_refuses_what_render_refuses_with_the_same_message():
+    """Both take the same arguments through one check (diffrender.render.check_inputs): a bad argument is named
+    the same way by either."""
+    verts, faces, colors = tiny_scene(2)
+    _, _, cam = tiny_camera(2)
+    s = dr.RasterSettings(znear=0.5, zfar=10.0)
+    bad = [(verts, faces.float(), colors, cam, s), (verts, faces, colors.float(), cam, s),
+           (verts, faces, colors, tiny_camera(2, dtype=torch.float32)[2], s), (verts, faces, colors, cam, {"a": 1}),
+           (verts, faces[:, :2], colors, cam, s), (verts, faces, colors[:8], cam, s)]
+    for args in bad:
+        with pytest.raises(ValueError) as rendered:
+            dr.render(*args)
+        with pytest.raises(ValueError, match=re.escape(str(rendered.value))):
+            render_raytraced(*args)
 
 
 # ------------------------------------------------------------------------------------------------ benchmark
