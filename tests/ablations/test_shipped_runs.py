@@ -15,7 +15,8 @@ from ablations.run_folder import CONFIG, evaluation_of, find_runs
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
-EXPERIMENTS = ("seeded", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200", "humanoid_h200")
+EXPERIMENTS = ("seeded", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200", "humanoid_h200",
+               "sim_backends_h200")
 #: The arms of the shipped runs (names from vocabulary.ARMS).
 SHIPPED_ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
 
@@ -176,6 +177,29 @@ def test_the_precision_comparison_is_four_hopper_populations_and_its_readme_quot
                   f"sign-flip p = {r['p']:.3f}, Holm {r['p_holm']:.3f}")
         assert quoted in readme, quoted
     assert not any(r["differs"] for r in rows.values())  # 5 paired seeds cannot differ under Holm over 2
+
+
+def test_the_simulator_backends_seeded_check_is_two_hopper_populations_and_its_readme_quotes_them(
+        shipped, benchmark_script):
+    # docs/sim_backends_h200: decoupled hopper x seeds 0-2 x --sim-backend torch and warp, 1000 iterations, one
+    # compiled population each; the README's table and paired numbers are what precision_seeded.py computes
+    runs = find_runs([shipped / "sim_backends_h200" / "runs"])
+    assert {(r.config["mode"], r.config.get("sim_backend") or "torch", r.seed) for r in runs} == {
+        ("decoupled", b, s) for b in ("torch", "warp") for s in range(3)}
+    assert len(runs) == 6 and {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 1000)}
+    assert all(r.config["compile"] and r.environment["device"] == "cuda" for r in runs)
+    doc = benchmark_script("precision_seeded").compare_precisions([shipped / "sim_backends_h200" / "runs"],
+                                                                  setting="sim_backend")
+    (row,) = doc["rows"]
+    assert (row["arm"], row["sim_backend"], row["reference"]) == ("decoupled", "warp", "torch")
+    assert row["window"] == [800, 900, 1000]
+    readme = (ROOT / "docs" / "sim_backends_h200" / "README.md").read_text()
+    for seed in range(3):
+        ref, cand = row["reference_returns"][seed], row["candidate"][seed]
+        assert f"| {seed} | {ref:.0f} | {cand:.0f} | {cand - ref:+.0f} |" in readme, seed
+    quoted = (f"Mean difference {row['mean']:+.0f} [{row['ci'][0]:+.0f}, {row['ci'][1]:+.0f}], {row['agree']} of 3 "
+              f"seeds above, sign-flip p = {row['p']:.3f}")
+    assert quoted in readme, quoted
 
 
 def test_the_precision_comparison_refuses_a_seed_twice_in_one_arm_and_precision(shipped, tmp_path, benchmark_script):
