@@ -153,7 +153,7 @@ for spec in "$@"; do
        else cp -r ablations gradlab tasks diffrender vocabulary "$tree"/; mkdir -p "$tree/docs"; cp docs/floors.json "$tree/docs/"; fi
        (cd "$tree" && PYTHONPATH=/tmp/site:$tree CUDA_VISIBLE_DEVICES=${DETACH_GPU:-0} setsid nohup python3 -m ablations ablate \
          ${DETACH_ARGS:-} --device cuda --out /tmp/runs --name "$DETACH_NAME" --no-progress > "/tmp/runs/$DETACH_NAME.log" 2>&1 \
-         < /dev/null &)
+         < /dev/null &) > /dev/null 2>&1  # the backgrounded list's own shell would hold this call's output open
        echo "detached $DETACH_NAME on GPU ${DETACH_GPU:-0} from $tree (${DETACH_TREE:-the working tree packages})"
        python3 -c "import sys; sys.path.insert(0, '$tree'); from ablations.tree_hash import tree_hash; print('tree hash', tree_hash('$tree').value)";;
     progress) # where the detached runs stand (benchmarks/run_progress.py), waiting PROGRESS_WAIT seconds first

@@ -39,7 +39,7 @@ case ${1:?stage} in
     echo "${PIXELGRAD_COMMIT:?name the commit of the tree sent: PIXELGRAD_COMMIT=<sha>}" > $P/$name.commit
     nvidia-smi --query-gpu=index,name,memory.total --format=csv > $P/$name.gpus 2>&1
     echo "$name" > $P/current
-    (cd $T && setsid python3 -m ablations paper --out $P/$name "$@" > $P/$name.log 2>&1 < /dev/null &)
+    (cd $T && setsid python3 -m ablations paper --out $P/$name "$@" > $P/$name.log 2>&1 < /dev/null &) > /dev/null 2>&1
     sleep 60; bash "$0" progress;;
   progress)
     name=$(cat $P/current); tail -n 5 $P/$name.log | cut -c1-300

@@ -38,9 +38,10 @@ case ${1:?stage} in
     gpu=0
     for p in fp32 bf16; do for m in decoupled full; do
       (cd /tmp/pg && CUDA_VISIBLE_DEVICES=$gpu setsid python3 -m ablations ablate $common --mode $m --precision $p \
-        --name hopper_${m}_$p > $R/hopper_${m}_$p.log 2>&1 < /dev/null &)
+        --name hopper_${m}_$p > $R/hopper_${m}_$p.log 2>&1 < /dev/null &) > /dev/null 2>&1
       gpu=$((gpu + 1)); done; done
-    (cd /tmp/pg && setsid bash "$PWD/benchmarks/precision_session.sh" after-populations > $R/after.log 2>&1 < /dev/null &)
+    (cd /tmp/pg && setsid bash "$PWD/benchmarks/precision_session.sh" after-populations > $R/after.log 2>&1 < /dev/null &) \
+      > /dev/null 2>&1
     sleep 45; tail -n 3 $R/*.log;;
   after-populations)  # detached by launch: each decoupled population's GPU takes a timing job once it is free
     cd /tmp/pg
