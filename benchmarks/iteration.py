@@ -16,6 +16,9 @@ Not a test. Examples::
     # equal-wall-clock view (ablate-report --benchmark iter.json)
     python benchmarks/iteration.py --device cuda --compile --tasks hopper --modes decoupled full blind \
         --raster-model softmax hard --out iter.json
+    # the fused rasterizer's per-tile face lists against its default walks, in this process
+    python benchmarks/iteration.py --device cuda --compile --tasks ant --modes decoupled full \
+        --fused-variants default FWD_BIN=1,BIN_CAPACITY=256 --out iter_bin.json
     python benchmarks/iteration.py --device cpu --tasks cartpole --num-envs 4 --horizon 4 --image-size 32 \
         --warmup 1 --iters 2 --out /tmp/iter.json
 """
@@ -32,7 +35,7 @@ from pathlib import Path
 from unittest import mock
 
 import torch
-from _common import commit, write_json
+from _common import apply_fused_variant, commit, write_json
 
 import diffrender
 import tasks
@@ -155,6 +158,11 @@ def main() -> None:
                         "(off); several: each timed in this process (SHACConfig.overlap_critic)")
     p.add_argument("--sim-backends", nargs="+", choices=SIM_BACKENDS, default=["torch"],
                    help="the simulator backends (SHACConfig.sim_backend), each timed in this process")
+    p.add_argument("--fused-variants", nargs="+", default=["default"],
+                   help="the fused rasterizer's tuning constants, each timed in this process: 'default' or "
+                        "NAME=VALUE,NAME=VALUE (diffrender.raster.fused.tuning, e.g. FWD_BIN=1,BIN_CAPACITY=256; "
+                        "as benchmarks/anchor.py --variants). Rows name theirs (fused_variant); a backend other "
+                        "than the fused one (the CPU's) ignores them")
     p.add_argument("--precision", choices=precision.PRECISIONS, default="fp32",
                    help="SHACConfig.precision for every row (on the CPU a dry run: no TF32 there, bf16 emulated)")
     p.add_argument("--seed", type=int, default=0)
@@ -171,13 +179,20 @@ def main() -> None:
     if args.device.startswith("cuda"):
         env["gpu"] = torch.cuda.get_device_name()
     results = []
-    runs = [(t, m, r, w, o, rm, sb) for t in args.tasks for m in args.modes for r in args.renderers
+    try:
+        for variant in args.fused_variants:
+            apply_fused_variant(variant)
+    except ValueError as e:
+        p.error(str(e).replace("--variants", "--fused-variants"))
+    runs = [(t, m, r, w, o, rm, sb, fv) for t in args.tasks for m in args.modes for r in args.renderers
             for w in args.window_starts for o in args.overlap_critic for sb in args.sim_backends
             for rm in (args.raster_model if ModePlan.of(m).renders and r == "soft" else [None])
+            for fv in (args.fused_variants if ModePlan.of(m).renders and r == "soft" else ["default"])
             if r == "soft" or not ModePlan.of(m).grad_through_images]
-    for task, mode, renderer, start, overlap, raster, backend in runs:
-        row = measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on",
-                      raster_model=raster, sim_backend=backend)
+    for task, mode, renderer, start, overlap, raster, backend, variant in runs:
+        apply_fused_variant(variant)
+        row = {**measure(task, mode, args, renderer=renderer, start=start, overlap_critic=overlap == "on",
+                         raster_model=raster, sim_backend=backend), "fused_variant": variant}
         results.append(row)
         print(json.dumps(row), flush=True)
         # The format ablate-report reads: provenance at the top level, one row per (task, mode).
@@ -185,17 +200,19 @@ def main() -> None:
                "gpu": env.get("gpu"),
                "versions": {"torch": env["torch"], "python": env["python"]}, "results": results}
         write_json(args.out, doc, indent=2)
+    apply_fused_variant("default")  # the process's tuning as it was, for a caller that goes on rendering
 
     envs = "/".join(sorted({str(r["num_envs"]) for r in results}, key=lambda e: (len(e), e)))
     print(f"\nSHAC iteration, {envs} envs, horizon {args.horizon}, {args.image_size}px, "
           f"{env.get('gpu', args.device)}, compile={args.compile}, precision={args.precision} "
           f"(medians of {args.iters} after {args.warmup} warm-up)")
-    print(f"{'task':9} {'mode':9} {'render':6} {'raster':7} {'start':8} {'fwd ms':>9} {'bwd ms':>9} {'critic':>8} "
+    print(f"{'task':9} {'mode':9} {'render':6} {'raster':7} {'start':8} {'variant':28} {'fwd ms':>9} {'bwd ms':>9} "
+          f"{'critic':>8} "
           f"{'overlap':>7} {'sim':>5} {'iter ms':>9} "
           f"{'alloc MB':>9} {'resv MB':>9} {'saved MB':>9} {'probe+%':>8} {'cos':>6}")
     for r in results:
         head = (f"{r['task']:9} {r['mode']:9} {r['renderer']:6} {r.get('raster_model') or '-':7} "
-                f"{r['window_start']:8}")
+                f"{r['window_start']:8} {r['fused_variant']:28}")
         if r["status"] != "ok":
             print(f"{head} {r['status']}: {r.get('error', '')[:80]}")
             continue

@@ -220,6 +220,27 @@ def test_iteration_times_each_critic_placement_in_one_process(tmp_path, monkeypa
         assert r["critic_overlapped"] is False and r["critic_ms"] > 0 and r["iter_ms"] > r["fwd_ms"] > 0
 
 
+def test_iteration_times_each_fused_variant_in_one_process(tmp_path, monkeypatch, benchmark_script):
+    """``--fused-variants default FWD_BIN=1,...``: a row per variant for a rendering mode, named by it, the tuning
+    constants restored after; a mode that renders nothing is timed once; a malformed variant is refused by name."""
+    from diffrender.raster.fused import tuning
+
+    iteration = benchmark_script("iteration")
+    out = tmp_path / "iter.json"
+    argv = ["iteration.py", "--device", "cpu", "--tasks", "cartpole", "--modes", "decoupled", "blind",
+            "--num-envs", "2", "--horizon", "2", "--image-size", "16", "--warmup", "0", "--iters", "1",
+            "--probe-every", "0", "--fused-variants", "default", "FWD_BIN=1,BIN_CAPACITY=64", "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", argv)
+    iteration.main()
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["mode"], r["fused_variant"], r["status"]) for r in rows] == [
+        ("decoupled", "default", "ok"), ("decoupled", "FWD_BIN=1,BIN_CAPACITY=64", "ok"), ("blind", "default", "ok")]
+    assert tuning.FWD_BIN is False  # the last row's variant is the default
+    monkeypatch.setattr(sys, "argv", [*argv[:-4], "NO_SUCH=1", "--out", str(out)])
+    with pytest.raises(SystemExit):
+        iteration.main()
+
+
 def test_iteration_times_every_arm_alone_for_the_equal_wall_clock_view(tmp_path, monkeypatch, benchmark_script):
     """``--modes decoupled full blind --raster-model softmax hard``: every rendering mode with each raster model and
     blind once, each row naming its raster model, so that a report finds each arm's time alone in the file."""
