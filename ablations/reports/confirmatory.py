@@ -214,14 +214,47 @@ def in_family(reg: Registration, run) -> bool:
     return run.task in reg.tasks and run_arm(run) in reg.arms and run.seed in set(reg.looks[-1].seeds)
 
 
-def latest_complete_look(reg: Registration, runs) -> int | None:
-    """The index of the latest look whose every registered task, arm and seed has a run that trained all the
-    registered iterations or failed in training (:data:`TRAINING_FAILURES`); None when look 1 is not complete."""
+def _done(reg: Registration, runs) -> set[tuple[str, str, int]]:
+    """(task, arm, seed) of every run that trained all the registered iterations or failed in training."""
     done = set()
     for run in runs:
         last = max((r.get("iter", 0) for r in run.metrics), default=0)
         if last >= reg.iterations or (run.summary or {}).get("status") in TRAINING_FAILURES:
             done.add((run.task, run_arm(run), run.seed))
+    return done
+
+
+def _seed_ranges(seeds: Sequence[int]) -> str:
+    """``[100, 101, 102, 105]`` -> ``"100-102, 105"``."""
+    out: list[str] = []
+    for s in sorted(seeds):
+        if out and s == int(out[-1].split("-")[-1]) + 1:
+            out[-1] = f"{out[-1].split('-')[0]}-{s}"
+        else:
+            out.append(str(s))
+    return ", ".join(out)
+
+
+def look_progress(reg: Registration, runs, look: int = 0) -> list[str]:
+    """Markdown lines saying which registered runs of a look are done, per task and arm (the seeds; no
+    statistic of a registered hypothesis is shown before its look is complete)."""
+    done, seeds = _done(reg, runs), reg.looks[look].seeds
+    n = sum((t, a, s) in done for t in reg.tasks for a in reg.arms for s in seeds)
+    lines = [f"Look {look + 1}: {n} of {len(reg.tasks) * len(reg.arms) * len(seeds)} registered runs done "
+             f"(trained all {reg.iterations} iterations, or failed in training), each passing the "
+             "registration's checks.", "", "| task | arm | seeds done | seeds to run |", "|---|---|---|---|"]
+    for t in reg.tasks:
+        for a in reg.arms:
+            have = [s for s in seeds if (t, a, s) in done]
+            rest = [s for s in seeds if (t, a, s) not in done]
+            lines.append(f"| {t} | {a} | {_seed_ranges(have) or '-'} | {_seed_ranges(rest) or '-'} |")
+    return [*lines, ""]
+
+
+def latest_complete_look(reg: Registration, runs) -> int | None:
+    """The index of the latest look whose every registered task, arm and seed has a run that trained all the
+    registered iterations or failed in training (:data:`TRAINING_FAILURES`); None when look 1 is not complete."""
+    done = _done(reg, runs)
     complete = None
     for k, look in enumerate(reg.looks):
         if all((t, a, s) in done for t in reg.tasks for a in reg.arms for s in look.seeds):
@@ -242,7 +275,7 @@ def registered_section(reg: Registration, runs) -> list[str]:
     k = latest_complete_look(reg, family)
     if k is None:
         return [*out, f"Look 1 ({len(reg.looks[0].seeds)} seeds) is not complete: no registered hypothesis is "
-                "tested yet. Everything below is exploratory.", ""]
+                "tested yet. Everything below is exploratory.", "", *look_progress(reg, family)]
     p_by_look, pairs_by_look = [], []
     for look in reg.looks[:k + 1]:
         pairs = hypothesis_pairs(reg, family, seeds=look.seeds)

@@ -135,6 +135,9 @@ def test_the_registered_analysis_reads_the_latest_complete_look(tmp_path):
     looks = [{"seeds": list(range(6)), "alpha": 0.04}, {"seeds": list(range(10)), "alpha": 0.01}]
     reg = rg.parse_registration(small_registration(tree_hash=HASH, looks=looks))
     assert cf.latest_complete_look(reg, find_runs([tmp_path / "runs"])) == 0  # seeds 6-9 have no runs
+    assert "| hopper | blind | 0-5 | - |" in cf.look_progress(reg, find_runs([tmp_path / "runs"]), 0)
+    second = cf.look_progress(reg, find_runs([tmp_path / "runs"]), 1)
+    assert second[0].startswith("Look 2: 18 of 30 registered runs done") and "| hopper | blind | 0-5 | 6-9 |" in second
     text = "\n".join(cf.registered_section(reg, find_runs([tmp_path / "runs"])))
     assert "Look 1 of 2 is the latest complete one (6 seeds, alpha 0.04)" in text
     # G: every seed agrees, one-sided p = 1/64 <= 0.04 / 2; C: -3 + s, p well above
@@ -158,6 +161,15 @@ def test_the_registered_analysis_refuses_runs_that_differ_naming_them(tmp_path):
     (tmp_path / "runs" / "blind_5").rename(tmp_path / "elsewhere")
     text = "\n".join(cf.registered_section(reg, find_runs([tmp_path / "runs"])))
     assert "Look 1 (6 seeds) is not complete" in text
+    # what is left to run, by task and arm; no statistic of a hypothesis before its look is complete
+    assert "Look 1: 15 of 18 registered runs done" in text
+    assert "| hopper | blind | 0-4 | 5 |" in text and "| hopper | decoupled | 0-4 | 5 |" in text
+    assert "| G |" not in text and "exact p" not in text
+
+
+def test_seed_ranges_name_runs_of_consecutive_seeds():
+    assert cf._seed_ranges([105, 100, 101, 102, 107, 108]) == "100-102, 105, 107-108"
+    assert cf._seed_ranges([]) == "" and cf._seed_ranges([3]) == "3"
 
 
 @pytest.mark.slow
