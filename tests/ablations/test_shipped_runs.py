@@ -16,7 +16,7 @@ from ablations.run_folder import CONFIG, evaluation_of, find_runs
 ROOT = Path(__file__).resolve().parents[2]
 #: The experiments whose run folders ship as docs/<experiment>/runs.tar.xz.
 EXPERIMENTS = ("seeded", "hopper_population_h100", "hopper_diagnosis_h100", "precision_h200", "humanoid_h200",
-               "sim_backends_h200")
+               "sim_backends_h200", "confirmatory")
 #: The arms of the shipped runs (names from vocabulary.ARMS).
 SHIPPED_ARMS = {"decoupled", "full-soft", "full-hard-dva", "blind"}
 
@@ -147,6 +147,33 @@ def test_the_humanoid_from_pixels_is_three_decoupled_seeds_of_one_population_and
     assert f"IQM {iqm_estimate(list(final.values())).value:.1f}" in readme
     assert f"per seed {final[0]:.0f}, {final[1]:.0f} and {final[2]:.0f}" in readme
     assert round(runs[0].summary["median_iter_ms"], 1) == 410.6 and "410.6 ms" in readme
+
+
+def test_the_registered_runs_pass_the_registration_and_the_readme_lists_them(shipped):
+    # docs/confirmatory: look 1's populations so far, each trained from the pinned tree; every run passes the
+    # registration's checks (tree hash, registered fields) and the page's table is what the folders hold
+    from ablations.registration import check_runs, load_registration
+    from ablations.reports.confirmatory import in_family, latest_complete_look, look_progress
+
+    reg = load_registration(ROOT / "docs" / "confirmatory" / "preregistration.json")
+    runs = find_runs([shipped / "confirmatory" / "runs"])
+    assert runs and all(in_family(reg, r) for r in runs) and check_runs(reg, runs) == []
+    assert {r.tree_hash for r in runs} == {reg.tree_hash}
+    assert {(r.summary["status"], r.summary["iterations"]) for r in runs} == {("finished", 2000)}
+    assert {_last_evaluated_iteration(r) for r in runs} == {2000}
+    readme = (ROOT / "docs" / "confirmatory" / "README.md").read_text()
+    for folder in {r.population["folder"] for r in runs}:
+        members = [r for r in runs if r.population["folder"] == folder]
+        assert len(members) == 12 and len({r.task for r in members}) == 1
+        seeds = sorted({r.seed for r in members})
+        assert {(arm_names(members)[r.path], r.seed) for r in members} == {(a, s) for a in reg.arms for s in seeds}
+        first = members[0].summary
+        row = (f"| `{folder}` | {members[0].task} | {seeds[0]}-{seeds[-1]}, four arms | H200, ")
+        assert row in readme and f"| {first['wall_s']:.0f} s | {first['median_iter_ms']:.1f} ms |" in readme, folder
+    done = look_progress(reg, runs)[0]
+    assert done.startswith(f"Look 1: {len(runs)} of 96 registered runs done") and f"({len(runs)} of its 96" in \
+        (ROOT / "README.md").read_text().replace("\n", " ")
+    assert latest_complete_look(reg, runs) is None or len(runs) >= 96
 
 
 def test_every_experiment_ships_its_run_folders_as_one_archive(shipped):
