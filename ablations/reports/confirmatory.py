@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from itertools import groupby
 from pathlib import Path
 
 import numpy as np
@@ -226,18 +227,14 @@ def _done(reg: Registration, runs) -> set[tuple[str, str, int]]:
 
 def _seed_ranges(seeds: Sequence[int]) -> str:
     """``[100, 101, 102, 105]`` -> ``"100-102, 105"``."""
-    out: list[str] = []
-    for s in sorted(seeds):
-        if out and s == int(out[-1].split("-")[-1]) + 1:
-            out[-1] = f"{out[-1].split('-')[0]}-{s}"
-        else:
-            out.append(str(s))
-    return ", ".join(out)
+    runs = [list(g) for _, g in groupby(enumerate(sorted(seeds)), key=lambda x: x[1] - x[0])]
+    return ", ".join(str(r[0][1]) if len(r) == 1 else f"{r[0][1]}-{r[-1][1]}" for r in runs)
 
 
 def look_progress(reg: Registration, runs, look: int = 0) -> list[str]:
     """Markdown lines saying which registered runs of a look are done, per task and arm (the seeds; no
-    statistic of a registered hypothesis is shown before its look is complete)."""
+    statistic of a registered hypothesis is shown before its look is complete). ``runs``: the family's runs,
+    already checked against the registration (:func:`registered_section` refuses any that differ)."""
     done, seeds = _done(reg, runs), reg.looks[look].seeds
     n = sum((t, a, s) in done for t in reg.tasks for a in reg.arms for s in seeds)
     lines = [f"Look {look + 1}: {n} of {len(reg.tasks) * len(reg.arms) * len(seeds)} registered runs done "

@@ -165,8 +165,8 @@ def test_the_registered_runs_pass_the_registration_and_the_readme_lists_them(shi
     for folder in {r.population["folder"] for r in runs}:
         members = [r for r in runs if r.population["folder"] == folder]
         assert len(members) == 12 and len({r.task for r in members}) == 1
-        seeds = sorted({r.seed for r in members})
-        assert {(arm_names(members)[r.path], r.seed) for r in members} == {(a, s) for a in reg.arms for s in seeds}
+        seeds, arms = sorted({r.seed for r in members}), arm_names(members)
+        assert {(arms[r.path], r.seed) for r in members} == {(a, s) for a in reg.arms for s in seeds}
         first = members[0].summary
         row = (f"| `{folder}` | {members[0].task} | {seeds[0]}-{seeds[-1]}, four arms | H200, ")
         assert row in readme and f"| {first['wall_s']:.0f} s | {first['median_iter_ms']:.1f} ms |" in readme, folder
