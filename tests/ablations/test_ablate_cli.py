@@ -291,7 +291,7 @@ def test_time_limit_stops_cleanly(tmp_path):
     assert summary["status"] == "finished" and summary["iterations"] == 2
 
 
-@pytest.mark.parametrize("folder", ["bytecode", "off"])
+@pytest.mark.parametrize("folder", [pytest.param("bytecode", marks=pytest.mark.slow), "off"])
 def test_ablate_keeps_pythons_bytecode_in_its_folder_where_the_install_gets_none(tmp_path, folder):
     """Told not to write bytecode beside the sources (PYTHONDONTWRITEBYTECODE, as in many container images),
     ``ablate`` keeps it in $PIXELGRAD_BYTECODE_CACHE from its first line, torch's included, so that the next start
@@ -553,7 +553,8 @@ def wait_for_lines(proc: subprocess.Popen, run: Path, n: int, timeout: float = 1
     assert proc.poll() is None, "the run ended before the signal: give it more iterations"
 
 
-@pytest.mark.parametrize("second", ["SIGINT", pytest.param("SIGTERM", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("second", ["SIGINT", "SIGTERM"])
 def test_a_second_signal_stops_at_once_and_the_last_finished_iteration_resumes(tmp_path, second):
     """Two signals to a child ablate once it has written its first metrics line, with --checkpoint-every far
     away: it stops at once, checkpoints its last finished iteration from the copy it holds and says so; the

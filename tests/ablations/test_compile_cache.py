@@ -96,8 +96,8 @@ def _poly(x):
     return (x.sin() * 3.0 + x.cos().pow(2)).sum(-1)
 
 
-@pytest.mark.parametrize("damage", [pytest.param("random", marks=pytest.mark.slow), "flipped",
-                                    pytest.param("truncated", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("damage", ["random", "flipped", "truncated"])
 def test_a_damaged_artifact_file_is_moved_aside_with_one_warning_and_compiling_still_works(tmp_path, clean_env,
                                                                                           damage):
     cache = CompileCache(tmp_path, CPU)

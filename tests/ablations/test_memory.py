@@ -342,6 +342,7 @@ def test_real_sweep_with_the_ray_tracer(tmp_path):
     assert pts[2]["saved_mb"] == pytest.approx(pts[0]["saved_mb"], abs=1e-6)
 
 
+@pytest.mark.slow
 def test_jobs_run_points_at_once_with_the_rows_of_a_sequential_sweep(tmp_path, fake_env):
     """--jobs 3: points overlap in time (each in its own process), failures and timeouts are still rows, and the
     CSV holds what a one-at-a-time sweep writes, in the same order."""

@@ -208,6 +208,7 @@ def test_report_of_a_sweep_folder(tmp_path, floors, monkeypatch):
     assert "Sweep command: `ablate-paper --tasks hopper`" in text
 
 
+@pytest.mark.slow
 def test_report_uses_a_benchmark_for_table1(tmp_path, floors):
     folder = paper_sweep(tmp_path / "p", seeds=(0,))
     bench = tmp_path / "iteration.json"
@@ -362,6 +363,7 @@ def packed_sweep(folder: Path) -> Path:
     return folder
 
 
+@pytest.mark.slow
 def test_report_of_packed_runs_sets_each_arms_time_alone_beside_its_populations(tmp_path):
     folder = packed_sweep(tmp_path / "p")
     floors = tmp_path / "floors.json"

@@ -233,6 +233,7 @@ def test_probe_figures_are_skipped_without_probe_metrics(tmp_path):
     assert "image_sensitivity_f" in res.skipped["image_sensitivity.png"]
 
 
+@pytest.mark.slow
 def test_plot_runs_reads_the_floors_flag(runs_dir, tmp_path):
     from ablations.reports import PlotConfig, plot_runs
 
@@ -541,6 +542,7 @@ def test_runs_sharing_a_seed_are_not_averaged_as_seeds(tmp_path, capsys):
     assert (tmp_path / "p" / "return_vs_iter.png").exists()
 
 
+@pytest.mark.slow
 def test_figures_are_byte_identical_when_their_data_is(runs_dir, tmp_path):
     from ablations.reports.plot import plot_performance_profiles
     from ablations.reports.stats import PerformanceProfile, ProfileCurve

@@ -81,7 +81,8 @@ def test_members_that_cannot_make_a_population_are_one_clear_line(tmp_path, args
     assert not any(tmp_path.iterdir())  # nothing was created
 
 
-@pytest.mark.parametrize("signals", [("SIGINT",), pytest.param(("SIGINT", "SIGTERM"), marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("signals", [("SIGINT",), ("SIGINT", "SIGTERM")])
 def test_a_signal_stops_a_population_and_its_resume_repeats_nothing(tmp_path, signals):
     """A real SIGINT to a child ablate training a population: every member checkpoints the last finished
     iteration; the resumed population's members equal those of one that ran through. A second signal landing in

@@ -93,6 +93,7 @@ def test_report_has_our_table_the_papers_and_not_run(inputs, tmp_path):
     assert "torch 2.13.0+cpu" in text and "0123456789ab" in text
 
 
+@pytest.mark.slow
 def test_benchmark_json_wins_and_differing_settings_give_no_ratio(inputs, tmp_path):
     runs, _ = inputs
     bench = tmp_path / "bench.json"
@@ -164,6 +165,7 @@ def test_cli_builds_the_report(inputs, tmp_path, capsys):
     assert out.read_text().startswith("# Policy gradients through pixels")
 
 
+@pytest.mark.slow
 def test_report_lists_floors_dates_and_variants(tmp_path):
     runs = tmp_path / "runs"
     write_run(runs, task="hopper", mode="decoupled", seed=0, bwd_ms=20.0, settings={"raster_model": "alpha"},
@@ -226,6 +228,7 @@ def test_benchmark_rows_of_several_raster_models_stay_apart(tmp_path):
     assert "full (alpha):" in ant[0][4] and "full (hard):" in ant[1][4]
 
 
+@pytest.mark.slow
 def test_report_names_no_absolute_path(inputs, tmp_path, monkeypatch):
     """Inputs given as absolute paths, a run recorded by `python -m ablations ablate`, the report's own command run
     through a console script: the report names them relative to its folder, and programs by name."""

@@ -443,6 +443,7 @@ def test_a_sweep_the_cluster_cannot_run_is_refused_leaving_no_sweep_json(ray_clu
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_failed_run_is_recorded_and_a_rerun_resumes_it(ray_cluster, tmp_path):
     out = tmp_path / "sweep"
     killed = "cartpole_state_seed1"
@@ -472,6 +473,7 @@ def max_overlap(spans: list[dict]) -> int:
     return most
 
 
+@pytest.mark.slow
 def test_sweep_trains_at_most_cpus_over_cpus_per_run_runs_at_once(ray_cluster, tmp_path):
     """Two CPUs, one per run: six runs, never more than two training at once (each run records when it trained)."""
     log = tmp_path / "spans.jsonl"
@@ -486,6 +488,7 @@ def test_sweep_trains_at_most_cpus_over_cpus_per_run_runs_at_once(ray_cluster, t
     assert {s["threads"] for s in spans} == {"1"}  # ablate --threads: the run's --cpus-per-run
 
 
+@pytest.mark.slow
 def test_a_run_stopped_by_a_signal_is_retried_from_its_checkpoint(ray_cluster, tmp_path):
     """ablate stops on SIGTERM after checkpointing (summary "interrupted", exit status 130): the worker ships that
     checkpoint and Ray retries the run, which resumes from it and repeats no iteration."""

@@ -26,6 +26,7 @@ def two_gpu_cluster():
 
 
 @pytest.mark.usefixtures("two_gpu_cluster")
+@pytest.mark.slow
 def test_each_job_gets_a_gpu_of_its_own_and_the_manifest_and_status_lines_name_it(tmp_path, capsys):
     """Two runs, one GPU each (--gpus-per-run 1, --pack 1), at once: each process sees its own GPU
     (CUDA_VISIBLE_DEVICES, set by Ray), sweep.json records that GPU and the host beside each run, and the

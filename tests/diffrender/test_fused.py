@@ -57,7 +57,8 @@ def _compare(verts, faces, colors, cam, kw, *, normals=None, tol=1e-10):
         assert (gd - gf).abs().max() <= tol * gd.abs().max()
 
 
-@pytest.mark.parametrize("kw", [dict(), pytest.param(dict(cull_backfaces=False, floor=None, save_blend_state=True),
+@pytest.mark.parametrize("kw", [pytest.param(dict(), marks=pytest.mark.slow),
+                                pytest.param(dict(cull_backfaces=False, floor=None, save_blend_state=True),
                                                      marks=pytest.mark.slow),
                                 # the Triton interpreter takes ~45 s for this one: on CPUs with -m slow
                                 pytest.param(dict(sigma=0.3, gamma=1e-3), marks=pytest.mark.slow),
@@ -90,8 +91,9 @@ def test_fused_super_blocks_and_crowded_backward_tile_match_dense(ant64, monkeyp
     _compare(verts, ant64.faces, ant64.colors, cam, dict(raster_model=model, save_blend_state=model != "hard"))
 
 
-@pytest.mark.parametrize(("model", "splits", "sub_block"), [("hard", 3, 16), ("hard", 1, 16), ("hard", 3, 8),
-                                                          pytest.param("softmax", 3, 8, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(("model", "splits", "sub_block"), [
+    ("hard", 1, 16), pytest.param("hard", 3, 16, marks=pytest.mark.slow),
+    pytest.param("hard", 3, 8, marks=pytest.mark.slow), pytest.param("softmax", 3, 8, marks=pytest.mark.slow)])
 def test_exact_depth_ties_go_to_the_lowest_face_index(monkeypatch, model, splits, sub_block):
     """Five copies of one triangle (exactly equal depths, different colours) in super-blocks of 16 faces:
     face 20 (green) and face 28 (same block; the other half when blocks are evaluated 8 faces at a time) and
@@ -167,8 +169,8 @@ def _assert_same_shading(image: torch.Tensor, reference: torch.Tensor) -> None:
         torch.testing.assert_close(image, reference, rtol=4 * torch.finfo(image.dtype).eps, atol=1e-30)
 
 
-@pytest.mark.parametrize("model", ["hard", pytest.param("softmax", marks=pytest.mark.slow),
-                                   pytest.param("alpha", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["hard", "softmax", "alpha"])
 def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     """The state the backward reads (maximum, denominator, weight and coverage sums; the hard model's chosen
     face) and the image, from one walk and from three merged parts: equal (the hard model's state exactly, its
@@ -190,7 +192,7 @@ def test_split_forward_keeps_the_unsplit_blend_state(ant64, monkeypatch, model):
     # the default walk of images rendered with nothing saved, in whole-block chunks as the defaults walk
     # (FWD_SUB_BLOCK = FACE_BLOCK); split in three, the case with part boundaries (the default walk split and
     # unsplit agree: test_split_forward_keeps_the_unsplit_blend_state)
-    ("hard", dict(FWD_DEFER_SHADING=True), (3,), 16),
+    pytest.param("hard", dict(FWD_DEFER_SHADING=True), (3,), 16, marks=pytest.mark.slow),
     pytest.param("hard", dict(FWD_DEFER_SHADING=True), (1,), 16, marks=pytest.mark.slow),
     # blocks walked in chunks of 4, several per block: a duplicate of the chunk loop the compacted cases cover
     pytest.param("hard", dict(FWD_DEFER_SHADING=True), (3,), 4, marks=pytest.mark.slow),
@@ -237,8 +239,8 @@ def test_compacted_forward_walk_matches_dense(ant64, monkeypatch, model):
     _compare(verts, ant64.faces, ant64.colors, ant_camera(q, size=8), dict(raster_model=model))
 
 
-@pytest.mark.parametrize("model", ["softmax", pytest.param("hard", marks=pytest.mark.slow),
-                                   pytest.param("alpha", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["softmax", "hard", "alpha"])
 def test_compacted_backward_lanes_give_every_face_the_same_gradient(ant64, monkeypatch, model):
     """The backward with ``BWD_COMPACT`` (a program's lanes hold only the faces whose boxes reach its tile, in
     sub-blocks of 8 here, of 16-face blocks) against the block-wise lanes: the same gradients, bit for bit (each
@@ -335,7 +337,8 @@ def test_fused_matches_dense_with_given_normals_and_per_env_colors(ant64):
     _compare(verts, ant64.faces, colors, ant_camera(q, size=12), dict(), normals=normals)
 
 
-@pytest.mark.parametrize("model", ["softmax", "alpha", pytest.param("hard", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("model", ["softmax", pytest.param("alpha", marks=pytest.mark.slow),
+                                   pytest.param("hard", marks=pytest.mark.slow)])
 def test_fused_gradcheck_tiny_scene(monkeypatch, model):
     """torch.autograd.gradcheck in float64 of the image in the vertices, colours and camera eye. Super-blocks of
     one block: the default 16 would give the setup kernel 15 padding blocks to write per render (15/16 of its
@@ -379,7 +382,8 @@ def test_fused_degenerate_faces_match_dense(cull):
     assert v.grad[0, :3].abs().sum() > 0 and v.grad[0, 12:18].abs().sum() == 0
 
 
-@pytest.mark.parametrize("model", ["hard", "softmax", pytest.param("alpha", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("model", ["hard", pytest.param("softmax", marks=pytest.mark.slow),
+                                   pytest.param("alpha", marks=pytest.mark.slow)])
 def test_images_without_gradient_equal_the_differentiable_ones(ant64, model):
     """What decoupled rollouts, evaluation and videos render (no_grad: the forward kernel saves nothing) is the
     image the differentiable path renders, with the blend state kept for the backward or recomputed by it: bit

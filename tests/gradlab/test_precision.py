@@ -134,6 +134,7 @@ def test_a_population_shares_one_precision():
         check_population(cfgs)
 
 
+@pytest.mark.slow
 def test_ablate_records_the_precision_and_refuses_what_cannot_apply(tmp_path, capsys):
     from ablations.cli import ablate_main
 

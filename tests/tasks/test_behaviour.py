@@ -26,6 +26,7 @@ def heights(env, action, steps):
     return torch.stack(out), term
 
 
+@pytest.mark.slow
 def test_ant_lands_on_its_legs_then_sinks_onto_its_torso():
     """What is true of SHAC's 182 kg ant with dflex contact and limit penalties: dropped from 0.75 m it lands
     on its feet (torso ~0.5 m), but its ankles give way against the soft limit penalty (ke 1e3) and it sinks

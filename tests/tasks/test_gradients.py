@@ -94,7 +94,7 @@ def test_cheetah_through_contact_and_the_ffoot_limit_matches_finite_differences(
     assert any(abs(ad) > 1e-1 for ad, _ in pairs)
 
 
-@pytest.mark.parametrize("name", [pytest.param(t, marks=pytest.mark.slow) if t in ("humanoid", "cheetah") else t
+@pytest.mark.parametrize("name", [pytest.param(t, marks=pytest.mark.slow) if t in ("humanoid", "cheetah", "ant") else t
                                   for t in tasks.TASKS])
 def test_gradients_finite_short_windows(name):
     """CI variant of the 1000-step check: 64 steps of random actions in windows of 32 (SHAC-style, detach at
@@ -200,7 +200,8 @@ def test_row_gather_backward_is_the_scatter_sum_as_a_gather():
         RowGather([0, 5], 5, device=torch.device("cpu"))
 
 
-@pytest.mark.parametrize("name", ["hopper", pytest.param("humanoid", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["hopper", "humanoid"])
 def test_world_frames_backward_by_subtree_sums_equals_the_tree_walk(name):
     """_WorldFrames (depth-round products forward, subtree-sum backward) against plain autograd through the
     leaf-to-root recursion X_e = X_parent(e) P_e, float64, on the robot's real tree (entries: bodies, then
